@@ -1,0 +1,5 @@
+"""Allow ``python -m likeness``."""
+
+from likeness.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,1 @@
+"""Design-time tools: skin meshing, FEM, material fitting, calibration fitting, datasets, training."""

@@ -1,0 +1,1 @@
+"""The realtime daemon: lifecycle, fixed-rate loop, ZeroMQ API, curves, solving, safety, telemetry."""

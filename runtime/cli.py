@@ -1,0 +1,15 @@
+"""Runtime commands: the daemon and its clients (``demo``, ``daemon``, ``stream``, ``status``, ``estop``...)."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+
+#: Modules that add top-level runtime subcommands through ``register(subparsers)``.
+RUNTIME_COMMAND_MODULES: tuple[str, ...] = ()
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add the runtime's top-level commands."""
+    for name in RUNTIME_COMMAND_MODULES:
+        importlib.import_module(name).register(sub)

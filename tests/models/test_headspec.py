@@ -1,0 +1,66 @@
+"""Head spec loading: the sample head loads, bad specs fail naming file, key and value."""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from pathlib import Path
+
+import pytest
+
+from models.errors import SpecError
+from models.headspec import head_from_dict, load_head
+
+SAMPLE = Path(__file__).resolve().parents[2] / "heads" / "sample" / "head.toml"
+
+
+def sample_dict() -> dict:
+    return tomllib.loads(SAMPLE.read_text())
+
+
+def test_sample_head_loads_in_si() -> None:
+    head = load_head(SAMPLE)
+    assert len(head.actuators) == 13
+    jaw = head.actuator("jaw")
+    assert jaw.kind == "rotary"
+    assert math.isclose(jaw.max, math.radians(28.0))
+    assert math.isclose(jaw.max_velocity, math.radians(180.0))
+    assert {b.driver for b in head.buses.values()} == {"canopen402", "dynamixel"}
+    coupled = [g for g in head.groups if g.kind == "coupled"]
+    assert coupled and math.isclose(coupled[0].max_spread, math.radians(45.0))
+    assert head.path("linkmap") == SAMPLE.parent / "linkmap.json"
+    assert any(link.rigid for link in head.links)
+
+
+@pytest.mark.parametrize(
+    ("mutate", "key_fragment"),
+    [
+        (lambda d: d["actuators"][0].update(bus="nope"), "actuators[0] (jaw).bus"),
+        (lambda d: d["actuators"][1].update(id=1), "actuators[1] (lip_corner_l_up).id"),
+        (lambda d: d["actuators"][0].update(unit="furlong"), "actuators[0] (jaw).unit"),
+        (lambda d: d["actuators"][0].update(min=50.0), "actuators[0] (jaw).min"),
+        (lambda d: d["actuators"][0].update(max_velocity=float("nan")), "max_velocity"),
+        (lambda d: d["actuators"][0].update(colour="red"), "actuators[0] (jaw).colour"),
+        (lambda d: d["actuators"][0].pop("bus"), "actuators[0] (jaw).bus"),
+        (lambda d: d["groups"]["blink"].update(actuators=["lid_l", "ghost"]), "groups.blink.actuators"),
+        (lambda d: d["links"]["jaw"].update(actuators=[]), "links.jaw.actuators"),
+        (lambda d: d["buses"]["can0"].pop("driver"), "buses.can0.driver"),
+        (lambda d: d.update(actuators=[]), "actuators"),
+    ],
+)
+def test_bad_specs_name_the_key(mutate, key_fragment: str) -> None:
+    data = sample_dict()
+    mutate(data)
+    with pytest.raises(SpecError) as info:
+        head_from_dict(data, source="bad.toml")
+    assert "bad.toml" in str(info.value)
+    assert key_fragment in str(info.value)
+
+
+def test_unreadable_and_invalid_files(tmp_path: Path) -> None:
+    with pytest.raises(SpecError, match="cannot read"):
+        load_head(tmp_path / "missing.toml")
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[head\nname=")
+    with pytest.raises(SpecError, match="not valid TOML"):
+        load_head(bad)
