@@ -1,0 +1,365 @@
+"""The learned skin predictor: a KSNN (one tanh hidden layer per axis) in one ONNX graph, run by onnxruntime.
+
+File format (``format_version`` 1), written by ``offline.train.export`` and read here without torch or onnx:
+
+* graph input ``actuators`` float32 (B, A), actuator values in SI (rad, m) in the order of the metadata;
+  the graph normalizes them to [0, 1] (``ksnn.lo``, ``ksnn.inv_range``), then for each axis ``k`` in x, y, z
+  computes ``tanh(p̂ @ ksnn.k.W1 + ksnn.k.b1) @ ksnn.k.W2 + ksnn.k.b2`` and stacks the three into the output
+  ``offsets`` float32 (B, V, 3): surface-vertex offsets from the base mesh, metres.
+* ``metadata_props`` (all keys prefixed ``likeness.``): ``format``, ``format_version``, ``head``, ``units``,
+  ``actuators`` (JSON list of {name, unit, min, max}, SI), ``hidden``, ``n_vertices``, ``base_vertices``
+  (base64 float32 (V, 3)), ``faces`` (base64 int32 (F, 3)), optionally ``face_units`` (JSON names) with
+  ``face_unit_offsets`` (base64 float32 (U, V, 3)), and ``training`` (JSON provenance and held-out errors).
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from models.errors import SpecError
+
+FORMAT = "likeness-ksnn"
+FORMAT_VERSION = 1
+META_PREFIX = "likeness."
+INPUT_NAME = "actuators"
+OUTPUT_NAME = "offsets"
+AXES = ("x", "y", "z")
+#: Skin strain range the silicone was validated for (engineering strain of the surface principal stretches).
+DEFAULT_STRAIN_RANGE = (-0.20, 0.50)
+
+
+def encode_array(arr: np.ndarray, dtype: str) -> str:
+    """Base64 of the little-endian bytes of ``arr`` cast to ``dtype`` (metadata values must be strings)."""
+    return base64.b64encode(np.ascontiguousarray(arr, dtype=np.dtype(dtype).newbyteorder("<")).tobytes()).decode()
+
+
+def decode_array(text: str, dtype: str, shape: tuple[int, ...], source: str, key: str) -> np.ndarray:
+    """Inverse of :func:`encode_array`; raises :class:`SpecError` naming ``key`` when the size is wrong."""
+    try:
+        raw = base64.b64decode(text.encode(), validate=True)
+    except ValueError as exc:
+        raise SpecError(source, key, f"not valid base64: {exc}") from exc
+    arr = np.frombuffer(raw, dtype=np.dtype(dtype).newbyteorder("<"))
+    if arr.size != int(np.prod(shape)):
+        raise SpecError(source, key, f"holds {arr.size} values, expected shape {shape}")
+    return arr.reshape(shape).astype(np.dtype(dtype).newbyteorder("="))
+
+
+@dataclass(frozen=True)
+class KsnnWeights:
+    """The weights of the three KSNN heads, axis-major, with inputs in normalized [0, 1] units.
+
+    ``W1`` (3, A, H), ``b1`` (3, H), ``W2`` (3, H, V), ``b2`` (3, V); raw input p maps to p̂ = (p − lo) / (hi − lo).
+    """
+
+    lo: np.ndarray
+    hi: np.ndarray
+    W1: np.ndarray
+    b1: np.ndarray
+    W2: np.ndarray
+    b2: np.ndarray
+
+    @property
+    def n_actuators(self) -> int:
+        return self.W1.shape[1]
+
+    @property
+    def hidden(self) -> int:
+        return self.W1.shape[2]
+
+    @property
+    def n_vertices(self) -> int:
+        return self.W2.shape[2]
+
+    def normalize(self, p: np.ndarray) -> np.ndarray:
+        return (np.asarray(p, dtype=np.float64) - self.lo) / (self.hi - self.lo)
+
+    def hidden_activations(self, p: np.ndarray) -> np.ndarray:
+        """tanh hidden activations (3, H) for one raw pose (A,)."""
+        x = self.normalize(p)
+        return np.tanh(np.einsum("a,kah->kh", x, self.W1) + self.b1)
+
+    def offsets(self, p: np.ndarray) -> np.ndarray:
+        """Reference NumPy forward pass for one pose: offsets (V, 3) (float64; tests compare ONNX with it)."""
+        h = self.hidden_activations(p)
+        return (np.einsum("kh,khv->kv", h, self.W2) + self.b2).T
+
+
+@dataclass(frozen=True)
+class ActuatorRange:
+    """One model input: actuator name, SI unit and the range the model was trained on."""
+
+    name: str
+    unit: str
+    min: float
+    max: float
+
+
+class SkinPredictor:
+    """Predicts the skin surface from actuator values with a KSNN ONNX model (onnxruntime, torch-free).
+
+    ``predict`` takes one pose (A,) → positions (V, 3) or a batch (B, A) → (B, V, 3); positions are the base
+    mesh plus predicted offsets. ``jacobian`` is analytic from the weights; ``principal_stretches`` and
+    ``strain_violations`` measure surface stretch per triangle for the skin-strain guard.
+    """
+
+    def __init__(self, path: str | Path, threads: int = 1) -> None:
+        import onnxruntime as ort
+
+        self.path = Path(path)
+        source = str(self.path)
+        if not self.path.is_file():
+            raise SpecError(source, "file", "predictor model not found")
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = threads
+        opts.inter_op_num_threads = 1
+        opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        try:
+            self._session = ort.InferenceSession(source, sess_options=opts, providers=["CPUExecutionProvider"])
+        except Exception as exc:  # onnxruntime raises its own exception types
+            raise SpecError(source, "graph", f"onnxruntime cannot load the model: {exc}") from exc
+        inputs = {i.name: i for i in self._session.get_inputs()}
+        outputs = {o.name for o in self._session.get_outputs()}
+        if INPUT_NAME not in inputs or OUTPUT_NAME not in outputs:
+            raise SpecError(source, "graph", f"needs input {INPUT_NAME!r} and output {OUTPUT_NAME!r}",
+                            {"inputs": sorted(inputs), "outputs": sorted(outputs)})
+        meta = dict(self._session.get_modelmeta().custom_metadata_map)
+        self.metadata: Mapping[str, str] = meta
+        self._parse_metadata(meta, source)
+        self._weights: KsnnWeights | None = None
+
+    # ------------------------------------------------------------------ metadata
+    def _meta(self, meta: Mapping[str, str], key: str, source: str) -> str:
+        full = META_PREFIX + key
+        if full not in meta:
+            raise SpecError(source, f"metadata {full}", "missing")
+        return meta[full]
+
+    def _parse_metadata(self, meta: Mapping[str, str], source: str) -> None:
+        fmt = self._meta(meta, "format", source)
+        if fmt != FORMAT:
+            raise SpecError(source, f"metadata {META_PREFIX}format", f"expected {FORMAT!r}", fmt)
+        version = self._meta(meta, "format_version", source)
+        if version != str(FORMAT_VERSION):
+            raise SpecError(source, f"metadata {META_PREFIX}format_version",
+                            f"this version reads format {FORMAT_VERSION}", version)
+        self.head_name = meta.get(META_PREFIX + "head", "")
+        self.units = self._meta(meta, "units", source)
+        if self.units != "m":
+            raise SpecError(source, f"metadata {META_PREFIX}units", "vertex units must be 'm'", self.units)
+        try:
+            acts = json.loads(self._meta(meta, "actuators", source))
+            self.actuators = tuple(
+                ActuatorRange(str(a["name"]), str(a["unit"]), float(a["min"]), float(a["max"])) for a in acts
+            )
+            self.hidden = int(self._meta(meta, "hidden", source))
+            n_vertices = int(self._meta(meta, "n_vertices", source))
+            self.training: Mapping[str, Any] = json.loads(meta.get(META_PREFIX + "training", "{}"))
+        except (ValueError, KeyError, TypeError) as exc:
+            raise SpecError(source, f"metadata {META_PREFIX}actuators/hidden/n_vertices",
+                            f"malformed: {exc}") from exc
+        if not self.actuators:
+            raise SpecError(source, f"metadata {META_PREFIX}actuators", "lists no actuators")
+        for a in self.actuators:
+            if not a.min < a.max:
+                raise SpecError(source, f"metadata {META_PREFIX}actuators ({a.name})", "min must be below max",
+                                (a.min, a.max))
+        self.base_vertices = decode_array(self._meta(meta, "base_vertices", source), "f4", (n_vertices, 3),
+                                          source, META_PREFIX + "base_vertices")
+        faces_text = self._meta(meta, "faces", source)
+        n_faces = len(base64.b64decode(faces_text)) // 12
+        self.faces = decode_array(faces_text, "i4", (n_faces, 3), source, META_PREFIX + "faces").astype(np.int64)
+        if self.faces.size and (self.faces.min() < 0 or self.faces.max() >= n_vertices):
+            raise SpecError(source, f"metadata {META_PREFIX}faces", f"indices must lie in [0, {n_vertices})")
+        self.face_unit_names: tuple[str, ...] = ()
+        self.face_unit_offsets: np.ndarray | None = None
+        if META_PREFIX + "face_units" in meta:
+            self.face_unit_names = tuple(json.loads(meta[META_PREFIX + "face_units"]))
+            self.face_unit_offsets = decode_array(
+                self._meta(meta, "face_unit_offsets", source), "f4", (len(self.face_unit_names), n_vertices, 3),
+                source, META_PREFIX + "face_unit_offsets")
+        self.lo = np.array([a.min for a in self.actuators])
+        self.hi = np.array([a.max for a in self.actuators])
+        self._base_tri_metric = _triangle_metric(self.base_vertices.astype(np.float64), self.faces)
+
+    @property
+    def actuator_names(self) -> tuple[str, ...]:
+        return tuple(a.name for a in self.actuators)
+
+    @property
+    def n_actuators(self) -> int:
+        return len(self.actuators)
+
+    @property
+    def n_vertices(self) -> int:
+        return self.base_vertices.shape[0]
+
+    def check_against(self, head: Any) -> None:
+        """Refuse a head (``models.headspec.HeadSpec``) whose actuators do not match the model, by name.
+
+        The head must list the same actuators in the same order, with the same kind of unit, and every head
+        range must lie within the range the model was trained on (no extrapolation at show time).
+        """
+        source = str(self.path)
+        model_names = self.actuator_names
+        head_names = tuple(a.name for a in head.actuators)
+        missing = [n for n in model_names if n not in head_names]
+        extra = [n for n in head_names if n not in model_names]
+        if missing:
+            raise SpecError(source, "actuators", f"model actuator(s) not in head {head.name!r}: {', '.join(missing)}")
+        if extra:
+            raise SpecError(source, "actuators", f"head {head.name!r} actuator(s) unknown to the model: "
+                            f"{', '.join(extra)}")
+        if model_names != head_names:
+            first = next(i for i, (a, b) in enumerate(zip(model_names, head_names, strict=True)) if a != b)
+            raise SpecError(source, "actuators", f"order differs at position {first}: model has "
+                            f"{model_names[first]!r}, head has {head_names[first]!r}")
+        si_units = {"rotary": "rad", "linear": "m"}
+        for ma, ha in zip(self.actuators, head.actuators, strict=True):
+            want = si_units.get(getattr(ha, "kind", ""), ha.unit)
+            if ma.unit != want:
+                raise SpecError(source, f"actuators.{ma.name}.unit", f"model unit differs from head unit {want!r}",
+                                ma.unit)
+            tol = 1e-9 * max(1.0, abs(ma.max - ma.min))
+            if ha.min < ma.min - tol or ha.max > ma.max + tol:
+                raise SpecError(source, f"actuators.{ma.name}.range",
+                                f"head range [{ha.min:.6g}, {ha.max:.6g}] {ma.unit} exceeds the trained range "
+                                f"[{ma.min:.6g}, {ma.max:.6g}]")
+
+    # ------------------------------------------------------------------ inference
+    def _as_batch(self, p: np.ndarray) -> tuple[np.ndarray, bool]:
+        arr = np.asarray(p, dtype=np.float32)
+        single = arr.ndim == 1
+        if single:
+            arr = arr[None, :]
+        if arr.ndim != 2 or arr.shape[1] != self.n_actuators:
+            raise ValueError(f"actuator values must have shape ({self.n_actuators},) or (B, {self.n_actuators}), "
+                             f"got {np.shape(p)}")
+        if not np.all(np.isfinite(arr)):
+            raise ValueError("actuator values must be finite")
+        return arr, single
+
+    def predict_offsets(self, p: np.ndarray) -> np.ndarray:
+        """Offsets from the base mesh: (A,) → (V, 3) or (B, A) → (B, V, 3), float32 metres."""
+        batch, single = self._as_batch(p)
+        out = self._session.run([OUTPUT_NAME], {INPUT_NAME: batch})[0]
+        return out[0] if single else out
+
+    def predict(self, p: np.ndarray) -> np.ndarray:
+        """Surface vertex positions (base + offsets): (A,) → (V, 3) or (B, A) → (B, V, 3), float32 metres."""
+        out = self.predict_offsets(p)
+        out += self.base_vertices
+        return out
+
+    # ------------------------------------------------------------------ weights and Jacobian
+    @property
+    def weights(self) -> KsnnWeights:
+        """The KSNN weights read from the graph initializers (dequantized for the int8 variant)."""
+        if self._weights is None:
+            self._weights = load_weights(self.path, self.hidden, self.n_vertices, self.n_actuators)
+        return self._weights
+
+    def jacobian(self, p: np.ndarray) -> np.ndarray:
+        """Analytic d(positions)/d(actuators) at one raw pose: (V*3, A), rows ordered vertex-major (v*3 + axis)."""
+        w = self.weights
+        p = np.asarray(p, dtype=np.float64)
+        if p.shape != (self.n_actuators,):
+            raise ValueError(f"jacobian takes one pose of shape ({self.n_actuators},), got {p.shape}")
+        h = w.hidden_activations(p)  # (3, H)
+        dh = (1.0 - h * h)[:, None, :] * w.W1 / (w.hi - w.lo)[None, :, None]  # (3, A, H)
+        jac = np.einsum("kah,khv->vka", dh, w.W2)  # (V, 3, A)
+        return jac.reshape(self.n_vertices * 3, self.n_actuators)
+
+    # ------------------------------------------------------------------ surface stretch
+    def principal_stretches(self, positions: np.ndarray) -> np.ndarray:
+        """Principal in-plane stretches (min, max) of every surface triangle vs the base mesh: (T, 2) or (B, T, 2)."""
+        pos = np.asarray(positions, dtype=np.float64)
+        g = _triangle_metric(pos, self.faces)
+        return _stretches(self._base_tri_metric, g)
+
+    def strain_extremes(self, positions: np.ndarray) -> tuple[float, float]:
+        """Smallest and largest principal engineering strain over all surface triangles of one pose."""
+        s = self.principal_stretches(positions)
+        return float(s[..., 0].min() - 1.0), float(s[..., 1].max() - 1.0)
+
+    def strain_violations(self, positions: np.ndarray,
+                          strain_range: tuple[float, float] = DEFAULT_STRAIN_RANGE) -> np.ndarray:
+        """Indices of triangles whose principal strains leave ``strain_range`` (one pose)."""
+        s = self.principal_stretches(positions)
+        lo, hi = strain_range
+        return np.flatnonzero((s[:, 0] - 1.0 < lo) | (s[:, 1] - 1.0 > hi))
+
+
+def load_weights(path: str | Path, hidden: int, n_vertices: int, n_actuators: int) -> KsnnWeights:
+    """Read the KSNN weights of a predictor file from its initializers (float or MatMulNBits int8)."""
+    from models.onnx_tensors import read_initializers
+
+    source = str(path)
+    init = read_initializers(path)
+
+    def get(name: str, shape: tuple[int, ...]) -> np.ndarray:
+        arr = init[name].astype(np.float64) if name in init else _dequantize_nbits(init, name, shape, source)
+        if arr.shape != shape:
+            raise SpecError(source, f"initializer {name}", f"expected shape {shape}", arr.shape)
+        return arr
+
+    lo = get("ksnn.lo", (n_actuators,))
+    inv = get("ksnn.inv_range", (n_actuators,))
+    hi = lo + 1.0 / inv
+    W1 = np.stack([get(f"ksnn.{k}.W1", (n_actuators, hidden)) for k in AXES])
+    b1 = np.stack([get(f"ksnn.{k}.b1", (hidden,)) for k in AXES])
+    W2 = np.stack([get(f"ksnn.{k}.W2", (hidden, n_vertices)) for k in AXES])
+    b2 = np.stack([get(f"ksnn.{k}.b2", (n_vertices,)) for k in AXES])
+    return KsnnWeights(lo, hi, W1, b1, W2, b2)
+
+
+def _dequantize_nbits(init: Mapping[str, np.ndarray], name: str, shape: tuple[int, ...], source: str) -> np.ndarray:
+    """Rebuild a float (K, N) MatMul weight from onnxruntime's MatMulNBits 8-bit blocks (symmetric, zp 128)."""
+    q = init.get(name + "_Q8")
+    scales = init.get(name + "_scales")
+    if q is None or scales is None or len(shape) != 2:
+        raise SpecError(source, f"initializer {name}", "missing (neither float nor 8-bit MatMulNBits weights)")
+    k, n = shape
+    zp = init.get(name + "_zero_points")
+    n_blocks = q.shape[1]
+    block = q.shape[2]
+    vals = q.reshape(n, n_blocks * block).astype(np.float64)
+    zero = np.repeat(zp.reshape(n, -1)[:, :n_blocks].astype(np.float64), block, axis=1) if zp is not None else 128.0
+    sc = np.repeat(scales.reshape(n, n_blocks).astype(np.float64), block, axis=1)
+    return ((vals - zero) * sc)[:, :k].T.copy()
+
+
+def _triangle_metric(pos: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """First fundamental form of each triangle in its edge basis: (..., T, 3) entries (e1·e1, e1·e2, e2·e2)."""
+    a = pos[..., faces[:, 0], :]
+    e1 = pos[..., faces[:, 1], :] - a
+    e2 = pos[..., faces[:, 2], :] - a
+    return np.stack([(e1 * e1).sum(-1), (e1 * e2).sum(-1), (e2 * e2).sum(-1)], axis=-1)
+
+
+def _stretches(g0: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """Principal stretches from base and deformed metrics: sqrt of the eigenvalues of G0⁻¹ G (2x2, closed form)."""
+    a0, b0, c0 = g0[..., 0], g0[..., 1], g0[..., 2]
+    a, b, c = g[..., 0], g[..., 1], g[..., 2]
+    det0 = a0 * c0 - b0 * b0
+    det0 = np.where(det0 > 0, det0, np.nan)  # degenerate base triangles give NaN, never a false pass
+    tr = (c0 * a - 2.0 * b0 * b + a0 * c) / det0  # trace of G0⁻¹ G
+    det = (a * c - b * b) / det0
+    disc = np.sqrt(np.maximum(tr * tr / 4.0 - det, 0.0))
+    lam_max = tr / 2.0 + disc
+    lam_min = np.maximum(tr / 2.0 - disc, 0.0)
+    return np.stack([np.sqrt(lam_min), np.sqrt(lam_max)], axis=-1)
+
+
+def actuator_metadata(names: Sequence[str], units: Sequence[str], lo: np.ndarray, hi: np.ndarray) -> str:
+    """The JSON text of the ``actuators`` metadata entry."""
+    return json.dumps([{"name": n, "unit": u, "min": float(a), "max": float(b)}
+                       for n, u, a, b in zip(names, units, lo, hi, strict=True)])
