@@ -1,0 +1,92 @@
+"""``likeness offline dataset``: simulate sampled poses of a head on an engine into a resumable dataset folder."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add the ``dataset`` tool."""
+    p = sub.add_parser("dataset", help="simulate sampled actuator poses into a pose dataset (resumable)",
+                       description="Sample actuator poses of a head (uniform or boundary values, group constraints "
+                       "honoured, duplicates removed, seeded), solve each with the skin FEM through the link map "
+                       "m(p), warm-started from the nearest solved pose, and store one file per pose plus a "
+                       "manifest. Rerun the same command to resume after an interruption.")
+    p.add_argument("--config", required=True, help="head spec TOML (e.g. heads/sample/head.toml)")
+    p.add_argument("--mesh", help="skin mesh folder (e.g. heads/sample/skin)")
+    p.add_argument("--linkmap", help="link map file m(p) (default: the head's paths.linkmap)")
+    p.add_argument("--synthetic", action="store_true",
+                   help="use the analytic test sheet instead of the FEM (pipeline smoke tests and benchmarks)")
+    p.add_argument("--poses", type=int, required=True, help="number of distinct poses to sample")
+    p.add_argument("--out", required=True, help="dataset folder (created, or resumed if it exists)")
+    p.add_argument("--engine", default="local", help="local (default), dask-local or dask://HOST:PORT")
+    p.add_argument("--workers", type=int, default=None, help="worker processes (default: CPU count)")
+    p.add_argument("--threads-per-worker", type=int, default=1, help="solver threads in each worker")
+    p.add_argument("--seed", type=int, default=0, help="sampling seed")
+    p.add_argument("--boundary-prob", type=float, default=0.25,
+                   help="probability that an actuator is set to a boundary value instead of a uniform one")
+    p.add_argument("--max-poses", type=int, default=None, help="stop after solving this many new poses")
+    p.add_argument("--backend", default="auto", help="sparse solver backend for the FEM (auto|cholmod|pardiso|superlu)")
+    p.add_argument("--quiet", action="store_true", help="no progress line")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Build the problem and engine, then generate (or resume) the dataset."""
+    import json
+    import sys
+
+    import numpy as np
+
+    from likeness.cli import CliError
+    from models.errors import SpecError
+    from models.headspec import load_head
+    from offline.dataset.generate import generate_dataset
+    from offline.dataset.sampling import sample_poses
+    from offline.engine import make_engine
+
+    try:
+        head = load_head(args.config)
+    except SpecError as exc:
+        raise CliError(str(exc)) from exc
+    if args.poses < 1:
+        raise CliError(f"--poses must be positive, got {args.poses}")
+    lo = np.array([a.min for a in head.actuators])
+    hi = np.array([a.max for a in head.actuators])
+    units = ["rad" if a.kind == "rotary" else "m" for a in head.actuators]
+    if args.synthetic:
+        from offline.dataset.synthetic import SyntheticSpec
+
+        spec = SyntheticSpec(tuple(float(x) for x in lo), tuple(float(x) for x in hi))
+    else:
+        if not args.mesh:
+            raise CliError("--mesh is required (or --synthetic for the analytic test sheet)")
+        linkmap = args.linkmap or head.path("linkmap")
+        if linkmap is None:
+            raise CliError("--linkmap is required: the head config has no paths.linkmap")
+        try:
+            from offline.dataset.fem_problem import FemSpec
+        except ImportError as exc:
+            raise CliError(f"the skin FEM is not available in this installation: {exc}") from exc
+        spec = FemSpec(config=str(args.config), mesh=str(args.mesh), linkmap=str(linkmap),
+                       backend=args.backend, threads=args.threads_per_worker)
+        try:
+            spec.check()
+        except (SpecError, OSError, ValueError) as exc:
+            raise CliError(str(exc)) from exc
+    try:
+        samples = sample_poses(head, args.poses, seed=args.seed, boundary_prob=args.boundary_prob)
+        engine = make_engine(args.engine, args.workers, args.threads_per_worker)
+    except ValueError as exc:
+        raise CliError(str(exc)) from exc
+    try:
+        with engine:
+            summary = generate_dataset(
+                args.out, spec, samples, head=head.name, names=head.actuator_names, units=units, lo=lo, hi=hi,
+                engine=engine, seed=args.seed, sampling={"boundary_prob": args.boundary_prob},
+                progress_stream=None if args.quiet else sys.stderr, max_poses=args.max_poses,
+            )
+    except SpecError as exc:
+        raise CliError(str(exc)) from exc
+    print(json.dumps(summary, indent=1))
+    return 0 if summary["failed"] == 0 else 1

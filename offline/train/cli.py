@@ -1,0 +1,49 @@
+"""``likeness offline train``: train the KSNN skin predictor on a pose dataset and export it to ONNX."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add the ``train`` tool."""
+    p = sub.add_parser("train", help="train the KSNN skin predictor on a pose dataset, export ONNX + report",
+                       description="Train three shallow tanh networks (x, y, z vertex offsets) on a pose dataset "
+                       "(80/20 split, hidden size chosen by validation from A, 1.5A, 2A), export one ONNX "
+                       "predictor with its metadata, and write report.json, vertex_error.png and "
+                       "training_curves.png. Rerunning resumes from the checkpoints in OUT/checkpoints.")
+    p.add_argument("--dataset", required=True, help="pose dataset folder (from `likeness offline dataset`)")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--epochs", type=int, default=300)
+    p.add_argument("--batch-size", type=int, default=64)
+    p.add_argument("--lr", type=float, default=3e-3)
+    p.add_argument("--patience", type=int, default=60, help="stop after this many epochs without improvement")
+    p.add_argument("--hidden", type=int, nargs="*", default=None,
+                   help="hidden sizes to try (default: A, 1.5A, 2A for A actuators)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=1, help="torch and onnxruntime threads")
+    p.add_argument("--int8", action="store_true", help="also export the int8 (MatMulNBits) variant and its error")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Train, export, report."""
+    import json
+
+    from likeness.cli import CliError
+    from models.errors import SpecError
+    from offline.train.ksnn import TrainConfig
+    from offline.train.pipeline import train_pipeline
+
+    if args.epochs < 1 or args.batch_size < 1:
+        raise CliError("--epochs and --batch-size must be positive")
+    config = TrainConfig(epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, seed=args.seed,
+                         patience=args.patience, threads=args.threads)
+    try:
+        report = train_pipeline(args.dataset, args.out, config, hidden=args.hidden, int8=args.int8)
+    except (SpecError, ValueError, FileNotFoundError) as exc:
+        raise CliError(str(exc)) from exc
+    print(json.dumps({"predictor": report["predictor"], "hidden": report["hidden"],
+                      "held_out": report["held_out"], **({"int8": report["int8"]} if "int8" in report else {})},
+                     indent=1))
+    return 0

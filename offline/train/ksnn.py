@@ -1,0 +1,219 @@
+"""KSNN training in PyTorch (offline only): three shallow networks (x, y, z) from actuators to vertex offsets.
+
+As in the paper: inputs normalized to [0, 1], one tanh hidden layer, a linear output layer per axis, Adam with
+mean-squared error, an 80/20 split, and the best checkpoint (lowest validation loss) kept. Targets are scaled per
+axis to unit standard deviation for training; the scale is folded back into the exported weights. Checkpoints
+are written atomically every few epochs, so a killed training resumes.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from models.predictor import KsnnWeights
+from offline.dataset.store import atomic_write_bytes
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Training hyper-parameters (defaults fit the coarse sample mesh on a laptop CPU)."""
+
+    epochs: int = 300
+    batch_size: int = 64
+    lr: float = 3e-3
+    weight_decay: float = 0.0
+    val_fraction: float = 0.2
+    seed: int = 0
+    patience: int = 60  # epochs without validation improvement before stopping early
+    threads: int = 1
+    checkpoint_every_s: float = 5.0
+
+
+@dataclass
+class TrainResult:
+    """The best weights found for one hidden size, with the loss history (per epoch, scaled units)."""
+
+    hidden: int
+    weights: KsnnWeights
+    best_epoch: int
+    best_val_mse: float
+    history: dict[str, list[float]] = field(default_factory=dict)
+    seconds: float = 0.0
+
+
+def split_indices(n: int, val_fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Seeded 80/20 (default) split of ``n`` items into sorted train and validation indices."""
+    perm = np.random.default_rng(seed).permutation(n)
+    n_val = max(1, round(n * val_fraction))
+    return np.sort(perm[n_val:]), np.sort(perm[:n_val])
+
+
+def hidden_candidates(n_actuators: int) -> list[int]:
+    """Hidden sizes tried by validation: A, 1.5 A and 2 A."""
+    return sorted({n_actuators, math.ceil(1.5 * n_actuators), 2 * n_actuators})
+
+
+def _module(n_in: int, hidden: int, n_out: int):
+    import torch
+
+    class Ksnn(torch.nn.Module):
+        """Three independent one-hidden-layer tanh networks, stored as batched weights (axis-major)."""
+
+        def __init__(self) -> None:
+            super().__init__()
+            self.W1 = torch.nn.Parameter(torch.empty(3, n_in, hidden))
+            self.b1 = torch.nn.Parameter(torch.empty(3, 1, hidden))
+            self.W2 = torch.nn.Parameter(torch.empty(3, hidden, n_out))
+            self.b2 = torch.nn.Parameter(torch.zeros(3, 1, n_out))
+            bound1 = 1.0 / math.sqrt(n_in)
+            torch.nn.init.uniform_(self.W1, -3 * bound1, 3 * bound1)
+            torch.nn.init.uniform_(self.b1, -1.0, 1.0)
+            torch.nn.init.uniform_(self.W2, -1.0 / math.sqrt(hidden), 1.0 / math.sqrt(hidden))
+
+        def forward(self, x: torch.Tensor) -> torch.Tensor:  # x (B, A) in [0, 1] → (3, B, V)
+            h = torch.tanh(torch.matmul(x.unsqueeze(0), self.W1) + self.b1)
+            return torch.matmul(h, self.W2) + self.b2
+
+    return Ksnn()
+
+
+def train_ksnn(x_norm: np.ndarray, offsets: np.ndarray, train_idx: np.ndarray, val_idx: np.ndarray, hidden: int,
+               lo: np.ndarray, hi: np.ndarray, config: TrainConfig, checkpoint: Path | None = None,
+               log: Callable[[str], None] | None = None) -> TrainResult:
+    """Train one KSNN with ``hidden`` units; ``offsets`` (N, V, 3) may be a memmap (batches are read on demand).
+
+    Resumes from ``checkpoint`` when it exists and matches the problem; returns the best weights in SI-scaled form.
+    """
+    import torch
+
+    torch.set_num_threads(config.threads)
+    torch.manual_seed(config.seed + hidden)
+    n_act = x_norm.shape[1]
+    n_vert = offsets.shape[1]
+    # Per-axis output scaling from the training poses (read in chunks: offsets may not fit in memory).
+    mean = np.zeros((3, n_vert))
+    sq = np.zeros(3)
+    for s in range(0, len(train_idx), 256):
+        chunk = np.asarray(offsets[train_idx[s:s + 256]], dtype=np.float64)
+        mean += chunk.sum(axis=0).T
+        sq += (chunk ** 2).sum(axis=(0, 1))
+    mean /= len(train_idx)
+    var = sq / (len(train_idx) * n_vert) - (mean ** 2).mean(axis=1)
+    scale = np.sqrt(np.maximum(var, 1e-30))
+    model = _module(n_act, hidden, n_vert)
+    with torch.no_grad():
+        model.b2.copy_(torch.from_numpy((mean / scale[:, None])[:, None, :]).float())
+    opt = torch.optim.Adam(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+    sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, factor=0.5, patience=max(5, config.patience // 4))
+    scale_t = torch.from_numpy(scale).float().view(3, 1, 1)
+    history: dict[str, list[float]] = {"train": [], "val": [], "lr": []}
+    start_epoch = 0
+    best = {"val": math.inf, "epoch": -1, "state": None}
+    key = {"n_act": n_act, "n_vert": n_vert, "hidden": hidden, "n_train": len(train_idx), "seed": config.seed}
+    if checkpoint is not None and checkpoint.exists():
+        ck = torch.load(checkpoint, weights_only=False)
+        if ck.get("key") == key:
+            model.load_state_dict(ck["model"])
+            opt.load_state_dict(ck["opt"])
+            sched.load_state_dict(ck["sched"])
+            history = ck["history"]
+            best = ck["best"]
+            start_epoch = ck["epoch"] + 1
+            if log:
+                log(f"H={hidden}: resumed at epoch {start_epoch} (best val {best['val']:.4g} at {best['epoch']})")
+
+    def batch_targets(idx: np.ndarray) -> torch.Tensor:
+        y = np.asarray(offsets[np.sort(idx)], dtype=np.float32)  # (B, V, 3); sorted reads suit a memmap
+        order = np.argsort(np.argsort(idx))
+        y = y[order]
+        return torch.from_numpy(np.ascontiguousarray(y.transpose(2, 0, 1))) / scale_t
+
+    def save(epoch: int) -> None:
+        if checkpoint is None:
+            return
+        buf = io.BytesIO()
+        torch.save({"key": key, "model": model.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict(),
+                    "history": history, "best": best, "epoch": epoch, "scale": scale}, buf)
+        atomic_write_bytes(checkpoint, buf.getvalue())
+
+    x_t = torch.from_numpy(x_norm.astype(np.float32))
+    rng = np.random.default_rng(config.seed * 7919 + hidden)
+    for _ in range(start_epoch):  # keep the shuffle stream identical after a resume
+        rng.permutation(len(train_idx))
+    t0 = time.perf_counter()
+    last_save = time.monotonic()
+    epoch = start_epoch - 1
+    val_targets = batch_targets(val_idx) if len(val_idx) * n_vert * 3 <= 50_000_000 else None
+    for epoch in range(start_epoch, config.epochs):
+        model.train()
+        perm = train_idx[rng.permutation(len(train_idx))]
+        total = 0.0
+        for s in range(0, len(perm), config.batch_size):
+            idx = perm[s:s + config.batch_size]
+            pred = model(x_t[idx])
+            loss = torch.mean((pred - batch_targets(idx)) ** 2)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            total += float(loss.detach()) * len(idx)
+        train_mse = total / len(perm)
+        model.eval()
+        with torch.no_grad():
+            if val_targets is not None:
+                val_mse = float(torch.mean((model(x_t[val_idx]) - val_targets) ** 2))
+            else:
+                acc = 0.0
+                for s in range(0, len(val_idx), 256):
+                    idx = val_idx[s:s + 256]
+                    acc += float(torch.sum((model(x_t[idx]) - batch_targets(idx)) ** 2))
+                val_mse = acc / (len(val_idx) * n_vert * 3)
+        sched.step(val_mse)
+        history["train"].append(train_mse)
+        history["val"].append(val_mse)
+        history["lr"].append(opt.param_groups[0]["lr"])
+        if val_mse < best["val"]:
+            best = {"val": val_mse, "epoch": epoch, "state": {k: v.clone() for k, v in model.state_dict().items()}}
+        if log and (epoch % 25 == 0 or epoch == config.epochs - 1):
+            log(f"H={hidden} epoch {epoch}: train {train_mse:.4g} val {val_mse:.4g} (best {best['val']:.4g})")
+        if time.monotonic() - last_save > config.checkpoint_every_s:
+            save(epoch)
+            last_save = time.monotonic()
+        if epoch - best["epoch"] >= config.patience:
+            if log:
+                log(f"H={hidden}: no improvement for {config.patience} epochs, stopping at epoch {epoch}")
+            break
+    save(epoch)
+    state = best["state"] if best["state"] is not None else model.state_dict()
+    return TrainResult(hidden=hidden, weights=_to_weights(state, scale, lo, hi), best_epoch=int(best["epoch"]),
+                       best_val_mse=float(best["val"]), history=history, seconds=time.perf_counter() - t0)
+
+
+def _to_weights(state: dict[str, Any], scale: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> KsnnWeights:
+    """Fold the per-axis output scale into W2, b2 and return float64 weights in the predictor's layout."""
+    W1 = state["W1"].detach().double().numpy()
+    b1 = state["b1"].detach().double().numpy()[:, 0, :]
+    W2 = state["W2"].detach().double().numpy() * scale[:, None, None]
+    b2 = state["b2"].detach().double().numpy()[:, 0, :] * scale[:, None]
+    return KsnnWeights(np.asarray(lo, float), np.asarray(hi, float), W1, b1, W2, b2)
+
+
+def torch_offsets(weights: KsnnWeights, p: np.ndarray) -> np.ndarray:
+    """Offsets (B, V, 3) of raw poses (B, A) computed by the PyTorch module (used to check the ONNX export)."""
+    import torch
+
+    model = _module(weights.n_actuators, weights.hidden, weights.n_vertices)
+    with torch.no_grad():
+        model.W1.copy_(torch.from_numpy(weights.W1))
+        model.b1.copy_(torch.from_numpy(weights.b1[:, None, :]))
+        model.W2.copy_(torch.from_numpy(weights.W2))
+        model.b2.copy_(torch.from_numpy(weights.b2[:, None, :]))
+        x = torch.from_numpy(weights.normalize(p).astype(np.float32))
+        return model(x).numpy().transpose(1, 2, 0)
