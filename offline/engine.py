@@ -61,6 +61,27 @@ class Engine(ABC):
         self.close()
 
 
+class SerialEngine(Engine):
+    """Runs every task in this process, one after another (debugging, tiny runs, tests of the callers)."""
+
+    n_workers = 1
+
+    def __init__(self, retries: int = 0) -> None:
+        self.retries = retries
+
+    def run(self, fn, keys, make_args, max_in_flight=None):
+        for key in keys:
+            for attempt in range(1, self.retries + 2):
+                try:
+                    result = fn(*make_args(key))
+                except Exception as exc:  # a task error is an outcome, not the end of the run
+                    if attempt > self.retries:
+                        yield Outcome(key, error=f"{type(exc).__name__}: {exc}", attempts=attempt)
+                    continue
+                yield Outcome(key, result, attempts=attempt)
+                break
+
+
 def _init_worker(threads: int) -> None:
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
         os.environ[var] = str(threads)
@@ -219,9 +240,11 @@ class DaskEngine(Engine):
 
 
 def make_engine(spec: str, n_workers: int | None = None, threads_per_worker: int = 1) -> Engine:
-    """``local`` (default), ``dask-local`` (start a local Dask cluster) or ``dask://HOST:PORT``."""
+    """``local`` (default), ``serial`` (in this process), ``dask-local`` (start a local Dask cluster) or ``dask://HOST:PORT``."""
     if spec in ("local", "", None):
         return LocalPoolEngine(n_workers, threads_per_worker)
+    if spec == "serial":
+        return SerialEngine()
     if spec == "dask-local":
         return DaskEngine(None, n_workers, threads_per_worker)
     if spec.startswith("dask://"):
