@@ -34,10 +34,15 @@ from .mesh import TetMesh
 
 @dataclass(frozen=True)
 class Dirichlet:
-    """Prescribed positions: node indices (K,) and their target positions (K, 3) in metres."""
+    """Prescribed positions: node indices (K,) and their target positions (K, 3) in metres.
+
+    ``components`` (K, 3) bool, optional: which coordinates of each node are prescribed (default: all three);
+    unprescribed coordinates are free (e.g. frictionless contact constrains only the normal one).
+    """
 
     nodes: np.ndarray
     positions: np.ndarray
+    components: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         nodes = np.asarray(self.nodes, dtype=np.int64).reshape(-1)
@@ -50,11 +55,24 @@ class Dirichlet:
             raise ValueError(f"Dirichlet.nodes contains a negative index ({nodes.min()})")
         if not np.all(np.isfinite(pos)):
             raise ValueError("Dirichlet.positions contains non-finite values")
-        nodes.setflags(write=False)
-        pos = np.ascontiguousarray(pos)
-        pos.setflags(write=False)
-        object.__setattr__(self, "nodes", nodes)
-        object.__setattr__(self, "positions", pos)
+        comp = np.ones((nodes.size, 3), dtype=bool) if self.components is None else np.asarray(self.components)
+        if comp.shape != (nodes.size, 3) or comp.dtype != np.bool_:
+            raise ValueError(f"Dirichlet.components must be a bool array of shape ({nodes.size}, 3), "
+                             f"got {comp.dtype} {comp.shape}")
+        for name, arr in (("nodes", nodes), ("positions", pos), ("components", comp)):
+            arr = np.ascontiguousarray(arr)
+            arr.setflags(write=False)
+            object.__setattr__(self, name, arr)
+
+    @property
+    def dofs(self) -> np.ndarray:
+        """Prescribed DoF indices (3 * node + axis), in node order."""
+        return (3 * self.nodes[:, None] + np.arange(3))[self.components]
+
+    @property
+    def dof_values(self) -> np.ndarray:
+        """Prescribed coordinate of each entry of :attr:`dofs`."""
+        return self.positions[self.components]
 
 
 def _set_nodes(mesh: TetMesh, name: str) -> np.ndarray:
@@ -71,13 +89,14 @@ def fixed(mesh: TetMesh, set_names: str | Sequence[str]) -> Dirichlet:
 
 
 def combine(*conditions: Dirichlet) -> Dirichlet:
-    """Union of Dirichlet conditions; a node given several times keeps its first target."""
+    """Union of Dirichlet conditions; a node given several times keeps its first entry (target and components)."""
     if not conditions:
         return Dirichlet(np.zeros(0, np.int64), np.zeros((0, 3)))
     nodes = np.concatenate([c.nodes for c in conditions])
     pos = np.concatenate([c.positions for c in conditions])
+    comp = np.concatenate([c.components for c in conditions])
     _, first = np.unique(nodes, return_index=True)
-    return Dirichlet(nodes[first], pos[first])
+    return Dirichlet(nodes[first], pos[first], comp[first])
 
 
 def rigid_transform_dirichlet(mesh: TetMesh, transforms: Mapping[str, np.ndarray],
@@ -219,18 +238,18 @@ def solve_static(mesh: TetMesh, material: Material, dirichlet: Dirichlet, *, x0:
         raise ValueError(f"x0 must have shape ({N}, 3), got {x.shape}")
     if _en.min_jacobian(mesh, x) <= 0:
         raise ValueError("initial positions invert at least one element (J <= 0)")
-    cdofs = (3 * nodes[:, None] + np.arange(3)).ravel()
+    cdofs = dirichlet.dofs
     free = np.ones(3 * N, dtype=bool)
     free[cdofs] = False
     free_idx = np.flatnonzero(free)
     if free_idx.size == 0:
         raise ValueError("every DoF is constrained; nothing to solve")
-    c_start = x[nodes].copy()
-    c_goal = np.asarray(dirichlet.positions)
+    c_start = x.ravel()[cdofs].copy()
+    c_goal = dirichlet.dof_values
     f_grav = (_en.gravity_forces(mesh, material, opts.gravity) if opts.gravity is not None else np.zeros((N, 3)))
 
     if opts.load_steps == "auto":
-        disp = float(np.linalg.norm(c_goal - c_start, axis=1).max()) if nodes.size else 0.0
+        disp = float(np.abs(c_goal - c_start).max()) if cdofs.size else 0.0
         n_steps = int(min(50, max(1, math.ceil(disp / _mean_edge_length(mesh)))))
     else:
         n_steps = int(opts.load_steps)
@@ -263,7 +282,7 @@ def solve_static(mesh: TetMesh, material: Material, dirichlet: Dirichlet, *, x0:
             t = time.perf_counter()
             r = (_en.internal_forces(mesh, material, xk) - fext).ravel()
             timings["assemble"] += time.perf_counter() - t
-            dc = (target - xk[nodes]).ravel()
+            dc = target - xk.ravel()[cdofs]
             rf = r[free_idx]
             res = float(np.linalg.norm(rf))
             f_ref = max(float(np.linalg.norm(fext)), float(np.linalg.norm(r[cdofs])) if cdofs.size else 0.0)
@@ -344,6 +363,8 @@ def solve_static(mesh: TetMesh, material: Material, dirichlet: Dirichlet, *, x0:
             if not accepted:
                 raise _StepFailed("line search found no admissible step")
             xk = xt
+            if alpha == 1.0 and not boundary_done:
+                xk.reshape(-1)[cdofs] = target  # exact arrival (x + (t - x) may differ from t by round-off)
         raise _StepFailed(f"no convergence in {opts.max_iterations} iterations")
 
     lam, dlam, halvings, steps_done = 0.0, 1.0 / n_steps, 0, 0
