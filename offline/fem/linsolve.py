@@ -109,7 +109,7 @@ class _CholmodSolver(SparseSolver):
         A = sp.csc_matrix(A)
         key = (A.shape, A.nnz)
         if self._symbolic is None or key != self._pattern_key:
-            self._symbolic = analyze(A, mode="auto", ordering_method="default")
+            self._symbolic = analyze(A, mode="supernodal", ordering_method="default")  # LL^T: reports indefinite
             self._pattern_key = key
         f = self._symbolic.copy()
         try:
