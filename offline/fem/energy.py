@@ -2,9 +2,9 @@
 
 Pure functions of ``(mesh, material, x)`` where ``x`` (N, 3) are the deformed node positions. Linear tets use
 one-point quadrature (exact), quadratic tets the 4-point degree-2 rule. Per-mesh data (shape-function gradients,
-element colouring, the CSR pattern and the element-to-CSR scatter map) is computed once and cached on the mesh
-object (meshes are immutable). Element matrices are scattered colour by colour, so assembly runs in parallel
-without atomics.
+node-to-element adjacency, the CSR pattern and the element-to-CSR scatter map) is computed once and cached on the
+mesh object (meshes are immutable). Element Hessians are computed in parallel into a buffer and gathered into the
+CSR data in parallel by node (each node owns its rows), so assembly needs no atomics and only two parallel regions.
 
 Gravity is an external load: its energy is −Σ f_i·x_i with f_i = m_i g and nodal masses m_i = ρ ∫ N_i dV
 (consistent load vector; see :func:`nodal_masses`, :func:`gravity_forces`).
@@ -72,8 +72,9 @@ class _MeshData:
     dNdX: np.ndarray  # (M, Q, n, 3)
     wdet: np.ndarray  # (M, Q) quadrature weight * rest volume jacobian
     Nq: np.ndarray  # (Q, n) shape function values at the quadrature points
-    color_ptr: np.ndarray
-    color_elems: np.ndarray
+    adj_ptr: np.ndarray  # (N+1,) node -> (element, local index) adjacency, CSR
+    adj_elem: np.ndarray
+    adj_local: np.ndarray
     pattern: _Pattern | None = None
 
 
@@ -108,49 +109,13 @@ def _build_mesh_data(mesh: TetMesh) -> _MeshData:
         Jinv = np.linalg.inv(J0)
         dNdX[:, q] = np.einsum("aj,mji->mai", dN, Jinv)
         wdet[:, q] = w[q] * det
-    color_ptr, color_elems = _color_elements(np.asarray(mesh.tets), mesh.n_nodes)
-    return _MeshData(dNdX, wdet, Nq, color_ptr, color_elems)
-
-
-@nb.njit(cache=True)
-def _greedy_colors(tets, n_nodes):
-    M, n = tets.shape
-    # node -> elements adjacency
-    cnt = np.zeros(n_nodes + 1, np.int64)
-    for e in range(M):
-        for a in range(n):
-            cnt[tets[e, a] + 1] += 1
-    for i in range(n_nodes):
-        cnt[i + 1] += cnt[i]
-    fill = cnt[:-1].copy()
-    adj = np.empty(cnt[-1], np.int64)
-    for e in range(M):
-        for a in range(n):
-            p = tets[e, a]
-            adj[fill[p]] = e
-            fill[p] += 1
-    color = -np.ones(M, np.int64)
-    mark = -np.ones(M + 1, np.int64)  # mark[c] == e: colour c used by a neighbour of e
-    for e in range(M):
-        for a in range(n):
-            p = tets[e, a]
-            for k in range(cnt[p], cnt[p + 1]):
-                c = color[adj[k]]
-                if c >= 0:
-                    mark[c] = e
-        c = 0
-        while mark[c] == e:
-            c += 1
-        color[e] = c
-    return color
-
-
-def _color_elements(tets: np.ndarray, n_nodes: int) -> tuple[np.ndarray, np.ndarray]:
-    color = _greedy_colors(tets, n_nodes)
-    order = np.argsort(color, kind="stable")
-    counts = np.bincount(color)
-    ptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-    return ptr, order.astype(np.int64)
+    tets = np.asarray(mesh.tets)
+    flat = tets.ravel()
+    order_ = np.argsort(flat, kind="stable")
+    adj_ptr = np.concatenate([[0], np.cumsum(np.bincount(flat, minlength=mesh.n_nodes))]).astype(np.int64)
+    adj_elem = (order_ // n).astype(np.int64)
+    adj_local = (order_ % n).astype(np.int64)
+    return _MeshData(dNdX, wdet, Nq, adj_ptr, adj_elem, adj_local)
 
 
 def _pattern(mesh: TetMesh) -> _Pattern:
@@ -370,25 +335,28 @@ def _min_det_kernel(x, tets, dNdX):
 
 
 @nb.njit(cache=True, parallel=True)
-def _force_kernel(x, tets, dNdX, wdet, coef, color_ptr, color_elems):
-    _M, Q = wdet.shape
+def _force_kernel(x, tets, dNdX, wdet, coef):
+    M, Q = wdet.shape
     n = tets.shape[1]
+    fe = np.zeros((M, n, 3))
+    for e in nb.prange(M):
+        F = np.empty((3, 3))
+        for q in range(Q):
+            _def_grad(x, tets, dNdX, e, q, F)
+            _, P, _ = _stress(F, coef)
+            w = wdet[e, q]
+            for a in range(n):
+                for i in range(3):
+                    v = 0.0
+                    for j in range(3):
+                        v += P[i, j] * dNdX[e, q, a, j]
+                    fe[e, a, i] += w * v
     f = np.zeros((x.shape[0], 3))
-    for c in range(color_ptr.shape[0] - 1):
-        for t in nb.prange(color_ptr[c], color_ptr[c + 1]):
-            e = color_elems[t]
-            F = np.empty((3, 3))
-            for q in range(Q):
-                _def_grad(x, tets, dNdX, e, q, F)
-                _, P, _ = _stress(F, coef)
-                w = wdet[e, q]
-                for a in range(n):
-                    p = tets[e, a]
-                    for i in range(3):
-                        v = 0.0
-                        for j in range(3):
-                            v += P[i, j] * dNdX[e, q, a, j]
-                        f[p, i] += w * v
+    for e in range(M):
+        for a in range(n):
+            p = tets[e, a]
+            for i in range(3):
+                f[p, i] += fe[e, a, i]
     return f
 
 
@@ -433,25 +401,38 @@ def _element_hessian(x, tets, dNdX, wdet, coef, e, project):
 
 
 @nb.njit(cache=True, parallel=True)
-def _hessian_kernel(x, tets, dNdX, wdet, coef, color_ptr, color_elems, block_base, row_stride, nnz, project):
-    n = tets.shape[1]
-    data = np.zeros(nnz)
+def _element_hessians(x, tets, dNdX, wdet, coef, e0, project, out):
+    """Element Hessians of elements e0 .. e0 + len(out) into ``out``; returns how many were PSD-projected."""
     n_proj = 0
-    for c in range(color_ptr.shape[0] - 1):
-        for t in nb.prange(color_ptr[c], color_ptr[c + 1]):
-            e = color_elems[t]
-            He, projected = _element_hessian(x, tets, dNdX, wdet, coef, e, project)
-            if projected:
-                n_proj += 1
-            for a in range(n):
-                p = tets[e, a]
-                rs = row_stride[p]
-                for b in range(n):
-                    base = block_base[e, a, b]
-                    for i in range(3):
-                        for k in range(3):
-                            data[base + i * rs + k] += He[3 * a + i, 3 * b + k]
-    return data, n_proj
+    for t in nb.prange(out.shape[0]):
+        He, projected = _element_hessian(x, tets, dNdX, wdet, coef, e0 + t, project)
+        out[t] = He
+        if projected:
+            n_proj += 1
+    return n_proj
+
+
+@nb.njit(cache=True, parallel=True)
+def _gather_hessians(tets, adj_ptr, adj_elem, adj_local, block_base, row_stride, Hbuf, e0, data):
+    """Add buffered element Hessians into CSR ``data``; parallel over nodes (each owns its three rows)."""
+    n = tets.shape[1]
+    e1 = e0 + Hbuf.shape[0]
+    for p in nb.prange(adj_ptr.shape[0] - 1):
+        rs = row_stride[p]
+        for k in range(adj_ptr[p], adj_ptr[p + 1]):
+            e = adj_elem[k]
+            if e < e0 or e >= e1:
+                continue
+            a = adj_local[k]
+            for b in range(n):
+                base = block_base[e, a, b]
+                for i in range(3):
+                    for kk in range(3):
+                        data[base + i * rs + kk] += Hbuf[e - e0, 3 * a + i, 3 * b + kk]
+
+
+#: Bytes of element-Hessian buffer per assembly batch.
+_HESSIAN_BUFFER_BYTES = 96 * 2**20
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -473,8 +454,7 @@ def total_energy(mesh: TetMesh, material: Material, x: np.ndarray) -> float:
 def internal_forces(mesh: TetMesh, material: Material, x: np.ndarray) -> np.ndarray:
     """Internal nodal forces dW/dx (N, 3) (newtons)."""
     d = _mesh_data(mesh)
-    return _force_kernel(_check_x(mesh, x), mesh.tets, d.dNdX, d.wdet, material.coefficients,
-                         d.color_ptr, d.color_elems)
+    return _force_kernel(_check_x(mesh, x), mesh.tets, d.dNdX, d.wdet, material.coefficients)
 
 
 def stiffness(mesh: TetMesh, material: Material, x: np.ndarray, project_psd: bool = False) -> sp.csr_matrix:
@@ -485,9 +465,18 @@ def stiffness(mesh: TetMesh, material: Material, x: np.ndarray, project_psd: boo
 def _stiffness(mesh: TetMesh, material: Material, x: np.ndarray, project_psd: bool) -> tuple[sp.csr_matrix, int]:
     d = _mesh_data(mesh)
     pat = _pattern(mesh)
-    data, n_proj = _hessian_kernel(_check_x(mesh, x), mesh.tets, d.dNdX, d.wdet, material.coefficients,
-                                   d.color_ptr, d.color_elems, pat.block_base, pat.row_stride,
-                                   pat.indices.size, project_psd)
+    x = _check_x(mesh, x)
+    nd = 3 * mesh.tets.shape[1]
+    batch = max(1, min(mesh.n_tets, _HESSIAN_BUFFER_BYTES // (8 * nd * nd)))
+    buf = np.empty((batch, nd, nd))
+    data = np.zeros(pat.indices.size)
+    n_proj = 0
+    coef = material.coefficients
+    for e0 in range(0, mesh.n_tets, batch):
+        b = min(batch, mesh.n_tets - e0)
+        n_proj += _element_hessians(x, mesh.tets, d.dNdX, d.wdet, coef, e0, project_psd, buf[:b])
+        _gather_hessians(mesh.tets, d.adj_ptr, d.adj_elem, d.adj_local, pat.block_base, pat.row_stride,
+                         buf[:b], e0, data)
     n = 3 * mesh.n_nodes
     K = sp.csr_matrix((data, pat.indices, pat.indptr), shape=(n, n))
     K.has_sorted_indices = True

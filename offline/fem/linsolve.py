@@ -5,13 +5,15 @@ symbolic analysis (fill-reducing ordering) and returns a :class:`Factorization` 
 number of times (Newton steps, adjoint solves). Cholesky backends raise :class:`NotPositiveDefinite` when the matrix
 is not positive definite, which the Newton solver uses to switch to PSD-projected element Hessians.
 
-``"auto"`` picks CHOLMOD (scikit-sparse) if importable, else PARDISO (pypardiso), else SuperLU (always available).
+``"auto"`` picks CHOLMOD (scikit-sparse) if importable, else PARDISO (pypardiso), else SuperLU (always available);
+when CHOLMOD is linked against the reference (unoptimised) BLAS and PARDISO is present, PARDISO comes first.
 """
 
 from __future__ import annotations
 
 import contextlib
 import importlib.util
+import os
 from abc import ABC, abstractmethod
 
 import numpy as np
@@ -32,8 +34,22 @@ def _has(module: str) -> bool:
         return False
 
 
+def _cholmod_uses_reference_blas() -> bool:
+    """True when the loaded CHOLMOD runs on the unoptimised reference BLAS (Linux: read the process's mappings).
+
+    Supernodal CHOLMOD spends its time in BLAS; on reference BLAS it is several times slower than PARDISO.
+    """
+    try:
+        maps = open("/proc/self/maps").read()  # noqa: SIM115
+    except OSError:
+        return False
+    # Debian/Ubuntu alternatives: the reference BLAS lives in .../blas/libblas.so.3, OpenBLAS/BLIS/ATLAS elsewhere
+    paths = {line.split()[-1] for line in maps.splitlines() if "libblas.so" in line}
+    return bool(paths) and all(os.path.basename(os.path.dirname(p)) == "blas" for p in paths)
+
+
 def available_backends() -> list[str]:
-    """Backends importable here, fastest first."""
+    """Backends importable here, fastest first (CHOLMOD, then PARDISO; PARDISO first if CHOLMOD has slow BLAS)."""
     out = []
     if _has("sksparse"):
         try:
@@ -49,6 +65,8 @@ def available_backends() -> list[str]:
             out.append("pardiso")
         except (ImportError, OSError):
             pass
+    if out[:2] == ["cholmod", "pardiso"] and _cholmod_uses_reference_blas():
+        out[:2] = ["pardiso", "cholmod"]
     out.append("superlu")
     return out
 
