@@ -6,6 +6,8 @@ SciPy's per-call overhead. Quaternions are ``(w, x, y, z)``; rotation vectors ar
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 
@@ -18,7 +20,15 @@ def skew(v: np.ndarray) -> np.ndarray:
 def rotvec_to_matrix(r: np.ndarray) -> np.ndarray:
     """Rotation matrix of a rotation vector (Rodrigues); works on ``(3,)`` or ``(n, 3)``."""
     r = np.asarray(r, dtype=float)
-    single = r.ndim == 1
+    if r.ndim == 1:  # fast path for one vector
+        theta = math.sqrt(float(r @ r))
+        if theta < 1e-8:
+            a, b = 1.0 - theta**2 / 6.0, 0.5 - theta**2 / 24.0
+        else:
+            a, b = math.sin(theta) / theta, (1.0 - math.cos(theta)) / theta**2
+        K = skew(r)
+        return np.eye(3) + a * K + b * (K @ K)
+    single = False
     rv = r.reshape(-1, 3)
     theta = np.linalg.norm(rv, axis=1)
     small = theta < 1e-8
@@ -41,7 +51,14 @@ def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:
     """Rotation matrix of a (not necessarily unit) quaternion ``(w, x, y, z)``; ``(4,)`` or ``(n, 4)``."""
     q = np.asarray(q, dtype=float)
-    single = q.ndim == 1
+    if q.ndim == 1:  # fast path for one quaternion
+        w, x, y, z = q / math.sqrt(float(q @ q))
+        return np.array([
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ])
+    single = False
     qq = q.reshape(-1, 4)
     qq = qq / np.linalg.norm(qq, axis=1, keepdims=True)
     w, x, y, z = qq.T
