@@ -6,7 +6,7 @@ import argparse
 import importlib
 
 #: Modules that add top-level runtime subcommands through ``register(subparsers)``.
-RUNTIME_COMMAND_MODULES: tuple[str, ...] = ()
+RUNTIME_COMMAND_MODULES: tuple[str, ...] = ("runtime.calibration.cli",)
 
 
 def register(sub: argparse._SubParsersAction) -> None:

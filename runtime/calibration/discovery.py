@@ -67,7 +67,7 @@ def discover_limits(
         notes: list[str] = []
         for side, bound in ((0, act.min), (1, act.max)):
             if progress:
-                progress(f"limits: {name} towards {math.degrees(bound):+.1f}")
+                progress(f"{name} towards {math.degrees(bound):+.1f}")
             direction = 1.0 if bound > act.neutral else -1.0
             values = [*np.arange(act.neutral, bound, direction * step)[1:], bound]
             driver.move_to(neutral)

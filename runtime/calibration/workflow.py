@@ -157,7 +157,7 @@ def _discovery(head, driver, collect: Callable, out: Path, s: CalibrationSetting
         return {n: LimitResult.from_json(n, d) for n, d in doc["limits"].items()}
     if not s.discover:
         return {}
-    bar = Progress(0, s.progress, "limits")
+    bar = Progress(0, s.progress, "discovery")
     frames = max(2, s.frames_per_pose // 2)
 
     def observe() -> dict[str, np.ndarray]:
