@@ -122,13 +122,15 @@ class SimTracker:
         dt = 1.0 / self.rate_hz
         samples: list[MarkerSample] = []
         with self._lock:
+            t = max(self.clock(), self._next_time)  # frames are periodic from here on
             for _ in range(n_frames):
-                now = self.clock()
-                t = max(now, self._next_time)
-                if self.realtime and t > now:
-                    time.sleep(t - now)
-                self._next_time = t + dt
+                if self.realtime:
+                    delay = t - self.clock()
+                    if delay > 0:
+                        time.sleep(delay)
                 samples.extend(self.frame(round(t, 6)))
+                t += dt
+            self._next_time = t
         return samples
 
 

@@ -52,9 +52,10 @@ class SimSource:
 class ZmqSource:
     """A live capture stream: SUB socket on ``endpoint``; ``collect`` returns frames that arrive after the call."""
 
-    def __init__(self, endpoint: str, timeout_s: float = 2.0) -> None:
+    def __init__(self, endpoint: str, timeout_s: float = 2.0, skip_frames: int = 1) -> None:
         import zmq
 
+        self.skip_frames = skip_frames
         self.endpoint = endpoint
         self.description = f"zmq://{endpoint}" if "://" in endpoint and not endpoint.startswith("zmq") else endpoint
         self.timeout_s = timeout_s
@@ -76,14 +77,16 @@ class ZmqSource:
             except zmq.Again:
                 break
         out: list = []
-        got = 0
+        got = -self.skip_frames  # the first frame may have been captured before the call
         deadline = time.monotonic() + self.timeout_s * max(1, n_frames)
         while got < n_frames:
             remaining = deadline - time.monotonic()
             if remaining <= 0 or not self._sock.poll(int(min(remaining, self.timeout_s) * 1000)):
                 raise CalibrationError(f"no tracker frames from {self.endpoint} within {self.timeout_s:.1f} s")
             try:
-                out.extend(unpack_frame(self._sock.recv_multipart()))
+                frame = unpack_frame(self._sock.recv_multipart())
+                if got >= 0:
+                    out.extend(frame)
             except (ValueError, KeyError, TypeError) as exc:
                 raise CalibrationError(f"bad tracker frame from {self.endpoint}: {exc}") from exc
             got += 1
