@@ -79,7 +79,7 @@ class Hardware:
                 if spec.simulated:
                     from runtime import simhw
 
-                    sim = simhw.start(spec.driver, bus_name, options, motors)
+                    sim = simhw.start(spec.driver, bus_name, options, motors, {a.name: a.neutral for a in acts})
                     sims[bus_name] = sim
                     options = sim.options
                 buses[bus_name] = create_bus(spec.driver, bus_name, options, motors)

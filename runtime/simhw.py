@@ -29,16 +29,28 @@ class SimBus:
     close: Callable[[], None]
 
 
-def start(driver: str, bus_name: str, options: Mapping[str, Any], motors: Sequence[MotorConfig]) -> SimBus:
-    """Start the emulator of ``driver`` serving ``motors``; ConfigError for a driver without an emulator."""
+def start(
+    driver: str,
+    bus_name: str,
+    options: Mapping[str, Any],
+    motors: Sequence[MotorConfig],
+    initial: Mapping[str, float] | None = None,
+) -> SimBus:
+    """Start the emulator of ``driver`` serving ``motors``, each starting at ``initial[name]`` (SI, default 0).
+
+    ConfigError for a driver without an emulator.
+    """
     try:
         starter = _STARTERS[driver]
     except KeyError:
         raise ConfigError(f"buses.{bus_name}.simulated", f"no emulator for driver {driver!r}") from None
-    return starter(bus_name, dict(options), list(motors))
+    start_counts = {m.device_id: m.to_counts((initial or {}).get(m.name, 0.0)) for m in motors}
+    return starter(bus_name, dict(options), list(motors), start_counts)
 
 
-def _start_canopen(bus_name: str, options: dict[str, Any], motors: list[MotorConfig]) -> SimBus:
+def _start_canopen(
+    bus_name: str, options: dict[str, Any], motors: list[MotorConfig], start_counts: dict[int, int]
+) -> SimBus:
     from sim_hardware.canopen import DriveSet
 
     options["interface"] = "virtual"
@@ -53,21 +65,19 @@ def _start_canopen(bus_name: str, options: dict[str, Any], motors: list[MotorCon
     return SimBus(options, drives, positions, drives.close)
 
 
-def _start_dynamixel(bus_name: str, options: dict[str, Any], motors: list[MotorConfig]) -> SimBus:
-    from sim_hardware.dynamixel import DynamixelEmulator
+def _start_dynamixel(
+    bus_name: str, options: dict[str, Any], motors: list[MotorConfig], start_counts: dict[int, int]
+) -> SimBus:
+    from sim_hardware.dynamixel.server import DynamixelEmulator
 
     model = options.get("model", "XM430-W350")
-    emu = DynamixelEmulator(ids=[m.device_id for m in motors], model=model)
+    emu = DynamixelEmulator([m.device_id for m in motors], model=model, initial_positions=start_counts)
     emu.start()
     options["port"] = emu.port
-
-    def positions() -> dict[int, float]:
-        return {i: float(s.position_counts) for i, s in emu.servos.items()}
-
-    return SimBus(options, emu, positions, emu.close)
+    return SimBus(options, emu, emu.positions, emu.close)
 
 
-_STARTERS: dict[str, Callable[[str, dict[str, Any], list[MotorConfig]], SimBus]] = {
+_STARTERS: dict[str, Callable[[str, dict[str, Any], list[MotorConfig], dict[int, int]], SimBus]] = {
     "canopen402": _start_canopen,
     "dynamixel": _start_dynamixel,
 }
