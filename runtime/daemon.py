@@ -304,8 +304,7 @@ class Daemon:
             return self._solve(values), 1.0
         if mode == "stream":
             sf = self.cfg.safety
-            last = self.stream.last_arrival
-            age = now - last if last is not None else 0.0
+            age = self.stream.starved_for(now)
             if age > sf.watchdog_neutral_s:
                 self._event("watchdog", stage="neutral", age=age)
                 self._set_mode("neutral")
@@ -760,12 +759,13 @@ class Daemon:
             if not _RECORD_NAME.match(name):
                 raise ProtocolError("bad_value", "record name: letters, digits, _ . - only (max 64)")
             rt = self.cfg.runtime
+            capacity = int(rt.record_max_s * rt.rate_hz) + 1
+            recorder = Recorder(self.names, self.units, self._scale, capacity,
+                                {"head": self.head.name, "rate_hz": rt.rate_hz})
             with self._lock:
                 if self.recorder is not None:
                     raise ProtocolError("bad_state", f"already recording {self.record_name!r}")
-                capacity = int(rt.record_max_s * rt.rate_hz) + 1
-                self.recorder = Recorder(self.names, self.units, self._scale, capacity,
-                                         {"head": self.head.name, "rate_hz": rt.rate_hz})
+                self.recorder = recorder
                 self.record_name = name
                 self._event("record", state="started", name=name)
             return {"recording": name}

@@ -27,9 +27,9 @@ class Recorder:
         self._inv = 1.0 / np.asarray(scale, dtype=float)  # SI → configured unit
         self.capacity = capacity
         n = len(names)
-        self.t = np.zeros(capacity)
-        self.cmd = np.full((capacity, n), np.nan)
-        self.meas = np.full((capacity, n), np.nan)
+        self.t = np.empty(capacity)
+        self.cmd = np.empty((capacity, n))  # pages are touched only as rows are written
+        self.meas = np.empty((capacity, n))
         self.count = 0
         self.dropped = 0
         self.t0: float | None = None

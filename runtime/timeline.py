@@ -128,6 +128,7 @@ class JitterBuffer:
         self._values: list[Mapping[str, float]] = []
         self._played_to = float("-inf")  # stream time last played out
         self.last_arrival: float | None = None
+        self.last_time = float("-inf")  # newest frame timestamp pushed
         self.accepted = 0
         self.late = 0
         self.overflow = 0
@@ -137,6 +138,7 @@ class JitterBuffer:
         self._values.clear()
         self._played_to = float("-inf")
         self.last_arrival = None
+        self.last_time = float("-inf")
 
     def __len__(self) -> int:
         return len(self._times)
@@ -159,6 +161,7 @@ class JitterBuffer:
             self._values.insert(i, values)
         self.accepted += 1
         self.last_arrival = now
+        self.last_time = max(self.last_time, t)
         return "ok"
 
     def evaluate(self, now: float) -> dict[str, float] | None:
@@ -185,6 +188,13 @@ class JitterBuffer:
             va = a.get(ch)
             out[ch] = vb if va is None else va + u * (vb - va)
         return out
+
+    def starved_for(self, now: float) -> float:
+        """How long the play-out has had no fresh data: since the later of the last arrival and the moment the
+        last buffered frame played out (0 before any frame)."""
+        if self.last_arrival is None:
+            return 0.0
+        return now - max(self.last_arrival, self.last_time + self.delay)
 
     def stats(self) -> dict[str, int | float]:
         return {"buffered": len(self._times), "accepted": self.accepted, "late": self.late,
