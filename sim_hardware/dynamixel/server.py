@@ -462,8 +462,7 @@ class DynamixelEmulator:
             for k in range(0, len(body) - stride + 1, stride):
                 servo = self._responder(body[k])
                 if servo is not None:
-                    servo.advance(now)
-                    servo.write(address, body[k + 1:k + stride])
+                    servo.write(address, body[k + 1:k + stride], now=now)
         else:
             k = 0
             while k + 5 <= len(params):
@@ -474,8 +473,7 @@ class DynamixelEmulator:
                 k += 5 + size
                 servo = self._responder(device_id)
                 if servo is not None and len(data) == size:
-                    servo.advance(now)
-                    servo.write(address, data)
+                    servo.write(address, data, now=now)
         self._reindex()
 
     def _multi_read(self, inst: int, params: bytes, now: float, extra: float) -> list[tuple[float, bytes]]:
@@ -494,8 +492,7 @@ class DynamixelEmulator:
             servo = self._responder(device_id)
             if servo is None or servo.status_return_level < 1:
                 continue
-            servo.advance(now)
-            error, data = servo.read(address, size)
+            error, data = servo.read(address, size, now)
             answers.append((servo, error, data))
         if not answers:
             return []
@@ -510,12 +507,14 @@ class DynamixelEmulator:
         total = sum(4 + len(d) for _, _, d in answers)
         length = 1 + total
         buf = bytearray(b"\xff\xff\xfd\x00" + bytes((BROADCAST_ID, length & 0xFF, length >> 8, Instruction.STATUS)))
+        crc = crc16(buf)
         for servo, error, data in answers:
-            buf.append(error & 0xFF)
-            buf.append(servo.device_id)
-            buf += data
-            crc = crc16(buf)
-            buf += bytes((crc & 0xFF, crc >> 8))
+            chunk = bytes((error & 0xFF, servo.device_id)) + data
+            buf += chunk
+            crc = crc16(chunk, crc)
+            crc_bytes = bytes((crc & 0xFF, crc >> 8))
+            buf += crc_bytes
+            crc = crc16(crc_bytes, crc)
         delay = sum(s.return_delay_s for s, _, _ in answers) + extra
         return [(delay, bytes(buf))]
 

@@ -31,6 +31,11 @@ NOMINAL_VOLTAGE_V = 12.0
 MAX_SUBSTEP_S = 0.002
 
 _POSITION_MODES = (MODE_POSITION, MODE_EXTENDED_POSITION, 5)
+_HOMING_THRESHOLD = struct.Struct("<iI")
+_U16 = struct.Struct("<H")
+_I32 = struct.Struct("<i")
+#: realtime tick .. present temperature (addresses 120–146)
+_PRESENT = struct.Struct("<HBBhhiiiiHB")
 
 
 class Servo:
@@ -44,6 +49,11 @@ class Servo:
         self._items = model.items
         self._addr = {it.name: it.address for it in model.items}
         self._indirect: list[tuple[int, int, int]] = list(model.indirect_address_blocks)
+        self._owner: list = [None] * model.size  # byte address -> item containing it
+        for it in model.items:
+            for b in range(it.address, it.address + it.size):
+                self._owner[b] = it
+        self._refreshed_at = -1.0
         self._load_defaults(eeprom=True)
         self.write_item("id", device_id)
         # physical state (shaft frame, encoder counts; reported position = shaft + homing offset)
@@ -60,6 +70,7 @@ class Servo:
         self._last = self.boot_time
         self._vel_unit = model.velocity_unit_rpm * model.counts_per_rev / 60.0  # counts/s per unit
         self._acc_unit = model.acceleration_unit_rpm2 * model.counts_per_rev / 3600.0  # counts/s² per unit
+        self._pwm_per_unit = 885 * model.velocity_unit_rpm / model.no_load_speed_rpm
         self._after_boot()
 
     # ------------------------------------------------------------------ memory helpers
@@ -138,6 +149,8 @@ class Servo:
         """Integrate the motion and thermal model up to ``now`` and refresh the present-value items."""
         if now is None:
             now = self._clock()
+        elif now == self._refreshed_at:
+            return
         dt = now - self._last
         if dt > 0:
             self._last = now
@@ -230,33 +243,32 @@ class Servo:
     def _refresh(self, now: float) -> None:
         """Write the present-value items from the physical state."""
         mem = self.memory
+        self._refreshed_at = now
+        homing, threshold = _HOMING_THRESHOLD.unpack_from(mem, 20)
+        current_limit = _U16.unpack_from(mem, 38)[0]
+        goal = _I32.unpack_from(mem, 116)[0]
+        torque = mem[64] == 1
+        position_mode = mem[11] in _POSITION_MODES
         vel_units = round(self.velocity / self._vel_unit)
-        current_limit = self._u(38, 2)
-        if self.overload_condition and self.torque_enabled:
+        if self.overload_condition and torque:
             current = current_limit
         else:
             current = round(0.004 * self.acceleration + 0.05 * vel_units)
             current = max(-current_limit, min(current_limit, current))
-        no_load = self.model.no_load_speed_rpm / self.model.velocity_unit_rpm
-        pwm = round(885 * vel_units / no_load) if self.torque_enabled else 0
-        pos = self.reported_position()
-        struct.pack_into("<HBBhhii", mem, 120, int((now - self.boot_time) * 1000) % 32768,
-                         1 if abs(vel_units) > self._u(24, 4) else 0,
-                         self._moving_status(pos), pwm, current, vel_units, pos)
-        struct.pack_into("<iiHB", mem, 136, vel_units, pos if not self.torque_enabled else self._s(116, 4)
-                         if self.memory[11] in _POSITION_MODES else pos,
-                         round(self.voltage * 10), min(255, max(0, round(self.temperature))))
-
-    def _moving_status(self, pos: int) -> int:
-        if not self.torque_enabled:
-            return 0
-        status = 0x30  # trapezoidal profile
-        if self.memory[11] in _POSITION_MODES:
-            if abs(self._s(116, 4) - pos) <= self._u(24, 4):
-                status |= 0x01  # in position
-            if self.velocity != 0.0:
-                status |= 0x02  # profile ongoing
-        return status
+        pwm = round(vel_units * self._pwm_per_unit) if torque else 0
+        pos = round(self.shaft) + homing
+        status = 0
+        if torque:
+            status = 0x30  # trapezoidal profile
+            if position_mode:
+                if abs(goal - pos) <= threshold:
+                    status |= 0x01  # in position
+                if self.velocity != 0.0:
+                    status |= 0x02  # profile ongoing
+        _PRESENT.pack_into(mem, 120, int((now - self.boot_time) * 1000) % 32768,
+                           1 if abs(vel_units) > threshold else 0, status, pwm, current, vel_units, pos,
+                           vel_units, goal if torque and position_mode else pos,
+                           round(self.voltage * 10), min(255, max(0, round(self.temperature))))
 
     # ------------------------------------------------------------------ instructions
     def _translate(self, address: int, length: int) -> list[int] | None:
@@ -264,18 +276,19 @@ class Servo:
         if address < 0 or length < 0 or address + length > len(self.memory):
             return None
         out = list(range(address, address + length))
+        mem = self.memory
         for addr_base, data_base, count in self._indirect:
             lo, hi = max(address, data_base), min(address + length, data_base + count)
             for a in range(lo, hi):
-                n = a - data_base
-                out[a - address] = self._u(addr_base + 2 * n, 2)
+                k = addr_base + 2 * (a - data_base)
+                out[a - address] = mem[k] | (mem[k + 1] << 8)
         return out
 
-    def read(self, address: int, length: int) -> tuple[int, bytes]:
+    def read(self, address: int, length: int, now: float | None = None) -> tuple[int, bytes]:
         """READ: (error byte, data). Unused gaps read as zero; indirect data reads its target."""
         if length == 0 or address + length > len(self.memory) or address < 0:
             return ResultError.ACCESS | self.alert, b""
-        self.advance()
+        self.advance(now)
         mem = self.memory
         data = bytes(mem[address:address + length])
         for _, data_base, count in self._indirect:
@@ -286,7 +299,7 @@ class Servo:
                 break
         return self.alert, data
 
-    def write(self, address: int, data: bytes, *, apply: bool = True) -> int:
+    def write(self, address: int, data: bytes, *, apply: bool = True, now: float | None = None) -> int:
         """WRITE: check every touched item (access, EEPROM lock, length, range, limit); apply all or none.
 
         Returns the status error byte (result code | alert). With ``apply`` False only checks.
@@ -294,19 +307,14 @@ class Servo:
         addrs = self._translate(address, len(data))
         if addrs is None or not data:
             return ResultError.ACCESS | self.alert
-        self.advance()
+        self.advance(now)
         staged = dict(zip(addrs, data, strict=True))
         updates: list[tuple[object, int]] = []
         seen: set[int] = set()
         for a in addrs:
             if a in seen:
                 continue
-            it = None
-            for base in range(a, max(-1, a - 4), -1):
-                cand = self.model.item_at(base)
-                if cand is not None and base + cand.size > a:
-                    it = cand
-                    break
+            it = self._owner[a]
             if it is None or not it.writable:
                 return ResultError.ACCESS | self.alert
             span = range(it.address, it.address + it.size)
@@ -328,7 +336,7 @@ class Servo:
             return self.alert
         for it, value in updates:
             self._apply(it, value)  # type: ignore[arg-type]
-        self._refresh(self._clock())
+        self._refresh(self._last)
         return self.alert
 
     def _limit_check(self, name: str, value: int) -> int:
