@@ -51,18 +51,19 @@ def start(
 def _start_canopen(
     bus_name: str, options: dict[str, Any], motors: list[MotorConfig], start_counts: dict[int, int]
 ) -> SimBus:
-    from sim_hardware.canopen import DriveSet
+    from sim_hardware.canopen.network import DriveSet
 
     options["interface"] = "virtual"
     # A private channel per emulator, so several heads (or tests) in one process never share a bus.
     options["channel"] = f"{options.get('channel', bus_name)}-{os.getpid()}-{next(_unique)}"
-    drives = DriveSet(channel=options["channel"], interface="virtual", node_ids=[m.device_id for m in motors])
+    drives = DriveSet([m.device_id for m in motors], channel=options["channel"], interface="virtual",
+                      initial_positions={k: float(v) for k, v in start_counts.items()})
     drives.start()
 
     def positions() -> dict[int, float]:
         return {nid: float(d.position_counts) for nid, d in drives.drives.items()}
 
-    return SimBus(options, drives, positions, drives.close)
+    return SimBus(options, drives, positions, drives.stop)
 
 
 def _start_dynamixel(
