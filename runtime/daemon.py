@@ -29,7 +29,15 @@ from runtime import protocol as P
 from runtime.config import DaemonConfig, daemon_config, resolve
 from runtime.curves import ClipError, clip_from_dict
 from runtime.hardware import Hardware
-from runtime.loop import LoopStats, RateScheduler, SwitchInterval, drop_realtime, freeze_heap, try_realtime
+from runtime.loop import (
+    LoopStats,
+    RateScheduler,
+    SwitchInterval,
+    drop_realtime,
+    freeze_heap,
+    promote_threads,
+    try_realtime,
+)
 from runtime.protocol import Fields, ProtocolError
 from runtime.recording import Recorder
 from runtime.safety import SafetyFilter
@@ -87,7 +95,11 @@ class Daemon:
         self._router: zmq.Socket | None = None
         self._pub: zmq.Socket | None = None
         self._rearm = False
-        self._last_write = 0.0
+        index = {n: i for i, n in enumerate(self.names)}
+        self._bus_slices = [(bus, np.array([index[m] for m in bus.motors], dtype=int))
+                            for bus in self.hw.buses.values()]
+        self._bus_stamp = [0.0] * len(self._bus_slices)
+        self._write_stamp = np.zeros(len(self.names))
         self._enabled_at = 0.0
         self._watchdog_stage = ""
         self._clip_done_reported = False
@@ -97,6 +109,8 @@ class Daemon:
         self._stats_at = -1.0
         self._read_error_logged = False
         self._stamps: dict[str, float] = {}
+        self._control_tid = 0
+        self._promoted = False
         self.command_endpoint = ""
         self.telemetry_endpoint = ""
         self.loop_ready = threading.Event()
@@ -104,7 +118,9 @@ class Daemon:
     # ================================================================== start / stop
     def start(self) -> None:
         """Open the buses, bind the sockets and start the control and API threads."""
+        self._promote()
         self.hw.open()
+        self._promote()
         try:
             self._bind()
             self.lifecycle = INACTIVE
@@ -123,6 +139,16 @@ class Daemon:
         except BaseException:
             self.stop()
             raise
+
+    def _promote(self) -> None:
+        """Helper threads (and in-process emulators) to realtime priority below the control thread's."""
+        rt = self.cfg.runtime
+        if rt.realtime and rt.helper_priority > 0:
+            exclude = {self._control_tid} if self._control_tid else set()
+            n = promote_threads(rt.helper_priority, exclude)
+            if n:
+                self._promoted = True
+                log.debug("%d helper threads now SCHED_FIFO %d", n, rt.helper_priority)
 
     def stop(self) -> None:
         """Stop serving, torque off, close buses and sockets; safe to call twice."""
@@ -149,6 +175,8 @@ class Daemon:
         if self._ctx is not None:
             self._ctx.term()
             self._ctx = None
+        if self._promoted:
+            drop_realtime()  # the calling thread was promoted in start()
 
     def __enter__(self) -> Daemon:
         self.start()
@@ -195,7 +223,9 @@ class Daemon:
     # ================================================================== control loop
     def _run_loop(self) -> None:
         rt = self.cfg.runtime
+        self._control_tid = threading.get_native_id()
         if rt.realtime:
+            drop_realtime()
             ok, msg = try_realtime(rt.priority)
         else:
             ok, msg = False, "realtime priority disabled in config ([runtime] realtime = false)"
@@ -259,14 +289,21 @@ class Daemon:
                                 f"{', '.join(stale)}")
                     return
             targets, speed = self._desired(now)
-            dt = now - self._last_write
-            q = self.safety.step(targets, min(dt, 4 * self.period), speed)
+            # Per-actuator time since its bus's previous write, stamped just before that write: a bus measures the
+            # interval between its own writes, which is never shorter than this, so its rate guard always agrees.
+            t_step = self.clock()
+            dt = np.minimum(t_step - self._write_stamp, 4 * self.period)
+            q = self.safety.step(targets, dt, speed)
+            values = q.tolist()
             try:
-                self.hw.write(dict(zip(self.names, q.tolist(), strict=True)))
+                for b, (bus, idx) in enumerate(self._bus_slices):
+                    self._bus_stamp[b] = self.clock()
+                    bus.write({self.names[i]: values[i] for i in idx})
             except BusError as exc:
                 self._fault("write", str(exc))
                 return
-            self._last_write = now
+            for b, (_, idx) in enumerate(self._bus_slices):
+                self._write_stamp[idx] = self._bus_stamp[b]
         if self.recorder is not None:
             self.recorder.add(now, self.safety.q, self.measured)
 
@@ -383,7 +420,8 @@ class Daemon:
                 raise ProtocolError("hardware", f"enable failed: {exc}") from None
             self._read_measured()
             self.safety.reset(self._measured_map())
-            self._last_write = self._enabled_at = self.clock()
+            self._enabled_at = self.clock()
+            self._write_stamp[:] = self._enabled_at
             self._stop_motion()
             self._set_lifecycle(ACTIVE)
             self._rearm = True
@@ -495,7 +533,11 @@ class Daemon:
         poller = zmq.Poller()
         poller.register(router, zmq.POLLIN)
         limit = self.cfg.api.max_message_bytes
+        next_promote = 0.0
         while not self._stop.is_set():
+            if self.clock() > next_promote:  # threads created since (bus notifiers after a reset, ...)
+                self._promote()
+                next_promote = self.clock() + 2.0
             try:
                 if not poller.poll(50):
                     continue

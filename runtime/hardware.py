@@ -13,7 +13,7 @@ from collections.abc import Mapping
 from typing import Any
 
 from drivers.base import LifecycleState, MotorBus, MotorConfig, MotorState
-from drivers.errors import CommandRejected
+from drivers.errors import BusTimeout, CommandRejected
 from drivers.registry import create_bus
 from models.headspec import ActuatorSpec, HeadSpec
 
@@ -45,6 +45,9 @@ def motor_config(act: ActuatorSpec) -> MotorConfig:
 class Hardware:
     """All buses of a head: builds MotorConfigs from the HeadSpec, starts in-process emulators for buses with
     ``simulated = true``, creates drivers through ``drivers.registry``."""
+
+    #: Opening an emulated bus is retried this often on a timeout (real buses: once).
+    SIMULATED_OPEN_ATTEMPTS = 3
 
     def __init__(
         self,
@@ -94,8 +97,18 @@ class Hardware:
         """Open every bus (torque stays off); on failure the buses already opened are closed again."""
         opened: list[MotorBus] = []
         try:
-            for bus in self.buses.values():
-                bus.open()
+            for name, bus in self.buses.items():
+                attempts = self.SIMULATED_OPEN_ATTEMPTS if name in self._sims else 1
+                for attempt in range(1, attempts + 1):
+                    try:
+                        bus.open()
+                        break
+                    except BusTimeout as exc:
+                        # An emulator shares this host's CPU; under load it can miss a driver's fixed reply window.
+                        if attempt == attempts:
+                            raise
+                        log.warning("bus %s: open attempt %d failed (%s); retrying", name, attempt, exc)
+                        _quiet(bus.close)
                 opened.append(bus)
         except BaseException:
             for bus in opened:

@@ -33,6 +33,33 @@ def try_realtime(priority: int) -> tuple[bool, str]:
     return True, f"control thread runs SCHED_FIFO priority {priority}"
 
 
+def promote_threads(priority: int, exclude: set[int] | None = None) -> int:
+    """Put every other thread of this process under SCHED_FIFO at ``priority``; returns how many changed.
+
+    With a GIL, the control thread waits for whichever thread holds it: if that thread runs at normal priority,
+    any busy process on the machine delays the control loop. Raising the daemon's helper threads (API, bus
+    notifiers, in-process emulators standing in for hardware) to a realtime priority below the control thread's
+    removes that inversion. Threads already realtime are left alone. Linux only; best effort.
+    """
+    exclude = exclude or set()
+    changed = 0
+    try:
+        tids = [int(t) for t in os.listdir("/proc/self/task")]
+    except OSError:
+        return 0
+    for tid in tids:
+        if tid in exclude:
+            continue
+        try:
+            if os.sched_getscheduler(tid) != os.SCHED_OTHER:
+                continue
+            os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
+            changed += 1
+        except OSError:
+            continue
+    return changed
+
+
 def drop_realtime() -> None:
     """Back to normal scheduling for the calling thread (best effort)."""
     with contextlib.suppress(AttributeError, OSError):

@@ -72,9 +72,10 @@ class SafetyFilter:
                 x[idx] = mid + (sub - mid) * (spread / (hi - lo))
         return np.clip(x, self.lo, self.hi)
 
-    def step(self, targets: np.ndarray, dt: float, speed: float | np.ndarray = 1.0) -> np.ndarray:
-        """Advance the commands by ``dt`` seconds toward ``targets`` (NaN: hold); returns the new commands."""
-        dt = max(float(dt), 1e-6)
+    def step(self, targets: np.ndarray, dt: float | np.ndarray, speed: float | np.ndarray = 1.0) -> np.ndarray:
+        """Advance the commands by ``dt`` seconds (one value, or one per actuator) toward ``targets`` (NaN: hold);
+        returns the new commands."""
+        dt = np.maximum(np.asarray(dt, dtype=float), 1e-6)
         x = self.constrain(np.asarray(targets, dtype=float).copy())
         vmax = self.vmax * speed
         amax = self.amax * np.sqrt(speed)
