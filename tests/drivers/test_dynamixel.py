@@ -248,7 +248,7 @@ def test_bad_options_are_config_errors(options: dict, key: str) -> None:
 
 def test_position_mode_range_check_and_auto_mode() -> None:
     sample_like = motors(zero=0, lo=-0.4, hi=0.6)  # negative counts: outside 0..4095
-    with pytest.raises(ConfigError, match="m1.*extended_position"):
+    with pytest.raises(ConfigError, match=r"m1.*extended_position"):
         DynamixelBus("dxl", {"port": "/dev/null", "operating_mode": "position"}, sample_like)
     assert DynamixelBus("dxl", {"port": "/dev/null"}, sample_like).operating_mode == 4
     assert DynamixelBus("dxl", {"port": "/dev/null"}, motors()).operating_mode == 3
