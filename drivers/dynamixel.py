@@ -12,7 +12,8 @@ holds one lock.
 Options: ``port`` (device path), ``baudrate`` (default 1000000), ``protocol`` (2.0 only),
 ``model`` (default "XM430-W350"), ``return_delay_us`` (0–508, even; default 0),
 ``use_fast_sync_read`` ("auto" by model, or a bool), ``operating_mode`` ("auto", "position",
-"extended_position"), ``max_consecutive_failures`` (default 3), ``ping_retries`` (default 2),
+"extended_position"), ``max_consecutive_failures`` (default 3), ``retries`` (extra tries of a ping or configuration
+transaction that got no answer; default 2),
 ``reboot_timeout_s`` (default 2.0).
 """
 
@@ -81,7 +82,7 @@ RESULT_ERROR_NAMES = {
 SUPPORTED_BAUDRATES = (9600, 57600, 115200, 1_000_000, 2_000_000, 3_000_000, 4_000_000)
 _OPTIONS = {
     "port", "baudrate", "protocol", "model", "return_delay_us", "use_fast_sync_read", "operating_mode",
-    "max_consecutive_failures", "ping_retries", "reboot_timeout_s",
+    "max_consecutive_failures", "retries", "reboot_timeout_s",
 }
 
 
@@ -156,9 +157,9 @@ class DynamixelBus(MotorBus):
         if self._max_failures < 1:
             raise ConfigError(f"bus {name!r}.options.max_consecutive_failures",
                               f"must be at least 1, got {self._max_failures!r}")
-        self._ping_retries = self._opt_int("ping_retries", 2)
-        if not 0 <= self._ping_retries <= 10:
-            raise ConfigError(f"bus {name!r}.options.ping_retries", f"must be in 0..10, got {self._ping_retries!r}")
+        self._retries = self._opt_int("retries", 2)
+        if not 0 <= self._retries <= 10:
+            raise ConfigError(f"bus {name!r}.options.retries", f"must be in 0..10, got {self._retries!r}")
         self._reboot_timeout = opts.get("reboot_timeout_s", 2.0)
         if isinstance(self._reboot_timeout, bool) or not isinstance(self._reboot_timeout, (int, float)) \
                 or not 0 < self._reboot_timeout <= 60:
@@ -237,20 +238,25 @@ class DynamixelBus(MotorBus):
             return fn(*args)
 
     def _txrx(self, what: str, device_id: int, fn: Callable[..., Any], *args: Any,
-              allow_alert: bool = True) -> Any:
+              allow_alert: bool = True, retries: int | None = None) -> Any:
         """One acknowledged transaction; raise BusTimeout on no answer, BusInitError on a result error."""
         from dynamixel_sdk import COMM_SUCCESS
 
-        try:
-            out = self._call(fn, self._port, device_id, *args)
-        except (OSError, ValueError, IndexError) as exc:
-            raise BusTimeout(self._label(device_id), f"{what}: port failure: {exc}") from exc
-        if isinstance(out, tuple) and len(out) == 3:
-            value, result, error = out
+        tries = 1 + (self._retries if retries is None else retries)
+        for attempt in range(tries):
+            try:
+                out = self._call(fn, self._port, device_id, *args)
+            except (OSError, ValueError, IndexError) as exc:
+                raise BusTimeout(self._label(device_id), f"{what}: port failure: {exc}") from exc
+            if isinstance(out, tuple) and len(out) == 3:
+                value, result, error = out
+            else:
+                (result, error), value = out, None
+            if result == COMM_SUCCESS:
+                break
+            log.debug("bus %s: %s: %s (try %d)", self.name, what, self._ph.getTxRxResult(result), attempt + 1)
         else:
-            (result, error), value = out, None
-        if result != COMM_SUCCESS:
-            raise BusTimeout(self._label(device_id), f"{what}: {self._ph.getTxRxResult(result)}")
+            raise BusTimeout(self._label(device_id), f"{what}: {self._ph.getTxRxResult(result)} ({tries} tries)")
         code = error & 0x7F
         if code:
             raise BusInitError(f"bus {self.name!r}: {self._label(device_id)}: {what} refused: "
@@ -318,10 +324,10 @@ class DynamixelBus(MotorBus):
             raise
 
     def _identify(self, device_id: int) -> None:
-        number = self._ping(device_id, 1 + self._ping_retries)
+        number = self._ping(device_id, 1 + self._retries)
         if number is None:
             raise BusTimeout(self._label(device_id),
-                             f"no answer to ping on {self._port_name} ({1 + self._ping_retries} tries)")
+                             f"no answer to ping on {self._port_name} ({1 + self._retries} tries)")
         if number != self.model.number:
             raise BusInitError(f"bus {self.name!r}: {self._label(device_id)} is model number {number}, "
                                f"configured model {self.model.name} is {self.model.number}")
@@ -492,7 +498,10 @@ class DynamixelBus(MotorBus):
         """Reboot every servo named in a fault, wait until it answers, configure it again (torque off)."""
         faulted = {self.motors[n].device_id for n in self._faults if n in self.motors}
         for device_id in sorted(faulted):
-            self._txrx("reboot", device_id, self._ph.reboot)
+            try:  # not retried: a servo whose answer got lost is already rebooting
+                self._txrx("reboot", device_id, self._ph.reboot, retries=0)
+            except BusTimeout as exc:
+                log.warning("bus %s: %s; waiting for it to come back anyway", self.name, exc)
         deadline = time.monotonic() + float(self._reboot_timeout)
         for device_id in self._ids:
             while self._ping(device_id, 1) is None:

@@ -380,9 +380,13 @@ class DynamixelEmulator:
         replies: list[tuple[float, bytes]] = []
 
         def answer(servo: Servo, error: int, data: bytes = b"", level: int = 2) -> None:
-            if servo.status_return_level >= level:
-                replies.append((servo.return_delay_s + (extra if not replies else 0.0),
-                                status_packet(servo.device_id, error, data)))
+            # id, status return level and return delay as they were when the instruction arrived
+            sid, srl, delay = before.get(id(servo)) or (servo.device_id, servo.status_return_level,
+                                                         servo.return_delay_s)
+            if srl >= level:
+                replies.append((delay + (extra if not replies else 0.0), status_packet(sid, error, data)))
+
+        before: dict[int, tuple[int, int, float]] = {}
 
         if inst == Instruction.PING:
             servos = self._targets(target)
@@ -412,6 +416,7 @@ class DynamixelEmulator:
                 self._reindex()
             return []
         servo.advance(now)
+        before[id(servo)] = (servo.device_id, servo.status_return_level, servo.return_delay_s)
         self._unicast(servo, inst, params, answer)
         self._reindex()
         return replies

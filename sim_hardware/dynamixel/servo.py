@@ -134,6 +134,7 @@ class Servo:
         self.velocity = 0.0
         self.acceleration = 0.0
         self._store(116, 4, self.reported_position(), True)
+        self._check_errors()
         self._refresh(now)
 
     def reported_position(self) -> int:
