@@ -441,9 +441,8 @@ class EmulatedDrive:
             if state in (READY_TO_SWITCH_ON, OPERATION_ENABLED):
                 self._set_state(SWITCHED_ON)
         else:  # enable operation
-            if state in (READY_TO_SWITCH_ON, SWITCHED_ON):
-                self._set_state(OPERATION_ENABLED)
-            elif state == QUICK_STOP_ACTIVE and self._quick_stop_option in (5, 6, 7, 8):
+            resume = state == QUICK_STOP_ACTIVE and self._quick_stop_option in (5, 6, 7, 8)
+            if state in (READY_TO_SWITCH_ON, SWITCHED_ON) or resume:
                 self._set_state(OPERATION_ENABLED)
         if self._state == OPERATION_ENABLED and self._mode == MODE_PROFILE_POSITION:
             self._profile_controlword(prev, cw)
