@@ -331,7 +331,8 @@ class CanOpen402Bus(MotorBus):
         try:
             node.node.sdo.download(index, subindex, struct.pack(fmt, value))
         except SdoCommunicationError as exc:
-            raise BusTimeout(node.motor.name, f"node {node.id}: no SDO answer writing {_where(index, subindex)}") from exc
+            where = _where(index, subindex)
+            raise BusTimeout(node.motor.name, f"node {node.id}: no SDO answer writing {where}") from exc
         except SdoAbortedError as exc:
             raise BusInitError(
                 f"{node.motor.name}: node {node.id} refused {_where(index, subindex)} = {value}: {exc}"
@@ -341,14 +342,16 @@ class CanOpen402Bus(MotorBus):
         try:
             data = node.node.sdo.upload(index, subindex)
         except SdoCommunicationError as exc:
-            raise BusTimeout(node.motor.name, f"node {node.id}: no SDO answer reading {_where(index, subindex)}") from exc
+            where = _where(index, subindex)
+            raise BusTimeout(node.motor.name, f"node {node.id}: no SDO answer reading {where}") from exc
         except SdoAbortedError as exc:
             raise BusInitError(
                 f"{node.motor.name}: node {node.id} refused reading {_where(index, subindex)}: {exc}"
             ) from exc
         size = struct.calcsize(fmt)
         if len(data) < size:
-            raise BusInitError(f"{node.motor.name}: node {node.id} sent {len(data)} bytes for {_where(index, subindex)}")
+            where = _where(index, subindex)
+            raise BusInitError(f"{node.motor.name}: node {node.id} sent {len(data)} bytes for {where}")
         return struct.unpack(fmt, data[:size])[0]
 
     def _configure(self, node: _Node) -> None:
