@@ -53,6 +53,8 @@ class LinkImpairment:
 class _EmulatorNetwork(canopen.Network):
     """canopen ``Network`` whose sends and receptions pass through a :class:`LinkImpairment`."""
 
+    NOTIFIER_CYCLE = 0.1  # bounded shutdown time
+
     def __init__(self, bus: can.BusABC, seed: int | None) -> None:
         super().__init__(bus)
         self.impairment = LinkImpairment()
