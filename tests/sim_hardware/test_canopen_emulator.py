@@ -85,7 +85,7 @@ def test_object_dictionary_and_eds_round_trip(tmp_path):
 
 
 def test_boot_up_heartbeat_and_sdo(rig):
-    drives, net = rig
+    _, net = rig
     seen: list[int] = []
     net.subscribe(0x701, lambda _id, data, _ts: seen.append(data[0]))
     node = net.add_node(1, canopen.ObjectDictionary())
@@ -268,7 +268,7 @@ def test_link_faults_drop_and_corrupt_frames(rig):
 
 
 def test_drive_set_rejects_bad_node_ids():
-    with pytest.raises(ValueError, match="1..127"):
+    with pytest.raises(ValueError, match=r"1\.\.127"):
         DriveSet([0, 1])
 
 
