@@ -400,6 +400,7 @@ class FitOptions:
     move_threshold_m: float = 0.5e-3
     move_threshold_rad: float = math.radians(0.5)
     p_value: float = 1e-6
+    min_detection_dof: int = 20  # fewer spare samples than this: trust the head config's actuators instead
     reject_sigmas: float = 5.0
     reject_floor_m: float = 0.3e-3
     reject_floor_rad: float = math.radians(0.3)
@@ -458,13 +459,13 @@ def _detect(X: np.ndarray, Y: np.ndarray, opts: FitOptions) -> tuple[np.ndarray,
     keeps actuator ``j`` when the terms involving ``j`` both change the pose by more than the absolute
     thresholds over the samples and are significant by a partial F-test (``p < opts.p_value``) in at
     least one output. Returns (moves: bool (A,), effect (A, 2): position m / rotation rad) or None when
-    there are too few samples even for the separable design.
+    there are too few samples even for the separable design (``opts.min_detection_dof`` spare samples).
     """
     from scipy.special import fdtrc
 
     n, A = X.shape
-    full = n >= n_features(A) + 10
-    if not full and n < 1 + 2 * A + 5:
+    full = n >= n_features(A) + opts.min_detection_dof
+    if not full and n < 1 + 2 * A + opts.min_detection_dof:
         return None
     Phi, terms = _detect_features(X, full)
     F = Phi.shape[1]

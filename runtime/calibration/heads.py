@@ -12,12 +12,14 @@ All values are SI and keyed by actuator name.
 from __future__ import annotations
 
 import math
+import sys
 import time
 from collections.abc import Mapping
 from typing import Protocol
 
 import numpy as np
 
+from drivers.errors import CommandRejected
 from runtime.calibration.capture import CalibrationError
 
 
@@ -102,8 +104,15 @@ class HardwareHead:
         self.lo = np.array([head.actuator(n).min for n in self.names])
         self.hi = np.array([head.actuator(n).max for n in self.names])
         self.vmax = np.array([head.actuator(n).max_velocity for n in self.names]) * speed_fraction
+        groups: dict[str, list[int]] = {}
+        for i, n in enumerate(self.names):
+            groups.setdefault(head.actuator(n).bus, []).append(i)
+        self._bus_groups = [np.array(v) for v in groups.values()]
+        self._switch = sys.getswitchinterval()
+        sys.setswitchinterval(min(self._switch, 0.0005))  # emulator threads must not stall the ramp for 5 ms
         self.hw.open()
         self.hw.enable()
+        time.sleep(0.05)  # the drives hold where they are; first ramp steps stay within their rate guard
         self._target = self._read_vector()
 
     def _read_vector(self) -> np.ndarray:
@@ -114,24 +123,40 @@ class HardwareHead:
         return np.array([states[n].position for n in self.names])
 
     def move_to(self, pose: Mapping[str, float]) -> None:
-        target = np.array([v for v in _clamp(self.head, pose).values()])
+        """Ramp every actuator to ``pose`` together, timed on the clock so no write outruns the speed limit."""
+        target = np.array(list(_clamp(self.head, pose).values()))
         start = self._target
-        dist = np.abs(target - start)
-        duration = float(np.max(dist / self.vmax)) if dist.size else 0.0
-        steps = max(1, math.ceil(duration / self.dt))
-        t_next = time.monotonic()
-        for k in range(1, steps + 1):
-            s = k / steps
-            s = s * s * (3.0 - 2.0 * s)  # smoothstep: zero velocity at both ends
-            q = start + (target - start) * s
-            # clamp again against floating error, then command
-            q = np.clip(q, self.lo, self.hi)
-            self.hw.write(dict(zip(self.names, q.tolist(), strict=True)))
-            t_next += self.dt
-            delay = t_next - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
+        duration = float(np.max(np.abs(target - start) / self.vmax)) if start.size else 0.0
+        duration = 1.5 * duration  # smoothstep peaks at 1.5x the mean speed: keep the peak at speed_fraction
+        t0 = time.monotonic()
+        while True:
+            tick = time.monotonic()
+            finished = True
+            # each bus gets the ramp value of the moment it is written: a slow bus never makes the next one jump
+            for idx in self._bus_groups:
+                now = time.monotonic()
+                s = 1.0 if duration <= 0 else min((now - t0) / duration, 1.0)
+                finished = s >= 1.0
+                s = s * s * (3.0 - 2.0 * s)  # smoothstep: zero velocity at both ends
+                q = np.clip(start[idx] + (target[idx] - start[idx]) * s, self.lo[idx], self.hi[idx])
+                self._write({self.names[i]: float(v) for i, v in zip(idx, q, strict=True)})
+            if finished:
+                break
+            time.sleep(max(0.0, self.dt - (time.monotonic() - tick)))
         self._target = target
+
+    def _write(self, targets: dict[str, float]) -> None:
+        """Write one bus's targets. The driver's rate guard stamps a write when it gets the bus, so a thread
+        switch between computing and writing can make a legal ramp step look too fast: such a refusal (and
+        only that) is retried a moment later, when the elapsed time covers the step."""
+        for attempt in range(20):
+            try:
+                self.hw.write(targets)
+                return
+            except CommandRejected as exc:
+                if "exceeds max_velocity" not in str(exc) or attempt == 19:
+                    raise
+                time.sleep(0.002)
 
     def wait_settled(self) -> None:
         deadline = time.monotonic() + self.timeout_s
@@ -171,6 +196,7 @@ class HardwareHead:
             self.hw.disable()
         finally:
             self.hw.close()
+            sys.setswitchinterval(self._switch)
 
 
 class DaemonHead:
@@ -204,6 +230,19 @@ class DaemonHead:
 
     def move_to(self, pose: Mapping[str, float]) -> None:
         self._request("pose", pose=_clamp(self.head, pose), speed=self.speed_fraction)
+
+    def _write(self, targets: dict[str, float]) -> None:
+        """Write one bus's targets. The driver's rate guard stamps a write when it gets the bus, so a thread
+        switch between computing and writing can make a legal ramp step look too fast: such a refusal (and
+        only that) is retried a moment later, when the elapsed time covers the step."""
+        for attempt in range(20):
+            try:
+                self.hw.write(targets)
+                return
+            except CommandRejected as exc:
+                if "exceeds max_velocity" not in str(exc) or attempt == 19:
+                    raise
+                time.sleep(0.002)
 
     def wait_settled(self) -> None:
         deadline = time.monotonic() + self.timeout_s
