@@ -1,0 +1,269 @@
+"""Head drivers for calibration: move to a pose at a safe speed, wait until settled, report measured values.
+
+- :class:`HardwareHead` drives a :class:`runtime.hardware.Hardware` directly (its own connection to the
+  buses): a synchronised, velocity-limited ramp at ``speed_fraction`` of each actuator's max velocity,
+  never outside the configured limits, then settles on encoder readings.
+- :class:`DaemonHead` asks a running daemon to go to the pose (its ``pose`` op) and polls ``status``.
+- :class:`KinematicHead` is the emulated mechanism with ideal motors (instant, exact): fast checks of the
+  fitting path with no buses at all.
+All values are SI and keyed by actuator name.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from collections.abc import Mapping
+from typing import Protocol
+
+import numpy as np
+
+from drivers.errors import CommandRejected
+from runtime.calibration.capture import CalibrationError
+
+
+class HeadDriver(Protocol):
+    """What the calibration needs from a head."""
+
+    def move_to(self, pose: Mapping[str, float]) -> None: ...
+
+    def wait_settled(self) -> None: ...
+
+    def measured(self) -> dict[str, float]: ...
+
+    def faults(self) -> list[str]: ...
+
+    def close(self) -> None: ...
+
+
+def _clamp(head, pose: Mapping[str, float]) -> dict[str, float]:
+    """Every actuator's target, refusing unknown names and clamping to the configured limits."""
+    out = {}
+    for a in head.actuators:
+        v = float(pose.get(a.name, a.neutral))
+        if not math.isfinite(v):
+            raise CalibrationError(f"pose value for {a.name!r} is not finite")
+        out[a.name] = min(max(v, a.min), a.max)
+    for name in pose:
+        if name not in out:
+            raise CalibrationError(f"pose names unknown actuator {name!r}")
+    return out
+
+
+class KinematicHead:
+    """Ideal motors: positions jump to the (clamped) target; ``positions()`` feeds a simulated tracker."""
+
+    def __init__(self, head) -> None:
+        self.head = head
+        self._pos = {a.name: a.neutral for a in head.actuators}
+
+    def move_to(self, pose: Mapping[str, float]) -> None:
+        self._pos = _clamp(self.head, pose)
+
+    def wait_settled(self) -> None:
+        pass
+
+    def measured(self) -> dict[str, float]:
+        return dict(self._pos)
+
+    def positions(self) -> dict[str, float]:
+        """Ground truth (the same as measured for ideal motors)."""
+        return dict(self._pos)
+
+    def faults(self) -> list[str]:
+        return []
+
+    def close(self) -> None:
+        pass
+
+
+class HardwareHead:
+    """Calibration moves through :class:`runtime.hardware.Hardware` (opened and enabled here)."""
+
+    def __init__(
+        self,
+        hardware,
+        head,
+        speed_fraction: float = 0.3,
+        rate_hz: float = 100.0,
+        tolerance: float = math.radians(0.3),
+        settle_s: float = 0.05,
+        timeout_s: float = 5.0,
+    ) -> None:
+        if not 0 < speed_fraction <= 1:
+            raise ValueError("speed_fraction must be in (0, 1]")
+        self.hw = hardware
+        self.head = head
+        self.speed_fraction = speed_fraction
+        self.dt = 1.0 / rate_hz
+        self.tolerance = tolerance
+        self.settle_s = settle_s
+        self.timeout_s = timeout_s
+        self.names = tuple(head.actuator_names)
+        self.lo = np.array([head.actuator(n).min for n in self.names])
+        self.hi = np.array([head.actuator(n).max for n in self.names])
+        self.vmax = np.array([head.actuator(n).max_velocity for n in self.names]) * speed_fraction
+        groups: dict[str, list[int]] = {}
+        for i, n in enumerate(self.names):
+            groups.setdefault(head.actuator(n).bus, []).append(i)
+        self._bus_groups = [np.array(v) for v in groups.values()]
+        self._switch = sys.getswitchinterval()
+        sys.setswitchinterval(min(self._switch, 0.0005))  # emulator threads must not stall the ramp for 5 ms
+        self.hw.open()
+        self.hw.enable()
+        time.sleep(0.05)  # the drives hold where they are; first ramp steps stay within their rate guard
+        self._target = self._read_vector()
+
+    def _read_vector(self) -> np.ndarray:
+        states = self.hw.read()
+        bad = [n for n, s in states.items() if s.fault]
+        if bad:
+            raise CalibrationError(f"drive fault on {', '.join(sorted(bad))}")
+        return np.array([states[n].position for n in self.names])
+
+    def move_to(self, pose: Mapping[str, float]) -> None:
+        """Ramp every actuator to ``pose`` together, timed on the clock so no write outruns the speed limit."""
+        target = np.array(list(_clamp(self.head, pose).values()))
+        start = self._target
+        duration = float(np.max(np.abs(target - start) / self.vmax)) if start.size else 0.0
+        duration = 1.5 * duration  # smoothstep peaks at 1.5x the mean speed: keep the peak at speed_fraction
+        t0 = time.monotonic()
+        while True:
+            tick = time.monotonic()
+            finished = True
+            # each bus gets the ramp value of the moment it is written: a slow bus never makes the next one jump
+            for idx in self._bus_groups:
+                now = time.monotonic()
+                s = 1.0 if duration <= 0 else min((now - t0) / duration, 1.0)
+                finished = s >= 1.0
+                s = s * s * (3.0 - 2.0 * s)  # smoothstep: zero velocity at both ends
+                q = np.clip(start[idx] + (target[idx] - start[idx]) * s, self.lo[idx], self.hi[idx])
+                self._write({self.names[i]: float(v) for i, v in zip(idx, q, strict=True)})
+            if finished:
+                break
+            time.sleep(max(0.0, self.dt - (time.monotonic() - tick)))
+        self._target = target
+
+    def _write(self, targets: dict[str, float]) -> None:
+        """Write one bus's targets. The driver's rate guard stamps a write when it gets the bus, so a thread
+        switch between computing and writing can make a legal ramp step look too fast: such a refusal (and
+        only that) is retried a moment later, when the elapsed time covers the step."""
+        for attempt in range(20):
+            try:
+                self.hw.write(targets)
+                return
+            except CommandRejected as exc:
+                if "exceeds max_velocity" not in str(exc) or attempt == 19:
+                    raise
+                time.sleep(0.002)
+
+    def wait_settled(self) -> None:
+        deadline = time.monotonic() + self.timeout_s
+        still_since = None
+        while True:
+            states = self.hw.read()
+            bad = [n for n, s in states.items() if s.fault]
+            if bad:
+                raise CalibrationError(f"drive fault while settling: {', '.join(sorted(bad))}")
+            pos = np.array([states[n].position for n in self.names])
+            vel = np.array([states[n].velocity for n in self.names])
+            ok = np.all(np.abs(pos - self._target) <= self.tolerance) and np.all(np.abs(vel) <= 5 * self.tolerance)
+            now = time.monotonic()
+            if ok:
+                still_since = still_since or now
+                if now - still_since >= self.settle_s:
+                    return
+            else:
+                still_since = None
+            if now > deadline:
+                worst = self.names[int(np.argmax(np.abs(pos - self._target)))]
+                raise CalibrationError(f"pose did not settle within {self.timeout_s} s (worst: {worst})")
+            time.sleep(0.005)
+
+    def measured(self) -> dict[str, float]:
+        return dict(zip(self.names, self._read_vector().tolist(), strict=True))
+
+    def positions(self) -> dict[str, float]:
+        """Ground truth of emulated motors (emulator side), for the simulated tracker."""
+        return self.hw.simulated_positions()
+
+    def faults(self) -> list[str]:
+        return [f"{k}: {v}" for k, v in self.hw.faults().items()]
+
+    def close(self) -> None:
+        try:
+            self.hw.disable()
+        finally:
+            self.hw.close()
+            sys.setswitchinterval(self._switch)
+
+
+class DaemonHead:
+    """Calibration moves through a running daemon's API (``pose`` op, then ``status`` until reached)."""
+
+    def __init__(self, endpoint: str, head, speed_fraction: float = 0.3, timeout_s: float = 10.0) -> None:
+        import zmq
+
+        self.endpoint = endpoint
+        self.head = head
+        self.speed_fraction = speed_fraction
+        self.timeout_s = timeout_s
+        self._zmq = zmq
+        self._sock = zmq.Context.instance().socket(zmq.DEALER)
+        self._sock.setsockopt(zmq.LINGER, 0)
+        self._sock.connect(endpoint)
+        self._id = 0
+        self._last: dict[str, float] = {}
+
+    def _request(self, op: str, **fields) -> dict:
+        import msgpack
+
+        self._id += 1
+        self._sock.send(msgpack.packb({"op": op, "id": self._id, **fields}, use_bin_type=True))
+        if not self._sock.poll(int(self.timeout_s * 1000)):
+            raise CalibrationError(f"daemon at {self.endpoint} did not answer {op!r}")
+        reply = msgpack.unpackb(self._sock.recv_multipart()[-1], raw=False)
+        if not reply.get("ok"):
+            raise CalibrationError(f"daemon refused {op!r}: {reply.get('error') or reply}")
+        return reply
+
+    def move_to(self, pose: Mapping[str, float]) -> None:
+        self._request("pose", pose=_clamp(self.head, pose), speed=self.speed_fraction)
+
+    def _write(self, targets: dict[str, float]) -> None:
+        """Write one bus's targets. The driver's rate guard stamps a write when it gets the bus, so a thread
+        switch between computing and writing can make a legal ramp step look too fast: such a refusal (and
+        only that) is retried a moment later, when the elapsed time covers the step."""
+        for attempt in range(20):
+            try:
+                self.hw.write(targets)
+                return
+            except CommandRejected as exc:
+                if "exceeds max_velocity" not in str(exc) or attempt == 19:
+                    raise
+                time.sleep(0.002)
+
+    def wait_settled(self) -> None:
+        deadline = time.monotonic() + self.timeout_s
+        while time.monotonic() < deadline:
+            st = self._request("status")
+            if st.get("pose_reached"):
+                return
+            time.sleep(0.02)
+        raise CalibrationError(f"daemon did not report the pose reached within {self.timeout_s} s")
+
+    def measured(self) -> dict[str, float]:
+        st = self._request("status")
+        pos = st.get("positions") or st.get("measured") or {}
+        return {str(k): float(v) for k, v in dict(pos).items()}
+
+    def positions(self) -> dict[str, float]:
+        return self.measured()
+
+    def faults(self) -> list[str]:
+        st = self._request("status")
+        return [str(f) for f in st.get("faults", [])]
+
+    def close(self) -> None:
+        self._sock.close(0)
