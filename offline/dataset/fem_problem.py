@@ -1,0 +1,199 @@
+"""The skin FEM as a pose problem: actuators → link transforms m(p) → Dirichlet conditions → quasi-static solve.
+
+Per pose: the link map gives each attachment link's rigid transform from neutral, each link's node set (named in
+the head config) is moved rigidly by it, the skull set stays fixed, and ``offline.fem.solve_static`` finds the
+equilibrium from the warm-start state (the nearest solved pose). The dataset stores the outer-surface nodes.
+
+Mesh input: a ``.vtu`` written by ``offline.fem.save_mesh`` or a folder holding ``skin.vtu``. The outer surface is
+``surface.npz`` beside it (``nodes``: outer node indices; optional ``triangles`` in mesh node numbering) or else
+the node set ``outer`` (or ``outer_surface``/``surface``), with triangles taken from the mesh boundary faces whose
+three nodes are all outer. Face units, when present, come from ``face_units.npz`` beside the mesh (``names`` and
+``offsets`` (U, V, 3), or one (V, 3) array per ARKit name), given on the outer nodes in that order.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from models.errors import SpecError
+from offline.dataset.problem import PoseProblem, PoseSolution, ProblemSpec
+
+OUTER_SET_NAMES = ("outer", "outer_surface", "surface")
+
+
+def _mesh_file(mesh: str | Path) -> Path:
+    p = Path(mesh)
+    if p.is_dir():
+        cand = p / "skin.vtu"
+        if not cand.exists():
+            raise SpecError(str(p), "skin.vtu", "mesh folder has no skin.vtu")
+        return cand
+    if not p.exists():
+        raise SpecError(str(p), "file", "mesh not found")
+    return p
+
+
+@dataclass(frozen=True)
+class FemSpec(ProblemSpec):
+    """Paths and solver settings of the FEM pose problem (picklable; built once per worker)."""
+
+    config: str
+    mesh: str
+    linkmap: str
+    backend: str = "auto"
+    threads: int = 1
+    youngs_modulus: float = 78_000.0  # Pa, soft skin silicone
+    poisson_ratio: float = 0.47
+    skull_set: str = "skull"
+    max_iterations: int = 30
+    load_steps: int | str = 1
+
+    @property
+    def token(self) -> str:
+        stamp = []
+        for p in (self.config, self.linkmap, str(_mesh_file(self.mesh))):
+            st = Path(p).stat()
+            stamp.append((str(Path(p).resolve()), st.st_size, st.st_mtime_ns))
+        doc = json.dumps({**self.__dict__, "stamp": stamp}, sort_keys=True, default=str)
+        return "fem-" + hashlib.sha1(doc.encode()).hexdigest()[:16]
+
+    def describe(self) -> dict[str, Any]:
+        return {"kind": "fem", "config": self.config, "mesh": self.mesh, "linkmap": self.linkmap,
+                "backend": self.backend, "material": {"model": "neo_hookean", "E": self.youngs_modulus,
+                                                      "nu": self.poisson_ratio}}
+
+    def check(self) -> None:
+        """Load everything once in this process so bad inputs fail before any worker starts."""
+        self.build()
+
+    def build(self) -> FemSkin:
+        return FemSkin(self)
+
+
+class FemSkin(PoseProblem):
+    """The loaded FEM problem of a :class:`FemSpec`."""
+
+    def __init__(self, spec: FemSpec) -> None:
+        import os
+
+        for var in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+            os.environ.setdefault(var, str(spec.threads))
+        from models.headspec import load_head
+        from models.linkmap import LinkMap
+        from offline.fem import SolverOptions, load_mesh, neo_hookean_from_E_nu
+
+        self.spec = spec
+        self.head = load_head(spec.config)
+        self.linkmap = LinkMap.load(spec.linkmap)
+        self.linkmap.check_against(self.head)
+        mesh_path = _mesh_file(spec.mesh)
+        self.mesh = load_mesh(mesh_path)
+        sets = self.mesh.node_sets
+        if spec.skull_set not in sets:
+            raise SpecError(str(mesh_path), f"node set {spec.skull_set}", "missing (the fixed skull attachment)")
+        self.moving: dict[str, str] = {}  # link name → node set
+        for link in self.head.links:
+            if link.rigid:
+                continue
+            if link.node_set not in sets:
+                raise SpecError(str(mesh_path), f"node set {link.node_set}",
+                                f"missing (attachment of link {link.name!r} in {spec.config})")
+            self.moving[link.name] = link.node_set
+        self.outer, self._faces = self._outer_surface(mesh_path)
+        self._fu_names, self._fu = self._face_units(mesh_path.parent)
+        self.material = neo_hookean_from_E_nu(spec.youngs_modulus, spec.poisson_ratio)
+        self.options = SolverOptions(backend=spec.backend, max_iterations=spec.max_iterations,
+                                     load_steps=spec.load_steps)
+
+    def _outer_surface(self, mesh_path: Path) -> tuple[np.ndarray, np.ndarray]:
+        from offline.fem import boundary_faces
+
+        surf = mesh_path.parent / "surface.npz"
+        tris = None
+        if surf.exists():
+            with np.load(surf) as z:
+                outer = np.asarray(z["nodes"], dtype=np.int64)
+                tris = np.asarray(z["triangles"], dtype=np.int64) if "triangles" in z.files else None
+        else:
+            name = next((n for n in OUTER_SET_NAMES if n in self.mesh.node_sets), None)
+            if name is None:
+                raise SpecError(str(mesh_path), "outer surface",
+                                f"no surface.npz beside the mesh and no node set named {' / '.join(OUTER_SET_NAMES)}")
+            outer = np.asarray(self.mesh.node_sets[name], dtype=np.int64)
+        if tris is None:
+            bf = boundary_faces(self.mesh)
+            mask = np.zeros(self.mesh.n_nodes, dtype=bool)
+            mask[outer] = True
+            tris = bf[mask[bf].all(axis=1)]
+        lookup = np.full(self.mesh.n_nodes, -1, dtype=np.int64)
+        lookup[outer] = np.arange(len(outer))
+        faces = lookup[tris]
+        if (faces < 0).any():
+            raise SpecError(str(mesh_path), "surface triangles", "use nodes outside the outer surface")
+        return outer, faces
+
+    def _face_units(self, folder: Path) -> tuple[tuple[str, ...], np.ndarray | None]:
+        path = folder / "face_units.npz"
+        if not path.exists():
+            return (), None
+        with np.load(path) as z:
+            if "names" in z.files and "offsets" in z.files:
+                names = tuple(str(n) for n in z["names"])
+                offsets = np.asarray(z["offsets"], dtype=np.float32)
+            else:
+                names = tuple(sorted(z.files))
+                offsets = np.stack([np.asarray(z[n], dtype=np.float32) for n in names])
+        if offsets.shape[1:] != (len(self.outer), 3):
+            raise SpecError(str(path), "offsets", f"expected (U, {len(self.outer)}, 3) on the outer nodes",
+                            offsets.shape)
+        return names, offsets
+
+    def base_surface(self) -> np.ndarray:
+        return np.asarray(self.mesh.nodes)[self.outer].copy()
+
+    def faces(self) -> np.ndarray:
+        return self._faces.copy()
+
+    def face_units(self) -> tuple[tuple[str, ...], np.ndarray | None]:
+        return self._fu_names, self._fu
+
+    def dirichlet(self, p: np.ndarray):
+        """Boundary conditions of pose p: link node sets moved rigidly by m(p), the skull fixed."""
+        from offline.fem import rigid_transform_dirichlet
+
+        values = dict(zip(self.head.actuator_names, (float(x) for x in p), strict=True))
+        T = self.linkmap.transforms(values)
+        moves = {self.moving[name]: T[name] for name in self.moving if name in T}
+        return rigid_transform_dirichlet(self.mesh, moves, fixed_sets=[self.spec.skull_set])
+
+    def solve(self, p: np.ndarray, warm_state: np.ndarray | None, index: int | None = None) -> PoseSolution:
+        from offline.fem import NotConverged, solve_static
+
+        bc = self.dirichlet(p)
+        x0 = None if warm_state is None else np.asarray(warm_state, dtype=np.float64).reshape(-1, 3)
+        if x0 is not None and x0.shape != (self.mesh.n_nodes, 3):
+            x0 = None
+        tries = [x0, None] if x0 is not None else [None]
+        last_msg = ""
+        for start in tries:
+            try:
+                res = solve_static(self.mesh, self.material, bc, x0=start, options=self.options)
+            except NotConverged as exc:
+                res = exc.result
+                last_msg = str(exc)
+                if start is not None:
+                    continue  # a bad warm start: try once more from rest
+                return PoseSolution(res.x[self.outer], res.x, False, res.iterations, last_msg)
+            except ValueError as exc:  # e.g. the warm start inverts an element under the new boundary
+                last_msg = str(exc)
+                continue
+            msg = "" if start is not None or x0 is None else "warm start rejected; solved from rest"
+            return PoseSolution(res.x[self.outer], res.x, bool(res.converged), res.iterations, msg)
+        rest = np.asarray(self.mesh.nodes, dtype=np.float64)
+        return PoseSolution(rest[self.outer], None, False, 0, last_msg or "no solve possible")
