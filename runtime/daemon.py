@@ -59,7 +59,7 @@ class Daemon:
         head: HeadSpec,
         overrides: Mapping[str, Any] | None = None,
         hardware: Hardware | None = None,
-        target_solvers: Iterable[TargetSolver] = (),
+        target_solvers: Iterable[TargetSolver] | None = None,
     ) -> None:
         self.head = head
         self.cfg: DaemonConfig = daemon_config(head, overrides)
@@ -67,6 +67,10 @@ class Daemon:
         self.names = head.actuator_names
         self.units = [a.unit for a in head.actuators]
         self._scale = np.array([a.unit_scale for a in head.actuators])
+        if target_solvers is None:  # from the head config: the skin solver when paths.predictor exists
+            from runtime.skin import default_target_solvers
+
+            target_solvers = default_target_solvers(head)
         self.solver = Solver(head, target_solvers)
         self.safety = SafetyFilter(head)
         self.timeline = Timeline()

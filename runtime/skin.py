@@ -1,0 +1,130 @@
+"""Target-space channels solved through the learned skin: ``arkit.<faceUnit>`` weights → actuator values.
+
+The weights define a target surface (base + Σ wᵢ Δᵢ, the face units stored in the predictor file); the hidden-space
+inverse (``models.ksnn_solve``) finds the actuator values whose predicted skin matches it, warm-started from the
+previous frame with temporal smoothness, within the head's limits. A skin-strain guard then checks the predicted
+surface stretch of the solution: a pose outside the material's validated range (default −20 % .. +50 % principal
+strain) is pulled back toward the last accepted pose until it passes, or the last accepted pose is held. Telemetry
+carries the solve residual, iterations, time and guard outcome. Imports only numpy and onnxruntime (via models).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from models.errors import SpecError
+from models.headspec import HeadSpec
+from models.ksnn_solve import KsnnInverse
+from models.predictor import DEFAULT_STRAIN_RANGE, SkinPredictor
+from runtime.solve import SolveResult
+
+PREFIX = "arkit."
+
+
+class SkinTargetSolver:
+    """:class:`runtime.solve.TargetSolver` for ``arkit.*`` channels of a head with a skin predictor."""
+
+    def __init__(self, head: HeadSpec, predictor: SkinPredictor | str | Path,
+                 strain_range: tuple[float, float] = DEFAULT_STRAIN_RANGE, smoothness: float = (0.1e-3) ** 2,
+                 max_iterations: int = 8) -> None:
+        sp = predictor if isinstance(predictor, SkinPredictor) else SkinPredictor(predictor)
+        sp.check_against(head)
+        if sp.face_unit_offsets is None or not sp.face_unit_names:
+            raise SpecError(str(sp.path), "metadata likeness.face_units",
+                            "the predictor carries no face units, so it cannot solve arkit.* channels")
+        self.head = head
+        self.predictor = sp
+        self.names = sp.actuator_names
+        self.units = {n: i for i, n in enumerate(sp.face_unit_names)}
+        self.lo = np.array([a.min for a in head.actuators])
+        self.hi = np.array([a.max for a in head.actuators])
+        self.inverse = KsnnInverse(sp.weights, sp.face_unit_offsets, smoothness=smoothness, lo=self.lo, hi=self.hi)
+        self.strain_range = strain_range
+        self.max_iterations = max_iterations
+        self.neutral = np.array([a.neutral for a in head.actuators])
+        self._accepted = self.neutral.copy()
+        self._weights = np.zeros(len(self.units))
+
+    @classmethod
+    def from_head(cls, head: HeadSpec) -> SkinTargetSolver | None:
+        """The solver for the head's ``paths.predictor``, or None when the head names no existing predictor."""
+        path = head.path("predictor")
+        if path is None or not Path(path).is_file():
+            return None
+        return cls(head, path)
+
+    # ------------------------------------------------------------------ TargetSolver protocol
+    def handles(self, channel: str) -> bool:
+        return channel.startswith(PREFIX) and channel[len(PREFIX):] in self.units
+
+    def channels(self) -> dict[str, str]:
+        """The target channels this solver owns (unit: blendshape weight, 0..1)."""
+        return {PREFIX + n: "weight" for n in self.units}
+
+    def solve(self, targets: Mapping[str, float], current: Mapping[str, float]) -> SolveResult:
+        """Actuator values (SI) for the addressed face-unit weights (unaddressed units count as 0)."""
+        t0 = time.perf_counter()
+        w = self._weights
+        w[:] = 0.0
+        for ch, value in targets.items():
+            i = self.units.get(ch[len(PREFIX):]) if ch.startswith(PREFIX) else None
+            if i is not None and np.isfinite(value):
+                w[i] = min(max(float(value), 0.0), 1.0)
+        res = self.inverse.solve(w, p_prev=self._accepted, max_iterations=self.max_iterations)
+        p, guard, strain = self.guard(res.p)
+        self._accepted = p
+        extra: dict[str, Any] = {
+            "skin_residual_mm": res.residual_rms * 1e3,
+            "skin_iterations": res.iterations,
+            "skin_solve_us": (time.perf_counter() - t0) * 1e6,
+            "skin_strain": [round(strain[0], 4), round(strain[1], 4)],
+            "skin_guard": guard,
+        }
+        return SolveResult({n: float(x) for n, x in zip(self.names, p, strict=True)}, extra)
+
+    # ------------------------------------------------------------------ strain guard
+    def strain(self, p: np.ndarray) -> tuple[float, float]:
+        """Smallest and largest principal strain of the predicted surface at pose p."""
+        return self.predictor.strain_extremes(self.predictor.predict(p))
+
+    def _ok(self, strain: tuple[float, float]) -> bool:
+        return self.strain_range[0] <= strain[0] and strain[1] <= self.strain_range[1]
+
+    def guard(self, p: np.ndarray, steps: int = 5) -> tuple[np.ndarray, str, tuple[float, float]]:
+        """Accept p if its predicted strain is in range; else the furthest point toward p from the last accepted
+        pose that is (bisection), else hold the last accepted pose. Returns (pose, "ok"|"limited"|"held", strain)."""
+        strain = self.strain(p)
+        if self._ok(strain):
+            return p, "ok", strain
+        base = self._accepted
+        lo_t, hi_t = 0.0, 1.0
+        best = None
+        for _ in range(steps):
+            mid = 0.5 * (lo_t + hi_t)
+            s = self.strain(base + mid * (p - base))
+            if self._ok(s):
+                lo_t, best = mid, s
+            else:
+                hi_t = mid
+        if best is not None:
+            return base + lo_t * (p - base), "limited", best
+        return base.copy(), "held", self.strain(base)
+
+    def reset(self, positions: Mapping[str, float] | None = None) -> None:
+        """Forget the warm start (e.g. after enable): continue from ``positions`` or neutral."""
+        self._accepted = self.neutral.copy()
+        if positions:
+            for i, n in enumerate(self.names):
+                if n in positions and np.isfinite(positions[n]):
+                    self._accepted[i] = min(max(float(positions[n]), self.lo[i]), self.hi[i])
+
+
+def default_target_solvers(head: HeadSpec) -> list[Any]:
+    """Target solvers a head's config asks for: the skin solver when ``paths.predictor`` exists."""
+    skin = SkinTargetSolver.from_head(head)
+    return [skin] if skin is not None else []

@@ -1,0 +1,164 @@
+"""arkit.* target channels: solved through a skin predictor, strain-guarded, and played by the daemon on emulators."""
+
+from __future__ import annotations
+
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from models.headspec import load_head
+from models.predictor import KsnnWeights, SkinPredictor
+from runtime.skin import SkinTargetSolver
+
+pytest.importorskip("onnx")
+from offline.train.export import export_predictor, predictor_metadata
+
+ROOT = Path(__file__).resolve().parents[2]
+SAMPLE = ROOT / "heads" / "sample" / "head.toml"
+
+
+def grid(n=12, size=0.06):
+    u, v = np.meshgrid(np.linspace(0, size, n), np.linspace(0, size, n), indexing="ij")
+    verts = np.stack([u.ravel(), v.ravel(), np.zeros(n * n)], 1)
+    idx = np.arange(n * n).reshape(n, n)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    return verts, np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+
+
+def smooth_weights(head, base, amplitude, seed=0, hidden=20) -> KsnnWeights:
+    """A KSNN whose hidden units each push a smooth bump of skin (so surface strain scales with ``amplitude``)."""
+    rng = np.random.default_rng(seed)
+    lo = np.array([a.min for a in head.actuators])
+    hi = np.array([a.max for a in head.actuators])
+    A = len(lo)
+    centers = rng.uniform(0.1, 0.9, (hidden, 2)) * np.ptp(base[:, 0])
+    bumps = np.exp(-((base[None, :, :2] - centers[:, None]) ** 2).sum(-1) / (2 * 0.012 ** 2))  # (H, V)
+    dirs = rng.normal(size=(hidden, 3))
+    W2 = amplitude * np.einsum("hk,hv->khv", dirs, bumps)
+    W1 = rng.normal(size=(3, A, hidden)) * 2.0
+    b1 = rng.normal(size=(3, hidden)) * 0.2
+    w = KsnnWeights(lo, hi, W1, b1, W2, np.zeros((3, base.shape[0])))
+    # Like a trained model, predict no offset at the neutral pose (the base mesh is the neutral skin).
+    neutral = np.array([a.neutral for a in head.actuators])
+    return KsnnWeights(lo, hi, W1, b1, W2, -w.offsets(neutral).T.copy())
+
+
+def write_predictor(path: Path, head, amplitude=3e-4, unit_poses=None, seed=0) -> SkinPredictor:
+    base, faces = grid()
+    w = smooth_weights(head, base, amplitude, seed)
+    names, offsets = [], []
+    for name, p in (unit_poses or {}).items():
+        names.append(name)
+        offsets.append(w.offsets(p) - w.offsets(np.array([a.neutral for a in head.actuators])))
+    meta = predictor_metadata(head=head.name, names=head.actuator_names,
+                              units=["rad" if a.kind == "rotary" else "m" for a in head.actuators], weights=w,
+                              base_vertices=base, faces=faces, face_unit_names=names,
+                              face_unit_offsets=np.array(offsets) if offsets else None)
+    export_predictor(path, w, meta)
+    return SkinPredictor(path)
+
+
+@pytest.fixture(scope="module")
+def head():
+    return load_head(SAMPLE)
+
+
+def pose(head, **deg):
+    p = np.array([a.neutral for a in head.actuators])
+    for name, value in deg.items():
+        p[head.actuator_names.index(name)] = math.radians(value)
+    return p
+
+
+def test_solver_recovers_the_pose_behind_a_face_unit(tmp_path, head):
+    target = pose(head, jaw=15.0, lip_corner_l_up=10.0, brow_r=-8.0)
+    sp = write_predictor(tmp_path / "p.onnx", head, unit_poses={"jawOpen": target, "mouthSmileLeft":
+                                                                 pose(head, lip_corner_l_up=25.0)})
+    solver = SkinTargetSolver(head, sp, smoothness=0.0, max_iterations=30)
+    assert solver.handles("arkit.jawOpen") and not solver.handles("arkit.nope") and not solver.handles("jaw")
+    # The neutral face (all weights 0) is the neutral pose.
+    res = solver.solve({"arkit.jawOpen": 0.0}, {})
+    np.testing.assert_allclose([res.actuators[n] for n in head.actuator_names], pose(head), atol=1e-3)
+    # Held for a few frames (warm-started), the solve lands on the pose that made the unit.
+    for _ in range(3):
+        res = solver.solve({"arkit.jawOpen": 1.0}, {})
+    got = np.array([res.actuators[n] for n in head.actuator_names])
+    np.testing.assert_allclose(np.degrees(got), np.degrees(target), atol=0.05)
+    assert res.extra["skin_residual_mm"] < 1e-4 and res.extra["skin_guard"] == "ok"
+    assert res.extra["skin_iterations"] >= 1 and res.extra["skin_solve_us"] > 0
+    # With temporal smoothness the first frame moves less, and holding the target keeps shrinking the residual.
+    smooth = SkinTargetSolver(head, sp)
+    first = smooth.solve({"arkit.jawOpen": 1.0}, {})
+    p1 = np.array([first.actuators[n] for n in head.actuator_names])
+    assert np.linalg.norm(p1 - pose(head)) < np.linalg.norm(got - pose(head))
+    for _ in range(10):
+        later = smooth.solve({"arkit.jawOpen": 1.0}, {})
+    assert later.extra["skin_residual_mm"] < first.extra["skin_residual_mm"]
+
+
+def test_strain_guard_keeps_poses_within_the_validated_range(tmp_path, head):
+    sp = write_predictor(tmp_path / "p.onnx", head, amplitude=2e-3, seed=3, unit_poses={"x": pose(head)})
+    solver = SkinTargetSolver(head, sp)
+    rng = np.random.default_rng(0)
+    P = rng.uniform(solver.lo, solver.hi, size=(300, len(solver.lo)))
+    strains = np.array([solver.strain(p) for p in P])
+    ok = (strains[:, 0] >= -0.2) & (strains[:, 1] <= 0.5)
+    assert ok.any() and (~ok).any(), "the test model must have safe and unsafe poses"
+    safe, unsafe = P[np.flatnonzero(ok)[0]], P[np.flatnonzero(~ok)[0]]
+    solver.reset(dict(zip(head.actuator_names, safe, strict=True)))
+    p, outcome, strain = solver.guard(unsafe)
+    assert outcome in ("limited", "held")
+    assert strain[0] >= -0.2 and strain[1] <= 0.5
+    assert solver.strain(p)[0] >= -0.2 and solver.strain(p)[1] <= 0.5
+    assert np.linalg.norm(p - safe) < np.linalg.norm(unsafe - safe)
+    p2, outcome2, _ = solver.guard(safe)
+    assert outcome2 == "ok" and np.array_equal(p2, safe)
+
+
+def test_predictor_without_face_units_or_for_another_head_is_refused(tmp_path, head):
+    from models.errors import SpecError
+
+    sp = write_predictor(tmp_path / "p.onnx", head)
+    with pytest.raises(SpecError, match="face_units"):
+        SkinTargetSolver(head, sp)
+    other = load_head(SAMPLE)
+    import dataclasses
+
+    acts = list(other.actuators)
+    other = dataclasses.replace(other, actuators=(dataclasses.replace(acts[0], name="mandible"), *acts[1:]))
+    sp2 = write_predictor(tmp_path / "q.onnx", head, unit_poses={"jawOpen": pose(head, jaw=5)})
+    with pytest.raises(SpecError, match="jaw"):
+        SkinTargetSolver(other, sp2)
+
+
+def test_daemon_plays_blendshape_curves_through_the_predictor(tmp_path, head, make_daemon):
+    from runtime.client import Client, Telemetry
+    from tests.runtime.conftest import wait_until
+
+    shutil.copy(SAMPLE, tmp_path / "head.toml")
+    target = pose(head, jaw=12.0, upper_lip=6.0)
+    write_predictor(tmp_path / "predictor.onnx", head, unit_poses={"jawOpen": target,
+                                                                    "browInnerUp": pose(head, brow_l=10, brow_r=10)})
+    d = make_daemon(tmp_path / "head.toml")
+    clip = {"name": "talk", "channels": {"arkit.jawOpen": {"interp": "linear", "keys": [[0, 0], [0.4, 1], [1.4, 1]]}}}
+    with Client(d.command_endpoint, timeout=5) as c, Telemetry(d.telemetry_endpoint) as tel:
+        c.call("enable")
+        c.call("load_clip", clip=clip)
+        start = c.call("play", clip="talk")["start"]
+        extras = []
+        for topic, msg in tel.iter(3.0):
+            if topic == "state" and msg["t"] >= start and "extra" in msg:
+                extras.append(msg["extra"])
+            if topic == "event" and msg.get("event") == "clip" and msg.get("state") == "finished":
+                break
+        st = wait_until(lambda: (lambda s: s if not s["moving"] else None)(c.call("status")), 3.0)
+        assert st and st["fault"] is None
+        assert st["commanded"]["jaw"] == pytest.approx(12.0, abs=1.0)
+        assert st["commanded"]["upper_lip"] == pytest.approx(6.0, abs=1.0)
+        assert math.degrees(d.hw.simulated_positions()["jaw"]) == pytest.approx(12.0, abs=1.5)
+        assert extras and all("skin_residual_mm" in e for e in extras)
+        assert extras[-1]["skin_residual_mm"] < 0.05
+        c.call("disable")
