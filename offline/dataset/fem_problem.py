@@ -4,11 +4,11 @@ Per pose: the link map gives each attachment link's rigid transform from neutral
 the head config) is moved rigidly by it, the skull set stays fixed, and ``offline.fem.solve_static`` finds the
 equilibrium from the warm-start state (the nearest solved pose). The dataset stores the outer-surface nodes.
 
-Mesh input: a ``.vtu`` written by ``offline.fem.save_mesh`` or a folder holding ``skin.vtu``. The outer surface is
-``surface.npz`` beside it (``nodes``: outer node indices; optional ``triangles`` in mesh node numbering) or else
-the node set ``outer`` (or ``outer_surface``/``surface``), with triangles taken from the mesh boundary faces whose
-three nodes are all outer. Face units, when present, come from ``face_units.npz`` beside the mesh (``names`` and
-``offsets`` (U, V, 3), or one (V, 3) array per ARKit name), given on the outer nodes in that order.
+Mesh input: a ``.vtu`` written by ``offline.fem.save_mesh`` or a folder holding ``skin.vtu`` (as written by
+``likeness offline mesh``). The outer surface comes from ``face_units.npz`` beside it (``surface_nodes``: outer
+mesh node indices, ``surface_triangles``: triangles in mesh numbering; ``names`` + ``offsets`` (U, S, 3): the face
+units on those nodes), else from the node set ``outer`` (or ``outer_surface``/``surface``) with triangles taken
+from the mesh boundary faces whose three nodes are all outer.
 """
 
 from __future__ import annotations
@@ -114,13 +114,16 @@ class FemSkin(PoseProblem):
     def _outer_surface(self, mesh_path: Path) -> tuple[np.ndarray, np.ndarray]:
         from offline.fem import boundary_faces
 
-        surf = mesh_path.parent / "surface.npz"
+        surf = mesh_path.parent / "face_units.npz"
         tris = None
+        outer = None
         if surf.exists():
             with np.load(surf) as z:
-                outer = np.asarray(z["nodes"], dtype=np.int64)
-                tris = np.asarray(z["triangles"], dtype=np.int64) if "triangles" in z.files else None
-        else:
+                if "surface_nodes" in z.files:
+                    outer = np.asarray(z["surface_nodes"], dtype=np.int64)
+                    if "surface_triangles" in z.files:
+                        tris = np.asarray(z["surface_triangles"], dtype=np.int64)
+        if outer is None:
             name = next((n for n in OUTER_SET_NAMES if n in self.mesh.node_sets), None)
             if name is None:
                 raise SpecError(str(mesh_path), "outer surface",
@@ -143,12 +146,10 @@ class FemSkin(PoseProblem):
         if not path.exists():
             return (), None
         with np.load(path) as z:
-            if "names" in z.files and "offsets" in z.files:
-                names = tuple(str(n) for n in z["names"])
-                offsets = np.asarray(z["offsets"], dtype=np.float32)
-            else:
-                names = tuple(sorted(z.files))
-                offsets = np.stack([np.asarray(z[n], dtype=np.float32) for n in names])
+            if "names" not in z.files or "offsets" not in z.files:
+                return (), None
+            names = tuple(str(n) for n in z["names"])
+            offsets = np.asarray(z["offsets"], dtype=np.float32)
         if offsets.shape[1:] != (len(self.outer), 3):
             raise SpecError(str(path), "offsets", f"expected (U, {len(self.outer)}, 3) on the outer nodes",
                             offsets.shape)
