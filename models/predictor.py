@@ -281,8 +281,7 @@ class SkinPredictor:
     # ------------------------------------------------------------------ surface stretch
     def principal_stretches(self, positions: np.ndarray) -> np.ndarray:
         """Principal in-plane stretches (min, max) of every surface triangle vs the base mesh: (T, 2) or (B, T, 2)."""
-        pos = np.asarray(positions, dtype=np.float64)
-        g = _triangle_metric(pos, self.faces)
+        g = _triangle_metric(np.asarray(positions), self.faces).astype(np.float64)
         return _stretches(self._base_tri_metric, g)
 
     def strain_extremes(self, positions: np.ndarray) -> tuple[float, float]:
@@ -339,10 +338,11 @@ def _dequantize_nbits(init: Mapping[str, np.ndarray], name: str, shape: tuple[in
 
 def _triangle_metric(pos: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """First fundamental form of each triangle in its edge basis: (..., T, 3) entries (e1·e1, e1·e2, e2·e2)."""
-    a = pos[..., faces[:, 0], :]
-    e1 = pos[..., faces[:, 1], :] - a
-    e2 = pos[..., faces[:, 2], :] - a
-    return np.stack([(e1 * e1).sum(-1), (e1 * e2).sum(-1), (e2 * e2).sum(-1)], axis=-1)
+    tri = np.take(pos, faces, axis=-2)  # (..., T, 3 corners, 3)
+    e1 = tri[..., 1, :] - tri[..., 0, :]
+    e2 = tri[..., 2, :] - tri[..., 0, :]
+    return np.stack([np.einsum("...i,...i->...", e1, e1), np.einsum("...i,...i->...", e1, e2),
+                     np.einsum("...i,...i->...", e2, e2)], axis=-1)
 
 
 def _stretches(g0: np.ndarray, g: np.ndarray) -> np.ndarray:

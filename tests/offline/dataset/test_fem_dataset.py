@@ -9,75 +9,22 @@ import pytest
 
 pytest.importorskip("numba")
 
+from models.errors import SpecError
 from models.headspec import load_head
-from models.linkmap import LinkFit, LinkMap
+from offline.dataset.box import write_box_problem
 from offline.dataset.fem_problem import FemSpec
 from offline.dataset.generate import generate_dataset
 from offline.dataset.store import PoseDataset, PoseStore
 from offline.engine import SerialEngine
-from offline.fem import box_mesh, save_mesh
-
-HEAD = """
-[head]
-name = "box"
-[buses.b]
-driver = "dynamixel"
-[[actuators]]
-name = "lift_l"
-bus = "b"
-id = 1
-unit = "mm"
-min = 0.0
-max = 1.5
-max_velocity = 10.0
-max_acceleration = 100.0
-[[actuators]]
-name = "lift_r"
-bus = "b"
-id = 2
-unit = "mm"
-min = -1.0
-max = 1.0
-max_velocity = 10.0
-max_acceleration = 100.0
-[links.skull]
-rigid = true
-[links.left]
-actuators = ["lift_l"]
-[links.right]
-actuators = ["lift_r"]
-"""
+from offline.fem import save_mesh
 
 
 @pytest.fixture(scope="module")
 def box_problem(tmp_path_factory):
     root = tmp_path_factory.mktemp("box")
-    mesh = box_mesh((0.04, 0.02, 0.006), (8, 4, 2))
-    X = np.asarray(mesh.nodes)
-    z0 = np.asarray(mesh.node_sets["z0"])
-    left = z0[X[z0, 0] < 0.0101]
-    right = z0[X[z0, 0] > 0.0299]
-    skull = z0[(X[z0, 0] > 0.0149) & (X[z0, 0] < 0.0251)]
-    mesh = mesh.with_node_sets(skull=skull, left=left, right=right, outer=mesh.node_sets["z1"])
-    save_mesh(root / "skin.vtu", mesh)
-    (root / "head.toml").write_text(HEAD)
+    spec = write_box_problem(root)
     head = load_head(root / "head.toml")
-
-    def lift(name, acts, centroid):
-        coef = np.zeros((3, 6))  # features [1, x, x²] of the link's one actuator
-        coef[0, :3] = centroid
-        coef[1, 2] = 0.001  # x = p / 1 mm → z moves by p
-        return LinkFit(name, acts, coef, np.eye(3))
-
-    links = {
-        "skull": LinkFit("skull", (), np.zeros((1, 6)), np.eye(3), rigid=True),
-        "left": lift("left", ("lift_l",), X[left].mean(0)),
-        "right": lift("right", ("lift_r",), X[right].mean(0)),
-    }
-    LinkMap(head.actuator_names, [0.0, 0.0], [0.001, 0.001], links, head="box").save(root / "linkmap.json")
-    spec = FemSpec(config=str(root / "head.toml"), mesh=str(root), linkmap=str(root / "linkmap.json"),
-                   backend="superlu")
-    return root, head, spec, mesh
+    return root, head, spec, spec.build().mesh
 
 
 def test_fem_pose_problem_moves_patches_and_stores_outer_surface(box_problem, tmp_path):
@@ -122,7 +69,6 @@ def test_fem_pose_problem_moves_patches_and_stores_outer_surface(box_problem, tm
 
 def test_fem_spec_names_missing_node_sets(box_problem, tmp_path):
     _root, _head, spec, mesh = box_problem
-    from models.errors import SpecError
 
     sets = {k: v for k, v in mesh.node_sets.items() if k != "right"}
     from offline.fem import TetMesh
@@ -136,3 +82,26 @@ def test_fem_spec_names_missing_node_sets(box_problem, tmp_path):
     with pytest.raises(SpecError, match=r"no skin\.vtu"):
         FemSpec(config=spec.config, mesh=str(tmp_path / "empty"), linkmap=spec.linkmap).build()
     assert Path(spec.mesh).is_dir()
+
+
+def test_mesh_folder_surface_and_face_units_from_face_units_npz(box_problem, tmp_path):
+    """The layout written by `likeness offline mesh`: surface nodes/triangles and face units in face_units.npz."""
+    _root, _head, spec, mesh = box_problem
+    from offline.fem import boundary_faces
+
+    save_mesh(tmp_path / "skin.vtu", mesh)
+    top = np.asarray(mesh.node_sets["z1"])
+    bf = boundary_faces(mesh)
+    tris = bf[np.isin(bf, top).all(axis=1)]
+    offsets = np.zeros((2, len(top), 3), dtype=np.float32)
+    offsets[1, :, 2] = 0.001
+    np.savez(tmp_path / "face_units.npz", names=np.array(["jawOpen", "browInnerUp"]), offsets=offsets,
+             surface_nodes=top, surface_triangles=tris)
+    prob = FemSpec(config=spec.config, mesh=str(tmp_path), linkmap=spec.linkmap).build()
+    np.testing.assert_array_equal(prob.outer, top)
+    assert prob.faces().shape == tris.shape and prob.faces().max() == len(top) - 1
+    names, fu = prob.face_units()
+    assert names == ("jawOpen", "browInnerUp") and fu.shape == (2, len(top), 3)
+    np.savez(tmp_path / "face_units.npz", names=np.array(["x"]), offsets=np.zeros((1, 3, 3)), surface_nodes=top)
+    with pytest.raises(SpecError, match="offsets"):
+        FemSpec(config=spec.config, mesh=str(tmp_path), linkmap=spec.linkmap).build()
