@@ -45,7 +45,7 @@ def test_split_and_candidates():
 def test_pipeline_exports_onnx_matching_torch_and_reports_errors(dataset, tmp_path):
     root, head = dataset
     cfg = TrainConfig(epochs=40, batch_size=32, lr=5e-3, patience=40)
-    report = train_pipeline(root, tmp_path / "out", cfg, hidden=[13, 26], log=lambda s: None)
+    report = train_pipeline(root, tmp_path / "out", cfg, hidden=[13, 26], int8=True, log=lambda s: None)
     model = tmp_path / "out" / "predictor.onnx"
     sp = SkinPredictor(model)
     sp.check_against(head)
@@ -70,6 +70,15 @@ def test_pipeline_exports_onnx_matching_torch_and_reports_errors(dataset, tmp_pa
         assert (tmp_path / "out" / name).stat().st_size > 1000
     assert json.loads((tmp_path / "out" / "report.json").read_text())["hidden"] == report["hidden"]
     assert json.loads(sp.metadata["likeness.training"])["held_out"] == pytest.approx(held)
+    # The int8 variant: MatMulNBits output layers, its measured error reported, weights readable for the Jacobian.
+    q = SkinPredictor(report["int8"]["predictor"])
+    q.check_against(head)
+    q_err = np.sqrt(np.mean((q.predict_offsets(ds.actuators[va]) - sp.predict_offsets(ds.actuators[va])) ** 2))
+    assert report["int8"]["vs_float"]["rmse_um"] == pytest.approx(q_err * 1e6, rel=1e-4)
+    assert report["int8"]["vs_float"]["rmse_um"] < 0.05 * held["rmse_um"] + 1.0
+    step = np.abs(sp.weights.W2).max(axis=(0, 1)) / 127  # per-column bound on the 8-bit step
+    assert np.all(np.abs(q.weights.W2 - sp.weights.W2) <= step[None, None, :] + 1e-12)
+    np.testing.assert_allclose(q.jacobian(P[1]), sp.jacobian(P[1]), atol=0.02 * np.abs(sp.jacobian(P[1])).max())
 
 
 def test_training_resumes_from_checkpoint(dataset, tmp_path):
