@@ -163,7 +163,8 @@ class StaticResult:
     """Outcome of :func:`solve_static`: positions, convergence, per-iteration log, phase timings (s), reactions (N).
 
     Each ``log`` entry holds step, iteration, energy (J), residual (N), alpha, projected (number of element
-    Hessians projected to PSD), factor_s and tolerance (the residual threshold, N).
+    Hessians projected to PSD), factor_s and tolerance (the residual threshold, N). ``reactions`` follows
+    ``dirichlet.nodes``; coordinates a node leaves free carry only the (converged, ≈ 0) residual there.
     """
 
     x: np.ndarray
@@ -173,6 +174,10 @@ class StaticResult:
     log: tuple[dict, ...] = ()
     timings: Mapping[str, float] = field(default_factory=dict)
     reactions: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+
+    def __reduce__(self):
+        return (StaticResult, (self.x, self.converged, self.iterations, self.load_steps, self.log,
+                               dict(self.timings), self.reactions))
 
     def reaction_total(self) -> np.ndarray:
         """Sum of the constraint forces over all Dirichlet nodes (3,)."""
