@@ -31,6 +31,7 @@ class CutParams:
     n_rays: int = 32
     escape_threshold: float = 0.3
     min_cavity_quads: int = 50
+    widen_rings: int = 2
 
 
 @dataclass(frozen=True)
@@ -130,10 +131,18 @@ def drop_cavities(quads: np.ndarray, escape: np.ndarray, params: CutParams) -> t
     adj = quad_adjacency(quads)[occluded][:, occluded]
     n, labels = connected_components(adj, directed=False)
     sizes = np.bincount(labels, minlength=n)
-    drop = occluded[sizes[labels] >= params.min_cavity_quads]
-    keep = np.ones(len(quads), dtype=bool)
-    keep[drop] = False
-    return quads[keep], int(len(drop))
+    drop = np.zeros(len(quads), dtype=bool)
+    drop[occluded[sizes[labels] >= params.min_cavity_quads]] = True
+    if params.widen_rings:
+        # widen each opening by rings of quads sharing a vertex: removes the lid and lip margins that curl inward
+        n_vert = int(quads.max()) + 1
+        incid = sp.coo_matrix((np.ones(quads.size), (np.repeat(np.arange(len(quads)), 4), quads.ravel())),
+                              shape=(len(quads), n_vert)).tocsr()
+        share = (incid @ incid.T).tocsr()
+        for _ in range(params.widen_rings):
+            drop = drop | (share @ drop.astype(np.float64) > 0)
+    keep = ~drop
+    return quads[keep], int(drop.sum())
 
 
 def clean_rim(quads: np.ndarray, max_rounds: int = 50) -> np.ndarray:

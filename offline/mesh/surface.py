@@ -217,13 +217,18 @@ def self_intersections(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarra
     mid = 0.5 * (a + b)
     half = 0.5 * np.linalg.norm(b - a, axis=1)
     tree = cKDTree(cent)
-    hits = tree.query_ball_point(mid, float(half.max() + rad))
-    pairs_e = [i for i, h in enumerate(hits) for _ in h]
-    pairs_t = [j for h in hits for j in h]
-    if not pairs_e:
+    trad = np.linalg.norm(tv - cent[:, None, :], axis=2).max(axis=1)
+    hits = tree.query_ball_point(mid, half + rad, return_sorted=False)
+    lens = np.fromiter((len(h) for h in hits), dtype=np.int64, count=len(hits))
+    if lens.sum() == 0:
         return np.zeros(0, dtype=np.int64)
-    pe = np.asarray(pairs_e)
-    pt = np.asarray(pairs_t)
+    pairs_e = np.repeat(np.arange(len(edges)), lens)
+    pairs_t = np.concatenate([np.asarray(h, dtype=np.int64) for h in hits if h])
+    # exact sphere test with each triangle's own radius
+    close = np.linalg.norm(mid[pairs_e] - cent[pairs_t], axis=1) <= half[pairs_e] + trad[pairs_t]
+    pairs_e, pairs_t = pairs_e[close], pairs_t[close]
+    pe = pairs_e
+    pt = pairs_t
     shares = (triangles[pt] == edges[pe, 0:1]).any(axis=1) | (triangles[pt] == edges[pe, 1:2]).any(axis=1)
     pe, pt = pe[~shares], pt[~shares]
     hit = _segments_cross_triangles(a[pe], b[pe], tv[pt, 0], tv[pt, 1], tv[pt, 2])
