@@ -216,12 +216,12 @@ def _assemble(preset: Preset, shell: Shell, info: dict[str, Any], nodes: np.ndar
     _, _, dev = closest_points(shell.vertices, shell.triangles, nodes[np.unique(faces)])
     _, _, thick = closest_points(nodes, surfaces.inner_triangles, nodes[surfaces.outer_nodes])
     report = {
-        "counts": {"nodes": int(len(nodes)), "tets": int(len(tets)), "boundary_triangles": int(len(faces)),
-                   "surface_nodes": int(len(surfaces.outer_nodes)),
-                   "surface_triangles": int(len(surfaces.outer_triangles)),
-                   "inner_nodes": int(len(surfaces.inner_nodes)),
-                   "inner_triangles": int(len(surfaces.inner_triangles)),
-                   "wall_triangles": int(len(surfaces.wall_triangles))},
+        "counts": {"nodes": len(nodes), "tets": len(tets), "boundary_triangles": len(faces),
+                   "surface_nodes": len(surfaces.outer_nodes),
+                   "surface_triangles": len(surfaces.outer_triangles),
+                   "inner_nodes": len(surfaces.inner_nodes),
+                   "inner_triangles": len(surfaces.inner_triangles),
+                   "wall_triangles": len(surfaces.wall_triangles)},
         "quality": {"radius_ratio_min": float(q.min()), "radius_ratio_p01": float(np.percentile(q, 1)),
                     "radius_ratio_p05": float(np.percentile(q, 5)),
                     "radius_ratio_median": float(np.median(q)),
@@ -231,7 +231,7 @@ def _assemble(preset: Preset, shell: Shell, info: dict[str, Any], nodes: np.ndar
         "thickness_mesh_m": {"min": float(thick.min()), "p01": float(np.percentile(thick, 1)),
                              "median": float(np.median(thick)), "max": float(thick.max())},
         "shell": {k: v for k, v in info.items() if k != "units"},
-        "node_sets": {k: int(len(v)) for k, v in sets.items()},
+        "node_sets": {k: len(v) for k, v in sets.items()},
         "face_units": {"count": len(names),
                        "peak_m": float(np.linalg.norm(face_units["offsets"], axis=2).max())},
     }

@@ -38,8 +38,8 @@ def signed_volumes(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
 def tetrahedralize(vertices: np.ndarray, triangles: np.ndarray, params: TetParams,
                    threads: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Tet mesh (nodes (N, 3), tets (M, 4) int64, all positively oriented) filling the closed surface."""
-    import pyvista  # noqa: F401  (pytetwild imports it at import time)
     import pytetwild
+    import pyvista  # noqa: F401  (pytetwild imports it at import time)
 
     with tempfile.TemporaryDirectory(prefix="likeness-tetwild-") as tmp, contextlib.chdir(tmp):
         nodes, tets = pytetwild.tetrahedralize(
