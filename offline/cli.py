@@ -6,7 +6,9 @@ import argparse
 import importlib
 
 #: Modules that add ``likeness offline`` subcommands through ``register(subparsers)``.
-OFFLINE_COMMAND_MODULES: tuple[str, ...] = ("offline.dataset.cli", "offline.train.cli")
+OFFLINE_COMMAND_MODULES: tuple[str, ...] = (
+    "offline.mesh.cli", "offline.fem_cli", "offline.dataset.cli", "offline.train.cli",
+)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
