@@ -122,7 +122,11 @@ def estimate(
     floor_m: float = 0.5e-3,
     floor_rad: float = math.radians(0.5),
 ) -> dict[str, LinkEstimate]:
-    """Robust pose of each link from one pose's samples; links with too few inliers are left out."""
+    """Robust pose of each link from one pose's samples; links with too few inliers are left out.
+
+    Inliers: the largest cluster of positions within ``2 * floor_m`` of one sample, widened to
+    ``sigmas`` robust sigmas (1.4826·MAD) around its median, then filtered the same way by angle.
+    """
     by_link: dict[str, list] = {name: [] for name in links}
     for s in samples:
         if s.link in by_link:
@@ -135,9 +139,15 @@ def estimate(
         P = np.array([s.position for s in ss], dtype=float)
         Q = np.array([s.quaternion for s in ss], dtype=float)
         Q /= np.linalg.norm(Q, axis=1, keepdims=True)
-        med = np.median(P, axis=0)
+        # consensus first (RANSAC-like): the sample with most others within 2 floors anchors the inliers, so
+        # even half the frames being outliers (e.g. 2 marker swaps among 4 frames) cannot drag the estimate
+        dist = np.linalg.norm(P[:, None, :] - P[None, :, :], axis=2)
+        near = dist <= 2 * floor_m
+        score = near.sum(axis=1) - np.where(near, dist, 0.0).sum(axis=1) / (4 * floor_m * len(P))
+        core = near[int(np.argmax(score))]
+        med = np.median(P[core], axis=0)
         d = np.linalg.norm(P - med, axis=1)
-        keep = d <= max(sigmas * 1.4826 * np.median(d), floor_m)
+        keep = d <= max(sigmas * 1.4826 * np.median(d[core]), floor_m)
         R = quat_to_matrix(Q)
         Rm = _mean_rotation(Q[keep]) if keep.any() else _mean_rotation(Q)
         ang = rotation_angle(np.swapaxes(R, 1, 2) @ Rm)
