@@ -47,6 +47,7 @@ class CalibrationSettings:
     discover_step: float = math.radians(3.0)
     progress: bool = True
     tracker: str = ""
+    driver: str = ""  # how the head was driven: hardware, daemon ENDPOINT, ideal-motors (provenance)
 
 
 @dataclass
@@ -280,6 +281,7 @@ def _finish(
         "head_config": str(head.source),
         "head_config_sha256": _sha256(head.source),
         "tracker": s.tracker,
+        "driver": s.driver,
         "seed": s.seed,
         "plan": plan_digest or plan.digest(),
         "poses": len(records),
