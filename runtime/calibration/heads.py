@@ -1,7 +1,7 @@
 """Head drivers for calibration: move to a pose at a safe speed, wait until settled, report measured values.
 
 - :class:`HardwareHead` drives a :class:`runtime.hardware.Hardware` directly (its own connection to the
-  buses): a synchronised, velocity-limited ramp at ``speed_fraction`` of each actuator's max velocity,
+  buses): a synchronised ramp within ``speed_fraction`` of each actuator's max velocity and acceleration,
   never outside the configured limits, then settles on encoder readings.
 - :class:`DaemonHead` asks a running daemon to go to the pose (its ``pose`` op) and polls ``status``.
 - :class:`KinematicHead` is the emulated mechanism with ideal motors (instant, exact): fast checks of the
@@ -104,6 +104,7 @@ class HardwareHead:
         self.lo = np.array([head.actuator(n).min for n in self.names])
         self.hi = np.array([head.actuator(n).max for n in self.names])
         self.vmax = np.array([head.actuator(n).max_velocity for n in self.names]) * speed_fraction
+        self.amax = np.array([head.actuator(n).max_acceleration for n in self.names]) * speed_fraction
         groups: dict[str, list[int]] = {}
         for i, n in enumerate(self.names):
             groups.setdefault(head.actuator(n).bus, []).append(i)
@@ -140,8 +141,9 @@ class HardwareHead:
         """Ramp every actuator to ``pose`` together, timed on the clock so no write outruns the speed limit."""
         target = np.array(list(_clamp(self.head, pose).values()))
         start = self._target
-        duration = float(np.max(np.abs(target - start) / self.vmax)) if start.size else 0.0
-        duration = 1.5 * duration  # smoothstep peaks at 1.5x the mean speed: keep the peak at speed_fraction
+        dist = np.abs(target - start)
+        # smoothstep over T peaks at 1.5·d/T speed and 6·d/T² acceleration: keep both within the fractions
+        duration = float(np.max(np.maximum(1.5 * dist / self.vmax, np.sqrt(6.0 * dist / self.amax))))
         t0 = time.monotonic()
         while True:
             tick = time.monotonic()
@@ -194,6 +196,13 @@ class HardwareHead:
 
     def measured(self) -> dict[str, float]:
         return dict(zip(self.names, self._read_vector().tolist(), strict=True))
+
+    def recover(self) -> None:
+        """After a drive fault (e.g. a following error at a hard stop): clear it, enable again, hold there."""
+        self.hw.reset_fault()
+        self.hw.enable()
+        time.sleep(0.05)
+        self._target = self._read_vector()
 
     def positions(self) -> dict[str, float]:
         """Ground truth of emulated motors (emulator side), for the simulated tracker."""
@@ -297,6 +306,11 @@ class DaemonHead:
                 raise CalibrationError(f"daemon has no feedback from {name!r}")
             out[name] = self.head.actuator(name).from_config_units(float(value))
         return out
+
+    def recover(self) -> None:
+        """After a fault: ``reset`` the daemon and enable it again."""
+        self._call("reset")
+        self._call("enable")
 
     def positions(self) -> dict[str, float]:
         """For a simulated tracker without access to the emulators: the daemon's measured positions."""
