@@ -266,15 +266,21 @@ class DaemonHead:
             raise CalibrationError(f"daemon at {self.endpoint} did not answer {op!r}") from exc
 
     def move_to(self, pose: Mapping[str, float]) -> None:
-        self._target = _clamp(self.head, pose)
-        values = {n: self.head.actuator(n).to_config_units(v) for n, v in self._target.items()}
-        self._call("pose", pose=values, speed=self.speed_fraction)
+        target = _clamp(self.head, pose)
+        values = {n: self.head.actuator(n).to_config_units(v) for n, v in target.items()}
+        reply = self._call("pose", pose=values, speed=self.speed_fraction)
+        # the daemon applies group constraints (e.g. lids "together"): settle on what it actually commands
+        for name, value in dict(reply.get("targets") or {}).items():
+            if name in target and value is not None:
+                target[name] = self.head.actuator(name).from_config_units(float(value))
+        self._target = target
 
     def wait_settled(self) -> None:
         """Until the daemon reports the command at the pose and the measured positions sit within
         ``tolerance`` of it for ``settle_s`` (``pose_reached`` alone says the command arrived, not the motors)."""
         deadline = time.monotonic() + self.timeout_s
         still_since = None
+        worst = ""
         while time.monotonic() < deadline:
             st = self._call("status")
             if st.get("fault") or st.get("lifecycle") != "active":
@@ -287,7 +293,10 @@ class DaemonHead:
                     act = self.head.actuator(name)
                     if value is None or abs(act.from_config_units(float(value)) - target) > self.tolerance:
                         ok = False
+                        worst = f"{name} at {value} {act.unit}, target {act.to_config_units(target):.2f}"
                         break
+            else:
+                worst = "pose_reached not reported"
             now = time.monotonic()
             if ok:
                 still_since = still_since or now
@@ -296,7 +305,7 @@ class DaemonHead:
             else:
                 still_since = None
             time.sleep(0.01)
-        raise CalibrationError(f"daemon did not settle at the pose within {self.timeout_s} s")
+        raise CalibrationError(f"daemon did not settle at the pose within {self.timeout_s} s ({worst})")
 
     def measured(self) -> dict[str, float]:
         st = self._call("status")

@@ -47,6 +47,7 @@ class CalibrationSettings:
     discover_step: float = math.radians(3.0)
     progress: bool = True
     tracker: str = ""
+    tie_groups: bool = False  # move together/mirror groups as one (the daemon enforces them)
     driver: str = ""  # how the head was driven: hardware, daemon ENDPOINT, ideal-motors (provenance)
 
 
@@ -174,7 +175,8 @@ def _discovery(head, driver, collect: Callable, out: Path, s: CalibrationSetting
 
 def _plan(head, s: CalibrationSettings, limits: Mapping[str, LimitResult], out: Path) -> Plan:
     plan = make_plan(head, samples=s.samples, seed=s.seed, sweep_levels=s.sweep_levels,
-                     holdout_fraction=s.holdout_fraction, limits={n: r.proposed for n, r in limits.items()})
+                     holdout_fraction=s.holdout_fraction, limits={n: r.proposed for n, r in limits.items()},
+                     tie_groups=s.tie_groups)
     write_atomic(out / "plan.json", json.dumps({"digest": plan.digest(), **plan.to_dict()}) + "\n")
     return plan
 

@@ -58,3 +58,11 @@ def test_plan_respects_limits_and_coupled_spread(sample_head) -> None:
     with pytest.raises(ValueError):
         make_plan(sample_head, sweep_levels=1)
     assert len(names) == 13
+
+
+def test_tied_plan_moves_together_groups_as_one(sample_head) -> None:
+    plan = make_plan(sample_head, samples=20, seed=1, sweep_levels=3, tie_groups=True)
+    assert all(p.values["lid_l"] == p.values["lid_r"] for p in plan.poses)
+    assert any(p.values["lid_l"] != 0 for p in plan.poses)
+    free = make_plan(sample_head, samples=20, seed=1, sweep_levels=3)
+    assert any(p.values["lid_l"] != p.values["lid_r"] for p in free.poses)
