@@ -1,11 +1,11 @@
 """Tracker sources for calibration and the robust per-pose estimate of each link's pose.
 
-A source returns the next ``n`` capture frames as :class:`~sim_hardware.tracker.MarkerSample` s: the simulated
+A source returns the next ``n`` capture frames as :class:`~models.capture.MarkerSample` s: the simulated
 tracker directly, or a live ZeroMQ capture stream (``docs/tracker.md``). Recorded CSV exports are replayed
 through the journal's time windows instead (:mod:`.workflow`).
 
-:func:`estimate` turns one pose's samples into one pose per link: it drops samples far from the median
-(robust sigma 1.4826·MAD, with floors) in position or angle, then averages the rest.
+:func:`estimate` turns one pose's samples into one pose per link: a consensus cluster of positions, widened by
+robust sigmas (1.4826·MAD, with floors) in position and then angle, averaged.
 """
 
 from __future__ import annotations
@@ -68,7 +68,14 @@ class ZmqSource:
         self._sock.connect(endpoint)
 
     def collect(self, n_frames: int) -> Sequence:
-        from sim_hardware.tracker import unpack_frame
+        import msgpack
+
+        from models.capture import TOPIC, samples_from_body
+
+        def unpack_frame(parts: list[bytes]) -> list:
+            if len(parts) != 2 or parts[0] != TOPIC:
+                raise ValueError("expected a two-part message [b'tracker', msgpack frame]")
+            return samples_from_body(msgpack.unpackb(parts[1], raw=False))
 
         zmq = self._zmq
         while True:  # drop frames captured before this call (the head was still moving)
@@ -87,7 +94,7 @@ class ZmqSource:
                 frame = unpack_frame(self._sock.recv_multipart())
                 if got >= 0:
                     out.extend(frame)
-            except (ValueError, KeyError, TypeError) as exc:
+            except (ValueError, KeyError, TypeError, msgpack.ExtraData, msgpack.FormatError, msgpack.StackError) as exc:
                 raise CalibrationError(f"bad tracker frame from {self.endpoint}: {exc}") from exc
             got += 1
         return out

@@ -106,7 +106,7 @@ def calibrate_live(
     reference: Mapping[str, np.ndarray] | None = None,
 ) -> CalibrationResult:
     """Drive ``driver`` through the plan, reading ``source``; resume from ``out_dir``'s journal if present."""
-    from sim_hardware.tracker import CsvAppender
+    from models.capture import CsvAppender
 
     s = settings or CalibrationSettings()
     out = Path(out_dir)
@@ -196,7 +196,7 @@ def calibrate_replay(
     reference: Mapping[str, np.ndarray] | None = None,
 ) -> CalibrationResult:
     """Refit from a capture export: each journal pose's window ``[t0, t1]`` selects its samples."""
-    from sim_hardware.tracker import CaptureLog, read_csv
+    from models.capture import CaptureLog, read_csv
 
     s = settings or CalibrationSettings()
     out = Path(out_dir)
