@@ -362,6 +362,7 @@ def write_atomic(path: Path, text: str) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
+        os.chmod(tmp, 0o644)  # mkstemp creates 0600; results are meant to be shared
         with os.fdopen(fd, "w", encoding="utf-8") as fh:
             fh.write(text)
             fh.flush()
@@ -452,14 +453,48 @@ def _detect_features(X: np.ndarray, full: bool) -> tuple[np.ndarray, list[tuple[
     return np.stack(cols, axis=1), terms
 
 
-def _detect(X: np.ndarray, Y: np.ndarray, opts: FitOptions) -> tuple[np.ndarray, np.ndarray] | None:
+def _collinear_clusters(X: np.ndarray, tol: float = 1e-9) -> list[list[int]]:
+    """Group actuators whose sample columns are proportional (|correlation| = 1): the data cannot tell them apart."""
+    A = X.shape[1]
+    Xc = X - X.mean(axis=0)
+    norms = np.linalg.norm(Xc, axis=0)
+    clusters: list[list[int]] = []
+    seen: set[int] = set()
+    for j in range(A):
+        if j in seen:
+            continue
+        cl = [j]
+        for k in range(j + 1, A):
+            if k in seen or norms[j] == 0 or norms[k] == 0:
+                continue
+            if abs(Xc[:, j] @ Xc[:, k]) >= (1 - tol) * norms[j] * norms[k]:
+                cl.append(k)
+                seen.add(k)
+        clusters.append(cl)
+    return clusters
+
+
+def _pick(cluster: list[int], hint: np.ndarray | None) -> list[int]:
+    """Of actuators the data cannot separate, those the head config lists for the link (else the first)."""
+    if hint is not None:
+        listed = [j for j in cluster if hint[j]]
+        if listed:
+            return listed
+    return [cluster[0]]
+
+
+def _detect(
+    X: np.ndarray, Y: np.ndarray, opts: FitOptions, hint: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray] | None:
     """Which actuators move a link, from the data.
 
     Fits a quadratic over all actuators (with cross terms when the samples allow, else separable), then
     keeps actuator ``j`` when the terms involving ``j`` both change the pose by more than the absolute
     thresholds over the samples and are significant by a partial F-test (``p < opts.p_value``) in at
-    least one output. Returns (moves: bool (A,), effect (A, 2): position m / rotation rad) or None when
-    there are too few samples even for the separable design (``opts.min_detection_dof`` spare samples).
+    least one output. Actuators that always moved in proportion in the data are tested together, and the
+    ones the head config lists (``hint``) are kept. Returns (moves: bool (A,), effect (A, 2): position m /
+    rotation rad) or None when there are too few samples even for the separable design
+    (``opts.min_detection_dof`` spare samples).
     """
     from scipy.special import fdtrc
 
@@ -474,24 +509,26 @@ def _detect(X: np.ndarray, Y: np.ndarray, opts: FitOptions) -> tuple[np.ndarray,
     dof = n - F
     moves = np.zeros(A, dtype=bool)
     effect = np.zeros((A, 2))
-    for j in range(A):
-        mask = np.array([j in t for t in terms])
+    for cluster in _collinear_clusters(X):
+        # actuators that always moved together in this data (e.g. a "together" group) are tested as one
+        mask = np.array([any(j in t for j in cluster) for t in terms])
         contrib = Phi[:, mask] @ coef[mask]
         contrib = contrib - contrib.mean(axis=0)
         pos_eff = np.linalg.norm(contrib[:, :3], axis=1).max()
         rot_eff = np.linalg.norm(contrib[:, 3:], axis=1).max()
-        effect[j] = (pos_eff, rot_eff)
+        effect[cluster] = (pos_eff, rot_eff)
         if pos_eff <= opts.move_threshold_m and rot_eff <= opts.move_threshold_rad:
             continue
         reduced = Phi[:, ~mask]
         rss_red = ((Y - reduced @ _lstsq(reduced, Y)) ** 2).sum(axis=0)
-        q = int(mask.sum())
+        q = int(np.linalg.matrix_rank(Phi[:, mask]))
         with np.errstate(divide="ignore", invalid="ignore"):
             stat = ((rss_red - rss_full) / q) / np.maximum(rss_full / dof, 1e-300)
         pval = fdtrc(q, dof, np.nan_to_num(stat, nan=0.0, posinf=1e300))
         pos_sig = pos_eff > opts.move_threshold_m and np.any(pval[:3] < opts.p_value)
         rot_sig = rot_eff > opts.move_threshold_rad and np.any(pval[3:] < opts.p_value)
-        moves[j] = bool(pos_sig or rot_sig)
+        if pos_sig or rot_sig:
+            moves[_pick(cluster, hint)] = True
     return moves, effect
 
 
@@ -559,7 +596,7 @@ def fit_linkmap(
             sel = np.zeros(len(actuators), dtype=bool)
             selection = "rigid"
         else:
-            det = _detect(Xl, Y, opts)
+            det = _detect(Xl, Y, opts, hint=np.array([a in cfg for a in actuators]))
             if det is None:
                 sel = np.array([a in cfg for a in actuators])
                 selection = "config"

@@ -1,46 +1,36 @@
-"""A simulated marker tracker and the capture formats it shares with real systems.
+"""A simulated marker tracker for the virtual mechanism, and its ZeroMQ publisher.
 
-A capture system reports, per frame, one marker frame (rigid body) per tracked link: a timestamp, the
-link name, a position in metres and an orientation quaternion. :class:`SimTracker` produces such frames
-from the virtual mechanism's ground truth with Gaussian noise, dropouts (a link missing from a frame) and
-outliers (a marker swap: a jump of centimetres and a wrong orientation) at settable rates.
-
-Formats (see ``docs/tracker.md``):
-- CSV export, one row per marker per frame: ``time,link,x,y,z,qw,qx,qy,qz`` (seconds, metres, unit quaternion).
-- ZeroMQ stream: a PUB socket sending two-part messages ``[b"tracker", msgpack(frame)]`` where
-  ``frame = {"v": 1, "time": t, "frame": i, "markers": {link: [x, y, z, qw, qx, qy, qz]}}``.
+:class:`SimTracker` reports the mechanism's ground-truth link poses as a capture system would (one marker frame
+per link per capture frame, ``models.capture.MarkerSample``) with Gaussian noise, dropouts (a link missing from
+a frame) and outliers (a marker swap: a jump of centimetres and a wrong orientation) at settable rates.
+:class:`TrackerPublisher` serves it as a live capture stream in the documented format (``docs/tracker.md``).
+The capture formats themselves live in :mod:`models.capture` (re-exported here).
 """
 
 from __future__ import annotations
 
-import csv
-import io
 import math
 import threading
 import time
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
-from models.errors import SpecError
-from models.linkmap import write_atomic
+from models.capture import (  # noqa: F401  (re-exported: the formats the tracker speaks)
+    CSV_COLUMNS,
+    STREAM_VERSION,
+    TOPIC,
+    CaptureLog,
+    CsvAppender,
+    MarkerSample,
+    frame_body,
+    read_csv,
+    samples_from_body,
+    samples_to_csv,
+    write_csv,
+)
 from models.rigid import matrix_to_quat, quat_to_matrix, rotvec_to_matrix
-
-CSV_COLUMNS = ("time", "link", "x", "y", "z", "qw", "qx", "qy", "qz")
-TOPIC = b"tracker"
-STREAM_VERSION = 1
-
-
-@dataclass(frozen=True)
-class MarkerSample:
-    """One tracked marker frame: capture time (s), link name, position (m), quaternion (w, x, y, z)."""
-
-    time: float
-    link: str
-    position: tuple[float, float, float]
-    quaternion: tuple[float, float, float, float]
 
 
 @dataclass
@@ -134,123 +124,25 @@ class SimTracker:
         return samples
 
 
-# ---------------------------------------------------------------------------- CSV export / replay
-def samples_to_csv(samples: Iterable[MarkerSample]) -> str:
-    """CSV text with a header row and one row per marker sample."""
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(CSV_COLUMNS)
-    for s in samples:
-        w.writerow([f"{s.time:.6f}", s.link, *(f"{v:.7f}" for v in s.position), *(f"{v:.8f}" for v in s.quaternion)])
-    return buf.getvalue()
-
-
-def write_csv(path: str | Path, samples: Iterable[MarkerSample]) -> Path:
-    """Write samples as a capture export CSV, atomically."""
-    path = Path(path)
-    write_atomic(path, samples_to_csv(samples))
-    return path
-
-
-class CsvAppender:
-    """Append samples to a capture CSV as they arrive (the header is written once)."""
-
-    def __init__(self, path: str | Path) -> None:
-        self.path = Path(path)
-        new = not self.path.exists() or self.path.stat().st_size == 0
-        self._fh = self.path.open("a", encoding="utf-8", newline="")
-        if new:
-            self._fh.write(",".join(CSV_COLUMNS) + "\n")
-
-    def write(self, samples: Iterable[MarkerSample]) -> None:
-        text = samples_to_csv(samples)
-        self._fh.write(text.split("\n", 1)[1])
-        self._fh.flush()
-
-    def close(self) -> None:
-        self._fh.close()
-
-
-def read_csv(path: str | Path) -> list[MarkerSample]:
-    """Read a capture export; errors name the file, row and column."""
-    path = Path(path)
-    src = str(path)
-    try:
-        fh = path.open(encoding="utf-8", newline="")
-    except OSError as exc:
-        raise SpecError(src, "file", f"cannot read capture CSV: {exc.strerror or exc}") from exc
-    out: list[MarkerSample] = []
-    with fh:
-        reader = csv.reader(fh)
-        header = next(reader, None)
-        if header is None or [h.strip().lower() for h in header] != list(CSV_COLUMNS):
-            raise SpecError(src, "header", f"expected columns {','.join(CSV_COLUMNS)}", header)
-        for i, row in enumerate(reader, start=2):
-            if not row:
-                continue
-            if len(row) != len(CSV_COLUMNS):
-                raise SpecError(src, f"row {i}", f"expected {len(CSV_COLUMNS)} columns, got {len(row)}", row)
-            try:
-                vals = [float(row[0]), *(float(v) for v in row[2:])]
-            except ValueError as exc:
-                raise SpecError(src, f"row {i}", f"not a number: {exc}", row) from exc
-            if not all(math.isfinite(v) for v in vals):
-                raise SpecError(src, f"row {i}", "values must be finite", row)
-            q = vals[4:]
-            if math.sqrt(sum(v * v for v in q)) < 1e-6:
-                raise SpecError(src, f"row {i} (qw..qz)", "quaternion has zero length", q)
-            if not row[1]:
-                raise SpecError(src, f"row {i} (link)", "empty link name")
-            out.append(MarkerSample(vals[0], row[1], tuple(vals[1:4]), tuple(q)))
-    return out
-
-
-class CaptureLog:
-    """Recorded samples indexed by time, for replaying the windows a calibration journal names."""
-
-    def __init__(self, samples: Sequence[MarkerSample]) -> None:
-        self.samples = sorted(samples, key=lambda s: s.time)
-        self._times = np.array([s.time for s in self.samples])
-
-    def between(self, t0: float, t1: float) -> list[MarkerSample]:
-        """Samples with ``t0 <= time <= t1`` (1 µs tolerance for rounding in exports)."""
-        i = int(np.searchsorted(self._times, t0 - 1e-6, side="left"))
-        j = int(np.searchsorted(self._times, t1 + 1e-6, side="right"))
-        return self.samples[i:j]
-
-
 # ---------------------------------------------------------------------------- ZeroMQ stream
 def pack_frame(frame_index: int, samples: Sequence[MarkerSample]) -> list[bytes]:
     """The two-part ZeroMQ message of one capture frame."""
     import msgpack
 
-    t = samples[0].time if samples else time.time()
-    body = {
-        "v": STREAM_VERSION,
-        "time": t,
-        "frame": frame_index,
-        "markers": {s.link: [*s.position, *s.quaternion] for s in samples},
-    }
-    return [TOPIC, msgpack.packb(body, use_bin_type=True)]
+    return [TOPIC, msgpack.packb(frame_body(frame_index, samples), use_bin_type=True)]
 
 
 def unpack_frame(parts: Sequence[bytes]) -> list[MarkerSample]:
-    """Marker samples of one received frame; ``ValueError`` naming what is wrong on a bad message."""
+    """Marker samples of one received message; ``ValueError`` naming what is wrong on a bad message."""
     import msgpack
 
     if len(parts) != 2 or parts[0] != TOPIC:
         raise ValueError("expected a two-part message [b'tracker', msgpack frame]")
-    body = msgpack.unpackb(parts[1], raw=False)
-    if not isinstance(body, dict) or body.get("v") != STREAM_VERSION:
-        raise ValueError(f"unsupported tracker frame (v={body.get('v') if isinstance(body, dict) else None!r})")
-    t = float(body["time"])
-    out = []
-    for link, vals in dict(body.get("markers", {})).items():
-        if not isinstance(vals, (list, tuple)) or len(vals) != 7:
-            raise ValueError(f"marker {link!r}: expected [x, y, z, qw, qx, qy, qz]")
-        v = [float(x) for x in vals]
-        out.append(MarkerSample(t, str(link), tuple(v[:3]), tuple(v[3:])))
-    return out
+    try:
+        body = msgpack.unpackb(parts[1], raw=False)
+    except Exception as exc:
+        raise ValueError(f"undecodable tracker frame: {exc}") from exc
+    return samples_from_body(body)
 
 
 class TrackerPublisher:

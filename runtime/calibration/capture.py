@@ -1,11 +1,11 @@
 """Tracker sources for calibration and the robust per-pose estimate of each link's pose.
 
-A source returns the next ``n`` capture frames as :class:`~sim_hardware.tracker.MarkerSample` s: the simulated
+A source returns the next ``n`` capture frames as :class:`~models.capture.MarkerSample` s: the simulated
 tracker directly, or a live ZeroMQ capture stream (``docs/tracker.md``). Recorded CSV exports are replayed
 through the journal's time windows instead (:mod:`.workflow`).
 
-:func:`estimate` turns one pose's samples into one pose per link: it drops samples far from the median
-(robust sigma 1.4826·MAD, with floors) in position or angle, then averages the rest.
+:func:`estimate` turns one pose's samples into one pose per link: a consensus cluster of positions, widened by
+robust sigmas (1.4826·MAD, with floors) in position and then angle, averaged.
 """
 
 from __future__ import annotations
@@ -68,7 +68,14 @@ class ZmqSource:
         self._sock.connect(endpoint)
 
     def collect(self, n_frames: int) -> Sequence:
-        from sim_hardware.tracker import unpack_frame
+        import msgpack
+
+        from models.capture import TOPIC, samples_from_body
+
+        def unpack_frame(parts: list[bytes]) -> list:
+            if len(parts) != 2 or parts[0] != TOPIC:
+                raise ValueError("expected a two-part message [b'tracker', msgpack frame]")
+            return samples_from_body(msgpack.unpackb(parts[1], raw=False))
 
         zmq = self._zmq
         while True:  # drop frames captured before this call (the head was still moving)
@@ -87,7 +94,7 @@ class ZmqSource:
                 frame = unpack_frame(self._sock.recv_multipart())
                 if got >= 0:
                     out.extend(frame)
-            except (ValueError, KeyError, TypeError) as exc:
+            except (ValueError, KeyError, TypeError, msgpack.ExtraData, msgpack.FormatError, msgpack.StackError) as exc:
                 raise CalibrationError(f"bad tracker frame from {self.endpoint}: {exc}") from exc
             got += 1
         return out
@@ -122,7 +129,11 @@ def estimate(
     floor_m: float = 0.5e-3,
     floor_rad: float = math.radians(0.5),
 ) -> dict[str, LinkEstimate]:
-    """Robust pose of each link from one pose's samples; links with too few inliers are left out."""
+    """Robust pose of each link from one pose's samples; links with too few inliers are left out.
+
+    Inliers: the largest cluster of positions within ``2 * floor_m`` of one sample, widened to
+    ``sigmas`` robust sigmas (1.4826·MAD) around its median, then filtered the same way by angle.
+    """
     by_link: dict[str, list] = {name: [] for name in links}
     for s in samples:
         if s.link in by_link:
@@ -135,9 +146,15 @@ def estimate(
         P = np.array([s.position for s in ss], dtype=float)
         Q = np.array([s.quaternion for s in ss], dtype=float)
         Q /= np.linalg.norm(Q, axis=1, keepdims=True)
-        med = np.median(P, axis=0)
+        # consensus first (RANSAC-like): the sample with most others within 2 floors anchors the inliers, so
+        # even half the frames being outliers (e.g. 2 marker swaps among 4 frames) cannot drag the estimate
+        dist = np.linalg.norm(P[:, None, :] - P[None, :, :], axis=2)
+        near = dist <= 2 * floor_m
+        score = near.sum(axis=1) - np.where(near, dist, 0.0).sum(axis=1) / (4 * floor_m * len(P))
+        core = near[int(np.argmax(score))]
+        med = np.median(P[core], axis=0)
         d = np.linalg.norm(P - med, axis=1)
-        keep = d <= max(sigmas * 1.4826 * np.median(d), floor_m)
+        keep = d <= max(sigmas * 1.4826 * np.median(d[core]), floor_m)
         R = quat_to_matrix(Q)
         Rm = _mean_rotation(Q[keep]) if keep.any() else _mean_rotation(Q)
         ang = rotation_angle(np.swapaxes(R, 1, 2) @ Rm)

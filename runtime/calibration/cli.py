@@ -66,6 +66,8 @@ def run(args: argparse.Namespace) -> int:
         samples=args.samples, seed=args.seed, sweep_levels=args.sweep_levels, holdout_fraction=args.holdout,
         frames_per_pose=args.frames, discover=not args.no_discover, discover_step=math.radians(args.discover_step),
         progress=not args.no_progress, tracker=args.tracker,
+        tie_groups=bool(args.daemon) and not args.ideal_motors,
+        driver="ideal-motors" if args.ideal_motors else (f"daemon {args.daemon}" if args.daemon else "hardware"),
     )
     tracker = args.tracker
     reference = None

@@ -86,6 +86,10 @@ def discover_limits(
                     if faults:
                         notes.append("; ".join(faults))
                     found[side] = True
+                    recover = getattr(driver, "recover", None)
+                    if recover is None:
+                        raise
+                    recover()
                     break
                 cur = observe()
                 common = [k for k in watch if k in cur and k in prev]

@@ -69,11 +69,14 @@ def make_plan(
     holdout_fraction: float = 0.25,
     limits: Mapping[str, tuple[float, float]] | None = None,
     neutral_every: int = 25,
+    tie_groups: bool = False,
 ) -> Plan:
     """Build the plan for ``head`` (a HeadSpec): sweeps, then ``samples`` random poses (some held out).
 
     ``limits`` (SI, per actuator) narrows the configured ranges, e.g. to discovered travel limits.
-    A neutral pose opens the plan and repeats every ``neutral_every`` poses.
+    A neutral pose opens the plan and repeats every ``neutral_every`` poses. With ``tie_groups`` the members of
+    ``together``/``mirror`` groups always move as one (value = gain × common value), as the daemon commands
+    them; otherwise they are sampled independently, which identifies each link's own motor.
     """
     if samples < 0 or sweep_levels < 2:
         raise ValueError("samples must be >= 0 and sweep_levels >= 2")
@@ -86,16 +89,24 @@ def make_plan(
         neutral[name] = min(max(neutral[name], lim[name][0]), lim[name][1])
     coupled = [(g.actuators, float(g.max_spread)) for g in head.groups if g.kind == "coupled"]
     in_coupled = {m for members, _ in coupled for m in members}
+    tied = [(g.actuators, g.gains) for g in head.groups if tie_groups and g.kind in ("together", "mirror")]
+    follower = {m: (members[0], gains[k] / gains[0]) for members, gains in tied for k, m in enumerate(members) if k}
+
+    def tie(pose: dict[str, float]) -> dict[str, float]:
+        for m, (lead, ratio) in follower.items():
+            pose[m] = min(max(ratio * pose[lead], lim[m][0]), lim[m][1])
+        return pose
+
     rng = np.random.default_rng(seed)
 
     raw: list[tuple[dict[str, float], str]] = []
     for name in names:
-        if name in in_coupled:
+        if name in in_coupled or name in follower:
             continue
         lo, hi = lim[name]
         for v in np.linspace(lo, hi, sweep_levels):
             if abs(v - neutral[name]) > 1e-9:
-                raw.append(({**neutral, name: float(v)}, "sweep"))
+                raw.append((tie({**neutral, name: float(v)}), "sweep"))
     for members, _spread in coupled:
         grids = [np.linspace(*lim[m], sweep_levels) for m in members]
         for combo in np.array(np.meshgrid(*grids, indexing="ij")).reshape(len(members), -1).T:
@@ -113,7 +124,7 @@ def make_plan(
         attempts += 1
         if attempts > 1000 * max(samples, 1):
             raise ValueError("cannot draw random poses satisfying the coupled groups' max_spread")
-        vals = dict(zip(names, (float(v) for v in rng.uniform(lo_v, hi_v)), strict=True))
+        vals = tie(dict(zip(names, (float(v) for v in rng.uniform(lo_v, hi_v)), strict=True)))
         if not _satisfies(vals, coupled):
             continue
         raw.append((vals, "random-holdout" if drawn >= samples - n_holdout else "random"))

@@ -47,6 +47,8 @@ class CalibrationSettings:
     discover_step: float = math.radians(3.0)
     progress: bool = True
     tracker: str = ""
+    tie_groups: bool = False  # move together/mirror groups as one (the daemon enforces them)
+    driver: str = ""  # how the head was driven: hardware, daemon ENDPOINT, ideal-motors (provenance)
 
 
 @dataclass
@@ -104,7 +106,7 @@ def calibrate_live(
     reference: Mapping[str, np.ndarray] | None = None,
 ) -> CalibrationResult:
     """Drive ``driver`` through the plan, reading ``source``; resume from ``out_dir``'s journal if present."""
-    from sim_hardware.tracker import CsvAppender
+    from models.capture import CsvAppender
 
     s = settings or CalibrationSettings()
     out = Path(out_dir)
@@ -173,7 +175,8 @@ def _discovery(head, driver, collect: Callable, out: Path, s: CalibrationSetting
 
 def _plan(head, s: CalibrationSettings, limits: Mapping[str, LimitResult], out: Path) -> Plan:
     plan = make_plan(head, samples=s.samples, seed=s.seed, sweep_levels=s.sweep_levels,
-                     holdout_fraction=s.holdout_fraction, limits={n: r.proposed for n, r in limits.items()})
+                     holdout_fraction=s.holdout_fraction, limits={n: r.proposed for n, r in limits.items()},
+                     tie_groups=s.tie_groups)
     write_atomic(out / "plan.json", json.dumps({"digest": plan.digest(), **plan.to_dict()}) + "\n")
     return plan
 
@@ -193,7 +196,7 @@ def calibrate_replay(
     reference: Mapping[str, np.ndarray] | None = None,
 ) -> CalibrationResult:
     """Refit from a capture export: each journal pose's window ``[t0, t1]`` selects its samples."""
-    from sim_hardware.tracker import CaptureLog, read_csv
+    from models.capture import CaptureLog, read_csv
 
     s = settings or CalibrationSettings()
     out = Path(out_dir)
@@ -280,6 +283,7 @@ def _finish(
         "head_config": str(head.source),
         "head_config_sha256": _sha256(head.source),
         "tracker": s.tracker,
+        "driver": s.driver,
         "seed": s.seed,
         "plan": plan_digest or plan.digest(),
         "poses": len(records),

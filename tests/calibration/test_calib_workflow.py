@@ -221,3 +221,11 @@ def test_mismatched_link_map_is_refused_by_name(run, sample_head) -> None:
     smaller = head_from_dict(data, source=sample_head.source)
     with pytest.raises(SpecError, match="not in head 'sample': brow_r"):
         run.linkmap.check_against(smaller)
+
+
+def test_shipped_sample_link_map_matches_the_head_and_the_mechanism(sample_head, sample_mech) -> None:
+    lm = LinkMap.for_head(sample_head)  # heads/sample/linkmap.json, made by `likeness calibrate --tracker sim`
+    assert lm.provenance["tool"] == "likeness calibrate"
+    rms = float(np.sqrt(np.mean(truth_errors_mm(sample_head, sample_mech, lm, n=60) ** 2)))
+    derived, s1 = bound_mm(lm, SIGMA, FRAMES * 0.98, lm.provenance["fit_poses"])
+    assert rms <= min(derived, s1)

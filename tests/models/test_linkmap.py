@@ -163,3 +163,16 @@ def test_check_against_refuses_mismatch_by_name(tmp_path: Path) -> None:
     path.write_text(json.dumps(doc))
     with pytest.raises(SpecError, match="link map lacks: jaw"):
         LinkMap.load(path).check_against(head)
+
+
+def test_actuators_that_always_move_together_keep_the_configured_one() -> None:
+    """Lids in a "together" group move as one: the data cannot separate them, the head config decides."""
+    rng = np.random.default_rng(4)
+    P = rng.uniform(-0.5, 0.5, (80, 3))
+    P[:, 1] = P[:, 0]  # a and b always equal
+    lm = fit_linkmap(NAMES, [0, 0, 0], [0.5, 0.5, 0.5], P, observations(P), config_links={"L": ["b"]})
+    assert lm.links["L"].actuators == ("b",)
+    lm = fit_linkmap(NAMES, [0, 0, 0], [0.5, 0.5, 0.5], P, observations(P))
+    assert lm.links["L"].actuators == ("a",)
+    x = {"a": 0.2, "b": 0.2}
+    assert np.allclose(lm.poses(x)["L"][:3, 3], truth(np.array([0.2, 0.2, 0.0]))[0], atol=1e-9)
