@@ -110,6 +110,7 @@ class Daemon:
         self._read_error_logged = False
         self._stamps: dict[str, float] = {}
         self._control_tid = 0
+        self._caller_tid = 0
         self._promoted = False
         self.command_endpoint = ""
         self.telemetry_endpoint = ""
@@ -118,8 +119,13 @@ class Daemon:
     # ================================================================== start / stop
     def start(self) -> None:
         """Open the buses, bind the sockets and start the control and API threads."""
-        self._promote()
-        self.hw.open()
+        self._caller_tid = threading.get_native_id()
+        self._promote(include_caller=True)  # opening emulated buses under load needs it too
+        try:
+            self.hw.open()
+        finally:
+            if self._promoted:
+                drop_realtime()  # the caller's own work (a test, a demo client) stays at normal priority
         self._promote()
         try:
             self._bind()
@@ -140,11 +146,13 @@ class Daemon:
             self.stop()
             raise
 
-    def _promote(self) -> None:
+    def _promote(self, include_caller: bool = False) -> None:
         """Helper threads (and in-process emulators) to realtime priority below the control thread's."""
         rt = self.cfg.runtime
         if rt.realtime and rt.helper_priority > 0:
             exclude = {self._control_tid} if self._control_tid else set()
+            if not include_caller:
+                exclude.add(self._caller_tid)
             n = promote_threads(rt.helper_priority, exclude)
             if n:
                 self._promoted = True
@@ -175,8 +183,6 @@ class Daemon:
         if self._ctx is not None:
             self._ctx.term()
             self._ctx = None
-        if self._promoted:
-            drop_realtime()  # the calling thread was promoted in start()
 
     def __enter__(self) -> Daemon:
         self.start()
@@ -242,11 +248,12 @@ class Daemon:
                     late, missed = sched.wait()
                     t0 = self.clock()
                     state_msg = None
+                    read = self._read_hw()
                     with self._lock:
                         if missed:
                             self.stats.missed += missed
                             self._pending_misses += missed
-                        self._cycle(t0)
+                        self._cycle(t0, read)
                         k += 1
                         if k % tele_every == 0:
                             state_msg = self._state_message(t0)
@@ -256,7 +263,7 @@ class Daemon:
                             self._last_miss_event = t0
                         rearm, self._rearm = self._rearm, False
                     self._publish(state_msg)
-                    self.stats.add(late, self.clock() - t0)
+                    self.stats.add(late, self.clock() - t0, t0)
                     if rearm:
                         self.stats.skipped += 1
                         sched.rearm()
@@ -268,11 +275,11 @@ class Daemon:
         finally:
             drop_realtime()
 
-    def _cycle(self, now: float) -> None:
-        """One control cycle (lock held)."""
+    def _cycle(self, now: float, read: tuple[Mapping[str, Any] | None, BusError | None]) -> None:
+        """One control cycle (lock held) on the states ``read`` just before."""
         if self.lifecycle == UNCONFIGURED:
             return
-        states_ok = self._read_measured()
+        states_ok = self._read_measured(read)
         if self.lifecycle == ACTIVE:
             if not states_ok:
                 return
@@ -307,16 +314,25 @@ class Daemon:
         if self.recorder is not None:
             self.recorder.add(now, self.safety.q, self.measured)
 
-    def _read_measured(self) -> bool:
+    def _read_hw(self) -> tuple[Mapping[str, Any] | None, BusError | None]:
+        """Read every bus (the buses lock themselves; the daemon lock is not needed, so the API is not held up)."""
+        if self.lifecycle == UNCONFIGURED:
+            return None, None
         try:
-            states = self.hw.read()
+            return self.hw.read(), None
         except BusError as exc:
+            return None, exc
+
+    def _read_measured(self, result: tuple[Mapping[str, Any] | None, BusError | None] | None = None) -> bool:
+        states, exc = result if result is not None else self._read_hw()
+        if exc is not None or states is None:
             if self.lifecycle == ACTIVE:
                 self._fault("read", str(exc))
             elif not self._read_error_logged:
                 log.warning("read failed: %s", exc)
                 self._read_error_logged = True
             return False
+        self._read_error_logged = False
         idx = self.safety.index
         stamps = {}
         for n, s in states.items():
