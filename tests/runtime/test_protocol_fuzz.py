@@ -43,7 +43,7 @@ FIELDS = st.dictionaries(
 REQUEST = st.one_of(
     ANY,
     st.builds(lambda op, rid, f: {"op": op, "id": rid, **f}, st.sampled_from([*OPS, "dance", ""]),
-              st.one_of(st.integers(), st.text(max_size=200), ANY), FIELDS),
+              st.one_of(st.integers(min_value=-(2**63), max_value=2**64 - 1), st.text(max_size=200), ANY), FIELDS),
 )
 
 
