@@ -202,11 +202,13 @@ class SkinPredictor:
     def n_vertices(self) -> int:
         return self.base_vertices.shape[0]
 
-    def check_against(self, head: Any) -> None:
+    def check_against(self, head: Any, require_full_range: bool = True) -> None:
         """Refuse a head (``models.headspec.HeadSpec``) whose actuators do not match the model, by name.
 
         The head must list the same actuators in the same order, with the same kind of unit, and every head
-        range must lie within the range the model was trained on (no extrapolation at show time).
+        range must lie within the range the model was trained on (no extrapolation at show time). With
+        ``require_full_range=False`` a model trained on part of a range is accepted if it covers the head's neutral
+        pose; its users must then stay inside :attr:`lo`..:attr:`hi` (the inverse solve clamps to it).
         """
         source = str(self.path)
         model_names = self.actuator_names
@@ -229,6 +231,12 @@ class SkinPredictor:
                 raise SpecError(source, f"actuators.{ma.name}.unit", f"model unit differs from head unit {want!r}",
                                 ma.unit)
             tol = 1e-9 * max(1.0, abs(ma.max - ma.min))
+            if not require_full_range:
+                if not ma.min - tol <= ha.neutral <= ma.max + tol:
+                    raise SpecError(source, f"actuators.{ma.name}.range",
+                                    f"trained range [{ma.min:.6g}, {ma.max:.6g}] {ma.unit} does not cover the head's "
+                                    f"neutral {ha.neutral:.6g}")
+                continue
             if ha.min < ma.min - tol or ha.max > ma.max + tol:
                 raise SpecError(source, f"actuators.{ma.name}.range",
                                 f"head range [{ha.min:.6g}, {ha.max:.6g}] {ma.unit} exceeds the trained range "

@@ -2,10 +2,11 @@
 
 The weights define a target surface (base + Σ wᵢ Δᵢ, the face units stored in the predictor file); the hidden-space
 inverse (``models.ksnn_solve``) finds the actuator values whose predicted skin matches it, warm-started from the
-previous frame with temporal smoothness, within the head's limits. A skin-strain guard then checks the predicted
-surface stretch of the solution: a pose outside the material's validated range (default −20 % .. +50 % principal
-strain) is pulled back toward the last accepted pose until it passes, or the last accepted pose is held. Telemetry
-carries the solve residual, iterations, time and guard outcome. Imports only numpy and onnxruntime (via models).
+previous frame with temporal smoothness, within the head's limits and the predictor's trained range. A skin-strain
+guard then checks the predicted surface stretch of the solution: a pose outside the material's validated range
+(default −20 % .. +50 % principal strain) is pulled back toward the last accepted pose until it passes, or the last
+accepted pose is held. Telemetry carries the solve residual, iterations, time and guard outcome. Imports only numpy
+and onnxruntime (via models).
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ class SkinTargetSolver:
                  strain_range: tuple[float, float] = DEFAULT_STRAIN_RANGE, smoothness: float = (0.1e-3) ** 2,
                  max_iterations: int = 8) -> None:
         sp = predictor if isinstance(predictor, SkinPredictor) else SkinPredictor(predictor)
-        sp.check_against(head)
+        sp.check_against(head, require_full_range=False)
         if sp.face_unit_offsets is None or not sp.face_unit_names:
             raise SpecError(str(sp.path), "metadata likeness.face_units",
                             "the predictor carries no face units, so it cannot solve arkit.* channels")
@@ -41,8 +42,9 @@ class SkinTargetSolver:
         self.predictor = sp
         self.names = sp.actuator_names
         self.units = {n: i for i, n in enumerate(sp.face_unit_names)}
-        self.lo = np.array([a.min for a in head.actuators])
-        self.hi = np.array([a.max for a in head.actuators])
+        # Solutions stay where the head allows and the predictor was trained (no extrapolation).
+        self.lo = np.maximum([a.min for a in head.actuators], sp.lo)
+        self.hi = np.minimum([a.max for a in head.actuators], sp.hi)
         self.inverse = KsnnInverse(sp.weights, sp.face_unit_offsets, smoothness=smoothness, lo=self.lo, hi=self.hi)
         self.strain_range = strain_range
         self.max_iterations = max_iterations

@@ -25,6 +25,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0, help="sampling seed")
     p.add_argument("--boundary-prob", type=float, default=0.25,
                    help="probability that an actuator is set to a boundary value instead of a uniform one")
+    p.add_argument("--range-fraction", type=float, default=1.0,
+                   help="sample within this fraction of each actuator's span around neutral (default 1: full range); "
+                   "the dataset and the predictor trained on it record the sampled range")
     p.add_argument("--max-poses", type=int, default=None, help="stop after solving this many new poses")
     p.add_argument("--backend", default="auto", help="sparse solver backend for the FEM (auto|cholmod|pardiso|superlu)")
     p.add_argument("--quiet", action="store_true", help="no progress line")
@@ -35,8 +38,6 @@ def run(args: argparse.Namespace) -> int:
     """Build the problem and engine, then generate (or resume) the dataset."""
     import json
     import sys
-
-    import numpy as np
 
     from likeness.cli import CliError
     from models.errors import SpecError
@@ -51,8 +52,12 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(str(exc)) from exc
     if args.poses < 1:
         raise CliError(f"--poses must be positive, got {args.poses}")
-    lo = np.array([a.min for a in head.actuators])
-    hi = np.array([a.max for a in head.actuators])
+    from offline.dataset.sampling import sample_ranges
+
+    try:
+        lo, hi = sample_ranges(head, args.range_fraction)
+    except ValueError as exc:
+        raise CliError(str(exc)) from exc
     units = ["rad" if a.kind == "rotary" else "m" for a in head.actuators]
     if args.synthetic:
         from offline.dataset.synthetic import SyntheticSpec
@@ -75,7 +80,8 @@ def run(args: argparse.Namespace) -> int:
         except (SpecError, OSError, ValueError) as exc:
             raise CliError(str(exc)) from exc
     try:
-        samples = sample_poses(head, args.poses, seed=args.seed, boundary_prob=args.boundary_prob)
+        samples = sample_poses(head, args.poses, seed=args.seed, boundary_prob=args.boundary_prob,
+                               range_fraction=args.range_fraction)
         engine = make_engine(args.engine, args.workers, args.threads_per_worker)
     except ValueError as exc:
         raise CliError(str(exc)) from exc
@@ -83,7 +89,8 @@ def run(args: argparse.Namespace) -> int:
         with engine:
             summary = generate_dataset(
                 args.out, spec, samples, head=head.name, names=head.actuator_names, units=units, lo=lo, hi=hi,
-                engine=engine, seed=args.seed, sampling={"boundary_prob": args.boundary_prob},
+                engine=engine, seed=args.seed,
+                sampling={"boundary_prob": args.boundary_prob, "range_fraction": args.range_fraction},
                 progress_stream=None if args.quiet else sys.stderr, max_poses=args.max_poses,
             )
     except SpecError as exc:

@@ -53,6 +53,10 @@ class FemSpec(ProblemSpec):
     skull_set: str = "skull"
     max_iterations: int = 30
     load_steps: int | str = 1
+    #: "auto": if the link map's neutral link frames lie far (> 20 mm RMS) from their node sets, the link map was
+    #: fitted in another head frame: estimate the translation between the frames from the node-set centroids and
+    #: express the transforms in the mesh frame. "on" always aligns, "off" never.
+    align_frames: str = "auto"
 
     @property
     def token(self) -> str:
@@ -65,8 +69,8 @@ class FemSpec(ProblemSpec):
 
     def describe(self) -> dict[str, Any]:
         return {"kind": "fem", "config": self.config, "mesh": self.mesh, "linkmap": self.linkmap,
-                "backend": self.backend, "material": {"model": "neo_hookean", "E": self.youngs_modulus,
-                                                      "nu": self.poisson_ratio}}
+                "backend": self.backend, "align_frames": self.align_frames,
+                "material": {"model": "neo_hookean", "E": self.youngs_modulus, "nu": self.poisson_ratio}}
 
     def check(self) -> None:
         """Load everything once in this process so bad inputs fail before any worker starts."""
@@ -105,11 +109,35 @@ class FemSkin(PoseProblem):
                 raise SpecError(str(mesh_path), f"node set {link.node_set}",
                                 f"missing (attachment of link {link.name!r} in {spec.config})")
             self.moving[link.name] = link.node_set
+        self.frame_offset, self.frame_residual = self._frame_offset()
+        if spec.align_frames == "off" or (spec.align_frames == "auto" and self._misfit(np.zeros(3)) <= 0.02):
+            self.frame_offset = np.zeros(3)
         self.outer, self._faces = self._outer_surface(mesh_path)
         self._fu_names, self._fu = self._face_units(mesh_path.parent)
         self.material = neo_hookean_from_E_nu(spec.youngs_modulus, spec.poisson_ratio)
         self.options = SolverOptions(backend=spec.backend, max_iterations=spec.max_iterations,
                                      load_steps=spec.load_steps)
+
+    def _link_points(self) -> tuple[np.ndarray, np.ndarray]:
+        neutral = {a.name: a.neutral for a in self.head.actuators}
+        poses = self.linkmap.poses(neutral)
+        X = np.asarray(self.mesh.nodes)
+        names = [n for n in self.moving if n in poses]
+        frames = np.array([poses[n][:3, 3] for n in names])
+        centroids = np.array([X[self.mesh.node_sets[self.moving[n]]].mean(axis=0) for n in names])
+        return frames, centroids
+
+    def _misfit(self, offset: np.ndarray) -> float:
+        frames, centroids = self._link_points()
+        return float(np.sqrt(np.mean(np.sum((centroids + offset - frames) ** 2, axis=1))))
+
+    def _frame_offset(self) -> tuple[np.ndarray, float]:
+        """Translation o with x_linkmap ≈ x_mesh + o (least squares over the moving links), and its RMS residual."""
+        frames, centroids = self._link_points()
+        if len(frames) == 0:
+            return np.zeros(3), 0.0
+        offset = (frames - centroids).mean(axis=0)
+        return offset, self._misfit(offset)
 
     def _outer_surface(self, mesh_path: Path) -> tuple[np.ndarray, np.ndarray]:
         from offline.fem import boundary_faces
@@ -170,6 +198,12 @@ class FemSkin(PoseProblem):
 
         values = dict(zip(self.head.actuator_names, (float(x) for x in p), strict=True))
         T = self.linkmap.transforms(values)
+        if np.any(self.frame_offset):
+            fwd = np.eye(4)
+            fwd[:3, 3] = self.frame_offset
+            back = np.eye(4)
+            back[:3, 3] = -self.frame_offset
+            T = {n: back @ t @ fwd for n, t in T.items()}
         moves = {self.moving[name]: T[name] for name in self.moving if name in T}
         return rigid_transform_dirichlet(self.mesh, moves, fixed_sets=[self.spec.skull_set])
 

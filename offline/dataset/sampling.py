@@ -30,21 +30,34 @@ def _apply_groups(p: np.ndarray, head, index: dict[str, int], lo: np.ndarray, hi
         p[idx] = np.clip(p[idx], lo[idx], hi[idx])
 
 
+def sample_ranges(head, range_fraction: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Per-actuator sampling range (SI): the head's [min, max], or ``range_fraction`` of its span on each side of
+    neutral, cut to [min, max] (for skins that only converge near neutral)."""
+    if not 0.0 < range_fraction <= 1.0:
+        raise ValueError(f"range fraction must lie in (0, 1], got {range_fraction}")
+    lo = np.array([a.min for a in head.actuators])
+    hi = np.array([a.max for a in head.actuators])
+    if range_fraction < 1.0:
+        neutral = np.array([a.neutral for a in head.actuators])
+        half = range_fraction * (hi - lo)
+        lo, hi = np.maximum(lo, neutral - half), np.minimum(hi, neutral + half)
+    return lo, hi
+
+
 def sample_poses(head, n: int, seed: int = 0, boundary_prob: float = 0.25, decimals: int = 9,
-                 max_rounds: int = 100) -> np.ndarray:
+                 max_rounds: int = 100, range_fraction: float = 1.0) -> np.ndarray:
     """``n`` distinct actuator vectors (n, A), SI, in the head's actuator order.
 
-    Each actuator is drawn uniformly within [min, max], or with probability ``boundary_prob`` set to min or max
-    (picked at random); group constraints are then applied and exact duplicates (after rounding to ``decimals``)
-    dropped and redrawn.
+    Each actuator is drawn uniformly within its :func:`sample_ranges` range, or with probability ``boundary_prob``
+    set to that range's min or max (picked at random); group constraints are then applied and exact duplicates
+    (after rounding to ``decimals``) dropped and redrawn.
     """
     if n < 1:
         raise ValueError(f"number of poses must be positive, got {n}")
     if not 0.0 <= boundary_prob <= 1.0:
         raise ValueError(f"boundary probability must lie in [0, 1], got {boundary_prob}")
     rng = np.random.default_rng(seed)
-    lo = np.array([a.min for a in head.actuators])
-    hi = np.array([a.max for a in head.actuators])
+    lo, hi = sample_ranges(head, range_fraction)
     index = {a.name: i for i, a in enumerate(head.actuators)}
     n_act = len(lo)
     out: list[np.ndarray] = []

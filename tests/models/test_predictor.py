@@ -105,6 +105,11 @@ def test_check_against_accepts_own_head_and_refuses_mismatches_by_name(tmp_path,
     wider = dataclasses.replace(head, actuators=(*acts[:-1], dataclasses.replace(acts[-1], max=acts[-1].max + 0.1)))
     with pytest.raises(SpecError, match=r"actuators\.lid_r\.range"):
         sp.check_against(wider)
+    sp.check_against(wider, require_full_range=False)  # trained on part of the range: accepted on request...
+    off_neutral = dataclasses.replace(head, actuators=(*acts[:-1], dataclasses.replace(
+        acts[-1], min=acts[-1].max + 0.1, max=acts[-1].max + 0.3, neutral=acts[-1].max + 0.2)))
+    with pytest.raises(SpecError, match=r"lid_r.*does not cover the head's neutral"):
+        sp.check_against(off_neutral, require_full_range=False)  # ...only if it covers the neutral pose
     fewer = dataclasses.replace(head, actuators=tuple(acts[:-1]))
     with pytest.raises(SpecError, match="lid_r"):
         sp.check_against(fewer)

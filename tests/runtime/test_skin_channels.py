@@ -162,3 +162,29 @@ def test_daemon_plays_blendshape_curves_through_the_predictor(tmp_path, head, ma
         assert extras and all("skin_residual_mm" in e for e in extras)
         assert extras[-1]["skin_residual_mm"] < 0.05
         c.call("disable")
+
+
+def test_predictor_trained_on_part_of_the_range_solves_within_it(tmp_path, head):
+    import dataclasses
+
+    narrow = dataclasses.replace(head, actuators=tuple(
+        dataclasses.replace(a, min=a.neutral - 0.1 * (a.max - a.min) if a.neutral > a.min else a.min,
+                            max=a.neutral + 0.1 * (a.max - a.min)) for a in head.actuators))
+    far = pose(head, jaw=25.0, brow_l=30.0)  # outside the trained range
+    edge = np.clip(far, sp_lo(narrow), sp_hi(narrow))
+    sp = write_predictor(tmp_path / "p.onnx", narrow, unit_poses={"jawOpen": edge})
+    solver = SkinTargetSolver(head, sp, smoothness=0.0, max_iterations=30)
+    np.testing.assert_allclose(solver.hi, sp.hi)
+    for _ in range(5):
+        res = solver.solve({"arkit.jawOpen": 1.0}, {})
+    got = np.array([res.actuators[n] for n in head.actuator_names])
+    assert np.all(got <= sp.hi + 1e-9) and np.all(got >= sp.lo - 1e-9)
+    np.testing.assert_allclose(got, edge, atol=1e-3)  # the reachable target at the edge of the trained range
+
+
+def sp_lo(h):
+    return np.array([a.min for a in h.actuators])
+
+
+def sp_hi(h):
+    return np.array([a.max for a in h.actuators])
