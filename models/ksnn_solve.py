@@ -156,10 +156,14 @@ class KsnnInverse:
                 converged = True
                 break
             accepted = False
+            all_free = bool(free.all())
+            Hf0 = Hm if all_free else Hm[np.ix_(free, free)]
+            gf = g if all_free else g[free]
+            eye = self._eye if all_free else np.eye(int(free.sum()))
+            reg = 1e-14 * float(np.trace(Hm))
             for _ in range(8):
-                Hf = Hm[np.ix_(free, free)] + (mu + 1e-14 * np.trace(Hm)) * np.eye(int(free.sum()))
                 step = np.zeros_like(x)
-                step[free] = -np.linalg.solve(Hf, g[free])
+                step[free] = -np.linalg.solve(Hf0 + (mu + reg) * eye, gf)
                 x_new = np.clip(x + step, xlo, xhi)
                 f_new, h_new, r_new = objective(x_new)
                 if f_new <= f:

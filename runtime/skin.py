@@ -32,7 +32,7 @@ class SkinTargetSolver:
 
     def __init__(self, head: HeadSpec, predictor: SkinPredictor | str | Path,
                  strain_range: tuple[float, float] = DEFAULT_STRAIN_RANGE, smoothness: float = (0.1e-3) ** 2,
-                 max_iterations: int = 8) -> None:
+                 max_iterations: int = 3, tol: float = 1e-6) -> None:
         sp = predictor if isinstance(predictor, SkinPredictor) else SkinPredictor(predictor)
         sp.check_against(head, require_full_range=False)
         if sp.face_unit_offsets is None or not sp.face_unit_names:
@@ -47,7 +47,8 @@ class SkinTargetSolver:
         self.hi = np.minimum([a.max for a in head.actuators], sp.hi)
         self.inverse = KsnnInverse(sp.weights, sp.face_unit_offsets, smoothness=smoothness, lo=self.lo, hi=self.hi)
         self.strain_range = strain_range
-        self.max_iterations = max_iterations
+        self.max_iterations = max_iterations  # per frame: the warm start carries the solve across frames
+        self.tol = tol
         self.neutral = np.array([a.neutral for a in head.actuators])
         self._accepted = self.neutral.copy()
         self._weights = np.zeros(len(self.units))
@@ -77,7 +78,7 @@ class SkinTargetSolver:
             i = self.units.get(ch[len(PREFIX):]) if ch.startswith(PREFIX) else None
             if i is not None and np.isfinite(value):
                 w[i] = min(max(float(value), 0.0), 1.0)
-        res = self.inverse.solve(w, p_prev=self._accepted, max_iterations=self.max_iterations)
+        res = self.inverse.solve(w, p_prev=self._accepted, max_iterations=self.max_iterations, tol=self.tol)
         p, guard, strain = self.guard(res.p)
         self._accepted = p
         extra: dict[str, Any] = {

@@ -113,7 +113,7 @@ def _plots(out: Path, ds: PoseDataset, per_vertex: np.ndarray, results: Sequence
 
     base = ds.base_vertices
     # Front view: project on the two axes of largest extent.
-    axes = np.argsort(np.ptp(base, axis=0))[::-1][:2]
+    axes = np.sort(np.argsort(np.ptp(base, axis=0))[::-1][:2])  # e.g. x across, y up for a face
     fig, ax = plt.subplots(figsize=(6, 6), dpi=110)
     um = per_vertex * 1e6
     if len(ds.faces):
