@@ -188,3 +188,21 @@ def sp_lo(h):
 
 def sp_hi(h):
     return np.array([a.max for a in h.actuators])
+
+
+def test_shipped_sample_predictor_drives_the_sample_head(head):
+    """The predictor shipped with the sample head: trained range near neutral, 52 face units, jawOpen opens the jaw."""
+    solver = SkinTargetSolver.from_head(head)
+    assert solver is not None and len(solver.units) == 52 and solver.handles("arkit.jawOpen")
+    rest = solver.solve({"arkit.jawOpen": 0.0}, {})
+    assert rest.extra["skin_residual_mm"] < 0.1  # the neutral face is the neutral pose
+    for _ in range(10):
+        res = solver.solve({"arkit.jawOpen": 0.05}, {})
+    jaw = head.actuator_names.index("jaw")
+    assert res.actuators["jaw"] > rest.actuators["jaw"] + 0.005
+    assert solver.lo[jaw] - 1e-9 <= res.actuators["jaw"] <= solver.hi[jaw] + 1e-9
+    assert res.extra["skin_guard"] == "ok"
+    w = np.zeros(52)
+    w[solver.units["jawOpen"]] = 0.05
+    staying_put_mm = np.sqrt(solver.inverse.surface_error(solver.neutral, w)) * 1e3
+    assert res.extra["skin_residual_mm"] < 0.8 * staying_put_mm  # the solve matches the target better than neutral
