@@ -1,9 +1,10 @@
 """Skin predictor latency (onnxruntime, one thread) vs the paper and vs a memory-bandwidth floor; inverse-solve time.
 
 For 5k, 50k and 100k surface vertices, a KSNN (13 actuators → 26 tanh → 3·V, three heads in one ONNX graph) is
-timed for one pose and per pose in a batch of 64, against the paper's 1.4–1.6 ms per pose and against the time
-NumPy needs to stream the same bytes (the output-layer weights read once plus the output written once) in this
-run. Then the hidden-space inverse solve (52 face units) is timed per frame, alone and with the strain guard.
+timed for one pose, per pose in a batch of 64, and as the int8 (MatMulNBits) variant for one pose, against the
+paper's 1.4–1.6 ms per pose and against the time NumPy needs to stream the same bytes (the output-layer weights
+read once plus the output written once) in this run. Then the hidden-space inverse solve (52 face units) is timed
+per frame, alone and with the strain guard.
 
 Run: ``python benchmarks/predictor_latency.py [--sizes 5000 50000 100000] [--repeats 200]``.
 """
@@ -27,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from models.ksnn_solve import KsnnInverse  # noqa: E402
 from models.predictor import KsnnWeights, SkinPredictor  # noqa: E402
-from offline.train.export import export_predictor, predictor_metadata  # noqa: E402
+from offline.train.export import export_int8, export_predictor, predictor_metadata  # noqa: E402
 
 PAPER_MS = (1.4, 1.6)
 A, H = 13, 26
@@ -97,20 +98,24 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--batch", type=int, default=64)
     args = ap.parse_args(argv)
     print(f"KSNN {A} → {H} tanh → 3·V, onnxruntime 1 thread; paper: {PAPER_MS[0]}–{PAPER_MS[1]} ms per pose")
-    print(f"{'vertices':>9} {'single µs':>10} {'batch µs/pose':>14} {'floor µs':>9} {'numpy h@W2 µs':>14} "
-          f"{'single/floor':>13} {'paper/single':>13}")
+    print(f"{'vertices':>9} {'single µs':>10} {'batch µs/pose':>14} {'int8 µs':>8} {'floor µs':>9} "
+          f"{'numpy h@W2 µs':>14} {'single/floor':>13} {'paper/single':>13}")
     rng = np.random.default_rng(2)
     with tempfile.TemporaryDirectory() as tmp:
         for n in args.sizes:
-            sp = SkinPredictor(make_model(Path(tmp), n), threads=1)
+            path = make_model(Path(tmp), n)
+            sp = SkinPredictor(path, threads=1)
+            q = SkinPredictor(export_int8(path, Path(tmp) / f"ksnn_{n}_int8.onnx"), threads=1)
             p = rng.uniform(sp.lo, sp.hi)
             P = rng.uniform(sp.lo, sp.hi, size=(args.batch, A)).astype(np.float32)
             reps = max(20, args.repeats * 5000 // n)
             t_single = timeit(lambda sp=sp, p=p: sp.predict_offsets(p), reps)
             t_batch = timeit(lambda sp=sp, P=P: sp.predict_offsets(P), max(5, reps // args.batch)) / args.batch
+            t_int8 = timeit(lambda q=q, p=p: q.predict_offsets(p), reps)
             floor, t_dot = bandwidth_floor(n, reps)
             vs_paper = f"{PAPER_MS[0] * 1e-3 / t_single:.1f}–{PAPER_MS[1] * 1e-3 / t_single:.1f}"
-            print(f"{n:>9} {t_single * 1e6:>10.1f} {t_batch * 1e6:>14.1f} {floor * 1e6:>9.1f} {t_dot * 1e6:>14.1f} "
+            print(f"{n:>9} {t_single * 1e6:>10.1f} {t_batch * 1e6:>14.1f} {t_int8 * 1e6:>8.1f} {floor * 1e6:>9.1f} "
+                  f"{t_dot * 1e6:>14.1f} "
                   f"{t_single / floor:>13.2f} {vs_paper:>13}")
         # Inverse solve per frame (52 face units, 5k vertices): warm-started along a slowly moving expression.
         n = args.sizes[0]
