@@ -73,10 +73,14 @@ def test_task_exceptions_are_retried_then_reported(tmp_path):
     assert not outs[0].ok and "FileNotFoundError" in outs[0].error
 
 
-def test_dask_local_cluster_runs_every_task(tmp_path):
+def test_dask_local_cluster_runs_every_task_even_when_a_worker_dies(tmp_path):
     pytest.importorskip("dask.distributed")
+    marks = tmp_path / "marks"
+    marks.mkdir()
     keys = list(range(8))
     with DaskEngine(None, n_workers=2) as eng:
         assert eng.n_workers == 2
-        outs = list(eng.run(write_square, keys, lambda k: (str(tmp_path), k), max_in_flight=3))
+        outs = list(eng.run(write_square, keys, lambda k: (str(tmp_path), k, str(marks) if k == 5 else None),
+                            max_in_flight=3))
+    assert (marks / "crash_5").exists()  # the worker running task 5 died once; Dask rescheduled the task
     check_all(tmp_path, outs, keys)
