@@ -55,11 +55,37 @@ class SkinTargetSolver:
 
     @classmethod
     def from_head(cls, head: HeadSpec) -> SkinTargetSolver | None:
-        """The solver for the head's ``paths.predictor``, or None when the head names no existing predictor."""
+        """The solver for the head's ``paths.predictor``, or None when the head names no existing predictor.
+
+        An optional ``[skin]`` table tunes it: ``strain_min`` / ``strain_max`` (validated principal strain range,
+        default −0.2 / 0.5), ``smoothness_mm`` (RMS surface error, mm, that a full-range jump of one actuator costs,
+        default 0.1) and ``iterations_per_frame`` (default 3).
+        """
         path = head.path("predictor")
         if path is None or not Path(path).is_file():
             return None
-        return cls(head, path)
+        cfg = dict(head.section("skin"))
+        allowed = {"strain_min", "strain_max", "smoothness_mm", "iterations_per_frame"}
+        for key in cfg:
+            if key not in allowed:
+                raise SpecError(str(head.source), f"skin.{key}", f"unknown key; allowed: {', '.join(sorted(allowed))}")
+
+        def number(key: str, default: float) -> float:
+            value = cfg.get(key, default)
+            if isinstance(value, bool) or not isinstance(value, int | float) or not np.isfinite(value):
+                raise SpecError(str(head.source), f"skin.{key}", "must be a finite number", value)
+            return float(value)
+
+        lo, hi = number("strain_min", DEFAULT_STRAIN_RANGE[0]), number("strain_max", DEFAULT_STRAIN_RANGE[1])
+        if not -1.0 < lo < 0.0 < hi:
+            raise SpecError(str(head.source), "skin.strain_min", "need -1 < strain_min < 0 < strain_max", (lo, hi))
+        smooth = number("smoothness_mm", 0.1)
+        if smooth < 0:
+            raise SpecError(str(head.source), "skin.smoothness_mm", "must not be negative", smooth)
+        iters = cfg.get("iterations_per_frame", 3)
+        if isinstance(iters, bool) or not isinstance(iters, int) or iters < 1:
+            raise SpecError(str(head.source), "skin.iterations_per_frame", "must be a positive integer", iters)
+        return cls(head, path, strain_range=(lo, hi), smoothness=(smooth * 1e-3) ** 2, max_iterations=iters)
 
     # ------------------------------------------------------------------ TargetSolver protocol
     def handles(self, channel: str) -> bool:

@@ -206,3 +206,18 @@ def test_shipped_sample_predictor_drives_the_sample_head(head):
     w[solver.units["jawOpen"]] = 0.05
     staying_put_mm = np.sqrt(solver.inverse.surface_error(solver.neutral, w)) * 1e3
     assert res.extra["skin_residual_mm"] < 0.8 * staying_put_mm  # the solve matches the target better than neutral
+
+
+def test_skin_table_of_the_head_tunes_the_solver_and_is_validated(tmp_path, head):
+    import dataclasses
+
+    from models.errors import SpecError
+
+    tuned = dataclasses.replace(head, sections={**head.sections, "skin": {"strain_max": 0.3, "smoothness_mm": 0.0,
+                                                                         "iterations_per_frame": 5}})
+    solver = SkinTargetSolver.from_head(tuned)
+    assert solver.strain_range == (-0.2, 0.3) and solver.inverse.smoothness == 0.0 and solver.max_iterations == 5
+    for bad, key in (({"strain_max": "a lot"}, "skin.strain_max"), ({"strain_min": 0.1}, "skin.strain_min"),
+                     ({"iterations_per_frame": 0}, "skin.iterations_per_frame"), ({"colour": 1}, "skin.colour")):
+        with pytest.raises(SpecError, match=key.replace(".", r"\.")):
+            SkinTargetSolver.from_head(dataclasses.replace(head, sections={**head.sections, "skin": bad}))
