@@ -20,6 +20,14 @@ IDS = (1, 2, 3, 4)
 RAD_PER_COUNT = 2 * math.pi / 4096
 
 
+@pytest.fixture(autouse=True)
+def patient_sdk(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Widen the SDK's answer window (2 × latency timer + 2 ms) so a loaded test machine does not flake."""
+    import dynamixel_sdk.port_handler
+
+    monkeypatch.setattr(dynamixel_sdk.port_handler, "LATENCY_TIMER", 50)
+
+
 def motors(ids=IDS, zero: int = 2048, lo: float = -0.6, hi: float = 0.6, vmax: float = 4.0) -> list[MotorConfig]:
     return [MotorConfig.rotary(f"m{i}", i, counts_per_rev=4096, min_position=lo, max_position=hi,
                                max_velocity=vmax, zero_count=zero, direction=1 if i % 2 else -1) for i in ids]
