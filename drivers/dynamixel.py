@@ -228,6 +228,11 @@ class DynamixelBus(MotorBus):
         return self._fast
 
     # ------------------------------------------------------------------ SDK access
+    def _device(self, device_id: int) -> str:
+        """The name errors and faults use for ``device_id``: its motor name."""
+        motor = self._by_id.get(device_id)
+        return motor.name if motor else f"id {device_id}"
+
     def _label(self, device_id: int) -> str:
         motor = self._by_id.get(device_id)
         return f"{motor.name} (id {device_id})" if motor else f"id {device_id}"
@@ -247,7 +252,7 @@ class DynamixelBus(MotorBus):
             try:
                 out = self._call(fn, self._port, device_id, *args)
             except (OSError, ValueError, IndexError) as exc:
-                raise BusTimeout(self._label(device_id), f"{what}: port failure: {exc}") from exc
+                raise BusTimeout(self._device(device_id), f"id {device_id}: {what}: port failure: {exc}") from exc
             if isinstance(out, tuple) and len(out) == 3:
                 value, result, error = out
             else:
@@ -256,13 +261,14 @@ class DynamixelBus(MotorBus):
                 break
             log.debug("bus %s: %s: %s (try %d)", self.name, what, self._ph.getTxRxResult(result), attempt + 1)
         else:
-            raise BusTimeout(self._label(device_id), f"{what}: {self._ph.getTxRxResult(result)} ({tries} tries)")
+            raise BusTimeout(self._device(device_id),
+                             f"id {device_id}: {what}: {self._ph.getTxRxResult(result)} ({tries} tries)")
         code = error & 0x7F
         if code:
             raise BusInitError(f"bus {self.name!r}: {self._label(device_id)}: {what} refused: "
                                f"{RESULT_ERROR_NAMES.get(code, f'error {code}')}")
         if error & 0x80 and not allow_alert:
-            raise DeviceFault(self._label(device_id), 0, f"{what}: device reports a hardware error")
+            raise DeviceFault(self._device(device_id), 0, f"{what}: device reports a hardware error")
         return value
 
     def _write_value(self, device_id: int, address: int, size: int, value: int, what: str) -> None:
@@ -326,8 +332,8 @@ class DynamixelBus(MotorBus):
     def _identify(self, device_id: int) -> None:
         number = self._ping(device_id, 1 + self._retries)
         if number is None:
-            raise BusTimeout(self._label(device_id),
-                             f"no answer to ping on {self._port_name} ({1 + self._retries} tries)")
+            raise BusTimeout(self._device(device_id),
+                             f"id {device_id}: no answer to ping on {self._port_name} ({1 + self._retries} tries)")
         if number != self.model.number:
             raise BusInitError(f"bus {self.name!r}: {self._label(device_id)} is model number {number}, "
                                f"configured model {self.model.name} is {self.model.number}")
@@ -450,7 +456,7 @@ class DynamixelBus(MotorBus):
         now = time.monotonic()
         if result != COMM_SUCCESS:
             missing = [i for i in self._ids if len(group.data_dict.get(i) or ()) != len(INDIRECT_LAYOUT)]
-            device = self._label(missing[0]) if missing and not self._fast else self.name
+            device = self._device(missing[0]) if missing and not self._fast else self.name
             detail = self._ph.getTxRxResult(result) if isinstance(result, int) else "port failure"
             self._communication_failure(device, f"sync read failed ({detail}); no data from "
                                                 f"{', '.join(self._label(i) for i in missing) or 'unknown'}")
@@ -506,7 +512,8 @@ class DynamixelBus(MotorBus):
         for device_id in self._ids:
             while self._ping(device_id, 1) is None:
                 if time.monotonic() > deadline:
-                    raise BusTimeout(self._label(device_id), f"silent {self._reboot_timeout} s after reboot")
+                    raise BusTimeout(self._device(device_id),
+                                     f"id {device_id}: silent {self._reboot_timeout} s after reboot")
         for device_id in self._ids:
             self._configure(device_id)
         self._failures = 0
