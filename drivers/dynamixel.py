@@ -393,14 +393,12 @@ class DynamixelBus(MotorBus):
                     f"{name}: present position {state.position:.4g} ({counts} counts) is outside "
                     f"[{motor.min_position:.4g}, {motor.max_position:.4g}]; move it into range with torque off"
                 )
-        enabled: list[int] = []
-        try:
+        try:  # acknowledged writes, so a servo refusing torque (hardware error) is known at once
             for device_id in self._ids:
                 counts = raw[device_id][4]
                 lo, hi = self._ranges[self._by_id[device_id].name]
                 self._write_value(device_id, ADDR_GOAL_POSITION, 4, min(max(counts, lo), hi), "hold position")
                 self._write_value(device_id, ADDR_TORQUE_ENABLE, 1, 1, "torque on")
-                enabled.append(device_id)
         except Exception:
             self._torque_off_all()
             raise

@@ -280,3 +280,15 @@ def test_parse_ids_and_bad_construction() -> None:
         DynamixelEmulator([1], model="AX-12")
     with pytest.raises(ValueError, match="duplicate"):
         DynamixelEmulator([1, 1])
+
+
+def test_truncated_packet_does_not_swallow_the_next(emu: DynamixelEmulator) -> None:
+    import serial
+
+    with serial.Serial(emu.port, 1_000_000, timeout=0.5) as ser:
+        ser.write(instruction_packet(1, Instruction.WRITE, b"\x41\x00\x01")[:9])  # a client died mid-packet
+        time.sleep(0.1)
+        ser.reset_input_buffer()
+        ser.write(instruction_packet(1, Instruction.PING))
+        reply = ser.read(14)
+        assert reply[:5] == b"\xff\xff\xfd\x00\x01" and reply[7] == Instruction.STATUS and reply[8] == 0
