@@ -313,7 +313,7 @@ def test_concurrent_use_is_serialised(bus: DynamixelBus) -> None:
 
 
 def test_wire_budget_arithmetic_matches_measured_bus_physics() -> None:
-    """FACTS.md: write + sync read (4-byte position) of 13 servos ≈ 330 Hz @1M, 1.3 kHz @4M, 105 Hz with 500 µs delay."""
+    """Write + sync read (4-byte position) of 13 servos: ≈ 330 Hz @1M, 1.3 kHz @4M, 105 Hz with 500 µs delay."""
     from benchmarks._bus_dynamixel import bus_budget_s
 
     assert 1 / bus_budget_s(13, 1_000_000, fast=False, data=4) == pytest.approx(330, rel=0.02)
