@@ -79,6 +79,8 @@ RESULT_ERROR_NAMES = {
     1: "result fail", 2: "instruction error", 3: "CRC error", 4: "data range error",
     5: "data length error", 6: "data limit error", 7: "access error",
 }
+#: Longest status packet dynamixel-sdk accepts (its RXPACKET_MAX_LEN).
+SDK_MAX_PACKET = 1024
 SUPPORTED_BAUDRATES = (9600, 57600, 115200, 1_000_000, 2_000_000, 3_000_000, 4_000_000)
 _OPTIONS = {
     "port", "baudrate", "protocol", "model", "return_delay_us", "use_fast_sync_read", "operating_mode",
@@ -146,9 +148,15 @@ class DynamixelBus(MotorBus):
             raise ConfigError(f"bus {name!r}.options.return_delay_us",
                               f"must be an even number of microseconds in 0..508, got {self._return_delay_us!r}")
         fast = opts.get("use_fast_sync_read", "auto")
+        # the answer to a fast sync read is one packet; the SDK takes packets up to 1 KiB
+        fits = 8 + len(self.motors) * (len(INDIRECT_LAYOUT) + 4) <= SDK_MAX_PACKET
         if fast == "auto":
-            self._fast = self.model.fast_sync_read
+            self._fast = self.model.fast_sync_read and fits
         elif isinstance(fast, bool):
+            if fast and not fits:
+                raise ConfigError(f"bus {name!r}.options.use_fast_sync_read",
+                                  f"the answer for {len(self.motors)} servos exceeds the SDK's {SDK_MAX_PACKET}-byte "
+                                  "packet; use a normal sync read ('auto' or false)")
             self._fast = fast
         else:
             raise ConfigError(f"bus {name!r}.options.use_fast_sync_read",

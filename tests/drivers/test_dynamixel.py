@@ -254,6 +254,14 @@ def test_bad_options_are_config_errors(options: dict, key: str) -> None:
     assert key in err.value.key
 
 
+def test_fast_sync_read_only_while_the_answer_fits_one_sdk_packet() -> None:
+    many = motors(range(1, 80))
+    assert not DynamixelBus("dxl", {"port": "/dev/null"}, many).uses_fast_sync_read
+    assert DynamixelBus("dxl", {"port": "/dev/null"}, motors(range(1, 41))).uses_fast_sync_read
+    with pytest.raises(ConfigError, match="exceeds"):
+        DynamixelBus("dxl", {"port": "/dev/null", "use_fast_sync_read": True}, many)
+
+
 def test_position_mode_range_check_and_auto_mode() -> None:
     sample_like = motors(zero=0, lo=-0.4, hi=0.6)  # negative counts: outside 0..4095
     with pytest.raises(ConfigError, match=r"m1.*extended_position"):
