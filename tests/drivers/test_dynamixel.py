@@ -328,3 +328,12 @@ def test_wire_budget_arithmetic_matches_measured_bus_physics() -> None:
     assert 1 / bus_budget_s(13, 4_000_000, fast=False, data=4) == pytest.approx(1330, rel=0.02)
     assert 1 / bus_budget_s(13, 1_000_000, 500.0, fast=False, data=4) == pytest.approx(105, rel=0.02)
     assert bus_budget_s(40, 1_000_000) > bus_budget_s(13, 1_000_000)
+
+
+def test_return_delay_option_is_written_and_honoured(emu: DynamixelEmulator) -> None:
+    bus = make_bus(emu, return_delay_us=300)
+    with bus:
+        assert all(emu.servo(i).read_item("return_delay_time") == 150 for i in IDS)
+        start = time.perf_counter()
+        bus.read()
+        assert time.perf_counter() - start >= 300e-6  # at least one servo's delay before the answer
