@@ -73,7 +73,8 @@ class DynamixelEmulator:
 
     ``initial_positions`` gives each servo's starting Present Position in counts (one int for
     all, or a map by id; default 0). For a driver's motors, ``{m.device_id: m.to_counts(neutral)}``
-    starts every servo at its neutral pose, which ``DynamixelBus.enable`` requires to be in range. ``reboot_time_s`` is how long a rebooting servo is silent.
+    starts every servo at its neutral pose, which ``DynamixelBus.enable`` requires to be in range.
+    ``reboot_time_s`` is how long a rebooting servo is silent.
     Use as a context manager or call :meth:`start` / :meth:`close`.
     """
 
