@@ -188,6 +188,7 @@ class DynamixelBus(MotorBus):
         self._failures = 0
         self._last_states: dict[str, MotorState] = {}
         self._last_raw: dict[int, tuple[int, int, int, int, int]] = {}
+        self._enabling = False  # set between _enable and the read MotorBus.enable makes right after it
 
     # ------------------------------------------------------------------ option helpers
     def _opt_str(self, key: str, default: str | None) -> str:
@@ -410,6 +411,7 @@ class DynamixelBus(MotorBus):
         except Exception:
             self._torque_off_all()
             raise
+        self._enabling = True
 
     def _disable(self) -> None:
         self._torque_off_all()
@@ -451,6 +453,7 @@ class DynamixelBus(MotorBus):
     def _read(self) -> dict[str, MotorState]:
         from dynamixel_sdk import COMM_SUCCESS
 
+        enabling, self._enabling = self._enabling, False
         group = self._sync_read
         for device_id in self._ids:
             group.data_dict[device_id] = []
@@ -495,6 +498,10 @@ class DynamixelBus(MotorBus):
             )
         self._last_raw = raw
         self._last_states = states
+        if enabling and self._state is LifecycleState.FAULT:
+            # MotorBus.enable sets ACTIVE after this read; a fault seen here must abort the enable instead
+            device, (code, message) = next(iter(self._faults.items()))
+            raise DeviceFault(device, code, f"fault while enabling: {message}")
         return dict(states)
 
     def _communication_failure(self, device: str, message: str) -> None:

@@ -337,3 +337,17 @@ def test_return_delay_option_is_written_and_honoured(emu: DynamixelEmulator) -> 
         start = time.perf_counter()
         bus.read()
         assert time.perf_counter() - start >= 300e-6  # at least one servo's delay before the answer
+
+
+def test_fault_during_enable_is_not_overwritten_by_active(bus: DynamixelBus, emu: DynamixelEmulator) -> None:
+    original = bus._enable
+
+    def enable_then_overheat() -> None:
+        original()
+        emu.inject("overheat", 1)  # appears between torque on and the enable's own read
+
+    bus._enable = enable_then_overheat  # type: ignore[method-assign]
+    with pytest.raises(DeviceFault, match="while enabling"):
+        bus.enable()
+    assert bus.state is LifecycleState.FAULT and bus.faults()["m1"][0] == 0x04
+    assert wait_for(lambda: not any(emu.servo(i).torque_enabled for i in IDS))
