@@ -6,8 +6,11 @@ position limits, profile velocity, and an indirect-address block so one sync rea
 hardware error, torque, current, velocity and position). Each cycle is one ``GroupSyncWrite``
 of goal positions and one ``GroupSyncRead`` (fast sync read where the model supports it).
 A hardware error bit puts the bus in FAULT with the bits as code; ``reset_fault`` reboots the
-faulted servos and configures them again. The SDK is not thread-safe, so every port access
-holds one lock.
+faulted servos and configures them again. A read that gets no answer returns the previous
+states (their timestamps show their age) until ``max_consecutive_failures`` reads in a row
+failed; then the bus faults and raises :class:`BusTimeout`. The SDK is not thread-safe, so
+every port access holds one lock. A ``port`` of "auto" (simulated buses in a head file) must be
+replaced by the caller with the emulator's device path before opening.
 
 Options: ``port`` (device path), ``baudrate`` (default 1000000), ``protocol`` (2.0 only),
 ``model`` (default "XM430-W350"), ``return_delay_us`` (0–508, even; default 0),
