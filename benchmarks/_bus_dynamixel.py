@@ -50,8 +50,8 @@ def _motors(n: int) -> list[Any]:
                                max_velocity=6.0, zero_count=2048) for i in range(1, n + 1)]
 
 
-def _run_cycles(port: str, n: int, cycles: int) -> tuple[list[float], int]:
-    """Cycle times and the number of cycles whose read timed out (tolerated up to 10 in a row)."""
+def _run_cycles(port: str, n: int, cycles: int) -> tuple[list[float], int, float]:
+    """Cycle times, cycles whose read timed out (tolerated up to 10 in a row), CPU seconds of this process."""
     from drivers.dynamixel import DynamixelBus
 
     options = {"port": port, "baudrate": 4_000_000, "return_delay_us": 0, "max_consecutive_failures": 10}
@@ -62,6 +62,7 @@ def _run_cycles(port: str, n: int, cycles: int) -> tuple[list[float], int]:
         bus.enable()
         names = list(bus.motors)
         t0 = time.monotonic()
+        cpu0 = time.process_time()
         for _ in range(cycles):
             target = 0.2 * math.sin(2 * math.pi * 0.5 * (time.monotonic() - t0))
             start = time.perf_counter()
@@ -69,8 +70,9 @@ def _run_cycles(port: str, n: int, cycles: int) -> tuple[list[float], int]:
             stamp = bus.read()[names[0]].timestamp
             times.append(time.perf_counter() - start)
             timeouts += stamp < start_mono(start)
+        cpu = time.process_time() - cpu0
         bus.disable()
-    return times, timeouts
+    return times, timeouts, cpu
 
 
 def start_mono(perf_start: float) -> float:
@@ -78,11 +80,14 @@ def start_mono(perf_start: float) -> float:
     return time.monotonic() - (time.perf_counter() - perf_start)
 
 
-def _summary(run: tuple[list[float], int]) -> dict[str, float]:
-    times, timeouts = run
+def _summary(run: tuple[list[float], int, float]) -> dict[str, float]:
+    times, timeouts, cpu = run
     ordered = sorted(times)
     return {
         "timeouts": timeouts,
+        # CPU time of the measuring process per cycle (in-process: driver and emulator threads together);
+        # unlike wall time it does not grow when other processes load the machine
+        "cpu_per_cycle_s": cpu / len(times),
         "median_s": statistics.median(ordered),
         "p99_s": ordered[min(len(ordered) - 1, math.ceil(0.99 * len(ordered)) - 1)],
     }
@@ -161,7 +166,8 @@ def main() -> int:
         for r in result["rows"]:
             print(f"{n:>3} servos {r['transport']:<17} median {r['median_s'] * 1e3:7.3f} ms  "
                   f"p99 {r['p99_s'] * 1e3:7.3f} ms  wire @4M {r['budget_s'] * 1e3:6.3f} ms "
-                  f"(ratio {r['ratio']:5.2f})  @1M ratio {r['ratio_1M']:5.2f}")
+                  f"(ratio {r['ratio']:5.2f})  @1M ratio {r['ratio_1M']:5.2f}  "
+                  f"cpu/cycle {r['cpu_per_cycle_s'] * 1e3:6.3f} ms  timeouts {r['timeouts']}")
     return 0
 
 
