@@ -6,7 +6,7 @@ import argparse
 import importlib
 
 #: Modules that add ``likeness sim`` subcommands through ``register(subparsers)``.
-SIM_COMMAND_MODULES: tuple[str, ...] = ()
+SIM_COMMAND_MODULES: tuple[str, ...] = ("sim_hardware.dynamixel.cli",)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
