@@ -28,7 +28,7 @@ def main() -> int:
         module = importlib.import_module(BACKENDS[backend])
         for n in args.motors:
             result = module.measure(n, args.cycles)
-            results = result if isinstance(result, list) else [result]
+            results = result if isinstance(result, list) else result.get("rows", [result])
             for r in results:
                 rows.append((backend, n, r))
     print(f"{'backend':<10} {'motors':>6} {'transport':<14} {'median ms':>10} {'p99 ms':>9} "
