@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import time
 import uuid
+from pathlib import Path
 
 import pytest
 
@@ -328,3 +329,39 @@ def test_over_socketcand_in_one_process(drives):
     finally:
         bus.close()
         server.stop()
+
+
+def test_sample_head_can_bus_in_process():
+    """The runtime's path: the sample head's can0 actuators on emulated drives, driver on the same channel."""
+    from models.headspec import load_head
+
+    head = load_head(Path(__file__).resolve().parents[2] / "heads" / "sample" / "head.toml")
+    spec = head.buses["can0"]
+    actuators = head.actuators_on("can0")
+    motors = [
+        MotorConfig.rotary(a.name, a.device_id, counts_per_rev=a.counts_per_rev, gear_ratio=a.gear_ratio,
+                           direction=a.direction, zero_count=a.zero_count, min_position=a.min, max_position=a.max,
+                           max_velocity=a.max_velocity)
+        for a in actuators
+    ]
+    options = {**spec.options, "channel": f"test-sample-{uuid.uuid4().hex[:8]}"}
+    with DriveSet([a.device_id for a in actuators], channel=options["channel"]) as ds:
+        bus = create_bus(spec.driver, "can0", options, motors)
+        try:
+            bus.open()
+            bus.enable()
+            neutral = {a.name: a.neutral for a in actuators}
+            goal = {a.name: min(a.neutral + 0.1, a.max) for a in actuators}
+            start = time.monotonic()
+            while (t := time.monotonic() - start) < 0.5:
+                bus.read()
+                f = min(t / 0.3, 1.0)
+                bus.write({n: neutral[n] + (goal[n] - neutral[n]) * f for n in neutral})
+                time.sleep(0.005)
+            states = bus.read()
+            for a in actuators:
+                assert states[a.name].position == pytest.approx(goal[a.name], abs=5e-3), a.name
+                truth = bus.motors[a.name].from_counts(ds.drives[a.device_id].position_counts)
+                assert truth == pytest.approx(goal[a.name], abs=5e-3), a.name
+        finally:
+            bus.close()
