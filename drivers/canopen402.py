@@ -528,9 +528,13 @@ class CanOpen402Bus(MotorBus):
                         f"no heartbeat from node {node.id} for {age * 1e3:.0f} ms "
                         f"(timeout {self._opts.heartbeat_timeout_s * 1e3:.0f} ms)",
                     ))
-            if self._events:
-                with self._lock:
-                    self._drain_events()
+            # Never block on the bus lock: close() holds it while joining this thread.
+            while self._events and not self._monitor_stop.is_set():
+                if self._lock.acquire(timeout=0.05):
+                    try:
+                        self._drain_events()
+                    finally:
+                        self._lock.release()
 
     def _drain_events(self) -> None:
         while self._events:
