@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import statistics
 import time
 import uuid
 from pathlib import Path
@@ -129,7 +130,8 @@ def test_velocity_is_reported_in_si(bus, drives):
         bus.write({m.name: start[m.name] + 1.0 * t for m in MOTORS})
         time.sleep(0.005)
     for name, values in samples.items():
-        assert sum(values) / len(values) == pytest.approx(1.0, abs=0.15), name
+        # Median: robust to the catch-up spikes after a scheduling stall of this thread on a busy machine.
+        assert statistics.median(values) == pytest.approx(1.0, abs=0.15), name
     assert math.isfinite(states["jaw"].effort)
 
 
