@@ -159,7 +159,10 @@ def test_heartbeat_loss_faults_within_timeout_and_quick_stops_everyone(bus, driv
     drives.inject("stop_heartbeat", device=2)
     t0 = time.monotonic()
     assert _wait(lambda: bus.state is LifecycleState.FAULT, 1.0)  # the monitor thread, no read needed
-    assert time.monotonic() - t0 < 0.1 + 0.2
+    elapsed = time.monotonic() - t0
+    # Not before the 0.1 s timeout (less the 25 ms heartbeat period already running), and promptly after it
+    # (the bound is loose only for scheduling delays on a busy machine).
+    assert 0.1 - 0.025 <= elapsed < 0.1 + 0.5
     code, message = bus.faults()["lip"]
     assert code == FAULT_HEARTBEAT_LOST and "node 2" in message
     with pytest.raises(DeviceFault) as err:
