@@ -370,3 +370,18 @@ def test_sample_head_can_bus_in_process():
                 assert truth == pytest.approx(goal[a.name], abs=5e-3), a.name
         finally:
             bus.close()
+
+
+def test_optional_drive_parameters_are_written(drives):
+    bus = _bus(drives, cycle_period_s=0.005, following_error_window_counts=8000, heartbeat_period_s=0.01)
+    try:
+        bus.open()
+        for drive in drives.drives.values():
+            assert drive._get(0x60C2, 1) == 5 and drive._get(0x60C2, 2) == -3
+            assert drive._get(0x6065) == 8000
+            assert drive.node.nmt.heartbeat_time_ms == 10
+            assert drive._get(0x6061) == 8  # CSP
+    finally:
+        bus.close()
+    # close leaves the drives pre-operational (no PDO processing without a master)
+    assert all(d.nmt_state == "PRE-OPERATIONAL" for d in drives.drives.values())
