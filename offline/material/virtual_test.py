@@ -1,0 +1,278 @@
+"""FEM virtual uniaxial test: a specimen stretched or compressed between two grips, nominal strain vs axial force.
+
+Specimens (:mod:`offline.material.specimen`): the strip is meshed with ``box_mesh`` (pull axis x), the cylinder
+with ``cylinder_mesh`` (axis z). One grip face stays at axial coordinate 0, the other moves to (1 + ε)·L; the
+nominal strain is the grip separation change over the gauge length L (the whole specimen between the grips) and
+the axial force is the sum of the axial reaction forces on the moving grip.
+
+Grips:
+
+- ``frictionless`` (default): only the axial displacement of the grip faces is prescribed, the ends contract
+  freely; rigid modes are removed by pinning one grip-face node and one axial-rotation DoF. The answer is
+  homogeneous and equals the closed form of :mod:`offline.material.closed_form`.
+- ``clamped``: the grip faces are fully fixed (no lateral motion), which stiffens the specimen.
+
+Each strain step is warm-started from the previous solution, stretched affinely along the axis so that the grips
+start exactly at their targets (every element keeps J > 0), and strain increments larger than ``max_increment``
+are split into sub-steps. Strains are visited outward from zero (tension ascending, compression descending).
+
+Clamped grips (and any constraint that prescribes whole nodes) go through :func:`offline.fem.solve_static`.
+Frictionless grips need per-component constraints, which ``Dirichlet`` of :mod:`offline.fem` does not express, so
+they are solved by a small Newton loop on the same FEM kernels (:func:`offline.fem.internal_forces`,
+:func:`offline.fem.stiffness`, :func:`offline.fem.factorize`) with the constrained DoFs eliminated.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from offline.material.models import MaterialParams
+from offline.material.specimen import Specimen, SpecimenPlan
+
+GRIPS: tuple[str, ...] = ("frictionless", "clamped")
+
+SMALL_MESH_TETS = 20_000
+"""Below this many tets the FEM kernels run single-threaded (threading overhead exceeds the work)."""
+
+
+class VirtualTestError(RuntimeError):
+    """The virtual test found no equilibrium at some strain (names specimen, grips and strain)."""
+
+
+@dataclass(frozen=True)
+class MeshSettings:
+    """Mesh resolution of a virtual test: element ``order`` (1 or 2) and a density multiplier ``refine`` (>= 1).
+
+    Defaults: frictionless grips give a homogeneous answer that any mesh reproduces exactly, so a coarse linear
+    mesh suffices; clamped grips concentrate strain at the grips and use quadratic tets (linear tets lock at
+    ν ≈ 0.47 and bend poorly).
+    """
+
+    order: int
+    refine: int = 1
+
+    def __post_init__(self) -> None:
+        if self.order not in (1, 2):
+            raise ValueError(f"element order must be 1 or 2, got {self.order!r}")
+        if self.refine < 1:
+            raise ValueError(f"mesh refinement must be >= 1, got {self.refine!r}")
+
+
+def default_mesh_settings(grips: str) -> MeshSettings:
+    """Default mesh for ``grips`` (see :class:`MeshSettings`)."""
+    return MeshSettings(order=1 if grips == "frictionless" else 2)
+
+
+def specimen_mesh(specimen: Specimen, settings: MeshSettings):
+    """Tet mesh of ``specimen`` with node sets ``grip_fixed`` (axial 0) and ``grip_moving`` (axial L)."""
+    from offline.fem import TetMesh, box_mesh, cylinder_mesh
+
+    r = settings.refine
+    if specimen.kind == "strip":
+        L, W, T = specimen.length, specimen.width, specimen.thickness
+        h = min(W, T)
+        div = (max(2, math.ceil(L / h / 2)) * r, max(1, round(W / h)) * r, max(1, round(T / h)) * r)
+        mesh = box_mesh((L, W, T), div, order=settings.order)
+        return mesh.with_node_sets(grip_fixed=mesh.node_sets["x0"], grip_moving=mesh.node_sets["x1"]), 0
+    radius = specimen.width / 2.0
+    n_radial = 3 * r
+    n_height = max(2, round(specimen.length / (radius / n_radial))) if settings.order == 1 else max(2, 2 * r)
+    mesh = cylinder_mesh(radius, specimen.length, n_radial, n_height, order=settings.order)
+    # The faceted rim cuts area off the disk (about 1 % at 3 radial cells): scale radially so that the mesh has the
+    # specimen's true cross-section, and the axial force means the same as the closed form's stress times area.
+    p = np.asarray(mesh.nodes)
+    corners = p[np.asarray(mesh.tets)[:, :4]]
+    volume = float(np.sum(np.abs(np.einsum("ij,ij->i", np.cross(corners[:, 1] - corners[:, 0],
+                                                                 corners[:, 2] - corners[:, 0]),
+                                           corners[:, 3] - corners[:, 0]))) / 6.0)
+    scale = math.sqrt(specimen.area * specimen.length / volume)
+    nodes = p * np.array([scale, scale, 1.0])
+    mesh = TetMesh(nodes, mesh.tets, {"grip_fixed": mesh.node_sets["bottom"], "grip_moving": mesh.node_sets["top"]})
+    return mesh, 2
+
+
+@dataclass(frozen=True)
+class _Setup:
+    mesh: object
+    axis: int
+    length: float
+    fixed_nodes: np.ndarray
+    moving_nodes: np.ndarray
+    mask: np.ndarray  # (N, 3) bool: constrained DoFs
+    full_nodes: bool  # True when every constrained node is constrained in all three components
+
+
+def _setup(mesh, axis: int, length: float, grips: str) -> _Setup:
+    X = np.asarray(mesh.nodes)
+    fixed_nodes = np.asarray(mesh.node_sets["grip_fixed"])
+    moving_nodes = np.asarray(mesh.node_sets["grip_moving"])
+    mask = np.zeros(X.shape, dtype=bool)
+    if grips == "clamped":
+        mask[fixed_nodes] = True
+        mask[moving_nodes] = True
+        return _Setup(mesh, axis, length, fixed_nodes, moving_nodes, mask, True)
+    mask[fixed_nodes, axis] = True
+    mask[moving_nodes, axis] = True
+    lat = [a for a in range(3) if a != axis]
+    face = X[fixed_nodes]
+    centre = face.mean(axis=0)
+    # pin the fixed-face node nearest the face centre (no lateral translation) ...
+    pin = fixed_nodes[np.argmin(np.linalg.norm(face - centre, axis=1))]
+    mask[pin, :] = True
+    # ... and stop the rotation about the axis: the node farthest from the pin along lat[0] keeps lat[1]
+    d = face - X[pin]
+    far = fixed_nodes[np.argmax(np.abs(d[:, lat[0]]) - 1e-6 * np.abs(d[:, lat[1]]))]
+    mask[far, lat[1]] = True
+    return _Setup(mesh, axis, length, fixed_nodes, moving_nodes, mask, False)
+
+
+def _predict(x_prev: np.ndarray, setup: _Setup, eps_prev: float, eps: float) -> np.ndarray:
+    """Warm start: the previous solution stretched affinely along the axis so the grips land on their targets."""
+    x = x_prev.copy()
+    x[:, setup.axis] = x_prev[:, setup.axis] * (1.0 + eps) / (1.0 + eps_prev)
+    return x
+
+
+def _solve_masked(mesh, material, x: np.ndarray, mask: np.ndarray, tol: float, max_iterations: int,
+                  force_floor: float) -> np.ndarray:
+    """Newton with per-component constraints: constrained DoFs stay where ``x`` has them; J > 0 + Armijo search.
+
+    Converged when the free-DoF residual is below ``tol`` times the constraint forces (at least ``force_floor``, N).
+    """
+    from offline.fem import NotPositiveDefinite, factorize, internal_forces, min_jacobian, stiffness, total_energy
+
+    free = np.flatnonzero(~mask.ravel())
+    cons = np.flatnonzero(mask.ravel())
+    xk = x.copy()
+    for _ in range(max_iterations):
+        f = internal_forces(mesh, material, xk).ravel()
+        rf = f[free]
+        ref = max(force_floor, float(np.linalg.norm(f[cons])))
+        if np.linalg.norm(rf) <= tol * ref:
+            return xk
+        backend = "superlu" if free.size < 20000 else "auto"
+        du = None
+        for project in (False, True):  # PSD projection of element tangents only as a fallback
+            Kff = stiffness(mesh, material, xk, project_psd=project).tocsr()[free][:, free].tocsc()
+            try:
+                du = factorize(Kff, backend).solve(-rf)
+            except NotPositiveDefinite:
+                continue
+            if np.all(np.isfinite(du)) and float(rf @ du) < 0.0:
+                break
+        if du is None:
+            raise RuntimeError("virtual test: tangent stiffness not positive definite even after projection")
+        d = np.zeros(xk.size)
+        d[free] = du
+        d = d.reshape(xk.shape)
+        e0 = total_energy(mesh, material, xk)
+        slope = float(rf @ du)
+        alpha = 1.0
+        for _ls in range(40):
+            xt = xk + alpha * d
+            if min_jacobian(mesh, xt) > 0.0:
+                et = total_energy(mesh, material, xt)
+                if et <= e0 + 1e-4 * alpha * slope or abs(et - e0) <= 1e-13 * max(1.0, abs(e0)):
+                    break
+            alpha *= 0.5
+        else:
+            raise RuntimeError("virtual test: line search failed (element inversion or no energy decrease)")
+        xk = xt
+    raise RuntimeError(f"virtual test: Newton did not converge in {max_iterations} iterations")
+
+
+def _axial_force(mesh, material, x: np.ndarray, setup: _Setup) -> float:
+    from offline.fem import internal_forces
+
+    return float(internal_forces(mesh, material, x)[setup.moving_nodes, setup.axis].sum())
+
+
+@contextlib.contextmanager
+def _numba_threads_for(n_tets: int):
+    """Run small meshes on one numba thread: on a busy 2-core machine the parallel kernels' thread barrier costs
+    10-20x the work itself for a few hundred tets."""
+    try:
+        import numba
+    except ImportError:  # pragma: no cover - numba is a hard dependency of offline.fem
+        yield
+        return
+    before = numba.get_num_threads()
+    if n_tets < SMALL_MESH_TETS:
+        numba.set_num_threads(1)
+    try:
+        yield
+    finally:
+        numba.set_num_threads(before)
+
+
+def run_specimen(params: MaterialParams, specimen: Specimen, strains: np.ndarray, *, grips: str = "frictionless",
+                 mesh_settings: MeshSettings | None = None, max_increment: float = 0.05,
+                 tol: float = 1e-9) -> np.ndarray:
+    """Axial forces (N) of the virtual test of ``specimen`` at each nominal strain (any order, strains > -1)."""
+    from offline.fem import Dirichlet, SolverOptions, solve_static
+
+    if grips not in GRIPS:
+        raise ValueError(f"grips must be one of {', '.join(GRIPS)}, got {grips!r}")
+    eps_all = np.asarray(strains, dtype=float)
+    if np.any(~np.isfinite(eps_all)) or np.any(eps_all <= -0.9):
+        raise ValueError("strains must be finite and above -0.9")
+    settings = mesh_settings or default_mesh_settings(grips)
+    mesh, axis = specimen_mesh(specimen, settings)
+    setup = _setup(mesh, axis, specimen.length, grips)
+    material = params.to_fem_material()
+    X = np.asarray(mesh.nodes)
+    forces = np.zeros(eps_all.shape)
+    options = SolverOptions(backend="auto", tol_force=tol, max_iterations=40)
+
+    def solve(x_guess: np.ndarray) -> np.ndarray:
+        if setup.full_nodes:
+            nodes = np.flatnonzero(setup.mask.all(axis=1))
+            res = solve_static(mesh, material, Dirichlet(nodes, x_guess[nodes]), x0=x_guess, options=options)
+            return res.x
+        return _solve_masked(mesh, material, x_guess, setup.mask, tol, 40, 1e-3 * params.E * specimen.area)
+
+    with _numba_threads_for(mesh.n_tets):
+        _sweep(eps_all, forces, X, mesh, material, setup, solve, specimen, grips, max_increment)
+    return forces
+
+
+def _sweep(eps_all, forces, X, mesh, material, setup, solve, specimen, grips, max_increment) -> None:
+    """Visit the strains outward from zero on each branch, warm-starting every solve; fills ``forces``."""
+    from offline.fem import NotConverged
+
+    for branch in (np.flatnonzero(eps_all >= 0.0), np.flatnonzero(eps_all < 0.0)):
+        if branch.size == 0:
+            continue
+        order = branch[np.argsort(np.abs(eps_all[branch]))]
+        x, eps_prev = X.copy(), 0.0
+        for i in order:
+            target = float(eps_all[i])
+            start = eps_prev
+            n_sub = max(1, math.ceil(abs(target - start) / max_increment - 1e-9))
+            for k in range(1, n_sub + 1):
+                eps_k = start + (target - start) * k / n_sub
+                try:
+                    x = solve(_predict(x, setup, eps_prev, eps_k))
+                except (RuntimeError, NotConverged) as exc:
+                    hint = ""
+                    if eps_k < 0.0 and specimen.kind == "strip":
+                        hint = " (a slender strip buckles in compression: test compression on the cylinder)"
+                    raise VirtualTestError(
+                        f"{specimen.describe()}, {grips} grips: no equilibrium at strain {eps_k:.4g}{hint}: {exc}"
+                    ) from exc
+                eps_prev = eps_k
+            forces[i] = _axial_force(mesh, material, x, setup)
+
+
+def run_plan(params: MaterialParams, plan: SpecimenPlan, strains: np.ndarray, *, grips: str = "frictionless",
+             mesh_settings: MeshSettings | None = None) -> np.ndarray:
+    """Axial forces (N) at each strain, each strain tested on the specimen the plan assigns to it."""
+    eps = np.asarray(strains, dtype=float)
+    forces = np.zeros(eps.shape)
+    for specimen, mask in plan.for_strains(eps):
+        forces[mask] = run_specimen(params, specimen, eps[mask], grips=grips, mesh_settings=mesh_settings)
+    return forces
