@@ -16,10 +16,8 @@ Each strain step is warm-started from the previous solution, stretched affinely 
 start exactly at their targets (every element keeps J > 0), and strain increments larger than ``max_increment``
 are split into sub-steps. Strains are visited outward from zero (tension ascending, compression descending).
 
-Clamped grips (and any constraint that prescribes whole nodes) go through :func:`offline.fem.solve_static`.
-Frictionless grips need per-component constraints, which ``Dirichlet`` of :mod:`offline.fem` does not express, so
-they are solved by a small Newton loop on the same FEM kernels (:func:`offline.fem.internal_forces`,
-:func:`offline.fem.stiffness`, :func:`offline.fem.factorize`) with the constrained DoFs eliminated.
+Every step is one :func:`offline.fem.solve_static` call; frictionless grips prescribe single coordinates through
+``Dirichlet.components``.
 """
 
 from __future__ import annotations
@@ -103,7 +101,6 @@ class _Setup:
     fixed_nodes: np.ndarray
     moving_nodes: np.ndarray
     mask: np.ndarray  # (N, 3) bool: constrained DoFs
-    full_nodes: bool  # True when every constrained node is constrained in all three components
 
 
 def _setup(mesh, axis: int, length: float, grips: str) -> _Setup:
@@ -114,7 +111,7 @@ def _setup(mesh, axis: int, length: float, grips: str) -> _Setup:
     if grips == "clamped":
         mask[fixed_nodes] = True
         mask[moving_nodes] = True
-        return _Setup(mesh, axis, length, fixed_nodes, moving_nodes, mask, True)
+        return _Setup(mesh, axis, length, fixed_nodes, moving_nodes, mask)
     mask[fixed_nodes, axis] = True
     mask[moving_nodes, axis] = True
     lat = [a for a in range(3) if a != axis]
@@ -127,7 +124,7 @@ def _setup(mesh, axis: int, length: float, grips: str) -> _Setup:
     d = face - X[pin]
     far = fixed_nodes[np.argmax(np.abs(d[:, lat[0]]) - 1e-6 * np.abs(d[:, lat[1]]))]
     mask[far, lat[1]] = True
-    return _Setup(mesh, axis, length, fixed_nodes, moving_nodes, mask, False)
+    return _Setup(mesh, axis, length, fixed_nodes, moving_nodes, mask)
 
 
 def _predict(x_prev: np.ndarray, setup: _Setup, eps_prev: float, eps: float) -> np.ndarray:
@@ -137,52 +134,15 @@ def _predict(x_prev: np.ndarray, setup: _Setup, eps_prev: float, eps: float) -> 
     return x
 
 
-def _solve_masked(mesh, material, x: np.ndarray, mask: np.ndarray, tol: float, max_iterations: int,
-                  force_floor: float) -> np.ndarray:
-    """Newton with per-component constraints: constrained DoFs stay where ``x`` has them; J > 0 + Armijo search.
+def _backend() -> str:
+    """Sparse backend for the small virtual-test meshes: CHOLMOD, else SuperLU.
 
-    Converged when the free-DoF residual is below ``tol`` times the constraint forces (at least ``force_floor``, N).
+    PARDISO is avoided: after it rejects an indefinite tangent (compression steps), the same solver object also
+    rejects the PSD-projected one, so the Newton fallback cannot recover.
     """
-    from offline.fem import NotPositiveDefinite, factorize, internal_forces, min_jacobian, stiffness, total_energy
+    from offline.fem import available_backends
 
-    free = np.flatnonzero(~mask.ravel())
-    cons = np.flatnonzero(mask.ravel())
-    xk = x.copy()
-    for _ in range(max_iterations):
-        f = internal_forces(mesh, material, xk).ravel()
-        rf = f[free]
-        ref = max(force_floor, float(np.linalg.norm(f[cons])))
-        if np.linalg.norm(rf) <= tol * ref:
-            return xk
-        backend = "superlu" if free.size < 20000 else "auto"
-        du = None
-        for project in (False, True):  # PSD projection of element tangents only as a fallback
-            Kff = stiffness(mesh, material, xk, project_psd=project).tocsr()[free][:, free].tocsc()
-            try:
-                du = factorize(Kff, backend).solve(-rf)
-            except NotPositiveDefinite:
-                continue
-            if np.all(np.isfinite(du)) and float(rf @ du) < 0.0:
-                break
-        if du is None:
-            raise RuntimeError("virtual test: tangent stiffness not positive definite even after projection")
-        d = np.zeros(xk.size)
-        d[free] = du
-        d = d.reshape(xk.shape)
-        e0 = total_energy(mesh, material, xk)
-        slope = float(rf @ du)
-        alpha = 1.0
-        for _ls in range(40):
-            xt = xk + alpha * d
-            if min_jacobian(mesh, xt) > 0.0:
-                et = total_energy(mesh, material, xt)
-                if et <= e0 + 1e-4 * alpha * slope or abs(et - e0) <= 1e-13 * max(1.0, abs(e0)):
-                    break
-            alpha *= 0.5
-        else:
-            raise RuntimeError("virtual test: line search failed (element inversion or no energy decrease)")
-        xk = xt
-    raise RuntimeError(f"virtual test: Newton did not converge in {max_iterations} iterations")
+    return "cholmod" if "cholmod" in available_backends() else "superlu"
 
 
 def _axial_force(mesh, material, x: np.ndarray, setup: _Setup) -> float:
@@ -226,14 +186,14 @@ def run_specimen(params: MaterialParams, specimen: Specimen, strains: np.ndarray
     material = params.to_fem_material()
     X = np.asarray(mesh.nodes)
     forces = np.zeros(eps_all.shape)
-    options = SolverOptions(backend="auto", tol_force=tol, max_iterations=40)
+    options = SolverOptions(backend=_backend(), tol_force=tol, max_iterations=40)
+
+    nodes = np.flatnonzero(setup.mask.any(axis=1))
+    components = setup.mask[nodes]
 
     def solve(x_guess: np.ndarray) -> np.ndarray:
-        if setup.full_nodes:
-            nodes = np.flatnonzero(setup.mask.all(axis=1))
-            res = solve_static(mesh, material, Dirichlet(nodes, x_guess[nodes]), x0=x_guess, options=options)
-            return res.x
-        return _solve_masked(mesh, material, x_guess, setup.mask, tol, 40, 1e-3 * params.E * specimen.area)
+        dirichlet = Dirichlet(nodes, x_guess[nodes], components)
+        return solve_static(mesh, material, dirichlet, x0=x_guess, options=options).x
 
     with _numba_threads_for(mesh.n_tets):
         _sweep(eps_all, forces, X, mesh, material, setup, solve, specimen, grips, max_increment)
@@ -257,7 +217,7 @@ def _sweep(eps_all, forces, X, mesh, material, setup, solve, specimen, grips, ma
                 eps_k = start + (target - start) * k / n_sub
                 try:
                     x = solve(_predict(x, setup, eps_prev, eps_k))
-                except (RuntimeError, NotConverged) as exc:
+                except NotConverged as exc:
                     hint = ""
                     if eps_k < 0.0 and specimen.kind == "strip":
                         hint = " (a slender strip buckles in compression: test compression on the cylinder)"
