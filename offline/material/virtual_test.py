@@ -145,21 +145,12 @@ def _backend() -> str:
     return "cholmod" if "cholmod" in available_backends() else "superlu"
 
 
-def _axial_force(mesh, material, x: np.ndarray, setup: _Setup) -> float:
-    from offline.fem import internal_forces
-
-    return float(internal_forces(mesh, material, x)[setup.moving_nodes, setup.axis].sum())
-
-
 @contextlib.contextmanager
 def _numba_threads_for(n_tets: int):
     """Run small meshes on one numba thread: on a busy 2-core machine the parallel kernels' thread barrier costs
     10-20x the work itself for a few hundred tets."""
-    try:
-        import numba
-    except ImportError:  # pragma: no cover - numba is a hard dependency of offline.fem
-        yield
-        return
+    import numba
+
     before = numba.get_num_threads()
     if n_tets < SMALL_MESH_TETS:
         numba.set_num_threads(1)
@@ -191,9 +182,13 @@ def run_specimen(params: MaterialParams, specimen: Specimen, strains: np.ndarray
     nodes = np.flatnonzero(setup.mask.any(axis=1))
     components = setup.mask[nodes]
 
-    def solve(x_guess: np.ndarray) -> np.ndarray:
+    moving_rows = np.flatnonzero(np.isin(nodes, setup.moving_nodes))
+
+    def solve(x_guess: np.ndarray) -> tuple[np.ndarray, float]:
+        """Equilibrium positions and the axial force: the summed axial reactions on the moving grip."""
         dirichlet = Dirichlet(nodes, x_guess[nodes], components)
-        return solve_static(mesh, material, dirichlet, x0=x_guess, options=options).x
+        result = solve_static(mesh, material, dirichlet, x0=x_guess, options=options)
+        return result.x, float(result.reactions[moving_rows, setup.axis].sum())
 
     with _numba_threads_for(mesh.n_tets):
         _sweep(eps_all, forces, X, mesh, material, setup, solve, specimen, grips, max_increment)
@@ -208,7 +203,7 @@ def _sweep(eps_all, forces, X, mesh, material, setup, solve, specimen, grips, ma
         if branch.size == 0:
             continue
         order = branch[np.argsort(np.abs(eps_all[branch]))]
-        x, eps_prev = X.copy(), 0.0
+        x, eps_prev, force = X.copy(), 0.0, 0.0
         for i in order:
             target = float(eps_all[i])
             start = eps_prev
@@ -216,7 +211,7 @@ def _sweep(eps_all, forces, X, mesh, material, setup, solve, specimen, grips, ma
             for k in range(1, n_sub + 1):
                 eps_k = start + (target - start) * k / n_sub
                 try:
-                    x = solve(_predict(x, setup, eps_prev, eps_k))
+                    x, force = solve(_predict(x, setup, eps_prev, eps_k))
                 except NotConverged as exc:
                     hint = ""
                     if eps_k < 0.0 and specimen.kind == "strip":
@@ -225,7 +220,7 @@ def _sweep(eps_all, forces, X, mesh, material, setup, solve, specimen, grips, ma
                         f"{specimen.describe()}, {grips} grips: no equilibrium at strain {eps_k:.4g}{hint}: {exc}"
                     ) from exc
                 eps_prev = eps_k
-            forces[i] = _axial_force(mesh, material, x, setup)
+            forces[i] = force
 
 
 def run_plan(params: MaterialParams, plan: SpecimenPlan, strains: np.ndarray, *, grips: str = "frictionless",
