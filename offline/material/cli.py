@@ -205,6 +205,8 @@ def _cmd_fit(args: argparse.Namespace) -> int:
         raise CliError(str(exc)) from None
     if meas.specimen is not None:
         plan = SpecimenPlan(meas.specimen, meas.specimen)
+        print(f"specimen from the file header: {meas.specimen.describe()}, cross-section "
+              f"{meas.specimen.area * 1e4:g} cm² (--specimen ignored)")
     total = len(meas)
     meas = meas.select(lo, hi)
     if len(meas) < 3:
