@@ -122,6 +122,13 @@ def _check_units(strain: np.ndarray, force: np.ndarray, lines: np.ndarray, area:
             source, "nominal strain at or below -1 is impossible (zero length); percent given as a fraction?",
             line=int(lines[k]), column=strain_column, value=float(strain[k]))
     strained = np.abs(strain) >= 0.01
+    opposite = strained & (np.sign(force) == -np.sign(strain))
+    if strained.any() and opposite.sum() > 0.5 * strained.sum():
+        k = int(np.flatnonzero(opposite)[0])
+        raise MeasurementError(
+            source, f"force has the opposite sign of the strain in {int(opposite.sum())} of {int(strained.sum())} "
+            "strained rows: tension must be positive, compression negative", line=int(lines[k]), column="force_N",
+            value=float(force[k]))
     if strained.sum() >= 1:
         secant = np.abs(force[strained]) / (area[strained] * np.abs(strain[strained]))
         modulus = float(np.median(secant))

@@ -63,6 +63,8 @@ BAD = {
     "kN": ("strain,force_N\n0,0\n0.1,0.00007\n0.2,0.00013\n0.5,0.00027\n", "line 5, column 'force_N'", "kN"),
     "mN": ("strain,force_N\n0,0\n0.1,70000\n0.2,130000\n0.5,270000\n", "line 5, column 'force_N'", "mN"),
     "impossible compression": ("strain,force_N\n-1.5,-20\n-0.1,-15\n0,0\n", "line 2, column 'strain'", "-1"),
+    "sign flipped": ("strain,force_N\n-0.1,15\n0,0\n0.1,-0.07\n0.2,-0.13\n", "line 2, column 'force_N'",
+                     "opposite sign"),
     "displacement in mm": ("displacement_m,force_N\n0,0\n5.5,0.07\n11,0.13\n", "line 4, column 'displacement_m'",
                            "mm"),
 }
