@@ -438,6 +438,16 @@ _HESSIAN_BUFFER_BYTES = 96 * 2**20
 # ---------------------------------------------------------------------------------------------------------------
 # Public API
 # ---------------------------------------------------------------------------------------------------------------
+def prepare(mesh: TetMesh, stiffness_pattern: bool = True) -> None:
+    """Precompute and cache the per-mesh data (shape-function gradients, adjacency, CSR pattern) now.
+
+    Raises ValueError naming the first inverted tet. Later kernel calls on this mesh object reuse the cache.
+    """
+    _mesh_data(mesh)
+    if stiffness_pattern:
+        _pattern(mesh)
+
+
 def _check_x(mesh: TetMesh, x) -> np.ndarray:
     x = np.ascontiguousarray(x, dtype=np.float64)
     if x.shape != (mesh.n_nodes, 3):

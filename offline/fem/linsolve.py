@@ -12,6 +12,7 @@ when CHOLMOD is linked against the reference (unoptimised) BLAS and PARDISO is p
 from __future__ import annotations
 
 import contextlib
+import functools
 import importlib.util
 import os
 from abc import ABC, abstractmethod
@@ -48,8 +49,17 @@ def _cholmod_uses_reference_blas() -> bool:
     return bool(paths) and all(os.path.basename(os.path.dirname(p)) == "blas" for p in paths)
 
 
+@functools.lru_cache(maxsize=1)
+def _available_backends() -> tuple[str, ...]:
+    return tuple(_probe_backends())
+
+
 def available_backends() -> list[str]:
     """Backends importable here, fastest first (CHOLMOD, then PARDISO; PARDISO first if CHOLMOD has slow BLAS)."""
+    return list(_available_backends())
+
+
+def _probe_backends() -> list[str]:
     out = []
     if _has("sksparse"):
         try:
@@ -163,10 +173,19 @@ class _PardisoSolver(SparseSolver):
 
     backend = "pardiso"
 
+    _template = None  # pypardiso searches the whole environment for libmkl_rt on every construction: do it once
+
     def __init__(self) -> None:
+        import copy
+
         import pypardiso
 
-        self._ps = pypardiso.PyPardisoSolver(mtype=2)
+        if _PardisoSolver._template is None:
+            _PardisoSolver._template = pypardiso.PyPardisoSolver(mtype=2)
+        self._ps = copy.copy(_PardisoSolver._template)
+        self._ps.pt = np.zeros_like(self._ps.pt)  # fresh PARDISO handle and parameters for this solver
+        self._ps.iparm = np.zeros_like(self._ps.iparm)
+        self._ps.perm = np.zeros_like(self._ps.perm)
         self._ps.set_iparm(1, 2)  # nested dissection (METIS) ordering
         self._analyzed_key = None
         self.generation = 0

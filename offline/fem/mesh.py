@@ -88,6 +88,10 @@ class TetMesh:
         merged.update(sets)
         return TetMesh(self.nodes, self.tets, merged)
 
+    def __reduce__(self):
+        # MappingProxyType does not pickle; rebuild through the constructor (process pools, Dask)
+        return (TetMesh, (np.asarray(self.nodes), np.asarray(self.tets), dict(self.node_sets)))
+
     def __repr__(self) -> str:
         return (f"TetMesh(n_nodes={self.n_nodes}, n_tets={self.n_tets}, order={self.order}, "
                 f"node_sets={sorted(self.node_sets)})")

@@ -160,7 +160,12 @@ class SolverOptions:
 
 @dataclass(frozen=True)
 class StaticResult:
-    """Outcome of :func:`solve_static`: positions, convergence, per-iteration log, phase timings (s), reactions (N)."""
+    """Outcome of :func:`solve_static`: positions, convergence, per-iteration log, phase timings (s), reactions (N).
+
+    Each ``log`` entry holds step, iteration, energy (J), residual (N), alpha, projected (number of element
+    Hessians projected to PSD), factor_s and tolerance (the residual threshold, N). ``reactions`` follows
+    ``dirichlet.nodes``; coordinates a node leaves free carry only the (converged, ≈ 0) residual there.
+    """
 
     x: np.ndarray
     converged: bool
@@ -169,6 +174,10 @@ class StaticResult:
     log: tuple[dict, ...] = ()
     timings: Mapping[str, float] = field(default_factory=dict)
     reactions: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+
+    def __reduce__(self):
+        return (StaticResult, (self.x, self.converged, self.iterations, self.load_steps, self.log,
+                               dict(self.timings), self.reactions))
 
     def reaction_total(self) -> np.ndarray:
         """Sum of the constraint forces over all Dirichlet nodes (3,)."""
@@ -290,7 +299,7 @@ def solve_static(mesh: TetMesh, material: Material, dirichlet: Dirichlet, *, x0:
             e_now = potential(xk, fext)
             if boundary_done and res <= opts.tol_force * max(1.0, f_ref):
                 log.append({"step": step, "iteration": it, "energy": e_now, "residual": res, "alpha": 0.0,
-                            "projected": 0, "factor_s": 0.0})
+                            "projected": 0, "factor_s": 0.0, "tolerance": opts.tol_force * max(1.0, f_ref)})
                 if opts.verbose:
                     print(f"  step {step} it {it}: converged |r|={res:.3e} (ref {f_ref:.3e})")
                 return xk
@@ -355,8 +364,9 @@ def solve_static(mesh: TetMesh, material: Material, dirichlet: Dirichlet, *, x0:
                 alpha *= 0.5
             timings["line_search"] += time.perf_counter() - t
             iterations += 1
-            log.append({"step": step, "iteration": it, "energy": e_now, "residual": res, "alpha": alpha if accepted
-                        else 0.0, "projected": int(n_proj), "factor_s": factor_s})
+            log.append({"step": step, "iteration": it, "energy": e_now, "residual": res,
+                        "alpha": alpha if accepted else 0.0, "projected": int(n_proj), "factor_s": factor_s,
+                        "tolerance": opts.tol_force * max(1.0, f_ref)})
             if opts.verbose:
                 print(f"  step {step} it {it}: |r|={res:.3e} (ref {f_ref:.3e}) E={e_now:.6e} alpha={alpha:.3g} "
                       f"projected={n_proj} factor={factor_s:.3f}s")

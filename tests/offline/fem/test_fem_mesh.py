@@ -95,3 +95,18 @@ def test_mesh_is_immutable_and_validates() -> None:
         TetMesh(np.zeros((4, 3)), np.array([[0, 1, 2]]))
     with pytest.raises(ValueError, match="divisions"):
         box_mesh((1, 1, 1), (0, 1, 1))
+
+
+def test_meshes_materials_and_results_pickle() -> None:
+    import pickle
+
+    from offline.fem import SolverOptions, fixed, neo_hookean, solve_static
+
+    mesh = box_mesh((0.01, 0.01, 0.01), (1, 1, 1), order=2)
+    back = pickle.loads(pickle.dumps(mesh))
+    assert np.array_equal(back.tets, mesh.tets) and set(back.node_sets) == set(mesh.node_sets)
+    mat = pickle.loads(pickle.dumps(neo_hookean(1e4, 1e5)))
+    assert mat.params["mu"] == 1e4
+    res = solve_static(mesh, mat, fixed(mesh, "z0"), options=SolverOptions(backend="superlu", gravity=(0, 0, -9.81)))
+    res2 = pickle.loads(pickle.dumps(res))
+    assert np.array_equal(res2.x, res.x) and res2.timings["total"] == res.timings["total"]
