@@ -33,6 +33,7 @@ from runtime.loop import (
     LoopStats,
     RateScheduler,
     SwitchInterval,
+    demote_threads,
     drop_realtime,
     freeze_heap,
     promote_threads,
@@ -110,6 +111,7 @@ class Daemon(CommandApi):
         self._control_tid = 0
         self._caller_tid = 0
         self._caller_sched: tuple[int, int] | None = None
+        self._promoted_tids: list[int] = []
         self.command_endpoint = ""
         self.telemetry_endpoint = ""
         self.loop_ready = threading.Event()
@@ -146,9 +148,10 @@ class Daemon(CommandApi):
         rt = self.cfg.runtime
         if rt.realtime and rt.helper_priority > 0:
             exclude = {t for t in (self._control_tid, self._caller_tid) if t}
-            n = promote_threads(rt.helper_priority, exclude)
-            if n:
-                log.debug("%d helper threads now SCHED_RR %d", n, rt.helper_priority)
+            changed = promote_threads(rt.helper_priority, exclude)
+            if changed:
+                self._promoted_tids.extend(changed)
+                log.debug("%d helper threads now SCHED_RR %d", len(changed), rt.helper_priority)
 
     def _promote_caller(self) -> None:
         """The thread that starts the daemon (a CLI's main thread, a test, a demo client) to the lowest realtime
@@ -198,6 +201,8 @@ class Daemon(CommandApi):
             self._ctx.term()
             self._ctx = None
         self._restore_caller()
+        demote_threads(self._promoted_tids)  # threads that outlive the daemon (a shared ZeroMQ context's, ...)
+        self._promoted_tids = []
 
     def __enter__(self) -> Daemon:
         self.start()
