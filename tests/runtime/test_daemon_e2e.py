@@ -208,6 +208,7 @@ def test_canopen_heartbeat_loss_faults_then_reset_and_resume(make_daemon) -> Non
     d = make_daemon()
     with Client(d.command_endpoint, timeout=5) as c, Telemetry(d.telemetry_endpoint, topics=(b"event",)) as tel:
         c.call("enable")
+        c.call("pose", pose={"jaw": 12.0}, speed=0.03)  # a slow move (2.5 s), cut short by the fault
         time.sleep(0.2)
         d.hw.emulator("can0").inject("stop_heartbeat", device=3)
         ev = tel.wait_for(lambda t, m: m["event"] == "fault", 3.0)
@@ -215,6 +216,10 @@ def test_canopen_heartbeat_loss_faults_then_reset_and_resume(make_daemon) -> Non
         assert "lip_corner_l_back" in str(ev[1]["faults"]) or "heartbeat" in ev[1]["message"]
         st = _status(c)
         assert st["lifecycle"] == "fault" and "active" not in st["buses"].values()  # commanding stopped
+        # Motors stopped: the jaw was moving toward 12 degrees and now stays where it is.
+        frozen = _truth_deg(d, "jaw")
+        time.sleep(0.3)
+        assert _truth_deg(d, "jaw") == pytest.approx(frozen, abs=0.3) and frozen < 11.5
         with pytest.raises(DaemonError) as info:
             c.call("pose", pose={"jaw": 2.0})
         assert info.value.code == "fault"
