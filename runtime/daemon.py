@@ -273,7 +273,12 @@ class Daemon(CommandApi):
                         if missed:
                             self.stats.missed += missed
                             self._pending_misses += missed
-                        self._cycle(t0, read)
+                        try:
+                            self._cycle(t0, read)
+                        except Exception as exc:  # a bug in one cycle: safe state, keep the loop alive
+                            if self.lifecycle not in (FAULT, ESTOP):
+                                log.exception("control cycle failed; entering FAULT")
+                            self._fault("control loop", f"control cycle failed: {type(exc).__name__}: {exc}")
                         k += 1
                         if k % tele_every == 0:
                             state_msg = self._state_message(t0)
