@@ -287,3 +287,19 @@ def test_target_channels_go_through_a_pluggable_solver(make_daemon) -> None:
         c.call("enable")
         c.call("pose", pose={"expr.smile": 0.0}, speed=1.0)
         assert _arrives(d, c, "lip_corner_l_up", 0.0)
+
+
+def test_a_req_socket_client_is_served_too(shared_daemon) -> None:
+    import msgpack
+    import zmq
+
+    sock = zmq.Context.instance().socket(zmq.REQ)
+    sock.setsockopt(zmq.LINGER, 0)
+    sock.connect(shared_daemon.command_endpoint)
+    try:
+        sock.send(msgpack.packb({"op": "clock", "id": "req-1"}))
+        assert sock.poll(5000)
+        reply = msgpack.unpackb(sock.recv())
+        assert reply["id"] == "req-1" and reply["ok"] and reply["t_send"] >= reply["t_recv"]
+    finally:
+        sock.close()
