@@ -5,6 +5,11 @@ channels to actuator targets → safety (limits, groups, rate shaping) → write
 The control thread owns the PUB socket; the API thread owns the ROUTER socket and changes state under one lock that
 the control thread also takes for each cycle. Lifecycle (after ros2_control): inactive (buses open, torque off) →
 active (commanding) → fault (stop commanding; torque off as configured) or estop (latched); ``reset`` → inactive.
+
+Scheduling: the control thread asks for SCHED_FIFO (``[runtime] priority``) and every other thread of the process
+(API, bus notifiers, in-process emulators, the caller) is raised to SCHED_RR: with a GIL, any normal-priority thread
+preempted by other programs while holding it would stall the control thread. In-process emulators stand in for
+devices that never wait for the host, so heads that use them rank helpers above the control thread.
 """
 
 from __future__ import annotations
