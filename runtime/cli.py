@@ -6,7 +6,14 @@ import argparse
 import importlib
 
 #: Modules that add top-level runtime subcommands through ``register(subparsers)``.
-RUNTIME_COMMAND_MODULES: tuple[str, ...] = ()
+RUNTIME_COMMAND_MODULES: tuple[str, ...] = (
+    "runtime.commands.demo",
+    "runtime.commands.daemon",
+    "runtime.commands.stream",
+    "runtime.commands.status",
+    "runtime.commands.keys",
+    "runtime.commands.plot",
+)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
