@@ -195,3 +195,14 @@ def test_psd_projection_is_used_only_as_fallback_and_converges(backend: str) -> 
     assert any(projected)  # needed on the way ...
     assert projected[-2] == 0  # ... but not near the solution, where the Hessian is positive definite
     assert element_min_jacobian(mesh, res.x).min() > 0
+
+
+def test_warm_start_from_a_solution_needs_no_iteration() -> None:
+    mesh = box_mesh((0.02, 0.02, 0.01), (4, 4, 2))
+    bc = _indentation(mesh, 0.001)
+    first = solve_static(mesh, MAT, bc, options=SolverOptions(backend="superlu"))
+    again = solve_static(mesh, MAT, bc, x0=first.x, options=SolverOptions(backend="superlu"))
+    assert again.converged and again.iterations == 0
+    assert np.array_equal(again.x, first.x)
+    with pytest.raises(ValueError, match="x0 must have shape"):
+        solve_static(mesh, MAT, bc, x0=first.x[:-1])
