@@ -296,7 +296,9 @@ def solve_static(mesh: TetMesh, material: Material, dirichlet: Dirichlet, *, x0:
             res = float(np.linalg.norm(rf))
             f_ref = max(float(np.linalg.norm(fext)), float(np.linalg.norm(r[cdofs])) if cdofs.size else 0.0)
             boundary_done = not np.any(dc)
-            e_now = potential(xk, fext)
+            t = time.perf_counter()
+            e_now = potential(xk, fext)  # the line search's reference value
+            timings["line_search"] += time.perf_counter() - t
             if boundary_done and res <= opts.tol_force * max(1.0, f_ref):
                 log.append({"step": step, "iteration": it, "energy": e_now, "residual": res, "alpha": 0.0,
                             "projected": 0, "factor_s": 0.0, "tolerance": opts.tol_force * max(1.0, f_ref)})
