@@ -111,6 +111,10 @@ def rigid_transform_dirichlet(mesh: TetMesh, transforms: Mapping[str, np.ndarray
         T = np.asarray(T, dtype=np.float64)
         if T.shape != (4, 4):
             raise ValueError(f"transform for node set {name!r} must be 4x4, got shape {T.shape}")
+        R = T[:3, :3]
+        if not (np.allclose(R.T @ R, np.eye(3), atol=1e-6) and np.linalg.det(R) > 0
+                and np.allclose(T[3], [0, 0, 0, 1])):
+            raise ValueError(f"transform for node set {name!r} is not a rigid motion (rotation + translation)")
         idx = _set_nodes(mesh, name)
         X = np.asarray(mesh.nodes)[idx]
         parts.append(Dirichlet(idx, X @ T[:3, :3].T + T[:3, 3]))
@@ -253,6 +257,8 @@ def solve_static(mesh: TetMesh, material: Material, dirichlet: Dirichlet, *, x0:
     free_idx = np.flatnonzero(free)
     if free_idx.size == 0:
         raise ValueError("every DoF is constrained; nothing to solve")
+    if cdofs.size < 6:
+        raise ValueError(f"only {cdofs.size} prescribed coordinates: at least 6 are needed to remove rigid motions")
     c_start = x.ravel()[cdofs].copy()
     c_goal = dirichlet.dof_values
     f_grav = (_en.gravity_forces(mesh, material, opts.gravity) if opts.gravity is not None else np.zeros((N, 3)))

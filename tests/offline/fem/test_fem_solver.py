@@ -180,6 +180,12 @@ def test_bad_inputs_have_clear_errors() -> None:
         Dirichlet([1, 1], np.zeros((2, 3)))
     with pytest.raises(ValueError, match="out of range"):
         solve_static(mesh, MAT, Dirichlet([100], np.zeros((1, 3))))
+    with pytest.raises(ValueError, match="rigid motions"):
+        solve_static(mesh, MAT, Dirichlet([0], np.zeros((1, 3))))
+    shear = np.eye(4)
+    shear[0, 1] = 0.2
+    with pytest.raises(ValueError, match="node set 'z1' is not a rigid motion"):
+        rigid_transform_dirichlet(mesh, {"z1": shear})
 
 
 @pytest.mark.parametrize("backend", [b for b in available_backends() if b != "superlu"])
