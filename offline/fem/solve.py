@@ -32,7 +32,7 @@ from .mesh import TetMesh
 # ------------------------------------------------------------------------------------------------ boundary data
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Dirichlet:
     """Prescribed positions: node indices (K,) and their target positions (K, 3) in metres.
 
@@ -162,7 +162,7 @@ class SolverOptions:
             raise ValueError(f"SolverOptions.gravity must be a 3-vector or None, got {self.gravity!r}")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class StaticResult:
     """Outcome of :func:`solve_static`: positions, convergence, per-iteration log, phase timings (s), reactions (N).
 
