@@ -25,7 +25,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from . import energy as _en
-from .linsolve import NotPositiveDefinite, make_solver, resolve_backend
+from .linsolve import Factorization, NotPositiveDefinite, make_solver, resolve_backend
 from .materials import Material
 from .mesh import TetMesh
 
@@ -416,3 +416,20 @@ def _reactions(mesh: TetMesh, material: Material, x: np.ndarray, nodes: np.ndarr
     """Constraint force at each Dirichlet node: internal force there minus the external load (K, 3)."""
     f = _en.internal_forces(mesh, material, x)
     return (f - fext)[nodes]
+
+
+def tangent_factorization(mesh: TetMesh, material: Material, x: np.ndarray, dirichlet: Dirichlet, *,
+                          backend: str = "auto", project_psd: bool = False
+                          ) -> tuple[Factorization, np.ndarray, sp.csr_matrix]:
+    """Factor the free-free block K_ff of the tangent stiffness at ``x`` for adjoint and sensitivity solves.
+
+    Returns (factorization, free DoF indices, full stiffness K). At an equilibrium, the change of the free DoFs for a
+    change δc of the prescribed coordinates is δu_f = −K_ff⁻¹ K_fc δc, and an adjoint λ = K_ff⁻¹ ∂q/∂u_f gives
+    dq/dp = −λᵀ ∂r_f/∂p for any parameter p.
+    """
+    K = _en.stiffness(mesh, material, x, project_psd=project_psd)
+    free = np.ones(3 * mesh.n_nodes, dtype=bool)
+    free[dirichlet.dofs] = False
+    free_idx = np.flatnonzero(free)
+    Kff = K[free_idx][:, free_idx].tocsr()
+    return make_solver(backend).factor(Kff), free_idx, K
