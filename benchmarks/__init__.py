@@ -1,1 +1,1 @@
-"""Benchmarks: each module is one command printing ratios against a baseline measured in the same run."""
+"""Benchmarks: one command each, printing ratios against a baseline measured in the same run."""

@@ -1,28 +1,27 @@
-"""Run every benchmark script in this folder (``python -m benchmarks [NAME ...]``), one after another."""
+"""``python -m benchmarks``: run every benchmark script here (modules not starting with ``_``) in turn."""
 
 from __future__ import annotations
 
-import subprocess
+import importlib
+import pkgutil
 import sys
 from pathlib import Path
 
-HERE = Path(__file__).resolve().parent
 
-
-def main(argv: list[str]) -> int:
-    scripts = sorted(p for p in HERE.glob("*.py") if not p.name.startswith("_"))
-    if argv:
-        scripts = [p for p in scripts if p.stem in argv]
-    failed = []
-    for script in scripts:
-        print(f"\n=== {script.stem} ===", flush=True)
-        rc = subprocess.call([sys.executable, str(script)], cwd=HERE.parent)
-        if rc:
-            failed.append(script.stem)
-    if failed:
-        print(f"\nfailed: {', '.join(failed)}", file=sys.stderr)
-    return 1 if failed else 0
+def main() -> int:
+    here = Path(__file__).resolve().parent
+    status = 0
+    for info in sorted(pkgutil.iter_modules([str(here)]), key=lambda m: m.name):
+        if info.name.startswith("_"):
+            continue
+        module = importlib.import_module(f"benchmarks.{info.name}")
+        run = getattr(module, "main", None)
+        if run is None:
+            continue
+        print(f"== {info.name}", flush=True)
+        status |= int(run([]) or 0)
+    return status
 
 
 if __name__ == "__main__":
-    raise SystemExit(main(sys.argv[1:]))
+    sys.exit(main())

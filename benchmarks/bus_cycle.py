@@ -1,43 +1,40 @@
-"""Full read + write cycle of the motor drivers against the emulators, 13 and 40 motors per backend.
+"""Full bus cycles (write targets, read feedback) of both drivers against their emulators, in one process and across
+processes, as ratios to the physical bus time of the same cycle (CAN at 1 Mbit/s; Dynamixel at 4 and 1 Mbaud).
 
-Prints median and p99 cycle times and the ratio to each bus's physical budget (the time the same
-traffic needs on the wire), so a ratio near 1 means the software keeps up with the real bus.
-Usage: ``python benchmarks/bus_cycle.py [--cycles N] [--motors 13 40] [--backend canopen dynamixel]``.
+Run: ``python benchmarks/bus_cycle.py [--motors 13 40] [--cycles 300]``.
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
 
-BACKENDS = {"canopen": "benchmarks._bus_canopen", "dynamixel": "benchmarks._bus_dynamixel"}
+from benchmarks import _bus_canopen, _bus_dynamixel  # noqa: E402
 
 
-def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--cycles", type=int, default=500)
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--motors", type=int, nargs="+", default=[13, 40])
-    parser.add_argument("--backend", nargs="+", choices=sorted(BACKENDS), default=sorted(BACKENDS))
-    args = parser.parse_args()
-    rows = []
-    for backend in args.backend:
-        module = importlib.import_module(BACKENDS[backend])
-        for n in args.motors:
-            result = module.measure(n, args.cycles)
-            results = result if isinstance(result, list) else [result]
-            for r in results:
-                rows.append((backend, n, r))
-    print(f"{'backend':<10} {'motors':>6} {'transport':<14} {'median ms':>10} {'p99 ms':>9} "
-          f"{'budget ms':>10} {'ratio':>7}")
-    for backend, n, r in rows:
-        print(
-            f"{backend:<10} {n:>6} {r.get('transport', '-'):<14} {r['median_s'] * 1e3:>10.3f} "
-            f"{r['p99_s'] * 1e3:>9.3f} {r['budget_s'] * 1e3:>10.3f} {r['median_s'] / r['budget_s']:>7.2f}"
-        )
+    parser.add_argument("--cycles", type=int, default=300)
+    args = parser.parse_args(argv)
+    for n in args.motors:
+        can = _bus_canopen.measure(n, args.cycles)
+        wire = can["can_1mbit"]["cycle_s_worst_stuffing"]
+        for transport in ("virtual", "socketcand"):
+            r = can[transport]
+            print(f"canopen402 {n:3d} drives  {transport:<17} median {r['median_s'] * 1e3:7.3f} ms  p99 "
+                  f"{r['p99_s'] * 1e3:7.3f} ms  CAN wire {wire * 1e3:6.3f} ms  ratio {r['ratio_to_can']:6.2f} "
+                  f"(p99 {r['p99_ratio_to_can']:6.2f})", flush=True)
+        dxl = _bus_dynamixel.measure(n, args.cycles)
+        for r in dxl["rows"]:
+            print(f"dynamixel  {n:3d} servos  {r['transport']:<17} median {r['median_s'] * 1e3:7.3f} ms  p99 "
+                  f"{r['p99_s'] * 1e3:7.3f} ms  wire@4M {r['budget_s'] * 1e3:6.3f} ms  ratio {r['ratio']:6.2f} "
+                  f"(vs 1M {r['ratio_1M']:5.2f})", flush=True)
     return 0
 
 

@@ -89,15 +89,14 @@ def stream_latency(daemon, trials: int) -> list[float]:
     try:
         with Client(daemon.command_endpoint) as c:
             offset, _ = c.clock_offset()
-            value = 0.0
             rng = np.random.default_rng(1)
             for _ in range(trials):
                 time.sleep(rng.uniform(0, daemon.period))  # a random phase in the cycle
                 settle = time.monotonic() + 1.0
                 while np.any(np.abs(daemon.safety.v) > 1e-9) and time.monotonic() < settle:
                     time.sleep(0.002)
-                value = 4.0 if value == 0.0 else 0.0
                 before = float(daemon.safety.q[daemon.safety.index["jaw"]])
+                value = 4.0 if abs(np.degrees(before)) < 2.0 else 0.0  # always a move away from where it is
                 writes.clear()
                 t_send = time.monotonic()
                 r = c.call("stream", channels=["jaw"], frames=[[t_send + offset, value]])

@@ -290,6 +290,8 @@ class CommandApi:
         with self._lock:
             self._require_active("pose")
             res = self.solver.solve(values, self.safety.commands())
+            if res.extra:
+                self.extra = res.extra
             base = self.pose_target if self.mode == "pose" and self.pose_target is not None else self.safety.q
             x = self.safety.vector(res.actuators)
             target = self.safety.constrain(np.where(np.isfinite(x), x, base))

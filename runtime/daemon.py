@@ -5,6 +5,11 @@ channels to actuator targets → safety (limits, groups, rate shaping) → write
 The control thread owns the PUB socket; the API thread owns the ROUTER socket and changes state under one lock that
 the control thread also takes for each cycle. Lifecycle (after ros2_control): inactive (buses open, torque off) →
 active (commanding) → fault (stop commanding; torque off as configured) or estop (latched); ``reset`` → inactive.
+
+Scheduling: the control thread asks for SCHED_FIFO (``[runtime] priority``) and every other thread of the process
+(API, bus notifiers, in-process emulators, the caller) is raised to SCHED_RR: with a GIL, any normal-priority thread
+preempted by other programs while holding it would stall the control thread. In-process emulators stand in for
+devices that never wait for the host, so heads that use them rank helpers above the control thread.
 """
 
 from __future__ import annotations
@@ -33,6 +38,7 @@ from runtime.loop import (
     LoopStats,
     RateScheduler,
     SwitchInterval,
+    demote_threads,
     drop_realtime,
     freeze_heap,
     promote_threads,
@@ -114,6 +120,7 @@ class Daemon(CommandApi):
         self._control_tid = 0
         self._caller_tid = 0
         self._caller_sched: tuple[int, int] | None = None
+        self._promoted_tids: list[int] = []
         self.command_endpoint = ""
         self.telemetry_endpoint = ""
         self.loop_ready = threading.Event()
@@ -150,9 +157,10 @@ class Daemon(CommandApi):
         rt = self.cfg.runtime
         if rt.realtime and rt.helper_priority > 0:
             exclude = {t for t in (self._control_tid, self._caller_tid) if t}
-            n = promote_threads(rt.helper_priority, exclude)
-            if n:
-                log.debug("%d helper threads now SCHED_RR %d", n, rt.helper_priority)
+            changed = promote_threads(rt.helper_priority, exclude)
+            if changed:
+                self._promoted_tids.extend(changed)
+                log.debug("%d helper threads now SCHED_RR %d", len(changed), rt.helper_priority)
 
     def _promote_caller(self) -> None:
         """The thread that starts the daemon (a CLI's main thread, a test, a demo client) to the lowest realtime
@@ -202,6 +210,8 @@ class Daemon(CommandApi):
             self._ctx.term()
             self._ctx = None
         self._restore_caller()
+        demote_threads(self._promoted_tids)  # threads that outlive the daemon (a shared ZeroMQ context's, ...)
+        self._promoted_tids = []
 
     def __enter__(self) -> Daemon:
         self.start()
@@ -272,7 +282,12 @@ class Daemon(CommandApi):
                         if missed:
                             self.stats.missed += missed
                             self._pending_misses += missed
-                        self._cycle(t0, read)
+                        try:
+                            self._cycle(t0, read)
+                        except Exception as exc:  # a bug in one cycle: safe state, keep the loop alive
+                            if self.lifecycle not in (FAULT, ESTOP):
+                                log.exception("control cycle failed; entering FAULT")
+                            self._fault("control loop", f"control cycle failed: {type(exc).__name__}: {exc}")
                         k += 1
                         if k % tele_every == 0:
                             state_msg = self._state_message(t0)

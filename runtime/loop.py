@@ -33,8 +33,8 @@ def try_realtime(priority: int) -> tuple[bool, str]:
     return True, f"control thread runs SCHED_FIFO priority {priority}"
 
 
-def promote_threads(priority: int, exclude: set[int] | None = None) -> int:
-    """Put every other thread of this process under SCHED_RR at ``priority``; returns how many changed.
+def promote_threads(priority: int, exclude: set[int] | None = None) -> list[int]:
+    """Put every other thread of this process under SCHED_RR at ``priority``; returns the thread ids changed.
 
     With a GIL, the control thread waits for whichever thread holds it: if that thread runs at normal priority,
     any busy process on the machine delays the control loop. Raising the daemon's helper threads (API, bus
@@ -43,11 +43,11 @@ def promote_threads(priority: int, exclude: set[int] | None = None) -> int:
     and those in ``exclude`` are left alone. Linux only; best effort.
     """
     exclude = exclude or set()
-    changed = 0
+    changed: list[int] = []
     try:
         tids = [int(t) for t in os.listdir("/proc/self/task")]
     except OSError:
-        return 0
+        return changed
     for tid in tids:
         if tid in exclude:
             continue
@@ -55,10 +55,17 @@ def promote_threads(priority: int, exclude: set[int] | None = None) -> int:
             if os.sched_getscheduler(tid) != os.SCHED_OTHER:
                 continue
             os.sched_setscheduler(tid, os.SCHED_RR, os.sched_param(priority))
-            changed += 1
+            changed.append(tid)
         except OSError:
             continue
     return changed
+
+
+def demote_threads(tids: list[int]) -> None:
+    """Back to normal scheduling for those of ``tids`` still alive (best effort)."""
+    for tid in tids:
+        with contextlib.suppress(OSError):
+            os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
 
 
 def drop_realtime() -> None:

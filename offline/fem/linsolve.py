@@ -188,6 +188,7 @@ class _PardisoSolver(SparseSolver):
         self._ps.perm = np.zeros_like(self._ps.perm)
         self._ps.set_iparm(1, 2)  # nested dissection (METIS) ordering
         self._analyzed_key = None
+        self._upper_cache = None
         self.generation = 0
 
     def call(self, upper: sp.csr_matrix, b: np.ndarray, phase: int) -> np.ndarray:
@@ -201,18 +202,33 @@ class _PardisoSolver(SparseSolver):
                 raise NotPositiveDefinite(f"PARDISO error {exc.value} (zero or negative pivot)") from exc
             raise
 
+    def _upper(self, A: sp.spmatrix) -> sp.csr_matrix:
+        """Upper triangle of A as CSR; the entry selection is cached for A's sparsity pattern."""
+        A = sp.csr_matrix(A)
+        A.sort_indices()
+        cache = self._upper_cache
+        if cache is None or cache[0].shape != A.indptr.shape or not (
+                np.array_equal(cache[0], A.indptr) and np.array_equal(cache[1], A.indices)):
+            rows = np.repeat(np.arange(A.shape[0]), np.diff(A.indptr))
+            keep = np.flatnonzero(A.indices >= rows)
+            counts = np.bincount(rows[keep], minlength=A.shape[0])
+            indptr = np.concatenate([[0], np.cumsum(counts)]).astype(A.indptr.dtype)
+            cache = (A.indptr.copy(), A.indices.copy(), keep, indptr, A.indices[keep].copy())
+            self._upper_cache = cache
+        _, _, keep, indptr, indices = cache
+        return sp.csr_matrix((A.data[keep], indices, indptr), shape=A.shape)
+
     def factor(self, A: sp.spmatrix) -> Factorization:
-        upper = sp.triu(sp.csr_matrix(A), format="csr")
-        upper.sort_indices()
+        upper = self._upper(A)
         key = (upper.shape, upper.nnz)
         b = np.zeros((upper.shape[0], 1), order="F")
         if key != self._analyzed_key:
             self.call(upper, b, 11)
             self._analyzed_key = key
+        # mtype 2 (SPD): a non-positive pivot ends phase 22 with error -4 and iparm(30) naming the equation;
+        # PARDISO does not clear iparm(30) on success, so reset it before each factorization.
+        self._ps.iparm[29] = 0
         self.call(upper, b, 22)
-        # iparm(30) (0-based 29) reports the equation with a non-positive pivot for mtype 2
-        if self._ps.iparm[29] > 0 or self._ps.iparm[22] > 0:
-            raise NotPositiveDefinite("PARDISO found a non-positive pivot")
         self.generation += 1
         return _PardisoFactorization(self, upper, self.generation)
 

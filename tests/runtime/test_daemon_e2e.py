@@ -208,6 +208,7 @@ def test_canopen_heartbeat_loss_faults_then_reset_and_resume(make_daemon) -> Non
     d = make_daemon()
     with Client(d.command_endpoint, timeout=5) as c, Telemetry(d.telemetry_endpoint, topics=(b"event",)) as tel:
         c.call("enable")
+        c.call("pose", pose={"jaw": 12.0}, speed=0.03)  # a slow move (2.5 s), cut short by the fault
         time.sleep(0.2)
         d.hw.emulator("can0").inject("stop_heartbeat", device=3)
         ev = tel.wait_for(lambda t, m: m["event"] == "fault", 3.0)
@@ -215,6 +216,10 @@ def test_canopen_heartbeat_loss_faults_then_reset_and_resume(make_daemon) -> Non
         assert "lip_corner_l_back" in str(ev[1]["faults"]) or "heartbeat" in ev[1]["message"]
         st = _status(c)
         assert st["lifecycle"] == "fault" and "active" not in st["buses"].values()  # commanding stopped
+        # Motors stopped: the jaw was moving toward 12 degrees and now stays where it is.
+        frozen = _truth_deg(d, "jaw")
+        time.sleep(0.3)
+        assert _truth_deg(d, "jaw") == pytest.approx(frozen, abs=0.3) and frozen < 11.5
         with pytest.raises(DaemonError) as info:
             c.call("pose", pose={"jaw": 2.0})
         assert info.value.code == "fault"
@@ -246,3 +251,55 @@ def test_servo_hardware_error_faults_then_reset_and_resume(make_daemon) -> None:
         c.call("enable")
         c.call("pose", pose={"brow_l": -5.0}, speed=1.0)
         assert _arrives(d, c, "brow_l", -5.0)
+
+
+class _ExpressionSolver:
+    """Target channels ``expr.*``: ``expr.smile`` raises both lip corners (stands in for a skin-predictor solve);
+    ``expr.broken`` raises, as a faulty solver might."""
+
+    def handles(self, channel: str) -> bool:
+        return channel.startswith("expr.")
+
+    def solve(self, targets, current):
+        from runtime.solve import SolveResult
+
+        if "expr.broken" in targets:
+            raise RuntimeError("solver diverged")
+        w = targets.get("expr.smile", 0.0)
+        up = math.radians(20.0 * w)
+        return SolveResult({"lip_corner_l_up": up, "lip_corner_r_up": up}, {"residual": 0.01 * w})
+
+
+def test_target_channels_go_through_a_pluggable_solver(make_daemon) -> None:
+    d = make_daemon(target_solvers=(_ExpressionSolver(),))
+    with Client(d.command_endpoint, timeout=5) as c, Telemetry(d.telemetry_endpoint, topics=(b"state",)) as tel:
+        c.call("enable")
+        c.call("pose", pose={"expr.smile": 0.5}, speed=1.0)
+        assert _arrives(d, c, "lip_corner_r_up", 10.0)
+        msg = tel.wait_for(lambda t, m: "extra" in m, 2.0)
+        assert msg is not None and msg[1]["extra"]["residual"] == pytest.approx(0.005)
+        # A solver failing inside the control cycle faults the head; the loop lives on and recovers after reset.
+        offset, _ = c.clock_offset()
+        c.call("stream", channels=["expr.broken"], frames=[[time.monotonic() + offset + 0.06, 1.0]])
+        assert wait_until(lambda: _status(c)["lifecycle"] == "fault", 3.0)
+        assert "solver diverged" in _status(c)["fault"]["message"]
+        c.call("reset")
+        c.call("enable")
+        c.call("pose", pose={"expr.smile": 0.0}, speed=1.0)
+        assert _arrives(d, c, "lip_corner_l_up", 0.0)
+
+
+def test_a_req_socket_client_is_served_too(shared_daemon) -> None:
+    import msgpack
+    import zmq
+
+    sock = zmq.Context.instance().socket(zmq.REQ)
+    sock.setsockopt(zmq.LINGER, 0)
+    sock.connect(shared_daemon.command_endpoint)
+    try:
+        sock.send(msgpack.packb({"op": "clock", "id": "req-1"}))
+        assert sock.poll(5000)
+        reply = msgpack.unpackb(sock.recv())
+        assert reply["id"] == "req-1" and reply["ok"] and reply["t_send"] >= reply["t_recv"]
+    finally:
+        sock.close()
