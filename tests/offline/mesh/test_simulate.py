@@ -1,0 +1,113 @@
+"""``likeness offline simulate`` on the shipped coarse skin: links move exactly, the skull stays, Newton converges."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import meshio
+import numpy as np
+import pytest
+
+from likeness.cli import main
+from offline.fem import load_mesh
+from offline.fem_cli import compact_transform, parse_link_spec
+
+ROOT = Path(__file__).resolve().parents[3]
+SKIN = ROOT / "heads" / "sample" / "skin"
+
+
+@pytest.fixture(scope="module")
+def mesh():
+    return load_mesh(SKIN / "skin.vtu")
+
+
+def test_compact_transform_rotates_about_centroid_then_translates() -> None:
+    c = np.array([0.01, 0.6, 0.1])
+    T = compact_transform(c, [1.0, 2.0, 3.0, 0.0, 0.0, 90.0])
+    assert np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3))
+    assert np.allclose(T[:3, :3] @ c + T[:3, 3], c + np.array([0.001, 0.002, 0.003]))  # centroid only shifts
+    p = c + np.array([0.01, 0.0, 0.0])
+    assert np.allclose(T[:3, :3] @ p + T[:3, 3], c + np.array([0.001, 0.002 + 0.01, 0.003]))  # +x turns to +y about z
+    assert parse_link_spec("jaw=0,0,0,5,0,0") == ("jaw", [0.0, 0.0, 0.0, 5.0, 0.0, 0.0])
+    for bad in ("jaw", "jaw=1,2", "jaw=1,2,3,4,5,x", "=1,2,3,4,5,6", "jaw=1,2,3,4,5,nan"):
+        with pytest.raises(ValueError, match="--link"):
+            parse_link_spec(bad)
+
+
+def test_jaw_rotation_converges_moves_jaw_exactly_and_keeps_skull(tmp_path, mesh, capsys) -> None:
+    out = tmp_path / "deformed.vtu"
+    rc = main(["offline", "simulate", "--mesh", str(SKIN), "--link", "jaw=0,0,0,4,0,0", "--out", str(out)])
+    text = capsys.readouterr().out
+    assert rc == 0, text
+    assert "converged in" in text and "residual" in text and "total" in text
+    res = meshio.read(out)
+    u = res.point_data["displacement"]
+    assert np.allclose(res.points, mesh.nodes + u)
+    jaw = mesh.node_sets["jaw"]
+    T = compact_transform(mesh.nodes[jaw].mean(axis=0), [0, 0, 0, 4, 0, 0])
+    expected = mesh.nodes[jaw] @ T[:3, :3].T + T[:3, 3]
+    assert np.abs(res.points[jaw] - expected).max() < 1e-12
+    assert np.linalg.norm(u[jaw], axis=1).max() > 5e-4  # 4 degrees moves the jaw patch by millimetres
+    assert np.abs(u[mesh.node_sets["skull"]]).max() == 0.0
+    assert np.abs(u[mesh.node_sets["brow_l"]]).max() == 0.0  # other links hold their rest pose
+    constrained = np.zeros(mesh.n_nodes, dtype=bool)
+    for idx in mesh.node_sets.values():
+        constrained[idx] = True
+    free_motion = np.linalg.norm(u[~constrained], axis=1)
+    assert free_motion.max() > 1e-4  # the skin follows the jaw
+    assert np.array_equal(res.point_data["set:jaw"].nonzero()[0], jaw)
+
+
+def test_links_json_translation(tmp_path, mesh, capsys) -> None:
+    T = np.eye(4)
+    T[1, 3] = 0.001  # lift the left lid patch by 1 mm
+    links = tmp_path / "links.json"
+    links.write_text(json.dumps({"lid_l": T.tolist(), "brow_l": [0, 0.5, 0, 0, 0, 0]}))
+    out = tmp_path / "lid.vtu"
+    rc = main(["offline", "simulate", "--mesh", str(SKIN / "skin.vtu"), "--links", str(links), "--out", str(out),
+               "--backend", "superlu", "--load-steps", "1"])
+    assert rc == 0, capsys.readouterr().out
+    u = meshio.read(out).point_data["displacement"]
+    assert np.allclose(u[mesh.node_sets["lid_l"]], [0.0, 0.001, 0.0], atol=1e-12)
+    assert np.allclose(u[mesh.node_sets["brow_l"]], [0.0, 0.0005, 0.0], atol=1e-12)
+    assert np.abs(u[mesh.node_sets["lid_r"]]).max() == 0.0
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--link", "chin=0,0,0,1,0,0"], "'chin' is not a link node set"),
+        (["--link", "jaw=1,2"], "expected 6 finite numbers"),
+        (["--actuators", "jaw=3"], "--linkmap"),
+        (["--link", "jaw=0,0,0,1,0,0", "--nu", "0.5"], "--nu"),
+        (["--link", "jaw=0,0,0,1,0,0", "--load-steps", "many"], "--load-steps"),
+    ],
+)
+def test_cli_errors(tmp_path, capsys, args, message) -> None:
+    rc = main(["offline", "simulate", "--mesh", str(SKIN), "--out", str(tmp_path / "x.vtu"), *args])
+    assert rc == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "x.vtu").exists()
+
+
+def test_bad_links_json_and_missing_mesh(tmp_path, capsys) -> None:
+    bad = tmp_path / "links.json"
+    bad.write_text(json.dumps({"jaw": [[1, 0, 0], [0, 1, 0]]}))
+    out = str(tmp_path / "o.vtu")
+    assert main(["offline", "simulate", "--mesh", str(SKIN), "--links", str(bad), "--out", out]) == 2
+    assert "key 'jaw'" in capsys.readouterr().err
+    assert main(["offline", "simulate", "--mesh", str(tmp_path), "--link", "jaw=0,0,0,1,0,0",
+                 "--out", str(tmp_path / "o.vtu")]) == 2
+    assert "no skin.vtu" in capsys.readouterr().err
+
+
+@pytest.mark.skipif(importlib.util.find_spec("models.linkmap") is not None, reason="link map module is present")
+def test_actuators_without_linkmap_module_is_a_clear_error(tmp_path, capsys) -> None:
+    lm = tmp_path / "linkmap.json"
+    lm.write_text("{}")
+    rc = main(["offline", "simulate", "--mesh", str(SKIN), "--actuators", "jaw=3", "--linkmap", str(lm),
+               "--out", str(tmp_path / "x.vtu")])
+    assert rc == 2
+    assert "models.linkmap" in capsys.readouterr().err
