@@ -80,7 +80,9 @@ def test_links_json_translation(tmp_path, mesh, capsys) -> None:
     [
         (["--link", "chin=0,0,0,1,0,0"], "'chin' is not a link node set"),
         (["--link", "jaw=1,2"], "expected 6 finite numbers"),
-        (["--actuators", "jaw=3"], "--linkmap"),
+        (["--actuators", "jaw=99"], "outside [-2, 28] deg"),
+        (["--actuators", "nose=3"], "'nose' is not an actuator"),
+        (["--actuators", "jaw"], "expected NAME=VALUE"),
         (["--link", "jaw=0,0,0,1,0,0", "--nu", "0.5"], "--nu"),
         (["--link", "jaw=0,0,0,1,0,0", "--load-steps", "many"], "--load-steps"),
     ],
@@ -111,3 +113,25 @@ def test_actuators_without_linkmap_module_is_a_clear_error(tmp_path, capsys) -> 
                "--out", str(tmp_path / "x.vtu")])
     assert rc == 2
     assert "models.linkmap" in capsys.readouterr().err
+
+
+@pytest.mark.skipif(importlib.util.find_spec("models.linkmap") is None, reason="models.linkmap not in this tree")
+def test_actuators_through_a_link_map(tmp_path, mesh, capsys) -> None:
+    from models.linkmap import LinkFit, LinkMap
+
+    centre = mesh.nodes[mesh.node_sets["jaw"]].mean(axis=0)
+    coef = np.zeros((3, 6))  # features [1, x, x^2] of the normalised jaw angle
+    coef[0, :3] = centre
+    coef[1, 3] = 0.1  # rotation about x: 0.1 rad per normalised unit
+    coef[1, 1] = -0.002  # and 2 mm down
+    lm = LinkMap(["jaw"], [0.0], [np.radians(15.0)], {"jaw": LinkFit("jaw", ("jaw",), coef, np.eye(3))})
+    path = lm.save(tmp_path / "linkmap.json")
+    out = tmp_path / "act.vtu"
+    rc = main(["offline", "simulate", "--mesh", str(SKIN), "--actuators", "jaw=6", "--linkmap", str(path),
+               "--out", str(out)])
+    assert rc == 0, capsys.readouterr().out
+    T = lm.transforms({"jaw": np.radians(6.0)})["jaw"]
+    jaw = mesh.node_sets["jaw"]
+    pts = meshio.read(out).points
+    assert np.abs(pts[jaw] - (mesh.nodes[jaw] @ T[:3, :3].T + T[:3, 3])).max() < 1e-12
+    assert np.abs(pts[jaw] - mesh.nodes[jaw]).max() > 1e-3
