@@ -16,6 +16,7 @@ from .energy import (
     internal_forces,
     min_jacobian,
     nodal_masses,
+    prepare,
     stiffness,
     total_energy,
 )
@@ -75,6 +76,7 @@ __all__ = [
     "neo_hookean",
     "neo_hookean_from_E_nu",
     "nodal_masses",
+    "prepare",
     "rigid_transform_dirichlet",
     "save_mesh",
     "solve_static",

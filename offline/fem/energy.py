@@ -2,9 +2,9 @@
 
 Pure functions of ``(mesh, material, x)`` where ``x`` (N, 3) are the deformed node positions. Linear tets use
 one-point quadrature (exact), quadratic tets the 4-point degree-2 rule. Per-mesh data (shape-function gradients,
-element colouring, the CSR pattern and the element-to-CSR scatter map) is computed once and cached on the mesh
-object (meshes are immutable). Element matrices are scattered colour by colour, so assembly runs in parallel
-without atomics.
+node-to-element adjacency, the CSR pattern and the element-to-CSR scatter map) is computed once and cached on the
+mesh object (meshes are immutable). Element Hessians are computed in parallel into a buffer and gathered into the
+CSR data in parallel by node (each node owns its rows), so assembly needs no atomics and only two parallel regions.
 
 Gravity is an external load: its energy is −Σ f_i·x_i with f_i = m_i g and nodal masses m_i = ρ ∫ N_i dV
 (consistent load vector; see :func:`nodal_masses`, :func:`gravity_forces`).
@@ -72,8 +72,9 @@ class _MeshData:
     dNdX: np.ndarray  # (M, Q, n, 3)
     wdet: np.ndarray  # (M, Q) quadrature weight * rest volume jacobian
     Nq: np.ndarray  # (Q, n) shape function values at the quadrature points
-    color_ptr: np.ndarray
-    color_elems: np.ndarray
+    adj_ptr: np.ndarray  # (N+1,) node -> (element, local index) adjacency, CSR
+    adj_elem: np.ndarray
+    adj_local: np.ndarray
     pattern: _Pattern | None = None
 
 
@@ -108,49 +109,13 @@ def _build_mesh_data(mesh: TetMesh) -> _MeshData:
         Jinv = np.linalg.inv(J0)
         dNdX[:, q] = np.einsum("aj,mji->mai", dN, Jinv)
         wdet[:, q] = w[q] * det
-    color_ptr, color_elems = _color_elements(np.asarray(mesh.tets), mesh.n_nodes)
-    return _MeshData(dNdX, wdet, Nq, color_ptr, color_elems)
-
-
-@nb.njit(cache=True)
-def _greedy_colors(tets, n_nodes):
-    M, n = tets.shape
-    # node -> elements adjacency
-    cnt = np.zeros(n_nodes + 1, np.int64)
-    for e in range(M):
-        for a in range(n):
-            cnt[tets[e, a] + 1] += 1
-    for i in range(n_nodes):
-        cnt[i + 1] += cnt[i]
-    fill = cnt[:-1].copy()
-    adj = np.empty(cnt[-1], np.int64)
-    for e in range(M):
-        for a in range(n):
-            p = tets[e, a]
-            adj[fill[p]] = e
-            fill[p] += 1
-    color = -np.ones(M, np.int64)
-    mark = -np.ones(M + 1, np.int64)  # mark[c] == e: colour c used by a neighbour of e
-    for e in range(M):
-        for a in range(n):
-            p = tets[e, a]
-            for k in range(cnt[p], cnt[p + 1]):
-                c = color[adj[k]]
-                if c >= 0:
-                    mark[c] = e
-        c = 0
-        while mark[c] == e:
-            c += 1
-        color[e] = c
-    return color
-
-
-def _color_elements(tets: np.ndarray, n_nodes: int) -> tuple[np.ndarray, np.ndarray]:
-    color = _greedy_colors(tets, n_nodes)
-    order = np.argsort(color, kind="stable")
-    counts = np.bincount(color)
-    ptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-    return ptr, order.astype(np.int64)
+    tets = np.asarray(mesh.tets)
+    flat = tets.ravel()
+    order_ = np.argsort(flat, kind="stable")
+    adj_ptr = np.concatenate([[0], np.cumsum(np.bincount(flat, minlength=mesh.n_nodes))]).astype(np.int64)
+    adj_elem = (order_ // n).astype(np.int64)
+    adj_local = (order_ % n).astype(np.int64)
+    return _MeshData(dNdX, wdet, Nq, adj_ptr, adj_elem, adj_local)
 
 
 def _pattern(mesh: TetMesh) -> _Pattern:
@@ -192,11 +157,11 @@ def _build_pattern(tets: np.ndarray, n_nodes: int) -> _Pattern:
 
 
 # ---------------------------------------------------------------------------------------------------------------
-# Material point kernels
+# Material point kernels (allocation-free: scratch arrays are passed in)
 # ---------------------------------------------------------------------------------------------------------------
 @nb.njit(cache=True, inline="always")
 def _invariant_derivs(I1, I2, J, coef):
-    """Ψ and its first and second derivatives with respect to (I1, I2, J)."""
+    """Ψ, its gradient (g1, g2, gJ) and Hessian entries (h11, h1J, h2J, hJJ) with respect to (I1, I2, J)."""
     c10, c20, c30, c01, kappa = coef[0], coef[1], coef[2], coef[3], coef[4]
     j23 = J ** (-2.0 / 3.0)
     j43 = j23 * j23
@@ -207,20 +172,16 @@ def _invariant_derivs(I1, I2, J, coef):
     f1 = c10 + 2.0 * c20 * a + 3.0 * c30 * a * a
     f2 = 2.0 * c20 + 6.0 * c30 * a
     psi = f + c01 * (b2 - 3.0) + 0.5 * kappa * (J - 1.0) ** 2
-    g = np.empty(3)
-    g[0] = f1 * j23
-    g[1] = c01 * j43
     db1 = -2.0 / 3.0 * b1 / J
     db2 = -4.0 / 3.0 * b2 / J
-    g[2] = f1 * db1 + c01 * db2 + kappa * (J - 1.0)
-    H = np.zeros((3, 3))
-    H[0, 0] = f2 * j23 * j23
-    H[0, 2] = f2 * j23 * db1 + f1 * (-2.0 / 3.0 * j23 / J)
-    H[2, 0] = H[0, 2]
-    H[1, 2] = c01 * (-4.0 / 3.0 * j43 / J)
-    H[2, 1] = H[1, 2]
-    H[2, 2] = f2 * db1 * db1 + f1 * (10.0 / 9.0 * b1 / (J * J)) + c01 * (28.0 / 9.0 * b2 / (J * J)) + kappa
-    return psi, g, H
+    g1 = f1 * j23
+    g2 = c01 * j43
+    gJ = f1 * db1 + c01 * db2 + kappa * (J - 1.0)
+    h11 = f2 * j23 * j23
+    h1J = f2 * j23 * db1 + f1 * (-2.0 / 3.0 * j23 / J)
+    h2J = c01 * (-4.0 / 3.0 * j43 / J)
+    hJJ = f2 * db1 * db1 + f1 * (10.0 / 9.0 * b1 / (J * J)) + c01 * (28.0 / 9.0 * b2 / (J * J)) + kappa
+    return psi, g1, g2, gJ, h11, h1J, h2J, hJJ
 
 
 @nb.njit(cache=True, inline="always")
@@ -231,18 +192,30 @@ def _det3(F):
 
 
 @nb.njit(cache=True, inline="always")
-def _cof3(F):
-    c = np.empty((3, 3))
-    c[0, 0] = F[1, 1] * F[2, 2] - F[1, 2] * F[2, 1]
-    c[0, 1] = F[1, 2] * F[2, 0] - F[1, 0] * F[2, 2]
-    c[0, 2] = F[1, 0] * F[2, 1] - F[1, 1] * F[2, 0]
-    c[1, 0] = F[0, 2] * F[2, 1] - F[0, 1] * F[2, 2]
-    c[1, 1] = F[0, 0] * F[2, 2] - F[0, 2] * F[2, 0]
-    c[1, 2] = F[0, 1] * F[2, 0] - F[0, 0] * F[2, 1]
-    c[2, 0] = F[0, 1] * F[1, 2] - F[0, 2] * F[1, 1]
-    c[2, 1] = F[0, 2] * F[1, 0] - F[0, 0] * F[1, 2]
-    c[2, 2] = F[0, 0] * F[1, 1] - F[0, 1] * F[1, 0]
-    return c
+def _kinematics(F, C, FC, cof):
+    """Fill C = FᵀF, FC = F C and cof(F); return (I1, I2, J)."""
+    for i in range(3):
+        for j in range(3):
+            C[i, j] = F[0, i] * F[0, j] + F[1, i] * F[1, j] + F[2, i] * F[2, j]
+    for i in range(3):
+        for j in range(3):
+            FC[i, j] = F[i, 0] * C[0, j] + F[i, 1] * C[1, j] + F[i, 2] * C[2, j]
+    cof[0, 0] = F[1, 1] * F[2, 2] - F[1, 2] * F[2, 1]
+    cof[0, 1] = F[1, 2] * F[2, 0] - F[1, 0] * F[2, 2]
+    cof[0, 2] = F[1, 0] * F[2, 1] - F[1, 1] * F[2, 0]
+    cof[1, 0] = F[0, 2] * F[2, 1] - F[0, 1] * F[2, 2]
+    cof[1, 1] = F[0, 0] * F[2, 2] - F[0, 2] * F[2, 0]
+    cof[1, 2] = F[0, 1] * F[2, 0] - F[0, 0] * F[2, 1]
+    cof[2, 0] = F[0, 1] * F[1, 2] - F[0, 2] * F[1, 1]
+    cof[2, 1] = F[0, 2] * F[1, 0] - F[0, 0] * F[1, 2]
+    cof[2, 2] = F[0, 0] * F[1, 1] - F[0, 1] * F[1, 0]
+    I1 = C[0, 0] + C[1, 1] + C[2, 2]
+    cc = 0.0
+    for i in range(3):
+        for j in range(3):
+            cc += C[i, j] * C[i, j]
+    J = F[0, 0] * cof[0, 0] + F[0, 1] * cof[0, 1] + F[0, 2] * cof[0, 2]
+    return I1, 0.5 * (I1 * I1 - cc), J
 
 
 @nb.njit(cache=True, inline="always")
@@ -260,53 +233,39 @@ def _def_grad(x, tets, dNdX, e, q, F):
 
 
 @nb.njit(cache=True)
-def _stress(F, coef):
-    """(ψ, P, J) at F; ψ = inf when J <= 0."""
-    J = _det3(F)
-    P = np.zeros((3, 3))
+def _stress(F, coef, P, C, FC, cof):
+    """Write P = ∂Ψ/∂F; return (ψ, J); ψ = inf when J <= 0."""
+    I1, I2, J = _kinematics(F, C, FC, cof)
     if J <= 0.0:
-        return np.inf, P, J
-    C = F.T @ F
-    I1 = C[0, 0] + C[1, 1] + C[2, 2]
-    I2 = 0.5 * (I1 * I1 - np.sum(C * C))
-    psi, g, _ = _invariant_derivs(I1, I2, J, coef)
-    cof = _cof3(F)
-    FC = F @ C
+        for i in range(3):
+            for j in range(3):
+                P[i, j] = 0.0
+        return np.inf, J
+    psi, g1, g2, gJ, _, _, _, _ = _invariant_derivs(I1, I2, J, coef)
     for i in range(3):
         for j in range(3):
-            P[i, j] = g[0] * 2.0 * F[i, j] + g[1] * 2.0 * (I1 * F[i, j] - FC[i, j]) + g[2] * cof[i, j]
-    return psi, P, J
+            P[i, j] = 2.0 * g1 * F[i, j] + 2.0 * g2 * (I1 * F[i, j] - FC[i, j]) + gJ * cof[i, j]
+    return psi, J
 
 
 @nb.njit(cache=True)
-def _tangent(F, coef):
-    """Material tangent A[3i+J, 3k+L] = ∂²Ψ/∂F_iJ ∂F_kL (9, 9)."""
-    J = _det3(F)
-    C = F.T @ F
-    B = F @ F.T
-    I1 = C[0, 0] + C[1, 1] + C[2, 2]
-    I2 = 0.5 * (I1 * I1 - np.sum(C * C))
-    _, g, H = _invariant_derivs(I1, I2, J, coef)
-    cof = _cof3(F)
-    FC = F @ C
-    d = np.empty((3, 9))
+def _tangent(F, coef, A, C, FC, cof, d):
+    """Write the material tangent A[3i+J, 3k+L] = ∂²Ψ/∂F_iJ ∂F_kL (9, 9); ``d`` is (3, 9) scratch."""
+    I1, I2, J = _kinematics(F, C, FC, cof)
+    _, g1, g2, gJ, h11, h1J, h2J, hJJ = _invariant_derivs(I1, I2, J, coef)
     for i in range(3):
         for j in range(3):
             d[0, 3 * i + j] = 2.0 * F[i, j]
             d[1, 3 * i + j] = 2.0 * (I1 * F[i, j] - FC[i, j])
             d[2, 3 * i + j] = cof[i, j]
-    A = np.zeros((9, 9))
     for r in range(9):
+        u0 = h11 * d[0, r] + h1J * d[2, r]
+        u1 = h2J * d[2, r]
+        u2 = h1J * d[0, r] + h2J * d[1, r] + hJJ * d[2, r]
         for s in range(9):
-            v = 0.0
-            for a in range(3):
-                for b in range(3):
-                    v += H[a, b] * d[a, r] * d[b, s]
-            A[r, s] = v
-    for r in range(9):
-        A[r, r] += 2.0 * g[0]
-    # second derivative of J: eps_ikm eps_JLN F_mN
-    gJ = g[2]
+            A[r, s] = u0 * d[0, s] + u1 * d[1, s] + u2 * d[2, s]
+        A[r, r] += 2.0 * g1
+    # gJ * ∂²J/∂F∂F = gJ * ε_ikm ε_JLN F_mN
     for i in range(3):
         for k in range(3):
             if i == k:
@@ -320,11 +279,12 @@ def _tangent(F, coef):
                     nn = 3 - jj - ll
                     sjl = 1.0 if (ll - jj) % 3 == 1 else -1.0
                     A[3 * i + jj, 3 * k + ll] += gJ * sik * sjl * F[m, nn]
-    if g[1] != 0.0:
-        g2 = g[1]
+    if g2 != 0.0:
+        # g2 * ∂²I2/∂F∂F with ∂²I2 = 4 F_iJ F_kL + 2 I1 δ_ik δ_JL − 2 δ_ik C_JL − 2 F_iL F_kJ − 2 B_ik δ_JL
         for i in range(3):
-            for jj in range(3):
-                for k in range(3):
+            for k in range(3):
+                Bik = F[i, 0] * F[k, 0] + F[i, 1] * F[k, 1] + F[i, 2] * F[k, 2]
+                for jj in range(3):
                     for ll in range(3):
                         v = 4.0 * F[i, jj] * F[k, ll] - 2.0 * F[i, ll] * F[k, jj]
                         if i == k:
@@ -332,131 +292,192 @@ def _tangent(F, coef):
                             if jj == ll:
                                 v += 2.0 * I1
                         if jj == ll:
-                            v -= 2.0 * B[i, k]
+                            v -= 2.0 * Bik
                         A[3 * i + jj, 3 * k + ll] += g2 * v
-    return A
 
 
 # ---------------------------------------------------------------------------------------------------------------
-# Element loops
+# Element loops: parallel over chunks of elements, scratch allocated once per chunk
 # ---------------------------------------------------------------------------------------------------------------
+def _n_chunks(M: int) -> int:
+    """Work chunks for M elements (computed outside numba: reading the thread count there blocks caching)."""
+    return max(1, min(M, 16 * nb.get_num_threads()))
+
+
 @nb.njit(cache=True, parallel=True)
-def _energy_kernel(x, tets, dNdX, wdet, coef):
+def _energy_kernel(x, tets, dNdX, wdet, coef, nc):
     M, Q = wdet.shape
+    size = (M + nc - 1) // nc
     total = 0.0
-    for e in nb.prange(M):
+    for c in nb.prange(nc):
         F = np.empty((3, 3))
+        C = np.empty((3, 3))
+        FC = np.empty((3, 3))
+        cof = np.empty((3, 3))
         s = 0.0
-        for q in range(Q):
-            _def_grad(x, tets, dNdX, e, q, F)
-            psi, _, _ = _stress(F, coef)
-            s += wdet[e, q] * psi
+        for e in range(c * size, min(M, (c + 1) * size)):
+            for q in range(Q):
+                _def_grad(x, tets, dNdX, e, q, F)
+                I1, I2, J = _kinematics(F, C, FC, cof)
+                if J <= 0.0:
+                    s += np.inf
+                else:
+                    psi = _invariant_derivs(I1, I2, J, coef)[0]
+                    s += wdet[e, q] * psi
         total += s
     return total
 
 
 @nb.njit(cache=True, parallel=True)
-def _min_det_kernel(x, tets, dNdX):
+def _min_det_kernel(x, tets, dNdX, nc):
     M, Q = dNdX.shape[0], dNdX.shape[1]
     out = np.empty(M)
-    for e in nb.prange(M):
+    size = (M + nc - 1) // nc
+    for c in nb.prange(nc):
         F = np.empty((3, 3))
-        m = np.inf
-        for q in range(Q):
-            _def_grad(x, tets, dNdX, e, q, F)
-            m = min(m, _det3(F))
-        out[e] = m
+        for e in range(c * size, min(M, (c + 1) * size)):
+            m = np.inf
+            for q in range(Q):
+                _def_grad(x, tets, dNdX, e, q, F)
+                m = min(m, _det3(F))
+            out[e] = m
     return out
 
 
 @nb.njit(cache=True, parallel=True)
-def _force_kernel(x, tets, dNdX, wdet, coef, color_ptr, color_elems):
-    _M, Q = wdet.shape
+def _force_kernel(x, tets, dNdX, wdet, coef, nc):
+    M, Q = wdet.shape
     n = tets.shape[1]
-    f = np.zeros((x.shape[0], 3))
-    for c in range(color_ptr.shape[0] - 1):
-        for t in nb.prange(color_ptr[c], color_ptr[c + 1]):
-            e = color_elems[t]
-            F = np.empty((3, 3))
+    fe = np.zeros((M, n, 3))
+    size = (M + nc - 1) // nc
+    for c in nb.prange(nc):
+        F = np.empty((3, 3))
+        P = np.empty((3, 3))
+        C = np.empty((3, 3))
+        FC = np.empty((3, 3))
+        cof = np.empty((3, 3))
+        for e in range(c * size, min(M, (c + 1) * size)):
             for q in range(Q):
                 _def_grad(x, tets, dNdX, e, q, F)
-                _, P, _ = _stress(F, coef)
+                _stress(F, coef, P, C, FC, cof)
                 w = wdet[e, q]
                 for a in range(n):
-                    p = tets[e, a]
                     for i in range(3):
-                        v = 0.0
-                        for j in range(3):
-                            v += P[i, j] * dNdX[e, q, a, j]
-                        f[p, i] += w * v
+                        fe[e, a, i] += w * (P[i, 0] * dNdX[e, q, a, 0] + P[i, 1] * dNdX[e, q, a, 1]
+                                            + P[i, 2] * dNdX[e, q, a, 2])
+    f = np.zeros((x.shape[0], 3))
+    for e in range(M):
+        for a in range(n):
+            p = tets[e, a]
+            for i in range(3):
+                f[p, i] += fe[e, a, i]
     return f
 
 
 @nb.njit(cache=True)
-def _element_hessian(x, tets, dNdX, wdet, coef, e, project):
+def _element_hessian(x, tets, dNdX, wdet, coef, e, He, F, A, C, FC, cof, d, T):
+    """Write the Hessian of element e into He (3n, 3n)."""
     Q = wdet.shape[1]
     n = tets.shape[1]
-    nd = 3 * n
-    He = np.zeros((nd, nd))
-    F = np.empty((3, 3))
-    T = np.empty((9, n, 3))
+    He[:, :] = 0.0
     for q in range(Q):
         _def_grad(x, tets, dNdX, e, q, F)
-        A = _tangent(F, coef)
+        _tangent(F, coef, A, C, FC, cof, d)
         w = wdet[e, q]
         for r in range(9):
             for b in range(n):
+                g0, g1, g2 = dNdX[e, q, b, 0], dNdX[e, q, b, 1], dNdX[e, q, b, 2]
                 for k in range(3):
-                    v = 0.0
-                    for ll in range(3):
-                        v += A[r, 3 * k + ll] * dNdX[e, q, b, ll]
-                    T[r, b, k] = v
-        for a in range(n):
+                    T[r, b, k] = w * (A[r, 3 * k] * g0 + A[r, 3 * k + 1] * g1 + A[r, 3 * k + 2] * g2)
+        for a in range(n):  # upper block triangle only (b >= a); A is symmetric, so He is
+            g0, g1, g2 = dNdX[e, q, a, 0], dNdX[e, q, a, 1], dNdX[e, q, a, 2]
             for i in range(3):
-                for b in range(n):
+                for b in range(a, n):
                     for k in range(3):
-                        v = 0.0
-                        for jj in range(3):
-                            v += dNdX[e, q, a, jj] * T[3 * i + jj, b, k]
-                        He[3 * a + i, 3 * b + k] += w * v
-    if project:
-        # symmetrize then clamp negative eigenvalues to zero
-        Hs = 0.5 * (He + He.T)
-        lam, V = np.linalg.eigh(Hs)
-        if lam[0] < 0.0:
-            for r in range(nd):
-                if lam[r] < 0.0:
-                    lam[r] = 0.0
-            return (V * lam) @ V.T, True
-        return Hs, False
-    return He, False
+                        He[3 * a + i, 3 * b + k] += g0 * T[3 * i, b, k] + g1 * T[3 * i + 1, b, k] + g2 * T[
+                            3 * i + 2, b, k]
+    for a in range(n):
+        for b in range(a + 1, n):
+            for i in range(3):
+                for k in range(3):
+                    He[3 * b + k, 3 * a + i] = He[3 * a + i, 3 * b + k]
+
+
+@nb.njit(cache=True)
+def _project_psd(He):
+    """Clamp negative eigenvalues of symmetric He to zero in place; return True if any was negative."""
+    Hs = 0.5 * (He + He.T)
+    lam, V = np.linalg.eigh(Hs)
+    if lam[0] >= 0.0:
+        He[:, :] = Hs
+        return False
+    for r in range(lam.shape[0]):
+        if lam[r] < 0.0:
+            lam[r] = 0.0
+    He[:, :] = (V * lam) @ V.T
+    return True
 
 
 @nb.njit(cache=True, parallel=True)
-def _hessian_kernel(x, tets, dNdX, wdet, coef, color_ptr, color_elems, block_base, row_stride, nnz, project):
+def _element_hessians(x, tets, dNdX, wdet, coef, e0, project, out, nc):
+    """Element Hessians of elements e0 .. e0 + len(out) into ``out``; returns how many were PSD-projected."""
+    B = out.shape[0]
     n = tets.shape[1]
-    data = np.zeros(nnz)
+    size = (B + nc - 1) // nc
     n_proj = 0
-    for c in range(color_ptr.shape[0] - 1):
-        for t in nb.prange(color_ptr[c], color_ptr[c + 1]):
-            e = color_elems[t]
-            He, projected = _element_hessian(x, tets, dNdX, wdet, coef, e, project)
-            if projected:
-                n_proj += 1
-            for a in range(n):
-                p = tets[e, a]
-                rs = row_stride[p]
-                for b in range(n):
-                    base = block_base[e, a, b]
-                    for i in range(3):
-                        for k in range(3):
-                            data[base + i * rs + k] += He[3 * a + i, 3 * b + k]
-    return data, n_proj
+    for c in nb.prange(nc):
+        F = np.empty((3, 3))
+        A = np.empty((9, 9))
+        C = np.empty((3, 3))
+        FC = np.empty((3, 3))
+        cof = np.empty((3, 3))
+        d = np.empty((3, 9))
+        T = np.empty((9, n, 3))
+        cnt = 0
+        for t in range(c * size, min(B, (c + 1) * size)):
+            _element_hessian(x, tets, dNdX, wdet, coef, e0 + t, out[t], F, A, C, FC, cof, d, T)
+            if project and _project_psd(out[t]):
+                cnt += 1
+        n_proj += cnt
+    return n_proj
+
+
+@nb.njit(cache=True, parallel=True)
+def _gather_hessians(tets, adj_ptr, adj_elem, adj_local, block_base, row_stride, Hbuf, e0, data):
+    """Add buffered element Hessians into CSR ``data``; parallel over nodes (each owns its three rows)."""
+    n = tets.shape[1]
+    e1 = e0 + Hbuf.shape[0]
+    for p in nb.prange(adj_ptr.shape[0] - 1):
+        rs = row_stride[p]
+        for k in range(adj_ptr[p], adj_ptr[p + 1]):
+            e = adj_elem[k]
+            if e < e0 or e >= e1:
+                continue
+            a = adj_local[k]
+            for b in range(n):
+                base = block_base[e, a, b]
+                for i in range(3):
+                    for kk in range(3):
+                        data[base + i * rs + kk] += Hbuf[e - e0, 3 * a + i, 3 * b + kk]
+
+
+#: Bytes of element-Hessian buffer per assembly batch.
+_HESSIAN_BUFFER_BYTES = 96 * 2**20
 
 
 # ---------------------------------------------------------------------------------------------------------------
 # Public API
 # ---------------------------------------------------------------------------------------------------------------
+def prepare(mesh: TetMesh, stiffness_pattern: bool = True) -> None:
+    """Precompute and cache the per-mesh data (shape-function gradients, adjacency, CSR pattern) now.
+
+    Raises ValueError naming the first inverted tet. Later kernel calls on this mesh object reuse the cache.
+    """
+    _mesh_data(mesh)
+    if stiffness_pattern:
+        _pattern(mesh)
+
+
 def _check_x(mesh: TetMesh, x) -> np.ndarray:
     x = np.ascontiguousarray(x, dtype=np.float64)
     if x.shape != (mesh.n_nodes, 3):
@@ -467,14 +488,15 @@ def _check_x(mesh: TetMesh, x) -> np.ndarray:
 def total_energy(mesh: TetMesh, material: Material, x: np.ndarray) -> float:
     """Elastic energy W(x) = Σ_e ∫ Ψ(F) dV (J); ``inf`` if any quadrature point has J <= 0."""
     d = _mesh_data(mesh)
-    return float(_energy_kernel(_check_x(mesh, x), mesh.tets, d.dNdX, d.wdet, material.coefficients))
+    return float(_energy_kernel(_check_x(mesh, x), mesh.tets, d.dNdX, d.wdet, material.coefficients,
+                                _n_chunks(mesh.n_tets)))
 
 
 def internal_forces(mesh: TetMesh, material: Material, x: np.ndarray) -> np.ndarray:
     """Internal nodal forces dW/dx (N, 3) (newtons)."""
     d = _mesh_data(mesh)
     return _force_kernel(_check_x(mesh, x), mesh.tets, d.dNdX, d.wdet, material.coefficients,
-                         d.color_ptr, d.color_elems)
+                         _n_chunks(mesh.n_tets))
 
 
 def stiffness(mesh: TetMesh, material: Material, x: np.ndarray, project_psd: bool = False) -> sp.csr_matrix:
@@ -485,9 +507,18 @@ def stiffness(mesh: TetMesh, material: Material, x: np.ndarray, project_psd: boo
 def _stiffness(mesh: TetMesh, material: Material, x: np.ndarray, project_psd: bool) -> tuple[sp.csr_matrix, int]:
     d = _mesh_data(mesh)
     pat = _pattern(mesh)
-    data, n_proj = _hessian_kernel(_check_x(mesh, x), mesh.tets, d.dNdX, d.wdet, material.coefficients,
-                                   d.color_ptr, d.color_elems, pat.block_base, pat.row_stride,
-                                   pat.indices.size, project_psd)
+    x = _check_x(mesh, x)
+    nd = 3 * mesh.tets.shape[1]
+    batch = max(1, min(mesh.n_tets, _HESSIAN_BUFFER_BYTES // (8 * nd * nd)))
+    buf = np.empty((batch, nd, nd))
+    data = np.zeros(pat.indices.size)
+    n_proj = 0
+    coef = material.coefficients
+    for e0 in range(0, mesh.n_tets, batch):
+        b = min(batch, mesh.n_tets - e0)
+        n_proj += _element_hessians(x, mesh.tets, d.dNdX, d.wdet, coef, e0, project_psd, buf[:b], _n_chunks(b))
+        _gather_hessians(mesh.tets, d.adj_ptr, d.adj_elem, d.adj_local, pat.block_base, pat.row_stride,
+                         buf[:b], e0, data)
     n = 3 * mesh.n_nodes
     K = sp.csr_matrix((data, pat.indices, pat.indptr), shape=(n, n))
     K.has_sorted_indices = True
@@ -497,13 +528,13 @@ def _stiffness(mesh: TetMesh, material: Material, x: np.ndarray, project_psd: bo
 def min_jacobian(mesh: TetMesh, x: np.ndarray) -> float:
     """Smallest det F over all quadrature points (<= 0 means an inverted element)."""
     d = _mesh_data(mesh)
-    return float(_min_det_kernel(_check_x(mesh, x), mesh.tets, d.dNdX).min())
+    return float(_min_det_kernel(_check_x(mesh, x), mesh.tets, d.dNdX, _n_chunks(mesh.n_tets)).min())
 
 
 def element_min_jacobian(mesh: TetMesh, x: np.ndarray) -> np.ndarray:
     """Smallest det F per element (M,)."""
     d = _mesh_data(mesh)
-    return _min_det_kernel(_check_x(mesh, x), mesh.tets, d.dNdX)
+    return _min_det_kernel(_check_x(mesh, x), mesh.tets, d.dNdX, _n_chunks(mesh.n_tets))
 
 
 def nodal_masses(mesh: TetMesh, material: Material) -> np.ndarray:

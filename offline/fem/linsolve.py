@@ -5,13 +5,16 @@ symbolic analysis (fill-reducing ordering) and returns a :class:`Factorization` 
 number of times (Newton steps, adjoint solves). Cholesky backends raise :class:`NotPositiveDefinite` when the matrix
 is not positive definite, which the Newton solver uses to switch to PSD-projected element Hessians.
 
-``"auto"`` picks CHOLMOD (scikit-sparse) if importable, else PARDISO (pypardiso), else SuperLU (always available).
+``"auto"`` picks CHOLMOD (scikit-sparse) if importable, else PARDISO (pypardiso), else SuperLU (always available);
+when CHOLMOD is linked against the reference (unoptimised) BLAS and PARDISO is present, PARDISO comes first.
 """
 
 from __future__ import annotations
 
 import contextlib
+import functools
 import importlib.util
+import os
 from abc import ABC, abstractmethod
 
 import numpy as np
@@ -32,8 +35,31 @@ def _has(module: str) -> bool:
         return False
 
 
+def _cholmod_uses_reference_blas() -> bool:
+    """True when the loaded CHOLMOD runs on the unoptimised reference BLAS (Linux: read the process's mappings).
+
+    Supernodal CHOLMOD spends its time in BLAS; on reference BLAS it is several times slower than PARDISO.
+    """
+    try:
+        maps = open("/proc/self/maps").read()  # noqa: SIM115
+    except OSError:
+        return False
+    # Debian/Ubuntu alternatives: the reference BLAS lives in .../blas/libblas.so.3, OpenBLAS/BLIS/ATLAS elsewhere
+    paths = {line.split()[-1] for line in maps.splitlines() if "libblas.so" in line}
+    return bool(paths) and all(os.path.basename(os.path.dirname(p)) == "blas" for p in paths)
+
+
+@functools.lru_cache(maxsize=1)
+def _available_backends() -> tuple[str, ...]:
+    return tuple(_probe_backends())
+
+
 def available_backends() -> list[str]:
-    """Backends importable here, fastest first."""
+    """Backends importable here, fastest first (CHOLMOD, then PARDISO; PARDISO first if CHOLMOD has slow BLAS)."""
+    return list(_available_backends())
+
+
+def _probe_backends() -> list[str]:
     out = []
     if _has("sksparse"):
         try:
@@ -49,6 +75,8 @@ def available_backends() -> list[str]:
             out.append("pardiso")
         except (ImportError, OSError):
             pass
+    if out[:2] == ["cholmod", "pardiso"] and _cholmod_uses_reference_blas():
+        out[:2] = ["pardiso", "cholmod"]
     out.append("superlu")
     return out
 
@@ -109,7 +137,7 @@ class _CholmodSolver(SparseSolver):
         A = sp.csc_matrix(A)
         key = (A.shape, A.nnz)
         if self._symbolic is None or key != self._pattern_key:
-            self._symbolic = analyze(A, mode="auto", ordering_method="default")
+            self._symbolic = analyze(A, mode="supernodal", ordering_method="default")  # LL^T: reports indefinite
             self._pattern_key = key
         f = self._symbolic.copy()
         try:
@@ -145,12 +173,22 @@ class _PardisoSolver(SparseSolver):
 
     backend = "pardiso"
 
+    _template = None  # pypardiso searches the whole environment for libmkl_rt on every construction: do it once
+
     def __init__(self) -> None:
+        import copy
+
         import pypardiso
 
-        self._ps = pypardiso.PyPardisoSolver(mtype=2)
+        if _PardisoSolver._template is None:
+            _PardisoSolver._template = pypardiso.PyPardisoSolver(mtype=2)
+        self._ps = copy.copy(_PardisoSolver._template)
+        self._ps.pt = np.zeros_like(self._ps.pt)  # fresh PARDISO handle and parameters for this solver
+        self._ps.iparm = np.zeros_like(self._ps.iparm)
+        self._ps.perm = np.zeros_like(self._ps.perm)
         self._ps.set_iparm(1, 2)  # nested dissection (METIS) ordering
         self._analyzed_key = None
+        self._upper_cache = None
         self.generation = 0
 
     def call(self, upper: sp.csr_matrix, b: np.ndarray, phase: int) -> np.ndarray:
@@ -164,9 +202,24 @@ class _PardisoSolver(SparseSolver):
                 raise NotPositiveDefinite(f"PARDISO error {exc.value} (zero or negative pivot)") from exc
             raise
 
+    def _upper(self, A: sp.spmatrix) -> sp.csr_matrix:
+        """Upper triangle of A as CSR; the entry selection is cached for A's sparsity pattern."""
+        A = sp.csr_matrix(A)
+        A.sort_indices()
+        cache = self._upper_cache
+        if cache is None or cache[0].shape != A.indptr.shape or not (
+                np.array_equal(cache[0], A.indptr) and np.array_equal(cache[1], A.indices)):
+            rows = np.repeat(np.arange(A.shape[0]), np.diff(A.indptr))
+            keep = np.flatnonzero(A.indices >= rows)
+            counts = np.bincount(rows[keep], minlength=A.shape[0])
+            indptr = np.concatenate([[0], np.cumsum(counts)]).astype(A.indptr.dtype)
+            cache = (A.indptr.copy(), A.indices.copy(), keep, indptr, A.indices[keep].copy())
+            self._upper_cache = cache
+        _, _, keep, indptr, indices = cache
+        return sp.csr_matrix((A.data[keep], indices, indptr), shape=A.shape)
+
     def factor(self, A: sp.spmatrix) -> Factorization:
-        upper = sp.triu(sp.csr_matrix(A), format="csr")
-        upper.sort_indices()
+        upper = self._upper(A)
         key = (upper.shape, upper.nnz)
         b = np.zeros((upper.shape[0], 1), order="F")
         if key != self._analyzed_key:

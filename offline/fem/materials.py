@@ -54,6 +54,9 @@ class Material:
         object.__setattr__(self, "params", MappingProxyType(params))
         object.__setattr__(self, "density", float(self.density))
 
+    def __reduce__(self):
+        return (Material, (self.name, dict(self.params), self.density))
+
     @property
     def coefficients(self) -> np.ndarray:
         """(c10, c20, c30, c01, kappa) of the shared energy form, as the kernels take them."""

@@ -88,6 +88,10 @@ class TetMesh:
         merged.update(sets)
         return TetMesh(self.nodes, self.tets, merged)
 
+    def __reduce__(self):
+        # MappingProxyType does not pickle; rebuild through the constructor (process pools, Dask)
+        return (TetMesh, (np.asarray(self.nodes), np.asarray(self.tets), dict(self.node_sets)))
+
     def __repr__(self) -> str:
         return (f"TetMesh(n_nodes={self.n_nodes}, n_tets={self.n_tets}, order={self.order}, "
                 f"node_sets={sorted(self.node_sets)})")
@@ -146,23 +150,33 @@ def box_mesh(size: tuple[float, float, float], divisions: tuple[int, int, int], 
 
 
 def cylinder_mesh(radius: float, height: float, n_radial: int, n_height: int, order: int = 1) -> TetMesh:
-    """Cylinder of axis z from z=0 to z=height: a box mesh of [-1,1]^2 mapped onto the disk (squircle map).
+    """Cylinder of axis z from z=0 to z=height: a ring-based Delaunay disk extruded in layers, 3 tets per prism.
 
-    ``n_radial`` is the number of cells from the axis to the rim; node sets ``bottom`` and ``top``.
+    ``n_radial`` rings from the axis to the rim (ring k holds 6k nodes); node sets ``bottom`` and ``top``.
+    Prisms are split by the global-index rule, so neighbouring prisms share diagonals (conforming).
     """
+    from scipy.spatial import Delaunay
+
     if radius <= 0 or height <= 0 or n_radial < 1 or n_height < 1:
         raise ValueError(f"cylinder_mesh: bad arguments radius={radius}, height={height}, "
                          f"n_radial={n_radial}, n_height={n_height}")
-    base = box_mesh((2.0, 2.0, height), (2 * n_radial, 2 * n_radial, n_height))
-    p = base.nodes.copy()
-    u, v = p[:, 0] - 1.0, p[:, 1] - 1.0
-    # Elliptical grid mapping: square [-1,1]^2 -> unit disk, smooth inside, one-to-one.
-    x = u * np.sqrt(np.clip(1.0 - v * v / 2.0, 0.0, None))
-    y = v * np.sqrt(np.clip(1.0 - u * u / 2.0, 0.0, None))
-    nodes = np.column_stack([radius * x, radius * y, p[:, 2]])
-    tets = _orient(nodes, np.asarray(base.tets))
-    mesh = TetMesh(nodes, tets, {"bottom": base.node_sets["z0"], "top": base.node_sets["z1"]})
-    return _with_order(mesh, order)
+    pts = [np.zeros((1, 2))]
+    for k in range(1, n_radial + 1):
+        ang = 2.0 * np.pi * np.arange(6 * k) / (6 * k)
+        pts.append(radius * k / n_radial * np.column_stack([np.cos(ang), np.sin(ang)]))
+    disk = np.vstack(pts)
+    tri = np.sort(Delaunay(disk).simplices.astype(np.int64), axis=1)
+    n2 = len(disk)
+    zs = np.linspace(0.0, height, n_height + 1)
+    nodes = np.column_stack([np.tile(disk, (n_height + 1, 1)), np.repeat(zs, n2)])
+    tets = []
+    for layer in range(n_height):
+        a, b, c = (tri[:, i] + layer * n2 for i in range(3))
+        at, bt, ct = a + n2, b + n2, c + n2
+        tets += [np.column_stack([a, b, c, ct]), np.column_stack([a, b, bt, ct]), np.column_stack([a, at, bt, ct])]
+    tets = _orient(nodes, np.concatenate(tets))
+    sets = {"bottom": np.arange(n2), "top": n_height * n2 + np.arange(n2)}
+    return _with_order(TetMesh(nodes, tets, sets), order)
 
 
 def _with_order(mesh: TetMesh, order: int) -> TetMesh:

@@ -34,10 +34,15 @@ from .mesh import TetMesh
 
 @dataclass(frozen=True)
 class Dirichlet:
-    """Prescribed positions: node indices (K,) and their target positions (K, 3) in metres."""
+    """Prescribed positions: node indices (K,) and their target positions (K, 3) in metres.
+
+    ``components`` (K, 3) bool, optional: which coordinates of each node are prescribed (default: all three);
+    unprescribed coordinates are free (e.g. frictionless contact constrains only the normal one).
+    """
 
     nodes: np.ndarray
     positions: np.ndarray
+    components: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         nodes = np.asarray(self.nodes, dtype=np.int64).reshape(-1)
@@ -50,11 +55,24 @@ class Dirichlet:
             raise ValueError(f"Dirichlet.nodes contains a negative index ({nodes.min()})")
         if not np.all(np.isfinite(pos)):
             raise ValueError("Dirichlet.positions contains non-finite values")
-        nodes.setflags(write=False)
-        pos = np.ascontiguousarray(pos)
-        pos.setflags(write=False)
-        object.__setattr__(self, "nodes", nodes)
-        object.__setattr__(self, "positions", pos)
+        comp = np.ones((nodes.size, 3), dtype=bool) if self.components is None else np.asarray(self.components)
+        if comp.shape != (nodes.size, 3) or comp.dtype != np.bool_:
+            raise ValueError(f"Dirichlet.components must be a bool array of shape ({nodes.size}, 3), "
+                             f"got {comp.dtype} {comp.shape}")
+        for name, arr in (("nodes", nodes), ("positions", pos), ("components", comp)):
+            arr = np.ascontiguousarray(arr)
+            arr.setflags(write=False)
+            object.__setattr__(self, name, arr)
+
+    @property
+    def dofs(self) -> np.ndarray:
+        """Prescribed DoF indices (3 * node + axis), in node order."""
+        return (3 * self.nodes[:, None] + np.arange(3))[self.components]
+
+    @property
+    def dof_values(self) -> np.ndarray:
+        """Prescribed coordinate of each entry of :attr:`dofs`."""
+        return self.positions[self.components]
 
 
 def _set_nodes(mesh: TetMesh, name: str) -> np.ndarray:
@@ -71,13 +89,14 @@ def fixed(mesh: TetMesh, set_names: str | Sequence[str]) -> Dirichlet:
 
 
 def combine(*conditions: Dirichlet) -> Dirichlet:
-    """Union of Dirichlet conditions; a node given several times keeps its first target."""
+    """Union of Dirichlet conditions; a node given several times keeps its first entry (target and components)."""
     if not conditions:
         return Dirichlet(np.zeros(0, np.int64), np.zeros((0, 3)))
     nodes = np.concatenate([c.nodes for c in conditions])
     pos = np.concatenate([c.positions for c in conditions])
+    comp = np.concatenate([c.components for c in conditions])
     _, first = np.unique(nodes, return_index=True)
-    return Dirichlet(nodes[first], pos[first])
+    return Dirichlet(nodes[first], pos[first], comp[first])
 
 
 def rigid_transform_dirichlet(mesh: TetMesh, transforms: Mapping[str, np.ndarray],
@@ -141,7 +160,12 @@ class SolverOptions:
 
 @dataclass(frozen=True)
 class StaticResult:
-    """Outcome of :func:`solve_static`: positions, convergence, per-iteration log, phase timings (s), reactions (N)."""
+    """Outcome of :func:`solve_static`: positions, convergence, per-iteration log, phase timings (s), reactions (N).
+
+    Each ``log`` entry holds step, iteration, energy (J), residual (N), alpha, projected (number of element
+    Hessians projected to PSD), factor_s and tolerance (the residual threshold, N). ``reactions`` follows
+    ``dirichlet.nodes``; coordinates a node leaves free carry only the (converged, ≈ 0) residual there.
+    """
 
     x: np.ndarray
     converged: bool
@@ -150,6 +174,10 @@ class StaticResult:
     log: tuple[dict, ...] = ()
     timings: Mapping[str, float] = field(default_factory=dict)
     reactions: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+
+    def __reduce__(self):
+        return (StaticResult, (self.x, self.converged, self.iterations, self.load_steps, self.log,
+                               dict(self.timings), self.reactions))
 
     def reaction_total(self) -> np.ndarray:
         """Sum of the constraint forces over all Dirichlet nodes (3,)."""
@@ -219,18 +247,18 @@ def solve_static(mesh: TetMesh, material: Material, dirichlet: Dirichlet, *, x0:
         raise ValueError(f"x0 must have shape ({N}, 3), got {x.shape}")
     if _en.min_jacobian(mesh, x) <= 0:
         raise ValueError("initial positions invert at least one element (J <= 0)")
-    cdofs = (3 * nodes[:, None] + np.arange(3)).ravel()
+    cdofs = dirichlet.dofs
     free = np.ones(3 * N, dtype=bool)
     free[cdofs] = False
     free_idx = np.flatnonzero(free)
     if free_idx.size == 0:
         raise ValueError("every DoF is constrained; nothing to solve")
-    c_start = x[nodes].copy()
-    c_goal = np.asarray(dirichlet.positions)
+    c_start = x.ravel()[cdofs].copy()
+    c_goal = dirichlet.dof_values
     f_grav = (_en.gravity_forces(mesh, material, opts.gravity) if opts.gravity is not None else np.zeros((N, 3)))
 
     if opts.load_steps == "auto":
-        disp = float(np.linalg.norm(c_goal - c_start, axis=1).max()) if nodes.size else 0.0
+        disp = float(np.abs(c_goal - c_start).max()) if cdofs.size else 0.0
         n_steps = int(min(50, max(1, math.ceil(disp / _mean_edge_length(mesh)))))
     else:
         n_steps = int(opts.load_steps)
@@ -263,7 +291,7 @@ def solve_static(mesh: TetMesh, material: Material, dirichlet: Dirichlet, *, x0:
             t = time.perf_counter()
             r = (_en.internal_forces(mesh, material, xk) - fext).ravel()
             timings["assemble"] += time.perf_counter() - t
-            dc = (target - xk[nodes]).ravel()
+            dc = target - xk.ravel()[cdofs]
             rf = r[free_idx]
             res = float(np.linalg.norm(rf))
             f_ref = max(float(np.linalg.norm(fext)), float(np.linalg.norm(r[cdofs])) if cdofs.size else 0.0)
@@ -271,7 +299,7 @@ def solve_static(mesh: TetMesh, material: Material, dirichlet: Dirichlet, *, x0:
             e_now = potential(xk, fext)
             if boundary_done and res <= opts.tol_force * max(1.0, f_ref):
                 log.append({"step": step, "iteration": it, "energy": e_now, "residual": res, "alpha": 0.0,
-                            "projected": 0, "factor_s": 0.0})
+                            "projected": 0, "factor_s": 0.0, "tolerance": opts.tol_force * max(1.0, f_ref)})
                 if opts.verbose:
                     print(f"  step {step} it {it}: converged |r|={res:.3e} (ref {f_ref:.3e})")
                 return xk
@@ -336,14 +364,17 @@ def solve_static(mesh: TetMesh, material: Material, dirichlet: Dirichlet, *, x0:
                 alpha *= 0.5
             timings["line_search"] += time.perf_counter() - t
             iterations += 1
-            log.append({"step": step, "iteration": it, "energy": e_now, "residual": res, "alpha": alpha if accepted
-                        else 0.0, "projected": int(n_proj), "factor_s": factor_s})
+            log.append({"step": step, "iteration": it, "energy": e_now, "residual": res,
+                        "alpha": alpha if accepted else 0.0, "projected": int(n_proj), "factor_s": factor_s,
+                        "tolerance": opts.tol_force * max(1.0, f_ref)})
             if opts.verbose:
                 print(f"  step {step} it {it}: |r|={res:.3e} (ref {f_ref:.3e}) E={e_now:.6e} alpha={alpha:.3g} "
                       f"projected={n_proj} factor={factor_s:.3f}s")
             if not accepted:
                 raise _StepFailed("line search found no admissible step")
             xk = xt
+            if alpha == 1.0 and not boundary_done:
+                xk.reshape(-1)[cdofs] = target  # exact arrival (x + (t - x) may differ from t by round-off)
         raise _StepFailed(f"no convergence in {opts.max_iterations} iterations")
 
     lam, dlam, halvings, steps_done = 0.0, 1.0 / n_steps, 0, 0
