@@ -3,7 +3,9 @@
 The face region (every body quad touching a vertex that some face unit moves) is a disk whose mouth leads into a
 closed mouth cavity and whose eyes lead into closed socket cups. Those cavities are found by ambient occlusion:
 rays are cast over each quad's normal hemisphere and large connected sets of quads from which few rays escape are
-dropped. The rim is then cleaned (spikes, non-manifold vertices, stray pieces) and the quads split into triangles.
+dropped, together with two rings of quads around them (the lid and lip margins curl inward so tightly that a
+6 mm inward offset of them would fold over). The region's sides are trimmed towards the ears, the rim is cleaned
+(spikes, non-manifold vertices, stray pieces) and the quads are split into triangles.
 """
 
 from __future__ import annotations
