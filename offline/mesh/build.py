@@ -37,7 +37,7 @@ from offline.mesh.shell import INNER, Shell, ShellParams, build_shell, thickness
 from offline.mesh.tetra import TetParams, signed_volumes, tetrahedralize
 
 #: Bump when the pipeline changes its output for the same parameters (it enters the cache key).
-ALGORITHM_VERSION = 1
+ALGORITHM_VERSION = 2
 MESH_FILE = "skin.vtu"
 UNITS_FILE = "face_units.npz"
 REPORT_FILE = "mesh_report.json"
@@ -67,7 +67,7 @@ PRESETS: dict[str, Preset] = {
     # about one tet through the thickness: smoke tests and CI only
     "coarse": Preset("coarse", tet=TetParams(edge_length=0.012, coarsen=True)),
     # production: ~55-63k tets
-    "fine": Preset("fine", tet=TetParams(edge_length=0.0035)),
+    "fine": Preset("fine", tet=TetParams(edge_length=0.0034)),
 }
 
 
