@@ -254,6 +254,7 @@ def run(args: argparse.Namespace) -> int:
         result = exc.result
         ok = False
         print(f"NOT CONVERGED: {exc}")
+        print("  hint: more load steps (--load-steps N) or another backend (--backend superlu) may get through")
     for row in result.log:
         print("  step {step} it {iteration}: energy {energy:.6e} J, residual {residual:.3e} N, alpha {alpha:.3g}"
               "{proj}".format(proj=", projected" if row.get("projected") else "", **row))
