@@ -264,9 +264,12 @@ def run(args: argparse.Namespace) -> int:
           f"load {t_load:.2f} s, {tim}")
     print(f"max displacement {np.linalg.norm(u, axis=1).max() * 1e3:.3f} mm; "
           f"total reaction {np.round(result.reaction_total(), 4).tolist()} N")
+    if not ok:
+        print(f"not writing {args.out}: the solve did not converge")
+        return 1
     _write_deformed(Path(args.out), mesh, result.x, u)
     print(f"wrote {args.out}")
-    return 0 if ok else 1
+    return 0
 
 
 def _write_deformed(out, mesh, x, u) -> None:

@@ -94,6 +94,16 @@ def test_cli_errors(tmp_path, capsys, args, message) -> None:
     assert not (tmp_path / "x.vtu").exists()
 
 
+def test_not_converged_exits_1_and_writes_nothing(tmp_path, capsys) -> None:
+    out = tmp_path / "x.vtu"
+    rc = main(["offline", "simulate", "--mesh", str(SKIN), "--link", "jaw=0,0,0,4,0,0", "--max-iterations", "1",
+               "--load-steps", "1", "--out", str(out)])
+    text = capsys.readouterr().out
+    assert rc == 1
+    assert "NOT CONVERGED" in text and "state saved to" in text
+    assert not out.exists()
+
+
 def test_bad_links_json_and_missing_mesh(tmp_path, capsys) -> None:
     bad = tmp_path / "links.json"
     bad.write_text(json.dumps({"jaw": [[1, 0, 0], [0, 1, 0]]}))
