@@ -28,8 +28,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     src.add_argument("--link", action="append", metavar="NAME=tx,ty,tz,rx,ry,rz",
                      help="one link's motion in mm and degrees (repeatable)")
     src.add_argument("--actuators", nargs="+", metavar="NAME=VALUE",
-                     help="actuator values in config units, mapped to link transforms by --linkmap")
-    p.add_argument("--linkmap", help="link map file (models.linkmap) used with --actuators")
+                     help="actuator values in config units (deg or mm), mapped to link transforms by --linkmap")
+    p.add_argument("--linkmap", help="link map file (models.linkmap) used with --actuators "
+                                     "(default: the head's [paths] linkmap)")
+    p.add_argument("--head", default=None, help="head config giving actuator units and ranges for --actuators "
+                                                "(default: the sample head)")
     p.add_argument("--out", required=True, help="output .vtu: deformed points, point data 'displacement' (m)")
     p.add_argument("--material", choices=MATERIALS, default="neohookean")
     p.add_argument("--E", type=float, default=78000.0, help="Young's modulus in Pa (default 78000)")
@@ -116,32 +119,59 @@ def load_links_json(path: str, centroids):
     return out
 
 
+def default_head() -> str:
+    """The bundled sample head's config path."""
+    from pathlib import Path
+
+    return str(Path(__file__).resolve().parents[1] / "heads" / "sample" / "head.toml")
+
+
 def actuator_transforms(args, link_names):
-    """Link transforms from actuator values through the link map (models.linkmap, imported lazily)."""
+    """Link transforms from actuator values (config units of ``--head``: deg or mm) through the link map.
+
+    ``models.linkmap`` is imported lazily: a clear error names what is missing when it is not installed.
+    """
     import math
 
     from likeness.cli import CliError
+    from models.errors import SpecError
+    from models.headspec import load_head
 
-    if not args.linkmap:
-        raise CliError("--actuators needs --linkmap FILE")
+    try:
+        head = load_head(args.head)
+    except (OSError, SpecError) as exc:
+        raise CliError(f"--head {args.head}: {exc}") from exc
+    linkmap = args.linkmap or head.path("linkmap")
+    if linkmap is None:
+        raise CliError("--actuators needs --linkmap FILE (the head config names none)")
+    values = {}
+    for item in args.actuators:
+        name, sep, val = item.partition("=")
+        name = name.strip()
+        try:
+            number = float(val)
+        except ValueError:
+            number = math.nan
+        if not sep or not name or not math.isfinite(number):
+            raise CliError(f"--actuators {item!r}: expected NAME=VALUE with a finite number")
+        if name not in head.actuator_names:
+            raise CliError(f"--actuators {item!r}: {name!r} is not an actuator of {args.head} "
+                           f"(have {', '.join(head.actuator_names)})")
+        spec = head.actuator(name)
+        si = spec.from_config_units(number)
+        if not spec.min - 1e-12 <= si <= spec.max + 1e-12:
+            raise CliError(f"--actuators {item!r}: outside [{spec.to_config_units(spec.min):g}, "
+                           f"{spec.to_config_units(spec.max):g}] {spec.unit}")
+        values[name] = si
     try:
         from models.linkmap import LinkMap
     except ImportError as exc:
         raise CliError(f"--actuators needs models.linkmap, which is not available in this install ({exc}); "
                        "use --links or --link instead") from exc
-    values = {}
-    for item in args.actuators:
-        name, sep, val = item.partition("=")
-        try:
-            values[name.strip()] = float(val)
-        except ValueError:
-            sep = ""
-        if not sep or not name.strip() or not math.isfinite(values.get(name.strip(), math.nan)):
-            raise CliError(f"--actuators {item!r}: expected NAME=VALUE with a finite number")
     try:
-        transforms = LinkMap.load(args.linkmap).transforms(values)
+        transforms = LinkMap.load(linkmap).transforms(values)
     except (OSError, ValueError, KeyError) as exc:
-        raise CliError(f"--linkmap {args.linkmap}: {exc}") from exc
+        raise CliError(f"--linkmap {linkmap}: {exc}") from exc
     return {k: v for k, v in transforms.items() if k in link_names}
 
 
@@ -206,6 +236,8 @@ def run(args: argparse.Namespace) -> int:
                                f"(have {sorted(centroids)})")
             transforms[name] = compact_transform(centroids[name], motion)
     else:
+        if args.head is None:
+            args.head = default_head()
         transforms = actuator_transforms(args, set(centroids))
     full = {k: transforms.get(k, np.eye(4)) for k in links if k in centroids}
     dirichlet = rigid_transform_dirichlet(mesh, full, fixed_sets=["skull"])
@@ -222,6 +254,7 @@ def run(args: argparse.Namespace) -> int:
         result = exc.result
         ok = False
         print(f"NOT CONVERGED: {exc}")
+        print("  hint: more load steps (--load-steps N) or another backend (--backend superlu) may get through")
     for row in result.log:
         print("  step {step} it {iteration}: energy {energy:.6e} J, residual {residual:.3e} N, alpha {alpha:.3g}"
               "{proj}".format(proj=", projected" if row.get("projected") else "", **row))
@@ -231,9 +264,12 @@ def run(args: argparse.Namespace) -> int:
           f"load {t_load:.2f} s, {tim}")
     print(f"max displacement {np.linalg.norm(u, axis=1).max() * 1e3:.3f} mm; "
           f"total reaction {np.round(result.reaction_total(), 4).tolist()} N")
+    if not ok:
+        print(f"not writing {args.out}: the solve did not converge")
+        return 1
     _write_deformed(Path(args.out), mesh, result.x, u)
     print(f"wrote {args.out}")
-    return 0 if ok else 1
+    return 0
 
 
 def _write_deformed(out, mesh, x, u) -> None:

@@ -37,7 +37,7 @@ from offline.mesh.shell import INNER, Shell, ShellParams, build_shell, thickness
 from offline.mesh.tetra import TetParams, signed_volumes, tetrahedralize
 
 #: Bump when the pipeline changes its output for the same parameters (it enters the cache key).
-ALGORITHM_VERSION = 1
+ALGORITHM_VERSION = 2
 MESH_FILE = "skin.vtu"
 UNITS_FILE = "face_units.npz"
 REPORT_FILE = "mesh_report.json"
@@ -67,7 +67,7 @@ PRESETS: dict[str, Preset] = {
     # about one tet through the thickness: smoke tests and CI only
     "coarse": Preset("coarse", tet=TetParams(edge_length=0.012, coarsen=True)),
     # production: ~55-63k tets
-    "fine": Preset("fine", tet=TetParams(edge_length=0.0035)),
+    "fine": Preset("fine", tet=TetParams(edge_length=0.0034)),
 }
 
 
@@ -238,12 +238,20 @@ def _assemble(preset: Preset, shell: Shell, info: dict[str, Any], nodes: np.ndar
     return mesh, face_units, report
 
 
+def _readable(path: Path | str) -> None:
+    """Give a temp file ordinary permissions (mkstemp makes it private) before it replaces the output."""
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(path, 0o666 & ~umask)
+
+
 def _atomic_savez(path: Path, **arrays: Any) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".npz")
     os.close(fd)
     try:
         np.savez_compressed(tmp, **arrays)
+        _readable(tmp)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -256,6 +264,7 @@ def _atomic_text(path: Path, text: str) -> None:
     try:
         with os.fdopen(fd, "w") as fh:
             fh.write(text)
+        _readable(tmp)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -269,6 +278,7 @@ def write_outputs(out_dir: Path, mesh: Any, face_units: dict[str, np.ndarray], r
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / REPORT_FILE).unlink(missing_ok=True)
     save_mesh(out_dir / MESH_FILE, mesh)
+    _readable(out_dir / MESH_FILE)
     _atomic_savez(out_dir / UNITS_FILE, **face_units)
     _atomic_text(out_dir / REPORT_FILE, json.dumps(report, indent=1, sort_keys=True, default=_json_default) + "\n")
 
@@ -281,6 +291,7 @@ def _copy_outputs(src: Path, dst: Path) -> None:
         os.close(fd)
         try:
             shutil.copyfile(src / name, tmp)
+            _readable(tmp)
             os.replace(tmp, dst / name)
         except BaseException:
             Path(tmp).unlink(missing_ok=True)

@@ -3,7 +3,9 @@
 The face region (every body quad touching a vertex that some face unit moves) is a disk whose mouth leads into a
 closed mouth cavity and whose eyes lead into closed socket cups. Those cavities are found by ambient occlusion:
 rays are cast over each quad's normal hemisphere and large connected sets of quads from which few rays escape are
-dropped. The rim is then cleaned (spikes, non-manifold vertices, stray pieces) and the quads split into triangles.
+dropped, together with two rings of quads around them (the lid and lip margins curl inward so tightly that a
+6 mm inward offset of them would fold over). The region's sides are trimmed towards the ears, the rim is cleaned
+(spikes, non-manifold vertices, stray pieces) and the quads are split into triangles.
 """
 
 from __future__ import annotations
@@ -89,8 +91,11 @@ def hemisphere_directions(n: int) -> np.ndarray:
     return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
 
 
-def escape_fractions(vertices: np.ndarray, quads: np.ndarray, n_rays: int) -> np.ndarray:
-    """Fraction of hemisphere rays from each quad's centre that leave the region without hitting it."""
+def occluded_quads(vertices: np.ndarray, quads: np.ndarray, n_rays: int, threshold: float) -> np.ndarray:
+    """True for quads from whose centre fewer than ``threshold`` of the hemisphere rays leave the region.
+
+    Rays stop being cast for a quad as soon as its answer is certain.
+    """
     import vtk  # heavy; only needed here
 
     tris = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
@@ -112,7 +117,8 @@ def escape_fractions(vertices: np.ndarray, quads: np.ndarray, n_rays: int) -> np
     reach = 2.0 * float(np.linalg.norm(np.ptp(vertices[quads].reshape(-1, 3), axis=0)))
     step = 1e-4 * reach
     hits = vtk.vtkPoints()
-    out = np.empty(len(quads))
+    need = int(np.ceil(threshold * n_rays))  # escaping rays needed to count as open
+    out = np.zeros(len(quads), dtype=bool)
     for i, (nz, c) in enumerate(zip(normals, centres, strict=True)):
         helper = np.array([1.0, 0.0, 0.0]) if abs(nz[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
         tx = np.cross(nz, helper)
@@ -120,14 +126,23 @@ def escape_fractions(vertices: np.ndarray, quads: np.ndarray, n_rays: int) -> np
         ty = np.cross(nz, tx)
         world = dirs @ np.stack([tx, ty, nz])
         origin = c + step * nz
-        free = sum(tree.IntersectWithLine(origin, origin + reach * d, hits, None) == 0 for d in world)
-        out[i] = free / n_rays
+        free = blocked = 0
+        for d in world:
+            if tree.IntersectWithLine(origin, origin + reach * d, hits, None) == 0:
+                free += 1
+                if free >= need:
+                    break
+            else:
+                blocked += 1
+                if blocked > n_rays - need:
+                    break
+        out[i] = free < need
     return out
 
 
-def drop_cavities(quads: np.ndarray, escape: np.ndarray, params: CutParams) -> tuple[np.ndarray, int]:
+def drop_cavities(quads: np.ndarray, occluded_mask: np.ndarray, params: CutParams) -> tuple[np.ndarray, int]:
     """Remove connected sets of occluded quads of at least ``min_cavity_quads``; returns (kept quads, n dropped)."""
-    occluded = np.nonzero(escape < params.escape_threshold)[0]
+    occluded = np.nonzero(occluded_mask)[0]
     adj = quad_adjacency(quads)[occluded][:, occluded]
     n, labels = connected_components(adj, directed=False)
     sizes = np.bincount(labels, minlength=n)
@@ -206,8 +221,8 @@ def triangulate(vertices: np.ndarray, quads: np.ndarray) -> np.ndarray:
 def cut_face(face: AnnyFace, params: CutParams = CutParams()) -> FaceSurface:
     """Cut the face region out of the base mesh, open mouth and eyes, and return the outer surface in metres."""
     region = face_region(face)
-    escape = escape_fractions(face.vertices, region, params.n_rays)
-    kept, n_dropped = drop_cavities(region, escape, params)
+    occluded = occluded_quads(face.vertices, region, params.n_rays, params.escape_threshold)
+    kept, n_dropped = drop_cavities(region, occluded, params)
     front = face.vertices[:, 2] * DM_TO_M >= params.min_depth_m  # +z points out of the face
     kept = kept[front[kept].all(axis=1)]
     kept = clean_rim(kept)

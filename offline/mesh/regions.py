@@ -44,9 +44,11 @@ class RegionParams:
     """Thresholds: link patch = activation >= ``link_fraction``; skull = peak motion of every face unit below
     ``skull_max_motion`` (m) and at least ``skull_clearance`` (m) from every link patch; ``surface_tol`` (m) is
     how far a boundary triangle may sit from the input surface and still belong to it. Overlapping patches are
-    resolved by ``priority`` (first listed wins; links not listed come after, in mapping order)."""
+    resolved by ``priority`` (first listed wins; links not listed come after, in mapping order), and a link loses
+    the nodes closer than ``link_gap`` (m) to a link before it, so free skin separates patches that move apart."""
 
     link_fraction: float = 0.5
+    link_gap: float = 0.004
     priority: tuple[str, ...] = LINK_PRIORITY
     skull_max_motion: float = 0.0015
     skull_clearance: float = 0.008
@@ -74,11 +76,16 @@ def classify_boundary(nodes: np.ndarray, faces: np.ndarray, outer_v: np.ndarray,
     """
     cent = nodes[faces].mean(axis=1)
     fn = triangle_normals(nodes, faces)
+    used = np.unique(faces)
     labels = np.full(len(faces), 2, dtype=np.int8)
     for lab, (v, t, sign) in enumerate(((outer_v, outer_t, 1.0), (inner_v, inner_t, -1.0))):
         tri, _, dist = closest_points(v, t, cent)
         agree = np.einsum("ij,ij->i", fn, triangle_normals(v, t)[tri]) * sign
-        labels[(dist <= tol) & (agree > 0.5) & (labels == 2)] = lab
+        _, _, node_dist = closest_points(v, t, nodes[used])
+        near = np.zeros(len(nodes), dtype=bool)
+        near[used] = node_dist <= tol
+        on_surface = (dist <= tol) & near[faces].all(axis=1)  # every corner on it, not just the centroid
+        labels[on_surface & (agree > 0.5) & (labels == 2)] = lab
     outer, inner, wall = faces[labels == 0], faces[labels == 1], faces[labels == 2]
     return Surfaces(outer_triangles=outer, inner_triangles=inner, wall_triangles=wall,
                     outer_nodes=np.unique(outer), inner_nodes=np.unique(inner))
@@ -130,8 +137,14 @@ def node_sets(nodes: np.ndarray, surfaces: Surfaces, inner_v: np.ndarray, inner_
     chosen = above.any(axis=1)
     winner = np.asarray(rank)[above.argmax(axis=1)]  # first link in priority order above the threshold
     sets: dict[str, np.ndarray] = {}
-    for k, name in enumerate(names):
-        sets[name] = np.sort(inner[chosen & (winner == k)]).astype(np.int64)
+    taken = np.zeros(0, dtype=np.int64)
+    for k in rank:
+        idx = inner[chosen & (winner == k)]
+        if len(taken) and len(idx) and params.link_gap > 0:
+            dist, _ = cKDTree(nodes[taken]).query(nodes[idx])
+            idx = idx[dist >= params.link_gap]
+        sets[names[k]] = np.sort(idx).astype(np.int64)
+        taken = np.concatenate([taken, idx])
     linked = inner[chosen]
     free = inner[~chosen & (peak < params.skull_max_motion)]
     if len(linked) and len(free):
