@@ -1,0 +1,224 @@
+"""Pluggable sparse direct solvers for symmetric FEM matrices: CHOLMOD, PARDISO, SciPy SuperLU.
+
+A :class:`SparseSolver` is made once per sparsity pattern (:func:`make_solver`); ``solver.factor(A)`` reuses the
+symbolic analysis (fill-reducing ordering) and returns a :class:`Factorization` whose ``solve(b)`` can be called any
+number of times (Newton steps, adjoint solves). Cholesky backends raise :class:`NotPositiveDefinite` when the matrix
+is not positive definite, which the Newton solver uses to switch to PSD-projected element Hessians.
+
+``"auto"`` picks CHOLMOD (scikit-sparse) if importable, else PARDISO (pypardiso), else SuperLU (always available).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib.util
+from abc import ABC, abstractmethod
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+BACKENDS = ("cholmod", "pardiso", "superlu")
+
+
+class NotPositiveDefinite(RuntimeError):
+    """The matrix handed to a Cholesky backend is not (numerically) positive definite."""
+
+
+def _has(module: str) -> bool:
+    try:
+        return importlib.util.find_spec(module) is not None
+    except (ImportError, ValueError):
+        return False
+
+
+def available_backends() -> list[str]:
+    """Backends importable here, fastest first."""
+    out = []
+    if _has("sksparse"):
+        try:
+            import sksparse.cholmod  # noqa: F401
+
+            out.append("cholmod")
+        except ImportError:
+            pass
+    if _has("pypardiso"):
+        try:
+            import pypardiso  # noqa: F401
+
+            out.append("pardiso")
+        except (ImportError, OSError):
+            pass
+    out.append("superlu")
+    return out
+
+
+def resolve_backend(name: str) -> str:
+    """Concrete backend name for ``name`` (``auto`` or one of :data:`BACKENDS`); clear error if unavailable."""
+    avail = available_backends()
+    if name == "auto":
+        return avail[0]
+    if name not in BACKENDS:
+        raise ValueError(f"unknown linear solver backend {name!r}; choose one of {('auto', *BACKENDS)}")
+    if name not in avail:
+        raise ValueError(f"linear solver backend {name!r} is not available here (available: {avail})")
+    return name
+
+
+class Factorization(ABC):
+    """A factored matrix A: ``solve(b)`` returns A⁻¹ b for b of shape (n,) or (n, k)."""
+
+    backend: str = ""
+
+    @abstractmethod
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        """Solve A y = b."""
+
+
+class SparseSolver(ABC):
+    """Factors matrices of one sparsity pattern, reusing the symbolic analysis between calls."""
+
+    backend: str = ""
+
+    @abstractmethod
+    def factor(self, A: sp.spmatrix) -> Factorization:
+        """Numeric factorization of symmetric A (same pattern as previous calls)."""
+
+
+# --------------------------------------------------------------------------------------------------- CHOLMOD
+class _CholmodFactorization(Factorization):
+    backend = "cholmod"
+
+    def __init__(self, factor) -> None:
+        self._f = factor
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        return self._f.solve_A(np.asarray(b, dtype=np.float64))
+
+
+class _CholmodSolver(SparseSolver):
+    backend = "cholmod"
+
+    def __init__(self) -> None:
+        self._symbolic = None
+        self._pattern_key = None
+
+    def factor(self, A: sp.spmatrix) -> Factorization:
+        from sksparse.cholmod import CholmodNotPositiveDefiniteError, analyze
+
+        A = sp.csc_matrix(A)
+        key = (A.shape, A.nnz)
+        if self._symbolic is None or key != self._pattern_key:
+            self._symbolic = analyze(A, mode="auto", ordering_method="default")
+            self._pattern_key = key
+        f = self._symbolic.copy()
+        try:
+            f.cholesky_inplace(A)
+        except CholmodNotPositiveDefiniteError as exc:
+            raise NotPositiveDefinite(str(exc)) from exc
+        return _CholmodFactorization(f)
+
+
+# --------------------------------------------------------------------------------------------------- PARDISO
+class _PardisoFactorization(Factorization):
+    backend = "pardiso"
+
+    def __init__(self, owner: _PardisoSolver, upper: sp.csr_matrix, generation: int) -> None:
+        self._owner = owner
+        self._upper = upper
+        self._generation = generation
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        if self._generation != self._owner.generation:
+            raise RuntimeError("this PARDISO factorization was replaced by a newer factor() call on its solver")
+        b = np.asarray(b, dtype=np.float64)
+        bf = np.asfortranarray(b.reshape(b.shape[0], -1))
+        x = self._owner.call(self._upper, bf, 33)
+        return x.reshape(b.shape)
+
+
+class _PardisoSolver(SparseSolver):
+    """MKL PARDISO through pypardiso's ctypes binding, symmetric positive definite mode on the upper triangle.
+
+    One numeric factor lives in the solver at a time (older Factorization objects refuse to solve).
+    """
+
+    backend = "pardiso"
+
+    def __init__(self) -> None:
+        import pypardiso
+
+        self._ps = pypardiso.PyPardisoSolver(mtype=2)
+        self._ps.set_iparm(1, 2)  # nested dissection (METIS) ordering
+        self._analyzed_key = None
+        self.generation = 0
+
+    def call(self, upper: sp.csr_matrix, b: np.ndarray, phase: int) -> np.ndarray:
+        from pypardiso.pardiso_wrapper import PyPardisoError
+
+        self._ps.set_phase(phase)
+        try:
+            return self._ps._call_pardiso(upper, b)
+        except PyPardisoError as exc:
+            if exc.value in (-4,):
+                raise NotPositiveDefinite(f"PARDISO error {exc.value} (zero or negative pivot)") from exc
+            raise
+
+    def factor(self, A: sp.spmatrix) -> Factorization:
+        upper = sp.triu(sp.csr_matrix(A), format="csr")
+        upper.sort_indices()
+        key = (upper.shape, upper.nnz)
+        b = np.zeros((upper.shape[0], 1), order="F")
+        if key != self._analyzed_key:
+            self.call(upper, b, 11)
+            self._analyzed_key = key
+        self.call(upper, b, 22)
+        # iparm(30) (0-based 29) reports the equation with a non-positive pivot for mtype 2
+        if self._ps.iparm[29] > 0 or self._ps.iparm[22] > 0:
+            raise NotPositiveDefinite("PARDISO found a non-positive pivot")
+        self.generation += 1
+        return _PardisoFactorization(self, upper, self.generation)
+
+    def __del__(self) -> None:
+        with contextlib.suppress(Exception):
+            self._ps.free_memory(everything=True)
+
+
+# --------------------------------------------------------------------------------------------------- SuperLU
+class _SuperLUFactorization(Factorization):
+    backend = "superlu"
+
+    def __init__(self, lu) -> None:
+        self._lu = lu
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        return self._lu.solve(np.asarray(b, dtype=np.float64))
+
+
+class _SuperLUSolver(SparseSolver):
+    """SciPy SuperLU (LU with a symmetric-mode ordering); cannot detect indefiniteness itself."""
+
+    backend = "superlu"
+
+    def factor(self, A: sp.spmatrix) -> Factorization:
+        try:
+            lu = spla.splu(sp.csc_matrix(A), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                           options={"SymmetricMode": True})
+        except RuntimeError as exc:  # exactly singular
+            raise NotPositiveDefinite(f"SuperLU: {exc}") from exc
+        return _SuperLUFactorization(lu)
+
+
+def make_solver(backend: str = "auto") -> SparseSolver:
+    """A new solver for ``backend`` (``auto``, ``cholmod``, ``pardiso`` or ``superlu``)."""
+    name = resolve_backend(backend)
+    if name == "cholmod":
+        return _CholmodSolver()
+    if name == "pardiso":
+        return _PardisoSolver()
+    return _SuperLUSolver()
+
+
+def factorize(A: sp.spmatrix, backend: str = "auto") -> Factorization:
+    """One-off factorization of symmetric positive definite A."""
+    return make_solver(backend).factor(A)

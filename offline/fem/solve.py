@@ -1,0 +1,379 @@
+"""Quasi-static equilibrium of a hyperelastic tet mesh under Dirichlet conditions and gravity (Newton's method).
+
+:func:`solve_static` minimises W(x) − f_ext·x over the free nodes with the constrained nodes moved to their targets.
+The boundary motion (and gravity) is applied in load steps; within a step the remaining boundary increment is folded
+into each Newton step (free DoFs see it through K_fc), so one step often suffices. A backtracking line search keeps
+every element's J > 0 and enforces Armijo decrease of the total energy once the boundary has arrived. Element
+Hessians are projected to PSD only when the factorization reports an indefinite matrix or the Newton direction is
+not a descent direction. The symbolic factorization is reused across iterations; on failure the load step is
+halved, and after ``max_load_step_halvings`` a :class:`NotConverged` is raised with the last state saved to disk.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+import time
+import uuid
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import MappingProxyType
+
+import numpy as np
+import scipy.sparse as sp
+
+from . import energy as _en
+from .linsolve import NotPositiveDefinite, make_solver, resolve_backend
+from .materials import Material
+from .mesh import TetMesh
+
+# ------------------------------------------------------------------------------------------------ boundary data
+
+
+@dataclass(frozen=True)
+class Dirichlet:
+    """Prescribed positions: node indices (K,) and their target positions (K, 3) in metres."""
+
+    nodes: np.ndarray
+    positions: np.ndarray
+
+    def __post_init__(self) -> None:
+        nodes = np.asarray(self.nodes, dtype=np.int64).reshape(-1)
+        pos = np.asarray(self.positions, dtype=np.float64)
+        if pos.shape != (nodes.size, 3):
+            raise ValueError(f"Dirichlet.positions must have shape ({nodes.size}, 3), got {pos.shape}")
+        if np.unique(nodes).size != nodes.size:
+            raise ValueError("Dirichlet.nodes contains duplicate node indices (use combine() to merge)")
+        if nodes.size and nodes.min() < 0:
+            raise ValueError(f"Dirichlet.nodes contains a negative index ({nodes.min()})")
+        if not np.all(np.isfinite(pos)):
+            raise ValueError("Dirichlet.positions contains non-finite values")
+        nodes.setflags(write=False)
+        pos = np.ascontiguousarray(pos)
+        pos.setflags(write=False)
+        object.__setattr__(self, "nodes", nodes)
+        object.__setattr__(self, "positions", pos)
+
+
+def _set_nodes(mesh: TetMesh, name: str) -> np.ndarray:
+    if name not in mesh.node_sets:
+        raise KeyError(f"mesh has no node set {name!r} (known: {sorted(mesh.node_sets)})")
+    return np.asarray(mesh.node_sets[name])
+
+
+def fixed(mesh: TetMesh, set_names: str | Sequence[str]) -> Dirichlet:
+    """Nodes of the named set(s) held at their rest positions."""
+    names = [set_names] if isinstance(set_names, str) else list(set_names)
+    nodes = np.unique(np.concatenate([_set_nodes(mesh, n) for n in names])) if names else np.zeros(0, np.int64)
+    return Dirichlet(nodes, np.asarray(mesh.nodes)[nodes])
+
+
+def combine(*conditions: Dirichlet) -> Dirichlet:
+    """Union of Dirichlet conditions; a node given several times keeps its first target."""
+    if not conditions:
+        return Dirichlet(np.zeros(0, np.int64), np.zeros((0, 3)))
+    nodes = np.concatenate([c.nodes for c in conditions])
+    pos = np.concatenate([c.positions for c in conditions])
+    _, first = np.unique(nodes, return_index=True)
+    return Dirichlet(nodes[first], pos[first])
+
+
+def rigid_transform_dirichlet(mesh: TetMesh, transforms: Mapping[str, np.ndarray],
+                              fixed_sets: Sequence[str] = ()) -> Dirichlet:
+    """Each named node set moved rigidly by its 4x4 homogeneous transform (applied to rest positions).
+
+    A node in several moved sets follows the first in the mapping's order; nodes of ``fixed_sets`` not in any moved
+    set stay at rest.
+    """
+    parts = []
+    for name, T in transforms.items():
+        T = np.asarray(T, dtype=np.float64)
+        if T.shape != (4, 4):
+            raise ValueError(f"transform for node set {name!r} must be 4x4, got shape {T.shape}")
+        idx = _set_nodes(mesh, name)
+        X = np.asarray(mesh.nodes)[idx]
+        parts.append(Dirichlet(idx, X @ T[:3, :3].T + T[:3, 3]))
+    if fixed_sets:
+        parts.append(fixed(mesh, list(fixed_sets)))
+    return combine(*parts)
+
+
+# ------------------------------------------------------------------------------------------------ options, result
+
+
+@dataclass(frozen=True)
+class SolverOptions:
+    """Newton solver settings.
+
+    ``backend``: linear solver (``auto``, ``cholmod``, ``pardiso``, ``superlu``). ``tol_force``: converged when
+    ‖r_free‖ <= tol_force · max(1, ‖f_ref‖) with f_ref the larger of the external load and the reactions (N).
+    ``load_steps``: number of equal load increments, or ``"auto"`` (one step per mean element edge length of the
+    largest boundary displacement). ``gravity``: acceleration vector (m/s²) or None. ``failure_dir``: where the
+    state of a failed solve is saved (default: the system temp dir).
+    """
+
+    backend: str = "auto"
+    tol_force: float = 1e-6
+    max_iterations: int = 30
+    load_steps: int | str = 1
+    max_load_step_halvings: int = 6
+    armijo: float = 1e-4
+    gravity: tuple[float, float, float] | None = None
+    verbose: bool = False
+    failure_dir: Path | None = None
+
+    def __post_init__(self) -> None:
+        if not (self.tol_force > 0):
+            raise ValueError(f"SolverOptions.tol_force must be > 0, got {self.tol_force}")
+        if self.max_iterations < 1:
+            raise ValueError(f"SolverOptions.max_iterations must be >= 1, got {self.max_iterations}")
+        if self.load_steps != "auto" and (not isinstance(self.load_steps, int | np.integer) or self.load_steps < 1):
+            raise ValueError(f"SolverOptions.load_steps must be an int >= 1 or 'auto', got {self.load_steps!r}")
+        if self.max_load_step_halvings < 0:
+            raise ValueError("SolverOptions.max_load_step_halvings must be >= 0")
+        if not (0 < self.armijo < 1):
+            raise ValueError(f"SolverOptions.armijo must be in (0, 1), got {self.armijo}")
+        if self.gravity is not None and np.asarray(self.gravity).shape != (3,):
+            raise ValueError(f"SolverOptions.gravity must be a 3-vector or None, got {self.gravity!r}")
+
+
+@dataclass(frozen=True)
+class StaticResult:
+    """Outcome of :func:`solve_static`: positions, convergence, per-iteration log, phase timings (s), reactions (N)."""
+
+    x: np.ndarray
+    converged: bool
+    iterations: int
+    load_steps: int
+    log: tuple[dict, ...] = ()
+    timings: Mapping[str, float] = field(default_factory=dict)
+    reactions: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+
+    def reaction_total(self) -> np.ndarray:
+        """Sum of the constraint forces over all Dirichlet nodes (3,)."""
+        return np.asarray(self.reactions).sum(axis=0)
+
+
+class NotConverged(RuntimeError):
+    """Newton failed after the allowed load-step halvings; ``result`` is the last state, saved at ``state_path``."""
+
+    def __init__(self, message: str, result: StaticResult, state_path: Path | None) -> None:
+        super().__init__(f"{message} (state saved to {state_path})")
+        self.result = result
+        self.state_path = state_path
+
+
+# ------------------------------------------------------------------------------------------------ solver
+
+
+class _StepFailed(Exception):
+    pass
+
+
+def _mean_edge_length(mesh: TetMesh) -> float:
+    p = np.asarray(mesh.nodes)[np.asarray(mesh.tets)[:, :4]]
+    from .mesh import QUADRATIC_EDGES
+
+    return float(np.mean([np.linalg.norm(p[:, i] - p[:, j], axis=1).mean() for i, j in QUADRATIC_EDGES]))
+
+
+def _reduced_selector(K: sp.csr_matrix, free: np.ndarray) -> tuple[np.ndarray, sp.csr_matrix]:
+    """Indices into K.data of the free-free block, and that block's CSR skeleton."""
+    tag = sp.csr_matrix((np.arange(1, K.nnz + 1, dtype=np.float64), K.indices, K.indptr), shape=K.shape)
+    sub = tag[free][:, free].tocsr()
+    sub.sort_indices()
+    sel = sub.data.astype(np.int64) - 1
+    return sel, sub
+
+
+def _save_failure(directory: Path | None, mesh: TetMesh, x: np.ndarray, dirichlet: Dirichlet, lam: float,
+                  log: list[dict]) -> Path | None:
+    try:
+        d = Path(directory) if directory is not None else Path(tempfile.gettempdir()) / "likeness_fem_failures"
+        d.mkdir(parents=True, exist_ok=True)
+        path = d / f"not_converged_{time.strftime('%Y%m%dT%H%M%S')}_{uuid.uuid4().hex[:8]}.npz"
+        tmp = path.with_suffix(".tmp.npz")
+        np.savez_compressed(tmp, x=x, rest=np.asarray(mesh.nodes), tets=np.asarray(mesh.tets),
+                            dirichlet_nodes=dirichlet.nodes, dirichlet_positions=dirichlet.positions,
+                            load_factor=lam, residuals=np.array([r["residual"] for r in log]))
+        os.replace(tmp, path)
+        return path
+    except OSError:
+        return None
+
+
+def solve_static(mesh: TetMesh, material: Material, dirichlet: Dirichlet, *, x0: np.ndarray | None = None,
+                 options: SolverOptions = SolverOptions()) -> StaticResult:
+    """Equilibrium positions x = argmin W(x) − f_g·x subject to x[nodes] = positions (see module doc)."""
+    t_total = time.perf_counter()
+    opts = options
+    resolve_backend(opts.backend)
+    N = mesh.n_nodes
+    nodes = dirichlet.nodes
+    if nodes.size and nodes.max() >= N:
+        raise ValueError(f"Dirichlet node index {nodes.max()} out of range for a mesh with {N} nodes")
+    x = np.array(mesh.nodes if x0 is None else x0, dtype=np.float64)
+    if x.shape != (N, 3):
+        raise ValueError(f"x0 must have shape ({N}, 3), got {x.shape}")
+    if _en.min_jacobian(mesh, x) <= 0:
+        raise ValueError("initial positions invert at least one element (J <= 0)")
+    cdofs = (3 * nodes[:, None] + np.arange(3)).ravel()
+    free = np.ones(3 * N, dtype=bool)
+    free[cdofs] = False
+    free_idx = np.flatnonzero(free)
+    if free_idx.size == 0:
+        raise ValueError("every DoF is constrained; nothing to solve")
+    c_start = x[nodes].copy()
+    c_goal = np.asarray(dirichlet.positions)
+    f_grav = (_en.gravity_forces(mesh, material, opts.gravity) if opts.gravity is not None else np.zeros((N, 3)))
+
+    if opts.load_steps == "auto":
+        disp = float(np.linalg.norm(c_goal - c_start, axis=1).max()) if nodes.size else 0.0
+        n_steps = int(min(50, max(1, math.ceil(disp / _mean_edge_length(mesh)))))
+    else:
+        n_steps = int(opts.load_steps)
+
+    solver = make_solver(opts.backend)
+    timings = {"assemble": 0.0, "factor": 0.0, "solve": 0.0, "line_search": 0.0, "total": 0.0}
+    log: list[dict] = []
+    sel_cache: dict = {}
+    iterations = 0
+
+    def assemble_reduced(xc: np.ndarray, project: bool):
+        t = time.perf_counter()
+        K, n_proj = _en._stiffness(mesh, material, xc, project)
+        if "sel" not in sel_cache:
+            sel_cache["sel"], sel_cache["sub"] = _reduced_selector(K, free_idx)
+        sub = sel_cache["sub"]
+        Kff = sp.csr_matrix((K.data[sel_cache["sel"]], sub.indices, sub.indptr), shape=sub.shape)
+        timings["assemble"] += time.perf_counter() - t
+        return K, Kff, n_proj
+
+    def potential(xc: np.ndarray, fext: np.ndarray) -> float:
+        return _en.total_energy(mesh, material, xc) - float(np.sum(fext * xc))
+
+    def newton(x_in: np.ndarray, lam: float, step: int) -> np.ndarray:
+        nonlocal iterations
+        xk = x_in.copy()
+        target = c_start + lam * (c_goal - c_start)
+        fext = lam * f_grav
+        for it in range(opts.max_iterations):
+            t = time.perf_counter()
+            r = (_en.internal_forces(mesh, material, xk) - fext).ravel()
+            timings["assemble"] += time.perf_counter() - t
+            dc = (target - xk[nodes]).ravel()
+            rf = r[free_idx]
+            res = float(np.linalg.norm(rf))
+            f_ref = max(float(np.linalg.norm(fext)), float(np.linalg.norm(r[cdofs])) if cdofs.size else 0.0)
+            boundary_done = not np.any(dc)
+            e_now = potential(xk, fext)
+            if boundary_done and res <= opts.tol_force * max(1.0, f_ref):
+                log.append({"step": step, "iteration": it, "energy": e_now, "residual": res, "alpha": 0.0,
+                            "projected": 0, "factor_s": 0.0})
+                if opts.verbose:
+                    print(f"  step {step} it {it}: converged |r|={res:.3e} (ref {f_ref:.3e})")
+                return xk
+            project = False
+            while True:
+                K, Kff, n_proj = assemble_reduced(xk, project)
+                rhs = -rf
+                if not boundary_done:
+                    dfull = np.zeros(3 * N)
+                    dfull[cdofs] = dc
+                    rhs = rhs - (K @ dfull)[free_idx]
+                t = time.perf_counter()
+                try:
+                    fac = solver.factor(Kff)
+                except NotPositiveDefinite:
+                    timings["factor"] += time.perf_counter() - t
+                    if project:
+                        raise _StepFailed("projected stiffness still not positive definite") from None
+                    project = True
+                    continue
+                factor_s = time.perf_counter() - t
+                timings["factor"] += factor_s
+                t = time.perf_counter()
+                du = fac.solve(rhs)
+                timings["solve"] += time.perf_counter() - t
+                if not np.all(np.isfinite(du)):
+                    if project:
+                        raise _StepFailed("non-finite Newton direction")
+                    project = True
+                    continue
+                slope = float(rf @ du)
+                if boundary_done and slope >= 0.0:
+                    if project:
+                        raise _StepFailed("no descent direction even with PSD projection")
+                    project = True
+                    continue
+                break
+            d = np.zeros(3 * N)
+            d[free_idx] = du
+            d[cdofs] = dc
+            d = d.reshape(N, 3)
+            t = time.perf_counter()
+            alpha = 1.0
+            accepted = False
+            for _ in range(30):
+                xt = xk + alpha * d
+                e_t = _en.total_energy(mesh, material, xt)
+                if np.isfinite(e_t):
+                    if not boundary_done:
+                        accepted = True
+                        break
+                    e_t -= float(np.sum(fext * xt))
+                    if e_t <= e_now + opts.armijo * alpha * slope:
+                        accepted = True
+                        break
+                    # Near convergence energy differences drown in round-off: accept a full step that reduces r.
+                    if alpha == 1.0 and abs(e_t - e_now) <= 1e-12 * max(1.0, abs(e_now)):
+                        r_t = (_en.internal_forces(mesh, material, xt) - fext).ravel()[free_idx]
+                        if np.linalg.norm(r_t) < res:
+                            accepted = True
+                            break
+                alpha *= 0.5
+            timings["line_search"] += time.perf_counter() - t
+            iterations += 1
+            log.append({"step": step, "iteration": it, "energy": e_now, "residual": res, "alpha": alpha if accepted
+                        else 0.0, "projected": int(n_proj), "factor_s": factor_s})
+            if opts.verbose:
+                print(f"  step {step} it {it}: |r|={res:.3e} (ref {f_ref:.3e}) E={e_now:.6e} alpha={alpha:.3g} "
+                      f"projected={n_proj} factor={factor_s:.3f}s")
+            if not accepted:
+                raise _StepFailed("line search found no admissible step")
+            xk = xt
+        raise _StepFailed(f"no convergence in {opts.max_iterations} iterations")
+
+    lam, dlam, halvings, steps_done = 0.0, 1.0 / n_steps, 0, 0
+    state_lam = 0.0
+    while lam < 1.0 - 1e-12:
+        lam1 = min(1.0, lam + dlam)
+        if 1.0 - lam1 < 1e-9:
+            lam1 = 1.0
+        try:
+            x = newton(x, lam1, steps_done)
+            lam, state_lam = lam1, lam1
+            steps_done += 1
+        except _StepFailed as exc:
+            halvings += 1
+            if opts.verbose:
+                print(f"  load step to {lam1:.4f} failed ({exc}); halving")
+            if halvings > opts.max_load_step_halvings:
+                timings["total"] = time.perf_counter() - t_total
+                result = StaticResult(x, False, iterations, steps_done, tuple(log), MappingProxyType(dict(timings)),
+                                      _reactions(mesh, material, x, nodes, f_grav * state_lam))
+                path = _save_failure(opts.failure_dir, mesh, x, dirichlet, state_lam, log)
+                raise NotConverged(f"solve_static: {exc} at load factor {lam1:.4f} after {halvings - 1} halvings",
+                                   result, path) from None
+            dlam *= 0.5
+    timings["total"] = time.perf_counter() - t_total
+    return StaticResult(x, True, iterations, steps_done, tuple(log), MappingProxyType(dict(timings)),
+                        _reactions(mesh, material, x, nodes, f_grav))
+
+
+def _reactions(mesh: TetMesh, material: Material, x: np.ndarray, nodes: np.ndarray, fext: np.ndarray) -> np.ndarray:
+    """Constraint force at each Dirichlet node: internal force there minus the external load (K, 3)."""
+    f = _en.internal_forces(mesh, material, x)
+    return (f - fext)[nodes]
