@@ -92,6 +92,18 @@ _TPDO2 = struct.Struct("<ihH")  # velocity actual, current actual (per mille), e
 _RPDO1 = struct.Struct("<Hi")  # controlword, target position
 
 
+class _QuietPartialReads(logging.Filter):
+    """Drop python-can's socketcand client warning about a message split across TCP reads (benign, per read)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not str(record.msg).startswith("Got incomplete message")
+
+
+_SOCKETCAND_LOG = logging.getLogger("can.interfaces.socketcand.socketcand")
+if not any(isinstance(f, _QuietPartialReads) for f in _SOCKETCAND_LOG.filters):
+    _SOCKETCAND_LOG.addFilter(_QuietPartialReads())
+
+
 def _where(index: int, subindex: int) -> str:
     return f"0x{index:04X}:{subindex}"
 
@@ -206,6 +218,7 @@ class _Node:
         self.emcy_code = 0
         self.stamp = 0.0  # monotonic time of the latest valid TPDO1
         self.answered_sync = 0  # SYNC counter when the latest TPDO1 arrived
+        self.answered_sync2 = 0  # same for TPDO2
         self.last_heartbeat = 0.0
         self.nmt_state = -1
         self.expect_operational = False
@@ -238,8 +251,17 @@ class CanOpen402Bus(MotorBus):
         self._monitor: threading.Thread | None = None
         self._monitor_stop = threading.Event()
         self._stats = {"syncs": 0, "malformed_tpdos": 0, "tolerated_emcy": 0, "emcy": 0}
+        self._feedback = threading.Event()
 
     # ------------------------------------------------------------------ diagnostics
+    def wait_for_feedback(self, timeout_s: float) -> bool:
+        """Block (without the bus lock) until every drive answered the latest SYNC; False on timeout.
+
+        For loops that want the feedback of this cycle's SYNC before the next read, and for
+        latency measurements; the normal loop just reads the latest sample.
+        """
+        return self._feedback.wait(timeout_s)
+
     def diagnostics(self) -> dict[str, Any]:
         """Counters (SYNCs sent, malformed TPDOs, EMCYs) and per-node feedback age in seconds."""
         now = time.monotonic()
@@ -447,6 +469,7 @@ class CanOpen402Bus(MotorBus):
         node.status, node.position = _TPDO1.unpack(data)
         node.stamp = time.monotonic()
         node.answered_sync = self._sync_count
+        self._check_cycle_complete()
 
     def _on_tpdo2(self, node: _Node, data: bytes) -> None:
         if len(data) != _TPDO2.size:
@@ -454,6 +477,13 @@ class CanOpen402Bus(MotorBus):
             self._stats["malformed_tpdos"] += 1
             return
         node.velocity, node.current, node.error_code = _TPDO2.unpack(data)
+        node.answered_sync2 = self._sync_count
+        self._check_cycle_complete()
+
+    def _check_cycle_complete(self) -> None:
+        count = self._sync_count
+        if all(n.answered_sync >= count and n.answered_sync2 >= count for n in self._nodes.values()):
+            self._feedback.set()
 
     def _on_emcy(self, node: _Node, entry: Any) -> None:
         code = entry.code
@@ -498,9 +528,13 @@ class CanOpen402Bus(MotorBus):
                         f"no heartbeat from node {node.id} for {age * 1e3:.0f} ms "
                         f"(timeout {self._opts.heartbeat_timeout_s * 1e3:.0f} ms)",
                     ))
-            if self._events:
-                with self._lock:
-                    self._drain_events()
+            # Never block on the bus lock: close() holds it while joining this thread.
+            while self._events and not self._monitor_stop.is_set():
+                if self._lock.acquire(timeout=0.05):
+                    try:
+                        self._drain_events()
+                    finally:
+                        self._lock.release()
 
     def _drain_events(self) -> None:
         while self._events:
@@ -618,6 +652,7 @@ class CanOpen402Bus(MotorBus):
         self._sync_count += 1
         self._stats["syncs"] += 1
         self._synced_since_read = True
+        self._feedback.clear()
         self._network.send_message(0x80, b"")
 
     def _write(self, targets: Mapping[str, float]) -> None:

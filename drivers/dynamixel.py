@@ -6,8 +6,11 @@ position limits, profile velocity, and an indirect-address block so one sync rea
 hardware error, torque, current, velocity and position). Each cycle is one ``GroupSyncWrite``
 of goal positions and one ``GroupSyncRead`` (fast sync read where the model supports it).
 A hardware error bit puts the bus in FAULT with the bits as code; ``reset_fault`` reboots the
-faulted servos and configures them again. The SDK is not thread-safe, so every port access
-holds one lock.
+faulted servos and configures them again. A read that gets no answer returns the previous
+states (their timestamps show their age) until ``max_consecutive_failures`` reads in a row
+failed; then the bus faults and raises :class:`BusTimeout`. The SDK is not thread-safe, so
+every port access holds one lock. A ``port`` of "auto" (simulated buses in a head file) must be
+replaced by the caller with the emulator's device path before opening.
 
 Options: ``port`` (device path), ``baudrate`` (default 1000000), ``protocol`` (2.0 only),
 ``model`` (default "XM430-W350"), ``return_delay_us`` (0–508, even; default 0),
@@ -79,6 +82,8 @@ RESULT_ERROR_NAMES = {
     1: "result fail", 2: "instruction error", 3: "CRC error", 4: "data range error",
     5: "data length error", 6: "data limit error", 7: "access error",
 }
+#: Longest status packet dynamixel-sdk accepts (its RXPACKET_MAX_LEN).
+SDK_MAX_PACKET = 1024
 SUPPORTED_BAUDRATES = (9600, 57600, 115200, 1_000_000, 2_000_000, 3_000_000, 4_000_000)
 _OPTIONS = {
     "port", "baudrate", "protocol", "model", "return_delay_us", "use_fast_sync_read", "operating_mode",
@@ -146,9 +151,15 @@ class DynamixelBus(MotorBus):
             raise ConfigError(f"bus {name!r}.options.return_delay_us",
                               f"must be an even number of microseconds in 0..508, got {self._return_delay_us!r}")
         fast = opts.get("use_fast_sync_read", "auto")
+        # the answer to a fast sync read is one packet; the SDK takes packets up to 1 KiB
+        fits = 8 + len(self.motors) * (len(INDIRECT_LAYOUT) + 4) <= SDK_MAX_PACKET
         if fast == "auto":
-            self._fast = self.model.fast_sync_read
+            self._fast = self.model.fast_sync_read and fits
         elif isinstance(fast, bool):
+            if fast and not fits:
+                raise ConfigError(f"bus {name!r}.options.use_fast_sync_read",
+                                  f"the answer for {len(self.motors)} servos exceeds the SDK's {SDK_MAX_PACKET}-byte "
+                                  "packet; use a normal sync read ('auto' or false)")
             self._fast = fast
         else:
             raise ConfigError(f"bus {name!r}.options.use_fast_sync_read",
@@ -180,6 +191,7 @@ class DynamixelBus(MotorBus):
         self._failures = 0
         self._last_states: dict[str, MotorState] = {}
         self._last_raw: dict[int, tuple[int, int, int, int, int]] = {}
+        self._enabling = False  # set between _enable and the read MotorBus.enable makes right after it
 
     # ------------------------------------------------------------------ option helpers
     def _opt_str(self, key: str, default: str | None) -> str:
@@ -228,6 +240,11 @@ class DynamixelBus(MotorBus):
         return self._fast
 
     # ------------------------------------------------------------------ SDK access
+    def _device(self, device_id: int) -> str:
+        """The name errors and faults use for ``device_id``: its motor name."""
+        motor = self._by_id.get(device_id)
+        return motor.name if motor else f"id {device_id}"
+
     def _label(self, device_id: int) -> str:
         motor = self._by_id.get(device_id)
         return f"{motor.name} (id {device_id})" if motor else f"id {device_id}"
@@ -247,7 +264,7 @@ class DynamixelBus(MotorBus):
             try:
                 out = self._call(fn, self._port, device_id, *args)
             except (OSError, ValueError, IndexError) as exc:
-                raise BusTimeout(self._label(device_id), f"{what}: port failure: {exc}") from exc
+                raise BusTimeout(self._device(device_id), f"id {device_id}: {what}: port failure: {exc}") from exc
             if isinstance(out, tuple) and len(out) == 3:
                 value, result, error = out
             else:
@@ -256,13 +273,14 @@ class DynamixelBus(MotorBus):
                 break
             log.debug("bus %s: %s: %s (try %d)", self.name, what, self._ph.getTxRxResult(result), attempt + 1)
         else:
-            raise BusTimeout(self._label(device_id), f"{what}: {self._ph.getTxRxResult(result)} ({tries} tries)")
+            raise BusTimeout(self._device(device_id),
+                             f"id {device_id}: {what}: {self._ph.getTxRxResult(result)} ({tries} tries)")
         code = error & 0x7F
         if code:
             raise BusInitError(f"bus {self.name!r}: {self._label(device_id)}: {what} refused: "
                                f"{RESULT_ERROR_NAMES.get(code, f'error {code}')}")
         if error & 0x80 and not allow_alert:
-            raise DeviceFault(self._label(device_id), 0, f"{what}: device reports a hardware error")
+            raise DeviceFault(self._device(device_id), 0, f"{what}: device reports a hardware error")
         return value
 
     def _write_value(self, device_id: int, address: int, size: int, value: int, what: str) -> None:
@@ -326,8 +344,8 @@ class DynamixelBus(MotorBus):
     def _identify(self, device_id: int) -> None:
         number = self._ping(device_id, 1 + self._retries)
         if number is None:
-            raise BusTimeout(self._label(device_id),
-                             f"no answer to ping on {self._port_name} ({1 + self._retries} tries)")
+            raise BusTimeout(self._device(device_id),
+                             f"id {device_id}: no answer to ping on {self._port_name} ({1 + self._retries} tries)")
         if number != self.model.number:
             raise BusInitError(f"bus {self.name!r}: {self._label(device_id)} is model number {number}, "
                                f"configured model {self.model.name} is {self.model.number}")
@@ -387,17 +405,16 @@ class DynamixelBus(MotorBus):
                     f"{name}: present position {state.position:.4g} ({counts} counts) is outside "
                     f"[{motor.min_position:.4g}, {motor.max_position:.4g}]; move it into range with torque off"
                 )
-        enabled: list[int] = []
-        try:
+        try:  # acknowledged writes, so a servo refusing torque (hardware error) is known at once
             for device_id in self._ids:
                 counts = raw[device_id][4]
                 lo, hi = self._ranges[self._by_id[device_id].name]
                 self._write_value(device_id, ADDR_GOAL_POSITION, 4, min(max(counts, lo), hi), "hold position")
                 self._write_value(device_id, ADDR_TORQUE_ENABLE, 1, 1, "torque on")
-                enabled.append(device_id)
         except Exception:
             self._torque_off_all()
             raise
+        self._enabling = True
 
     def _disable(self) -> None:
         self._torque_off_all()
@@ -439,6 +456,7 @@ class DynamixelBus(MotorBus):
     def _read(self) -> dict[str, MotorState]:
         from dynamixel_sdk import COMM_SUCCESS
 
+        enabling, self._enabling = self._enabling, False
         group = self._sync_read
         for device_id in self._ids:
             group.data_dict[device_id] = []
@@ -450,7 +468,7 @@ class DynamixelBus(MotorBus):
         now = time.monotonic()
         if result != COMM_SUCCESS:
             missing = [i for i in self._ids if len(group.data_dict.get(i) or ()) != len(INDIRECT_LAYOUT)]
-            device = self._label(missing[0]) if missing and not self._fast else self.name
+            device = self._device(missing[0]) if missing and not self._fast else self.name
             detail = self._ph.getTxRxResult(result) if isinstance(result, int) else "port failure"
             self._communication_failure(device, f"sync read failed ({detail}); no data from "
                                                 f"{', '.join(self._label(i) for i in missing) or 'unknown'}")
@@ -483,6 +501,10 @@ class DynamixelBus(MotorBus):
             )
         self._last_raw = raw
         self._last_states = states
+        if enabling and self._state is LifecycleState.FAULT:
+            # MotorBus.enable sets ACTIVE after this read; a fault seen here must abort the enable instead
+            device, (code, message) = next(iter(self._faults.items()))
+            raise DeviceFault(device, code, f"fault while enabling: {message}")
         return dict(states)
 
     def _communication_failure(self, device: str, message: str) -> None:
@@ -506,7 +528,8 @@ class DynamixelBus(MotorBus):
         for device_id in self._ids:
             while self._ping(device_id, 1) is None:
                 if time.monotonic() > deadline:
-                    raise BusTimeout(self._label(device_id), f"silent {self._reboot_timeout} s after reboot")
+                    raise BusTimeout(self._device(device_id),
+                                     f"id {device_id}: silent {self._reboot_timeout} s after reboot")
         for device_id in self._ids:
             self._configure(device_id)
         self._failures = 0

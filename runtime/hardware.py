@@ -13,7 +13,7 @@ from collections.abc import Mapping
 from typing import Any
 
 from drivers.base import LifecycleState, MotorBus, MotorConfig, MotorState
-from drivers.errors import BusTimeout, CommandRejected
+from drivers.errors import BusInitError, BusTimeout, CommandRejected
 from drivers.registry import create_bus
 from models.headspec import ActuatorSpec, HeadSpec
 
@@ -103,8 +103,9 @@ class Hardware:
                     try:
                         bus.open()
                         break
-                    except BusTimeout as exc:
-                        # An emulator shares this host's CPU; under load it can miss a driver's fixed reply window.
+                    except (BusTimeout, BusInitError) as exc:
+                        # An emulator shares this host's CPU; under load it can miss a driver's fixed reply window
+                        # (and a late reply can then be misread as the answer to the next request).
                         if attempt == attempts:
                             raise
                         log.warning("bus %s: open attempt %d failed (%s); retrying", name, attempt, exc)

@@ -33,31 +33,39 @@ def try_realtime(priority: int) -> tuple[bool, str]:
     return True, f"control thread runs SCHED_FIFO priority {priority}"
 
 
-def promote_threads(priority: int, exclude: set[int] | None = None) -> int:
-    """Put every other thread of this process under SCHED_FIFO at ``priority``; returns how many changed.
+def promote_threads(priority: int, exclude: set[int] | None = None) -> list[int]:
+    """Put every other thread of this process under SCHED_RR at ``priority``; returns the thread ids changed.
 
     With a GIL, the control thread waits for whichever thread holds it: if that thread runs at normal priority,
     any busy process on the machine delays the control loop. Raising the daemon's helper threads (API, bus
     notifiers, in-process emulators standing in for hardware) to a realtime priority below the control thread's
-    removes that inversion. Threads already realtime are left alone. Linux only; best effort.
+    removes that inversion. Round-robin, so equal-priority helpers still share the CPU. Threads already realtime
+    and those in ``exclude`` are left alone. Linux only; best effort.
     """
     exclude = exclude or set()
-    changed = 0
+    changed: list[int] = []
     try:
         tids = [int(t) for t in os.listdir("/proc/self/task")]
     except OSError:
-        return 0
+        return changed
     for tid in tids:
         if tid in exclude:
             continue
         try:
             if os.sched_getscheduler(tid) != os.SCHED_OTHER:
                 continue
-            os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
-            changed += 1
+            os.sched_setscheduler(tid, os.SCHED_RR, os.sched_param(priority))
+            changed.append(tid)
         except OSError:
             continue
     return changed
+
+
+def demote_threads(tids: list[int]) -> None:
+    """Back to normal scheduling for those of ``tids`` still alive (best effort)."""
+    for tid in tids:
+        with contextlib.suppress(OSError):
+            os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
 
 
 def drop_realtime() -> None:
@@ -80,18 +88,25 @@ class LoopStats:
         self.window = window
         self.lateness = np.zeros(window)
         self.work = np.zeros(window)
+        self.periods = np.zeros(window)
+        self._last_start: float | None = None
         self.n = 0
         self.missed = 0
         self.skipped = 0  # cycles not run because a lifecycle transition held the loop
 
-    def add(self, lateness: float, work: float) -> None:
+    def add(self, lateness: float, work: float, start: float | None = None) -> None:
+        """One cycle: wake-up lateness, work time and (optionally) its start time, for the measured period."""
         i = self.n % self.window
         self.lateness[i] = lateness
         self.work[i] = work
+        if start is not None:
+            self.periods[i] = start - self._last_start if self._last_start is not None else self.period
+            self._last_start = start
         self.n += 1
 
     def reset(self) -> None:
         self.n = self.missed = self.skipped = 0
+        self._last_start = None
 
     def summary(self) -> dict[str, float | int]:
         """p50/p99/max of jitter and work time in microseconds, counts of cycles and misses."""
@@ -103,7 +118,9 @@ class LoopStats:
             wk = self.work[:k] * 1e6
             p = np.percentile(lat, [50, 99])
             w = np.percentile(wk, [50, 99])
-            out.update(jitter_p50_us=float(p[0]), jitter_p99_us=float(p[1]), jitter_max_us=float(lat.max()),
+            per = self.periods[:k] * 1e6
+            out.update(period_mean_us=float(per.mean()), period_max_us=float(per.max()),
+                       jitter_p50_us=float(p[0]), jitter_p99_us=float(p[1]), jitter_max_us=float(lat.max()),
                        work_p50_us=float(w[0]), work_p99_us=float(w[1]), work_max_us=float(wk.max()))
         return out
 

@@ -8,9 +8,9 @@ Protocol (raw mode only): the server greets ``< hi >``; the client sends ``< ope
 ``< rawmode >``, each answered ``< ok >``; then the client sends ``< send 205 4 1 2 3 4 >`` (id and
 bytes in unpadded hex) and receives ``< frame 205 1795238642.596493 01020304 >`` (standard ids as
 3 hex digits, extended as 8, data as one hex string). Frames from one client go to the bus and to
-the other clients, never back to the sender. Frames reaching a client in the few milliseconds
-after its ``< ok >`` to raw mode are not forwarded, because python-can's client reads that ``< ok >``
-with a single ``recv`` and would fail if a frame arrived in the same segment.
+the other clients, never back to the sender. Frames for a client are held for a few milliseconds
+after its ``< ok >`` to raw mode and then sent in order, because python-can's client reads that
+``< ok >`` with a single ``recv`` and would fail if a frame arrived in the same segment.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ import can
 
 log = logging.getLogger(__name__)
 
-#: Delay after the raw-mode ``< ok >`` before frames are forwarded to a new client.
+#: Delay after the raw-mode ``< ok >`` before frames (held meanwhile) are forwarded to a new client.
 RAWMODE_GRACE_S = 0.02
 MAX_COMMAND_CHARS = 256
 
@@ -56,13 +56,17 @@ def parse_send(command: str) -> can.Message:
 
 
 class _Client:
-    """One connected client: its socket, send lock and raw-mode readiness."""
+    """One connected client: its socket, send lock, raw-mode state and frames held during the grace period."""
+
+    MAX_HELD = 4096
 
     def __init__(self, sock: socket.socket, peer: Any) -> None:
         self.sock = sock
         self.peer = peer
         self.lock = threading.Lock()
-        self.ready_at: float | None = None  # monotonic time from which frames are forwarded
+        self.raw = False  # in raw mode: frames are forwarded (held until ``ready``)
+        self.ready = False
+        self.held: list[bytes] = []
         self.alive = True
 
     def send(self, payload: bytes) -> bool:
@@ -73,6 +77,31 @@ class _Client:
         except OSError:
             self.alive = False
             return False
+
+    def forward(self, frame: bytes) -> bool:
+        """Send a frame now, or hold it while the raw-mode ``< ok >`` may still be unread."""
+        try:
+            with self.lock:
+                if not self.ready:
+                    if len(self.held) < self.MAX_HELD:
+                        self.held.append(frame)
+                    return True
+                self.sock.sendall(frame)
+            return True
+        except OSError:
+            self.alive = False
+            return False
+
+    def release(self) -> None:
+        """End of the grace period: flush the held frames in order and forward from now on."""
+        try:
+            with self.lock:
+                if self.held:
+                    self.sock.sendall(b"".join(self.held))
+                    self.held.clear()
+                self.ready = True
+        except OSError:
+            self.alive = False
 
 
 class SocketcandServer:
@@ -187,11 +216,10 @@ class SocketcandServer:
             self._broadcast(format_frame(msg), exclude=None)
 
     def _broadcast(self, payload: bytes, exclude: _Client | None) -> None:
-        now = time.monotonic()
         with self._clients_lock:
-            clients = [c for c in self._clients if c is not exclude and c.ready_at is not None and now >= c.ready_at]
+            clients = [c for c in self._clients if c is not exclude and c.raw]
         for client in clients:
-            if not client.send(payload):
+            if not client.forward(payload):
                 self._drop(client)
 
     def _drop(self, client: _Client) -> None:
@@ -249,7 +277,10 @@ class SocketcandServer:
         if stage == "bcm":
             if verb == "rawmode":
                 client.send(b"< ok >")
-                client.ready_at = time.monotonic() + RAWMODE_GRACE_S
+                client.raw = True
+                timer = threading.Timer(RAWMODE_GRACE_S, client.release)
+                timer.daemon = True
+                timer.start()
                 return "raw"
             if verb == "echo":
                 client.send(b"< echo >")

@@ -18,6 +18,7 @@ import logging
 import math
 import struct
 import threading
+import time
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -159,6 +160,7 @@ class EmulatedDrive:
     """
 
     ASYNC_CHECK_PERIOD = 0.005
+    VELOCITY_FILTER_S = 0.01
 
     def __init__(
         self,
@@ -178,6 +180,7 @@ class EmulatedDrive:
         self.node.add_write_callback(self._on_write)
         self._lock = threading.RLock()
         self._motor = motor.MotorState(position=float(initial_position_counts))
+        self._velocity_filtered = 0.0
         self._network: canopen.Network | None = None
         self.heartbeat_enabled = True
         self._next_heartbeat = 0.0
@@ -228,6 +231,8 @@ class EmulatedDrive:
         self._seg_T = 0.0
         self._pp_target: float | None = None
         self._pp_ack = False
+        self._last_target_time = 0.0
+        self._period_estimate = 0.01
         self._fe_time = 0.0
         self._error_code = 0
         self._error_register = 0
@@ -327,7 +332,7 @@ class EmulatedDrive:
         if index == 0x6064:
             return _clamp_i32(round(self._motor.position))
         if index == 0x606C:
-            return _clamp_i32(round(self._motor.velocity))
+            return _clamp_i32(round(self._velocity_filtered))
         if index == 0x6062:
             return _clamp_i32(round(self._demand))
         if index == 0x60F4:
@@ -491,10 +496,19 @@ class EmulatedDrive:
         self._target = value
         if self._state != OPERATION_ENABLED or self._mode != MODE_CSP:
             return
+        # Interpolate over the measured target period (as drives that lock onto SYNC do), seeded with
+        # 0x60C2; a pause longer than 0.1 s restarts from 0x60C2.
+        now = time.monotonic()
+        gap = now - self._last_target_time
+        self._last_target_time = now
+        if 0.0005 <= gap <= 0.1:
+            self._period_estimate = 0.7 * self._period_estimate + 0.3 * gap
+        else:
+            self._period_estimate = self._interp_period
         self._seg_start = self._demand
         self._seg_end = self._clamp_target(value)
         self._seg_t = 0.0
-        self._seg_T = self._interp_period
+        self._seg_T = self._period_estimate
 
     def _profile_controlword(self, prev: int, cw: int) -> None:
         if cw & 0x10 and not prev & 0x10:  # new set-point
@@ -645,6 +659,8 @@ class EmulatedDrive:
         state = self._state
         m = self._motor
         p = self.params
+        # 0x606C reports the velocity through a first-order filter, as drives do.
+        self._velocity_filtered += (m.velocity - self._velocity_filtered) * min(1.0, dt / self.VELOCITY_FILTER_S)
         if state == OPERATION_ENABLED:
             if self._mode == MODE_CSP:
                 if self._seg_t < self._seg_T:

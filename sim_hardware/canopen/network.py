@@ -42,11 +42,13 @@ class LinkImpairment:
     counts: dict[str, int] = field(default_factory=lambda: {"dropped": 0, "corrupted": 0, "delayed": 0})
 
     def active(self, rx: bool) -> bool:
+        """Whether any fault is set for this direction (``rx``: frames towards the drives)."""
         if not (self.drop or self.corrupt or self.delay_s):
             return False
         return self.direction == "both" or self.direction == ("rx" if rx else "tx")
 
     def applies_to(self, can_id: int) -> bool:
+        """Whether a frame with ``can_id`` matches the node filter (SYNC and NMT belong to no node)."""
         return self.device is None or (can_id & 0x7F == self.device and can_id not in (0, 0x80))
 
 

@@ -38,6 +38,8 @@ log = logging.getLogger(__name__)
 #: Faults accepted by :meth:`DynamixelEmulator.inject`.
 DEVICE_FAULTS = ("overheat", "overload", "voltage", "electrical_shock", "encoder", "disconnect")
 BUS_FAULTS = ("drop", "delay", "corrupt")
+#: Buffered bytes older than this when new bytes arrive are a dead partial packet and are dropped.
+INTER_PACKET_TIMEOUT_S = 0.05
 
 
 def parse_ids(text: str) -> list[int]:
@@ -70,7 +72,9 @@ class DynamixelEmulator:
     """Serve emulated servos of one model on a pty from a background thread.
 
     ``initial_positions`` gives each servo's starting Present Position in counts (one int for
-    all, or a map by id; default 0). ``reboot_time_s`` is how long a rebooting servo is silent.
+    all, or a map by id; default 0). For a driver's motors, ``{m.device_id: m.to_counts(neutral)}``
+    starts every servo at its neutral pose, which ``DynamixelBus.enable`` requires to be in range.
+    ``reboot_time_s`` is how long a rebooting servo is silent.
     Use as a context manager or call :meth:`start` / :meth:`close`.
     """
 
@@ -308,6 +312,7 @@ class DynamixelEmulator:
         assert master is not None
         poll = select.poll()
         poll.register(master, select.POLLIN)
+        last_rx = 0.0
         while not self._stop.is_set():
             try:
                 if not poll.poll(100):
@@ -321,6 +326,10 @@ class DynamixelEmulator:
                 continue
             if not data:
                 continue
+            now = time.monotonic()
+            if self._parser.pending() and now - last_rx > INTER_PACKET_TIMEOUT_S:
+                self._parser.clear()  # a truncated packet from an earlier client must not swallow this one
+            last_rx = now
             for packet in self._parser.feed(data):
                 try:
                     with self._lock:

@@ -33,6 +33,7 @@ MAX_SUBSTEP_S = 0.002
 _POSITION_MODES = (MODE_POSITION, MODE_EXTENDED_POSITION, 5)
 _HOMING_THRESHOLD = struct.Struct("<iI")
 _U16 = struct.Struct("<H")
+_VOLTAGE_LIMITS = struct.Struct("<HH")
 _I32 = struct.Struct("<i")
 #: realtime tick .. present temperature (addresses 120–146)
 _PRESENT = struct.Struct("<HBBhhiiiiHB")
@@ -49,6 +50,7 @@ class Servo:
         self._items = model.items
         self._addr = {it.name: it.address for it in model.items}
         self._indirect: list[tuple[int, int, int]] = list(model.indirect_address_blocks)
+        self._translations: dict[tuple[int, int], list[int]] = {}  # (address, length) -> real addresses
         self._owner: list = [None] * model.size  # byte address -> item containing it
         for it in model.items:
             for b in range(it.address, it.address + it.size):
@@ -84,6 +86,9 @@ class Servo:
 
     def _store(self, address: int, size: int, value: int, signed: bool = False) -> None:
         self.memory[address:address + size] = value.to_bytes(size, "little", signed=signed and value < 0)
+        for addr_base, _, count in self._indirect:
+            if addr_base <= address < addr_base + 2 * count:
+                self._translations.clear()
 
     def read_item(self, name: str) -> int:
         """Current value of an item (no motion update)."""
@@ -145,13 +150,12 @@ class Servo:
         """Move the shaft from outside (a mechanism back-driving a torque-off servo, or a test)."""
         self.shaft = float(counts)
         self.velocity = 0.0
+        self._refreshed_at = -1.0
 
-    def advance(self, now: float | None = None) -> None:
-        """Integrate the motion and thermal model up to ``now`` and refresh the present-value items."""
+    def advance(self, now: float | None = None, *, refresh: bool = True) -> None:
+        """Integrate the motion and thermal model up to ``now``; refresh the present-value items if asked."""
         if now is None:
             now = self._clock()
-        elif now == self._refreshed_at:
-            return
         dt = now - self._last
         if dt > 0:
             self._last = now
@@ -160,7 +164,8 @@ class Servo:
                 self.temperature = AMBIENT_TEMPERATURE_C + (self.temperature - AMBIENT_TEMPERATURE_C) * math.exp(
                     -dt / THERMAL_TAU_S)
         self._check_errors()
-        self._refresh(now)
+        if refresh and now != self._refreshed_at:
+            self._refresh(now)
 
     def _profile_limits(self) -> tuple[float, float]:
         mem = self.memory
@@ -180,10 +185,13 @@ class Servo:
             self.acceleration = 0.0
             return
         mode = self.memory[11]
-        vmax, amax = self._profile_limits()
         if mode in _POSITION_MODES:
-            target = self._s(116, 4) - self._s(20, 4)
+            target = _I32.unpack_from(self.memory, 116)[0] - _I32.unpack_from(self.memory, 20)[0]
             p, v = self.shaft, self.velocity
+            if v == 0.0 and p == target:  # settled: nothing to integrate
+                self.acceleration = 0.0
+                return
+            vmax, amax = self._profile_limits()
             remaining = dt
             v0 = v
             while remaining > 0:
@@ -209,6 +217,7 @@ class Servo:
             self.acceleration = (v - v0) / dt
             self.shaft, self.velocity = p, v
         elif mode == MODE_VELOCITY:
+            vmax, amax = self._profile_limits()
             goal = self._s(104, 4) * self._vel_unit
             v0 = self.velocity
             if amax == math.inf:
@@ -229,7 +238,8 @@ class Servo:
         if self.temperature > self.memory[31]:
             bits |= HardwareError.OVERHEATING
         volts = self.voltage * 10.0
-        if volts < self._u(34, 2) or volts > self._u(32, 2):
+        high, low = _VOLTAGE_LIMITS.unpack_from(self.memory, 32)
+        if volts < low or volts > high:
             bits |= HardwareError.INPUT_VOLTAGE
         if self.overload_condition:
             bits |= HardwareError.OVERLOAD
@@ -274,6 +284,10 @@ class Servo:
     # ------------------------------------------------------------------ instructions
     def _translate(self, address: int, length: int) -> list[int] | None:
         """Map ``length`` bytes from ``address`` through indirect data to real addresses (None: out of table)."""
+        key = (address, length)
+        cached = self._translations.get(key)
+        if cached is not None:
+            return cached
         if address < 0 or length < 0 or address + length > len(self.memory):
             return None
         out = list(range(address, address + length))
@@ -283,6 +297,9 @@ class Servo:
             for a in range(lo, hi):
                 k = addr_base + 2 * (a - data_base)
                 out[a - address] = mem[k] | (mem[k + 1] << 8)
+        if len(self._translations) > 256:
+            self._translations.clear()
+        self._translations[key] = out
         return out
 
     def read(self, address: int, length: int, now: float | None = None) -> tuple[int, bytes]:
@@ -305,10 +322,20 @@ class Servo:
 
         Returns the status error byte (result code | alert). With ``apply`` False only checks.
         """
+        it = self._owner[address] if 0 <= address < len(self._owner) else None
+        if it is not None and it.address == address and it.size == len(data) and not it.name.startswith("indirect"):
+            # the common case: exactly one whole item
+            self.advance(now, refresh=False)
+            error = self._check_item(it, int.from_bytes(data, "little", signed=it.signed))
+            if error or not apply:
+                return error | self.alert
+            self._apply(it, int.from_bytes(data, "little", signed=it.signed))
+            self._refreshed_at = -1.0
+            return self.alert
         addrs = self._translate(address, len(data))
         if addrs is None or not data:
             return ResultError.ACCESS | self.alert
-        self.advance(now)
+        self.advance(now, refresh=False)
         staged = dict(zip(addrs, data, strict=True))
         updates: list[tuple[object, int]] = []
         seen: set[int] = set()
@@ -316,20 +343,14 @@ class Servo:
             if a in seen:
                 continue
             it = self._owner[a]
-            if it is None or not it.writable:
+            if it is None:
                 return ResultError.ACCESS | self.alert
             span = range(it.address, it.address + it.size)
             if any(b not in staged for b in span):
                 return ResultError.DATA_LENGTH | self.alert
             seen.update(span)
-            if (it.eeprom or it.name.startswith("indirect_address")) and self.torque_enabled:
-                return ResultError.ACCESS | self.alert
             value = int.from_bytes(bytes(staged[b] for b in span), "little", signed=it.signed)
-            if it.allowed is not None and value not in it.allowed:
-                return ResultError.DATA_RANGE | self.alert
-            if (it.low is not None and value < it.low) or (it.high is not None and value > it.high):
-                return ResultError.DATA_RANGE | self.alert
-            error = self._limit_check(it.name, value)
+            error = self._check_item(it, value)
             if error:
                 return error | self.alert
             updates.append((it, value))
@@ -337,8 +358,20 @@ class Servo:
             return self.alert
         for it, value in updates:
             self._apply(it, value)  # type: ignore[arg-type]
-        self._refresh(self._last)
+        self._refreshed_at = -1.0
         return self.alert
+
+    def _check_item(self, it, value: int) -> int:
+        """Result error of writing ``value`` to item ``it`` now (0 when allowed)."""
+        if not it.writable:
+            return ResultError.ACCESS
+        if (it.eeprom or it.name.startswith("indirect_address")) and self.memory[64] == 1:
+            return ResultError.ACCESS
+        if it.allowed is not None and value not in it.allowed:
+            return ResultError.DATA_RANGE
+        if (it.low is not None and value < it.low) or (it.high is not None and value > it.high):
+            return ResultError.DATA_RANGE
+        return self._limit_check(it.name, value)
 
     def _limit_check(self, name: str, value: int) -> int:
         mem = self.memory

@@ -27,9 +27,9 @@ def make_daemon(tmp_path: Path) -> Iterator[Callable[..., Any]]:
 
     made: list[Daemon] = []
 
-    def make(head_path: Path = SAMPLE, **extra: Any) -> Daemon:
+    def make(head_path: Path = SAMPLE, target_solvers: tuple = (), **extra: Any) -> Daemon:
         overrides = daemon_overrides(tmp_path, **{k.replace("__", "."): v for k, v in extra.items()})
-        daemon = Daemon(load_head(head_path), overrides)
+        daemon = Daemon(load_head(head_path), overrides, target_solvers=target_solvers)
         made.append(daemon)
         daemon.start()
         return daemon

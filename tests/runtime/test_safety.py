@@ -29,7 +29,7 @@ def test_reaches_target_smoothly_and_stops() -> None:
         assert abs(v) <= sf.vmax[jaw] + 1e-9
         assert abs(v - v_prev) <= sf.amax[jaw] * dt + 1e-6
         v_prev = v
-    assert sf.q[jaw] == np.float64(sf.q[jaw]) and abs(sf.q[jaw] - math.radians(20)) < 1e-6
+    assert abs(sf.q[jaw] - math.radians(20)) < 1e-6
     assert abs(sf.v[jaw]) < 1e-6
 
 
@@ -57,3 +57,17 @@ def test_any_input_stays_within_limits_and_rates(targets: list[list[float]], dt:
         assert np.all(np.isfinite(q))
         assert np.all(q >= sf.lo) and np.all(q <= sf.hi)
         assert np.all(np.abs(q - q_prev) <= sf.vmax * speed * dt + 1e-9)
+
+
+def test_mirror_group_keeps_members_opposite() -> None:
+    import tomllib
+
+    from models.headspec import head_from_dict
+
+    data = tomllib.loads((Path(__file__).resolve().parents[2] / "heads" / "sample" / "head.toml").read_text())
+    data["groups"]["brows"] = {"kind": "mirror", "actuators": ["brow_l", "brow_r"]}
+    sf = SafetyFilter(head_from_dict(data, "mirror.toml"))
+    i = sf.index
+    x = sf.constrain(sf.vector({"brow_l": math.radians(10), "brow_r": math.radians(-6)}))
+    assert abs(x[i["brow_l"]] - math.radians(8)) < 1e-12  # the mean of 10 and -(-6)
+    assert abs(x[i["brow_r"]] + x[i["brow_l"]]) < 1e-12

@@ -173,6 +173,23 @@ def test_profile_position_mode_and_quick_stop(rig):
     assert drive.position_counts > -400_000 + 100_000  # stopped well before the target
 
 
+def test_quick_stop_option_6_holds_and_resumes(rig):
+    drives, net = rig
+    node = _sdo_node(net, 2)
+    drive = drives.drives[2]
+    node.sdo.download(0x605A, 0, struct.pack("<h", 6))
+    _enable_via_sdo(node, 8)
+    _cw(node, 0x0B)
+    assert drive.state == drv.QUICK_STOP_ACTIVE
+    time.sleep(0.05)
+    assert drive.state == drv.QUICK_STOP_ACTIVE  # option 6: stay in quick stop, holding
+    assert struct.unpack("<H", node.sdo.upload(0x6041, 0))[0] & 0x6F == 0x07
+    _cw(node, 0x0F)  # transition 16
+    assert drive.state == drv.OPERATION_ENABLED
+    _cw(node, 0x00)
+    assert drive.state == drv.SWITCH_ON_DISABLED
+
+
 def test_fault_emcy_and_reset_on_rising_edge(rig):
     drives, net = rig
     node = _sdo_node(net, 2)

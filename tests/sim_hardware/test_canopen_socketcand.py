@@ -179,3 +179,20 @@ def test_cli_rejects_bad_nodes():
         cwd=ROOT, capture_output=True, text=True, timeout=30,
     )
     assert out.returncode == 2 and "--nodes" in out.stderr
+
+
+def test_cli_exits_cleanly_on_sigint():
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "likeness", "sim", "canopen", "--nodes", "4", "--port", "0"],
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    try:
+        line = proc.stdout.readline()
+        assert line.startswith("ready: 1 CiA 402 drives (nodes 4) on socketcand 127.0.0.1:")
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(10) == 0
+        assert proc.stderr.read() == ""
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(5)

@@ -18,6 +18,14 @@ ROOT = Path(__file__).resolve().parents[2]
 READY = re.compile(r"^ready: (\d+) (\S+) servos \(ids ([\d,-]+)\) on (\S+) -> (\S+)(?:, control (\S+))?$")
 
 
+@pytest.fixture(autouse=True)
+def patient_sdk(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Widen the SDK's answer window (2 × latency timer + 2 ms) so a loaded test machine does not flake."""
+    import dynamixel_sdk.port_handler
+
+    monkeypatch.setattr(dynamixel_sdk.port_handler, "LATENCY_TIMER", 50)
+
+
 def start(*args: str) -> subprocess.Popen:
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     return subprocess.Popen([sys.executable, "-m", "likeness", "sim", "dynamixel", *args], cwd=ROOT, env=env,
