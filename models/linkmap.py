@@ -106,6 +106,7 @@ class LinkMap:
         holdout_rms_mm: float | None = None,
         provenance: Mapping[str, Any] | None = None,
         source: str = "<linkmap>",
+        units: Mapping[str, tuple[str, float]] | None = None,
     ) -> None:
         self.actuators: tuple[str, ...] = tuple(actuators)
         self.neutral = np.asarray(neutral, dtype=float)
@@ -118,6 +119,8 @@ class LinkMap:
         self.head = head
         self.holdout_rms_mm = holdout_rms_mm
         self.provenance: dict[str, Any] = dict(provenance or {})
+        #: Per actuator: the config unit and its factor to SI (e.g. ("deg", 0.01745...)), when known.
+        self.units: dict[str, tuple[str, float]] = {k: (str(u), float(f)) for k, (u, f) in dict(units or {}).items()}
         self.source = source
         self._index = {a: i for i, a in enumerate(self.actuators)}
         self._link_idx = {n: np.array([self._index[a] for a in f.actuators], dtype=int) for n, f in self.links.items()}
@@ -140,6 +143,17 @@ class LinkMap:
         if p.shape != self.neutral.shape:
             raise ValueError(f"expected {len(self.actuators)} actuator values, got shape {p.shape}")
         return p
+
+    def from_config_units(self, actuators: Mapping[str, float]) -> dict[str, float]:
+        """Actuator values in config units (degrees, mm) → SI, using the units stored with the map."""
+        out = {}
+        for name, value in actuators.items():
+            if name not in self._index:
+                raise ValueError(f"unknown actuator {name!r}; the link map has: {', '.join(self.actuators)}")
+            if name not in self.units:
+                raise ValueError(f"the link map does not record the unit of {name!r}; pass SI values")
+            out[name] = float(value) * self.units[name][1]
+        return out
 
     def normalise(self, p: np.ndarray) -> np.ndarray:
         """Normalised actuator values ``(p - neutral) / scale`` (any leading shape)."""
@@ -245,6 +259,7 @@ class LinkMap:
             "actuators": list(self.actuators),
             "neutral": self.neutral.tolist(),
             "scale": self.scale.tolist(),
+            "config_units": {k: [u, f] for k, (u, f) in self.units.items()},
             "holdout_rms_mm": self.holdout_rms_mm,
             "links": {
                 name: {
@@ -321,7 +336,8 @@ class LinkMap:
                 raise SpecError(source, f"links.{f.name}.actuators", "must follow the map's actuator order",
                                 list(f.actuators))
         return cls(acts, neutral, scale, links, head=str(doc.get("head", "")),
-                   holdout_rms_mm=doc.get("holdout_rms_mm"), provenance=doc.get("provenance") or {}, source=source)
+                   holdout_rms_mm=doc.get("holdout_rms_mm"), provenance=doc.get("provenance") or {}, source=source,
+                   units=_units(doc, acts, source))
 
     @classmethod
     def load(cls, path: str | Path) -> LinkMap:
@@ -344,6 +360,20 @@ class LinkMap:
         lm = cls.load(path)
         lm.check_against(head)
         return lm
+
+
+def _units(doc: Mapping[str, Any], acts: Sequence[str], source: str) -> dict[str, tuple[str, float]]:
+    raw = doc.get("config_units") or {}
+    if not isinstance(raw, Mapping):
+        raise SpecError(source, "config_units", "must map actuator names to [unit, factor to SI]", raw)
+    out = {}
+    for name, pair in raw.items():
+        ok = isinstance(pair, list) and len(pair) == 2 and isinstance(pair[0], str)
+        ok = ok and isinstance(pair[1], (int, float)) and math.isfinite(pair[1]) and pair[1] > 0
+        if name not in acts or not ok:
+            raise SpecError(source, f"config_units.{name}", "must be [unit, positive factor] of a map actuator", pair)
+        out[name] = (pair[0], float(pair[1]))
+    return out
 
 
 def _vector(doc: Mapping[str, Any], key: str, n: int, source: str) -> np.ndarray:
@@ -565,6 +595,7 @@ def fit_linkmap(
     head: str = "",
     provenance: Mapping[str, Any] | None = None,
     options: FitOptions | None = None,
+    units: Mapping[str, tuple[str, float]] | None = None,
 ) -> LinkMap:
     """Fit m(p) from actuator samples ``P`` ``(n, A)`` (SI) and per-link observed poses.
 
@@ -617,4 +648,4 @@ def fit_linkmap(
         pred = quad_features(Xl[:, idx][keep]) @ coef
         fit.residual = _errors(pred, R0, pos[keep], R[keep])
         links[name] = fit
-    return LinkMap(actuators, neutral, scale, links, head=head, provenance=provenance)
+    return LinkMap(actuators, neutral, scale, links, head=head, provenance=provenance, units=units)

@@ -8,8 +8,9 @@ through two rods (the coupled pair), and the lower lip is carried by the jaw. Th
 Each motor also has a mounting error (its encoder zero is off by a small angle) and hard stops a little
 beyond the configured limits, so calibration can discover zero offsets and travel limits.
 
-Frame: the head frame in metres, x to the head's left, y up, z forward. Right-side links mirror the left
-(x → -x) and take the same SI actuator values (the config's ``direction = -1`` handles the motor sense).
+Frame: the skin mesh's frame in metres, x to the head's left, y up, z forward; each link's frame sits at the
+centroid of its node set in the shipped mesh. Right-side links mirror the left (x → -x) and take the same SI
+actuator values (the config's ``direction = -1`` handles the motor sense).
 """
 
 from __future__ import annotations
@@ -268,13 +269,41 @@ def _mirror_rest(T: np.ndarray) -> np.ndarray:
     return M @ T @ M
 
 
-def sample_mechanism(head=None, seed: int = 5, zero_error_deg: float = 1.5, stop_margin_deg: float = 4.0) -> Mechanism:
+#: Link frame origins (m): the centroids of the node sets of the shipped skin mesh ``heads/sample/skin/skin.vtu``
+#: (mesh frame: x to the head's left, y up, z forward; checked against the mesh by the tests), so the link
+#: map's transforms apply to the mesh nodes directly.
+SAMPLE_ANCHORS: dict[str, tuple[float, float, float]] = {
+    "skull": (0.0005, 0.7616, 0.1257),
+    "jaw": (0.0004, 0.6313, 0.1265),
+    "lip_corner_l": (0.0247, 0.6602, 0.1358),
+    "lip_corner_r": (-0.0244, 0.6599, 0.1359),
+    "upper_lip": (0.0003, 0.6699, 0.1481),
+    "lower_lip": (0.0004, 0.6481, 0.1447),
+    "cheek_l": (0.0457, 0.6961, 0.1228),
+    "cheek_r": (-0.0459, 0.6966, 0.1223),
+    "brow_l": (0.0313, 0.7452, 0.1341),
+    "brow_r": (-0.0305, 0.7458, 0.1345),
+    "lid_l": (0.0323, 0.7348, 0.1341),
+    "lid_r": (-0.0315, 0.7342, 0.1341),
+}
+
+
+def sample_mechanism(
+    head=None,
+    seed: int = 5,
+    zero_error_deg: float = 1.5,
+    stop_margin_deg: float = 4.0,
+    anchors: Mapping[str, tuple[float, float, float]] | None = None,
+) -> Mechanism:
     """The sample head's mechanism (13 motors, 12 links).
 
     ``head`` (a HeadSpec) sets the hard stops ``stop_margin_deg`` beyond its configured limits (default:
     the sample head's limits built in); ``seed`` draws each motor's zero error within ±``zero_error_deg``.
-    Link rest frames are fixed anchor points on the face (metres).
+    Each link's frame origin is its anchor (default :data:`SAMPLE_ANCHORS`, the skin mesh's node-set
+    centroids); pivots and linkages sit at fixed offsets from it (the jaw hinge 65 mm above and 85 mm behind
+    the chin, each lid's hinge 12 mm behind the lid).
     """
+    A = {k: np.asarray(v, dtype=float) for k, v in (anchors or SAMPLE_ANCHORS).items()}
     deg = math.pi / 180.0
     jaw_bar = FourBar(ground=0.040, crank=0.020, coupler=0.042, rocker=0.024, crank0=100 * deg)
     lid_bar = FourBar(ground=0.020, crank=0.010, coupler=0.021, rocker=0.011, crank0=95 * deg)
@@ -282,48 +311,55 @@ def sample_mechanism(head=None, seed: int = 5, zero_error_deg: float = 1.5, stop
     cheek_slider = CrankSlider(crank=0.016, rod=0.036, crank0=75 * deg, ratio=0.6)
     brow_slider = CrankSlider(crank=0.013, rod=0.032, crank0=85 * deg, ratio=0.6)
 
+    def t(v: np.ndarray) -> tuple[float, float, float]:
+        return (float(v[0]), float(v[1]), float(v[2]))
+
     L: dict[str, LinkDef] = {}
-    L["skull"] = LinkDef("skull", _rest((0.0, 0.06, 0.02), (0.0, 0.0, 0.0)))
+    L["skull"] = LinkDef("skull", _rest(A["skull"], (0.0, 0.0, 0.0)))
     L["jaw"] = LinkDef(
-        "jaw", _rest((0.0, -0.085, 0.075), (0.05, 0.0, 0.0)),
-        HingeDrive("jaw", jaw_bar, pivot=(0.0, -0.02, -0.01), axis=(1.0, 0.0, 0.0)),
+        "jaw", _rest(A["jaw"], (0.05, 0.0, 0.0)),
+        HingeDrive("jaw", jaw_bar, pivot=t(np.add(A["jaw"], (0.0, 0.065, -0.085))), axis=(1.0, 0.0, 0.0)),
     )
     L["lower_lip"] = LinkDef(
-        "lower_lip", _rest((0.0, -0.055, 0.095), (-0.1, 0.0, 0.0)),
-        SliderDrive("lower_lip", lip_slider, direction=(0.0, -0.3, 1.0), anchor=(0.0, -0.055, 0.095),
+        "lower_lip", _rest(A["lower_lip"], (-0.1, 0.0, 0.0)),
+        SliderDrive("lower_lip", lip_slider, direction=(0.0, -0.3, 1.0), anchor=t(A["lower_lip"]),
                     tilt_axis=(1.0, 0.0, 0.0), tilt_per_m=12.0),
         carrier="jaw",
     )
     L["upper_lip"] = LinkDef(
-        "upper_lip", _rest((0.0, -0.035, 0.1), (0.08, 0.0, 0.0)),
-        SliderDrive("upper_lip", lip_slider, direction=(0.0, 1.0, 0.4), anchor=(0.0, -0.035, 0.1),
+        "upper_lip", _rest(A["upper_lip"], (0.08, 0.0, 0.0)),
+        SliderDrive("upper_lip", lip_slider, direction=(0.0, 1.0, 0.4), anchor=t(A["upper_lip"]),
                     tilt_axis=(-1.0, 0.0, 0.0), tilt_per_m=10.0),
     )
     corner = dict(
         pivot1=(0.045, 0.004), pivot2=(0.004, 0.045), crank1=0.014, crank2=0.014, ratio=0.5,
         crank0_1=-math.pi / 2, crank0_2=0.0, u=(0.0, 1.0, 0.15), v=(0.6, 0.0, -0.8), turn_gain=0.6,
     )
-    left = {"cheek": (0.045, -0.005, 0.075), "brow": (0.03, 0.045, 0.09), "lid": (0.032, 0.03, 0.085),
-            "lip_corner": (0.025, -0.045, 0.085)}
     for side, mirror in (("l", False), ("r", True)):
+        # right-side links are built as left ones at the mirrored anchor, then mirrored back (x → -x)
+        def at(name: str, m: bool = mirror, sd: str = side) -> np.ndarray:
+            return A[f"{name}_{sd}"] * ((-1.0, 1.0, 1.0) if m else 1.0)
+
         defs = {
             f"lip_corner_{side}": LinkDef(
-                f"lip_corner_{side}", _rest(left["lip_corner"], (0.0, 0.2, 0.1)),
-                FiveBarDrive((f"lip_corner_{side}_up", f"lip_corner_{side}_back"), anchor=left["lip_corner"], **corner),
+                f"lip_corner_{side}", _rest(at("lip_corner"), (0.0, 0.2, 0.1)),
+                FiveBarDrive((f"lip_corner_{side}_up", f"lip_corner_{side}_back"), anchor=t(at("lip_corner")),
+                             **corner),
             ),
             f"cheek_{side}": LinkDef(
-                f"cheek_{side}", _rest(left["cheek"], (0.0, 0.3, 0.0)),
-                SliderDrive(f"cheek_{side}", cheek_slider, direction=(0.2, 1.0, 0.3), anchor=left["cheek"],
+                f"cheek_{side}", _rest(at("cheek"), (0.0, 0.3, 0.0)),
+                SliderDrive(f"cheek_{side}", cheek_slider, direction=(0.2, 1.0, 0.3), anchor=t(at("cheek")),
                             tilt_axis=(0.0, 0.0, 1.0), tilt_per_m=8.0),
             ),
             f"brow_{side}": LinkDef(
-                f"brow_{side}", _rest(left["brow"], (0.0, 0.1, -0.05)),
-                SliderDrive(f"brow_{side}", brow_slider, direction=(0.0, 1.0, 0.1), anchor=left["brow"],
+                f"brow_{side}", _rest(at("brow"), (0.0, 0.1, -0.05)),
+                SliderDrive(f"brow_{side}", brow_slider, direction=(0.0, 1.0, 0.1), anchor=t(at("brow")),
                             tilt_axis=(0.0, 0.0, 1.0), tilt_per_m=15.0),
             ),
             f"lid_{side}": LinkDef(
-                f"lid_{side}", _rest(left["lid"], (-0.2, 0.0, 0.0)),
-                HingeDrive(f"lid_{side}", lid_bar, pivot=(0.032, 0.03, 0.073), axis=(-1.0, 0.0, 0.0)),
+                f"lid_{side}", _rest(at("lid"), (-0.2, 0.0, 0.0)),
+                HingeDrive(f"lid_{side}", lid_bar, pivot=t(np.add(at("lid"), (0.0, 0.0, -0.012))),
+                           axis=(-1.0, 0.0, 0.0)),
             ),
         }
         for name, d in defs.items():

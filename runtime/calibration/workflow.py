@@ -295,6 +295,7 @@ def _finish(
         head.actuator_names, neutral, scale, P[fit_mask], _subset(obs, fit_mask),
         config_links={link.name: link.actuators for link in head.links},
         rigid=[link.name for link in head.links if link.rigid], head=head.name, provenance=provenance,
+        units={a.name: (a.unit, a.unit_scale) for a in head.actuators},
     )
     per_link: dict[str, dict[str, float]] = {}
     hold_err: dict[str, np.ndarray] = {}

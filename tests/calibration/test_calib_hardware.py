@@ -79,3 +79,37 @@ def test_hardware_calibration_reaches_the_noise_floor(tmp_path, sample_head, sam
     rms = float(np.sqrt(np.mean(truth_errors_mm(sample_head, sample_mech, lm) ** 2)))
     assert rms <= min(derived, s1)
     assert res.report["holdout_rms_mm"] <= 1.5 * res.report["noise_floor_mm"]
+
+
+def test_limit_discovery_on_the_emulated_drives(tmp_path, sample_head) -> None:
+    """The operator configured the jaw 12 degrees too wide: the slow sweep on the real drive emulators stops
+    where the tracker shows the jaw no longer moving, and proposes a limit just inside the hard stop."""
+    import tomllib
+    from pathlib import Path
+
+    from models.headspec import head_from_dict
+    from runtime.calibration.capture import estimate
+    from runtime.calibration.discovery import discover_limits
+    from runtime.hardware import Hardware
+    from sim_hardware.mechanism import sample_mechanism
+
+    data = tomllib.loads(Path(sample_head.source).read_text())
+    for act in data["actuators"]:
+        if act["name"] == "jaw":
+            act["max"] = 40.0
+    wide = head_from_dict(data, source=sample_head.source)
+    mech = sample_mechanism(None, seed=5)  # hard stops from the real sample limits
+    hw = Hardware.from_head(wide)
+    driver = HardwareHead(hw, wide, speed_fraction=0.3)
+    try:
+        src = SimSource(SimTracker(mech, hw.simulated_positions, seed=13))
+
+        def observe():
+            return {n: e.position for n, e in estimate(src.collect(4), list(mech.links), 4).items()}
+
+        res = discover_limits(wide, driver, observe, actuators=["jaw"], step=2 * DEG)
+    finally:
+        driver.close()
+    stop = mech.stops["jaw"][1] + mech.zero_error["jaw"]
+    assert res["jaw"].stop_found == (False, True)
+    assert res["jaw"].proposed[1] == pytest.approx(stop - 1 * DEG, abs=2.5 * DEG)
