@@ -85,6 +85,12 @@ def run(args: argparse.Namespace) -> int:
         engine = make_engine(args.engine, args.workers, args.threads_per_worker)
     except ValueError as exc:
         raise CliError(str(exc)) from exc
+    import signal
+
+    def _terminate(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, _terminate)  # finish cleanly: in-flight poses are written, workers stop
     try:
         with engine:
             summary = generate_dataset(
@@ -95,5 +101,8 @@ def run(args: argparse.Namespace) -> int:
             )
     except SpecError as exc:
         raise CliError(str(exc)) from exc
+    except KeyboardInterrupt:
+        print(f"\ninterrupted; rerun the same command to resume ({args.out})", file=sys.stderr)
+        return 130
     print(json.dumps(summary, indent=1))
     return 0 if summary["failed"] == 0 else 1
