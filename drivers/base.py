@@ -216,6 +216,10 @@ class MotorBus(abc.ABC):
             self._enable()
             now = time.monotonic()
             states = self._read()
+            if self._faults:  # a fault seen while enabling wins: stay in FAULT, torque handled by _on_fault
+                self._state = LifecycleState.FAULT
+                device, (code, message) = next(iter(self._faults.items()))
+                raise DeviceFault(device, code, f"fault while enabling bus {self.name!r}: {message}")
             self._last_command = {n: (s.position, now) for n, s in states.items()}
             self._state = LifecycleState.ACTIVE
 

@@ -6,7 +6,11 @@ import argparse
 import importlib
 
 #: Modules that add ``likeness offline`` subcommands through ``register(subparsers)``.
-OFFLINE_COMMAND_MODULES: tuple[str, ...] = ("offline.mesh.cli", "offline.fem_cli")
+OFFLINE_COMMAND_MODULES: tuple[str, ...] = (
+    "offline.mesh.cli",
+    "offline.fem_cli",
+    "offline.material.cli",
+)
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -6,7 +6,15 @@ import argparse
 import importlib
 
 #: Modules that add top-level runtime subcommands through ``register(subparsers)``.
-RUNTIME_COMMAND_MODULES: tuple[str, ...] = ()
+RUNTIME_COMMAND_MODULES: tuple[str, ...] = (
+    "runtime.commands.demo",
+    "runtime.commands.daemon",
+    "runtime.commands.stream",
+    "runtime.commands.status",
+    "runtime.commands.keys",
+    "runtime.commands.plot",
+    "runtime.calibration.cli",
+)
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -6,7 +6,12 @@ import argparse
 import importlib
 
 #: Modules that add ``likeness sim`` subcommands through ``register(subparsers)``.
-SIM_COMMAND_MODULES: tuple[str, ...] = ()
+SIM_COMMAND_MODULES: tuple[str, ...] = (
+    "sim_hardware.dynamixel.cli",
+    "sim_hardware.canopen.cli",
+    "sim_hardware.inject_cli",
+    "sim_hardware.tracker_cli",
+)
 
 
 def register(sub: argparse._SubParsersAction) -> None:

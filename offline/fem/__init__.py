@@ -42,6 +42,7 @@ from .solve import (
     fixed,
     rigid_transform_dirichlet,
     solve_static,
+    tangent_factorization,
 )
 
 __all__ = [
@@ -81,6 +82,7 @@ __all__ = [
     "save_mesh",
     "solve_static",
     "stiffness",
+    "tangent_factorization",
     "tet_quality",
     "to_quadratic",
     "total_energy",

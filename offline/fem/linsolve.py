@@ -225,10 +225,10 @@ class _PardisoSolver(SparseSolver):
         if key != self._analyzed_key:
             self.call(upper, b, 11)
             self._analyzed_key = key
+        # mtype 2 (SPD): a non-positive pivot ends phase 22 with error -4 and iparm(30) naming the equation;
+        # PARDISO does not clear iparm(30) on success, so reset it before each factorization.
+        self._ps.iparm[29] = 0
         self.call(upper, b, 22)
-        # iparm(30) (0-based 29) reports the equation with a non-positive pivot for mtype 2
-        if self._ps.iparm[29] > 0 or self._ps.iparm[22] > 0:
-            raise NotPositiveDefinite("PARDISO found a non-positive pivot")
         self.generation += 1
         return _PardisoFactorization(self, upper, self.generation)
 

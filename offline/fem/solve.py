@@ -25,14 +25,14 @@ import numpy as np
 import scipy.sparse as sp
 
 from . import energy as _en
-from .linsolve import NotPositiveDefinite, make_solver, resolve_backend
+from .linsolve import Factorization, NotPositiveDefinite, make_solver, resolve_backend
 from .materials import Material
 from .mesh import TetMesh
 
 # ------------------------------------------------------------------------------------------------ boundary data
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Dirichlet:
     """Prescribed positions: node indices (K,) and their target positions (K, 3) in metres.
 
@@ -111,6 +111,10 @@ def rigid_transform_dirichlet(mesh: TetMesh, transforms: Mapping[str, np.ndarray
         T = np.asarray(T, dtype=np.float64)
         if T.shape != (4, 4):
             raise ValueError(f"transform for node set {name!r} must be 4x4, got shape {T.shape}")
+        R = T[:3, :3]
+        if not (np.allclose(R.T @ R, np.eye(3), atol=1e-6) and np.linalg.det(R) > 0
+                and np.allclose(T[3], [0, 0, 0, 1])):
+            raise ValueError(f"transform for node set {name!r} is not a rigid motion (rotation + translation)")
         idx = _set_nodes(mesh, name)
         X = np.asarray(mesh.nodes)[idx]
         parts.append(Dirichlet(idx, X @ T[:3, :3].T + T[:3, 3]))
@@ -158,7 +162,7 @@ class SolverOptions:
             raise ValueError(f"SolverOptions.gravity must be a 3-vector or None, got {self.gravity!r}")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class StaticResult:
     """Outcome of :func:`solve_static`: positions, convergence, per-iteration log, phase timings (s), reactions (N).
 
@@ -253,6 +257,8 @@ def solve_static(mesh: TetMesh, material: Material, dirichlet: Dirichlet, *, x0:
     free_idx = np.flatnonzero(free)
     if free_idx.size == 0:
         raise ValueError("every DoF is constrained; nothing to solve")
+    if cdofs.size < 6:
+        raise ValueError(f"only {cdofs.size} prescribed coordinates: at least 6 are needed to remove rigid motions")
     c_start = x.ravel()[cdofs].copy()
     c_goal = dirichlet.dof_values
     f_grav = (_en.gravity_forces(mesh, material, opts.gravity) if opts.gravity is not None else np.zeros((N, 3)))
@@ -296,7 +302,9 @@ def solve_static(mesh: TetMesh, material: Material, dirichlet: Dirichlet, *, x0:
             res = float(np.linalg.norm(rf))
             f_ref = max(float(np.linalg.norm(fext)), float(np.linalg.norm(r[cdofs])) if cdofs.size else 0.0)
             boundary_done = not np.any(dc)
-            e_now = potential(xk, fext)
+            t = time.perf_counter()
+            e_now = potential(xk, fext)  # the line search's reference value
+            timings["line_search"] += time.perf_counter() - t
             if boundary_done and res <= opts.tol_force * max(1.0, f_ref):
                 log.append({"step": step, "iteration": it, "energy": e_now, "residual": res, "alpha": 0.0,
                             "projected": 0, "factor_s": 0.0, "tolerance": opts.tol_force * max(1.0, f_ref)})
@@ -408,3 +416,20 @@ def _reactions(mesh: TetMesh, material: Material, x: np.ndarray, nodes: np.ndarr
     """Constraint force at each Dirichlet node: internal force there minus the external load (K, 3)."""
     f = _en.internal_forces(mesh, material, x)
     return (f - fext)[nodes]
+
+
+def tangent_factorization(mesh: TetMesh, material: Material, x: np.ndarray, dirichlet: Dirichlet, *,
+                          backend: str = "auto", project_psd: bool = False
+                          ) -> tuple[Factorization, np.ndarray, sp.csr_matrix]:
+    """Factor the free-free block K_ff of the tangent stiffness at ``x`` for adjoint and sensitivity solves.
+
+    Returns (factorization, free DoF indices, full stiffness K). At an equilibrium, the change of the free DoFs for a
+    change δc of the prescribed coordinates is δu_f = −K_ff⁻¹ K_fc δc, and an adjoint λ = K_ff⁻¹ ∂q/∂u_f gives
+    dq/dp = −λᵀ ∂r_f/∂p for any parameter p.
+    """
+    K = _en.stiffness(mesh, material, x, project_psd=project_psd)
+    free = np.ones(3 * mesh.n_nodes, dtype=bool)
+    free[dirichlet.dofs] = False
+    free_idx = np.flatnonzero(free)
+    Kff = K[free_idx][:, free_idx].tocsr()
+    return make_solver(backend).factor(Kff), free_idx, K

@@ -19,6 +19,7 @@ from offline.fem import (
     factorize,
     fixed,
     internal_forces,
+    make_solver,
     neo_hookean,
     rigid_transform_dirichlet,
     solve_static,
@@ -127,8 +128,12 @@ def test_factorization_is_reusable_and_detects_indefinite(backend: str) -> None:
     if backend != "superlu":
         from offline.fem import NotPositiveDefinite
 
+        solver = make_solver(backend)
         with pytest.raises(NotPositiveDefinite):
-            factorize(-Kff, backend)
+            solver.factor(-Kff)
+        # the same solver recovers: a positive definite matrix of the same pattern factors fine afterwards
+        fac2 = solver.factor(Kff)
+        assert np.allclose(Kff @ fac2.solve(B[:, 0]), B[:, 0], rtol=1e-8, atol=1e-8 * np.abs(B).max())
 
 
 def test_rigid_transform_dirichlet_twists_a_cylinder() -> None:
@@ -175,17 +180,56 @@ def test_bad_inputs_have_clear_errors() -> None:
         Dirichlet([1, 1], np.zeros((2, 3)))
     with pytest.raises(ValueError, match="out of range"):
         solve_static(mesh, MAT, Dirichlet([100], np.zeros((1, 3))))
+    with pytest.raises(ValueError, match="rigid motions"):
+        solve_static(mesh, MAT, Dirichlet([0], np.zeros((1, 3))))
+    shear = np.eye(4)
+    shear[0, 1] = 0.2
+    with pytest.raises(ValueError, match="node set 'z1' is not a rigid motion"):
+        rigid_transform_dirichlet(mesh, {"z1": shear})
 
 
-def test_psd_projection_is_used_only_as_fallback_and_converges() -> None:
+@pytest.mark.parametrize("backend", [b for b in available_backends() if b != "superlu"])
+def test_psd_projection_is_used_only_as_fallback_and_converges(backend: str) -> None:
+    """Cholesky backends report the indefinite tangent of a 60 % one-step compression; projection rescues it."""
     mesh = box_mesh((0.01, 0.01, 0.01), (3, 3, 3))
     X = np.asarray(mesh.nodes)
     top = mesh.node_sets["z1"]
     bc = combine(Dirichlet(top, X[top] + [0.0, 0.0, -0.006]), fixed(mesh, "z0"))  # 60 % in one step
-    backend = "cholmod" if "cholmod" in available_backends() else "superlu"
     res = solve_static(mesh, MAT, bc, options=SolverOptions(backend=backend, load_steps=1))
     assert res.converged
     projected = [e["projected"] for e in res.log]
     assert any(projected)  # needed on the way ...
     assert projected[-2] == 0  # ... but not near the solution, where the Hessian is positive definite
     assert element_min_jacobian(mesh, res.x).min() > 0
+
+
+def test_warm_start_from_a_solution_needs_no_iteration() -> None:
+    mesh = box_mesh((0.02, 0.02, 0.01), (4, 4, 2))
+    bc = _indentation(mesh, 0.001)
+    first = solve_static(mesh, MAT, bc, options=SolverOptions(backend="superlu"))
+    again = solve_static(mesh, MAT, bc, x0=first.x, options=SolverOptions(backend="superlu"))
+    assert again.converged and again.iterations == 0
+    assert np.array_equal(again.x, first.x)
+    with pytest.raises(ValueError, match="x0 must have shape"):
+        solve_static(mesh, MAT, bc, x0=first.x[:-1])
+
+
+def test_tangent_factorization_gives_boundary_sensitivities() -> None:
+    """δu_f = −K_ff⁻¹ K_fc δc at equilibrium matches finite differences of full nonlinear solves."""
+    from offline.fem import tangent_factorization
+
+    mesh = box_mesh((0.02, 0.02, 0.01), (4, 4, 2))
+    bc = _indentation(mesh, 0.001)
+    opts = SolverOptions(backend="superlu", tol_force=1e-12)
+    base = solve_static(mesh, MAT, bc, options=opts)
+    fac, free, K = tangent_factorization(mesh, MAT, base.x, bc)
+    on_patch = bc.positions[:, 2] < np.asarray(mesh.nodes)[bc.nodes, 2]
+    dc = np.zeros(3 * mesh.n_nodes)
+    dc[3 * bc.nodes[on_patch] + 2] = 1.0  # move the indenter along +z (slightly less indentation)
+    du_f = -fac.solve((K @ dc)[free])
+    h = 1e-6
+    pos = np.array(bc.positions)
+    pos[on_patch, 2] += h
+    plus = solve_static(mesh, MAT, Dirichlet(bc.nodes, pos), x0=base.x, options=opts)
+    fd = (plus.x.ravel() - base.x.ravel())[free] / h
+    assert np.linalg.norm(fd - du_f) <= 1e-4 * np.linalg.norm(du_f)

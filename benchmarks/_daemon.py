@@ -1,0 +1,38 @@
+"""Helpers for the runtime benchmarks: a daemon on the sample head (emulated buses) or with no bus at all."""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+SAMPLE = ROOT / "heads" / "sample" / "head.toml"
+logging.basicConfig(level=logging.ERROR)  # emulators under load log retries; the numbers tell the story
+
+
+def make_daemon(rate_hz: float, realtime: bool, with_buses: bool = True, **extra: Any) -> Any:
+    """A started, enabled daemon on free loopback ports; ``with_buses=False`` runs the loop without bus I/O."""
+    from models.headspec import load_head
+    from runtime.daemon import Daemon
+    from runtime.hardware import Hardware
+
+    head = load_head(SAMPLE)
+    overrides = {"api.command": "tcp://127.0.0.1:*", "api.telemetry": "tcp://127.0.0.1:*",
+                 "runtime.rate_hz": rate_hz, "runtime.realtime": realtime, "runtime.telemetry_hz": min(50, rate_hz),
+                 "safety.feedback_timeout_s": 0.5, **extra}
+    hardware = None if with_buses else Hardware(head, {})
+    daemon = Daemon(head, overrides, hardware=hardware)
+    daemon.start()
+    daemon.enable()
+    return daemon
+
+
+def pct(values: Any, q: float) -> float:
+    import numpy as np
+
+    return float(np.percentile(np.asarray(values, dtype=float), q)) if len(values) else float("nan")

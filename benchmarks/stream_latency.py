@@ -1,0 +1,177 @@
+"""End-to-end latency of a streamed frame, from its arrival at the daemon to its command on the bus (p50/p99), and
+sustained frames per second accepted; sample head on emulated buses.
+
+Baselines measured in the same run: a bare ZeroMQ PUSH→PULL one-way hop of the same msgpack frame (latency), and
+bare DEALER→ROUTER request/reply round trips per second (throughput). Run:
+``python benchmarks/stream_latency.py [--trials 150] [--rate 250] [--seconds 3]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import threading
+import time
+
+import msgpack
+import numpy as np
+import zmq
+
+try:
+    from benchmarks._daemon import make_daemon, pct
+except ImportError:  # run as a script
+    from _daemon import make_daemon, pct
+
+
+def bare_push_pull(n: int, frame: dict) -> list[float]:
+    """One-way PUSH→PULL latency of a packed frame, in seconds (same process, loopback TCP)."""
+    ctx = zmq.Context.instance()
+    pull = ctx.socket(zmq.PULL)
+    port = pull.bind_to_random_port("tcp://127.0.0.1")
+    push = ctx.socket(zmq.PUSH)
+    push.connect(f"tcp://127.0.0.1:{port}")
+    out = []
+    for _ in range(n):
+        t0 = time.perf_counter()
+        push.send(msgpack.packb(frame))
+        msgpack.unpackb(pull.recv())
+        out.append(time.perf_counter() - t0)
+    push.close(0)
+    pull.close(0)
+    return out
+
+
+def bare_router_rate(seconds: float) -> float:
+    """Request/reply round trips per second through a bare ROUTER echo thread."""
+    ctx = zmq.Context.instance()
+    router = ctx.socket(zmq.ROUTER)
+    port = router.bind_to_random_port("tcp://127.0.0.1")
+    stop = threading.Event()
+
+    def echo() -> None:
+        while not stop.is_set():
+            if router.poll(50):
+                frames = router.recv_multipart()
+                msg = msgpack.unpackb(frames[-1])
+                router.send_multipart([*frames[:-1], msgpack.packb({"id": msg["id"], "ok": True})])
+
+    th = threading.Thread(target=echo)
+    th.start()
+    dealer = ctx.socket(zmq.DEALER)
+    dealer.connect(f"tcp://127.0.0.1:{port}")
+    n, end = 0, time.perf_counter() + seconds
+    while time.perf_counter() < end:
+        dealer.send(msgpack.packb({"op": "stream", "id": n, "channels": ["jaw"], "frames": [[0.0, 1.0]]}))
+        dealer.recv()
+        n += 1
+    stop.set()
+    th.join()
+    dealer.close(0)
+    router.close(0)
+    return n / seconds
+
+
+def stream_latency(daemon, trials: int) -> list[float]:
+    """Sending a frame stamped "now" → the first bus write carrying its effect, in seconds (includes the hop to the
+    daemon, the jitter buffer delay and the wait for the next cycle)."""
+    bus = daemon.hw.buses["can0"]
+    original = bus.write
+    writes: list[tuple[float, float]] = []
+
+    def traced(targets):
+        writes.append((time.monotonic(), targets["jaw"]))
+        return original(targets)
+
+    bus.write = traced
+    from runtime.client import Client
+
+    lat: list[float] = []
+    dropped = [0]
+    try:
+        with Client(daemon.command_endpoint) as c:
+            offset, _ = c.clock_offset()
+            rng = np.random.default_rng(1)
+            for _ in range(trials):
+                time.sleep(rng.uniform(0, daemon.period))  # a random phase in the cycle
+                settle = time.monotonic() + 1.0
+                while np.any(np.abs(daemon.safety.v) > 1e-9) and time.monotonic() < settle:
+                    time.sleep(0.002)
+                before = float(daemon.safety.q[daemon.safety.index["jaw"]])
+                value = 4.0 if abs(np.degrees(before)) < 2.0 else 0.0  # always a move away from where it is
+                writes.clear()
+                t_send = time.monotonic()
+                r = c.call("stream", channels=["jaw"], frames=[[t_send + offset, value]])
+                if not r["accepted"]:
+                    dropped[0] += 1
+                    continue
+                end = time.monotonic() + 0.5
+                hit = None
+                while hit is None and time.monotonic() < end:
+                    for t, q in list(writes):
+                        if t > t_send and abs(q - before) > 1e-9:
+                            hit = t
+                            break
+                    time.sleep(0.0002)
+                if hit is not None:
+                    lat.append(hit - t_send)
+    finally:
+        bus.write = original
+    if dropped[0]:
+        print(f"  ({dropped[0]} of {trials} frames arrived later than the 1 ms jitter buffer allows and were dropped)")
+    return lat
+
+
+def throughput(daemon, seconds: float, batch: int) -> tuple[float, float]:
+    """Frames per second accepted (and late) with ``batch`` frames per request, as fast as replies allow."""
+    from runtime.client import Client
+
+    names = list(daemon.names)
+    accepted = late = 0
+    with Client(daemon.command_endpoint) as c:
+        offset, _ = c.clock_offset()
+        start = time.monotonic()
+        k = 0
+        while (now := time.monotonic()) - start < seconds:
+            base = now + offset + 0.001
+            frames = [[base + 1e-5 * (k + j), *([1.0] * len(names))] for j in range(batch)]
+            k += batch
+            r = c.call("stream", channels=names, frames=frames)
+            accepted += r["accepted"]
+            late += r["late"]
+        dt = time.monotonic() - start
+    return accepted / dt, late / dt
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--trials", type=int, default=150)
+    parser.add_argument("--rate", type=float, default=250.0)
+    parser.add_argument("--seconds", type=float, default=3.0)
+    args = parser.parse_args(argv)
+    frame = {"op": "stream", "id": 1, "channels": ["jaw"], "frames": [[0.0, 1.0]]}
+    base = bare_push_pull(max(200, args.trials), frame)
+    base_rate = bare_router_rate(args.seconds)
+    # The jitter buffer's delay is part of the measured latency: 1 ms here (default 50 ms).
+    daemon = make_daemon(args.rate, True, True, **{"runtime.stream_delay_s": 0.001})
+    try:
+        lat = stream_latency(daemon, args.trials)
+        tp1 = throughput(daemon, args.seconds, 1)
+        tp10 = throughput(daemon, args.seconds, 10)
+        status = daemon.lifecycle
+    finally:
+        daemon.stop()
+    b50, b99 = pct(base, 50) * 1e6, pct(base, 99) * 1e6
+    l50, l99 = pct(lat, 50) * 1e6, pct(lat, 99) * 1e6
+    period = 1e6 / args.rate
+    print(f"baseline PUSH->PULL one way: p50 {b50:.0f} us, p99 {b99:.0f} us")
+    print(f"stream frame sent -> bus command at {args.rate:g} Hz ({len(lat)}/{args.trials} trials): "
+          f"p50 {l50:.0f} us, p99 {l99:.0f} us  (x{l50 / b50:.1f} / x{l99 / b99:.1f} baseline; loop period "
+          f"{period:.0f} us, p50 = {l50 / period:.2f} periods)")
+    print(f"baseline DEALER->ROUTER echo: {base_rate:.0f} requests/s")
+    print(f"stream requests, 1 frame each: {tp1[0]:.0f} frames/s accepted ({tp1[0] / base_rate:.2f} x baseline "
+          f"requests/s), {tp1[1]:.0f} late/s")
+    print(f"stream requests, 10 frames each: {tp10[0]:.0f} frames/s accepted, {tp10[1]:.0f} late/s   [{status}]")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

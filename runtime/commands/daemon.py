@@ -1,0 +1,92 @@
+"""``likeness daemon``: run the realtime daemon of a head until SIGINT/SIGTERM (SIGUSR1 latches the e-stop)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from runtime.commands._common import SAMPLE_HEAD
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("daemon", help="run the realtime motor daemon of a head")
+    p.add_argument("--config", type=Path, default=SAMPLE_HEAD, help="head spec TOML (default: the sample head)")
+    p.add_argument("--rate", type=float, default=None, help="loop rate in Hz (overrides [runtime] rate_hz)")
+    p.add_argument("--command", default=None, help="command endpoint (overrides [api] command)")
+    p.add_argument("--telemetry", default=None, help="telemetry endpoint (overrides [api] telemetry)")
+    p.add_argument("--no-realtime", action="store_true", help="do not ask for SCHED_FIFO")
+    p.add_argument("--enable", action="store_true", help="enable torque right after start-up")
+    p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE",
+                   help="override one daemon setting, value in TOML syntax (repeatable)")
+    p.set_defaults(func=run)
+
+
+def overrides_from_args(args: argparse.Namespace) -> dict[str, object]:
+    """Daemon setting overrides from --rate/--command/--telemetry/--no-realtime/--enable/--set."""
+    import tomllib
+
+    from likeness.cli import CliError
+
+    out: dict[str, object] = {}
+    for item in args.set:
+        key, sep, text = item.partition("=")
+        if not sep:
+            raise CliError(f"--set {item!r}: expected TABLE.KEY=VALUE")
+        try:
+            out[key.strip()] = tomllib.loads(f"v = {text}")["v"]
+        except tomllib.TOMLDecodeError:
+            out[key.strip()] = text
+    if args.rate is not None:
+        out["runtime.rate_hz"] = args.rate
+    if args.command:
+        out["api.command"] = args.command
+    if args.telemetry:
+        out["api.telemetry"] = args.telemetry
+    if args.no_realtime:
+        out["runtime.realtime"] = False
+    if args.enable:
+        out["runtime.auto_enable"] = True
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    import signal
+    import threading
+
+    from drivers.errors import BusError
+    from likeness.cli import CliError
+    from models.errors import SpecError
+    from models.headspec import load_head
+    from runtime.daemon import Daemon
+
+    try:
+        head = load_head(args.config)
+        daemon = Daemon(head, overrides_from_args(args))
+    except (SpecError, BusError) as exc:
+        raise CliError(str(exc)) from exc
+    stop = threading.Event()
+
+    def on_stop(signum: int, frame: object) -> None:
+        stop.set()
+
+    def on_estop(signum: int, frame: object) -> None:
+        daemon.estop("signal SIGUSR1")
+
+    try:
+        daemon.start()
+    except (BusError, OSError) as exc:
+        raise CliError(f"cannot start: {exc}") from exc
+    old = {s: signal.signal(s, on_stop) for s in (signal.SIGINT, signal.SIGTERM)}
+    old[signal.SIGUSR1] = signal.signal(signal.SIGUSR1, on_estop)
+    try:
+        print(f"ready: head {head.name!r} ({len(head.actuators)} actuators) at {daemon.cfg.runtime.rate_hz:g} Hz; "
+              f"commands {daemon.command_endpoint}, telemetry {daemon.telemetry_endpoint}; {daemon.realtime_status}",
+              flush=True)
+        while not stop.wait(0.5):
+            pass
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+        daemon.stop()
+    print("daemon stopped", flush=True)
+    return 0

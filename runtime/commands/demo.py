@@ -1,0 +1,108 @@
+"""``likeness demo``: the sample head on emulated hardware plays a bundled performance; prints tracking error and
+loop statistics and writes a plot of commanded versus measured curves (what ``make demo`` runs)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from runtime.commands._common import SAMPLE_HEAD
+
+PERFORMANCE = SAMPLE_HEAD.parent / "performances" / "expressive.json"
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("demo", help="play the sample head's performance on emulated hardware and plot it")
+    p.add_argument("--config", type=Path, default=SAMPLE_HEAD, help="head spec (default: the sample head)")
+    p.add_argument("--performance", type=Path, default=PERFORMANCE, help="clip to play (JSON or CSV)")
+    p.add_argument("--out", type=Path, default=Path("demo-output"), help="directory for recording and plot")
+    p.add_argument("--rate", type=float, default=None, help="loop rate in Hz (default: from the head spec)")
+    p.add_argument("--no-realtime", action="store_true", help="do not ask for SCHED_FIFO")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    import sys
+    import time
+
+    from drivers.errors import BusError
+    from likeness.cli import CliError
+    from models.errors import SpecError
+    from models.headspec import load_head
+    from runtime.client import Client, Telemetry
+    from runtime.commands.plot import print_errors
+    from runtime.curves import ClipError, clip_file_as_dict, clip_from_dict
+    from runtime.daemon import Daemon
+    from runtime.recording import load_recording, plot_recording, tracking_errors
+
+    try:
+        head = load_head(args.config)
+        data = clip_file_as_dict(args.performance)
+        clip = clip_from_dict(data, where=str(args.performance))
+    except (SpecError, ClipError) as exc:
+        raise CliError(str(exc)) from exc
+    simulated = [b for b, s in head.buses.items() if s.simulated]
+    overrides: dict[str, object] = {"api.command": "tcp://127.0.0.1:*", "api.telemetry": "tcp://127.0.0.1:*",
+                                    "runtime.record_dir": str(args.out)}
+    if args.rate:
+        overrides["runtime.rate_hz"] = args.rate
+    if args.no_realtime:
+        overrides["runtime.realtime"] = False
+    print(f"head {head.name!r}: {len(head.actuators)} actuators on "
+          + ", ".join(f"{b} ({s.driver}{', emulated' if s.simulated else ''})" for b, s in head.buses.items()))
+    if not simulated:
+        print("warning: no bus of this head is simulated: the demo moves REAL motors", file=sys.stderr)
+    try:
+        daemon = Daemon(head, overrides)
+        daemon.start()
+    except (SpecError, BusError, OSError) as exc:
+        raise CliError(f"cannot start the daemon: {exc}") from exc
+    try:
+        print(f"daemon up at {daemon.cfg.runtime.rate_hz:g} Hz; commands {daemon.command_endpoint}; "
+              f"{daemon.realtime_status}")
+        with Client(daemon.command_endpoint, timeout=10.0) as client, Telemetry(daemon.telemetry_endpoint) as tel:
+            client.call("enable")
+            reply = client.call("load_clip", clip=data)
+            print(f"performance {clip.name!r}: {reply['duration']:.2f} s, {len(reply['channels'])} channels, "
+                  f"{reply['keys']} keys")
+            time.sleep(0.2)  # let the telemetry subscription settle
+            client.call("record", action="start", name=clip.name)
+            start = client.call("play", clip=clip.name)["start"]
+            duration = reply["duration"]
+            fault = None
+            shown = -1
+            while True:
+                msg = tel.recv(0.5)
+                now = client.call("clock")["t_send"]
+                if msg is not None and msg[0] == "event" and msg[1]["event"] in ("fault", "estop"):
+                    fault = msg[1]
+                    break
+                progress = min(1.0, max(0.0, (now - start) / duration))
+                pct = int(progress * 100)
+                if pct // 5 != shown:
+                    shown = pct // 5
+                    bar = "#" * (pct // 5) + "." * (20 - pct // 5)
+                    print(f"\r  playing [{bar}] {pct:3d}%  {now - start:5.2f}/{duration:.2f} s", end="", flush=True)
+                if now - start > duration + 0.5:
+                    break
+            print()
+            rec_reply = client.call("record", action="stop")
+            status = client.call("status")
+            client.call("disable")
+    finally:
+        daemon.stop()
+    if fault is not None:
+        print(f"performance stopped by {fault['event']}: {fault.get('message') or fault.get('reason')}")
+        return 1
+    rec = load_recording(rec_reply["path"])
+    errors = tracking_errors(rec, settle_s=0.0)
+    print("tracking error (commanded vs measured):")
+    print_errors(errors)
+    loop = status["loop"]
+    print(f"loop: {loop['rate_hz']:g} Hz, {loop['cycles']} cycles, {loop['missed']} missed deadlines; jitter "
+          f"p50 {loop.get('jitter_p50_us', 0):.1f} us, p99 {loop.get('jitter_p99_us', 0):.1f} us, max "
+          f"{loop.get('jitter_max_us', 0):.1f} us; cycle work p50 {loop.get('work_p50_us', 0):.0f} us, "
+          f"p99 {loop.get('work_p99_us', 0):.0f} us")
+    png = plot_recording(rec, args.out / f"{clip.name}.png", title=f"{head.name}: {clip.name} — commanded vs measured")
+    print(f"recording: {rec_reply['path']} ({rec_reply['samples']} samples)\nplot: {png}")
+    return 0

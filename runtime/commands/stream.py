@@ -1,0 +1,76 @@
+"""``likeness stream``: send a clip file (JSON or CSV) to a running daemon, as timestamped frames or as a clip."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from runtime.commands._common import add_client_options, call, connect
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("stream", help="stream a clip (JSON or CSV) to the daemon in real time")
+    p.add_argument("clip", type=Path, help="clip file: .json (keyframe curves) or .csv (time + one column per channel)")
+    add_client_options(p)
+    p.add_argument("--fps", type=float, default=100.0, help="frames per second when streaming (default 100)")
+    p.add_argument("--upload", action="store_true",
+                   help="send the clip once (load_clip + play) instead of streaming sampled frames")
+    p.add_argument("--loop", action="store_true", help="with --upload: loop the clip")
+    p.add_argument("--speed", type=float, default=1.0, help="playback speed (default 1)")
+    p.add_argument("--interp", choices=("linear", "step"), default="linear", help="CSV interpolation")
+    p.add_argument("--enable", action="store_true", help="enable torque first if the head is inactive")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    import sys
+    import time
+
+    from likeness.cli import CliError
+    from runtime.curves import ClipError, clip_file_as_dict, clip_from_dict
+
+    if not args.fps > 0 or not args.speed > 0:
+        raise CliError("--fps and --speed must be positive")
+    try:
+        data = clip_file_as_dict(args.clip, args.interp)
+        clip = clip_from_dict(data, where=str(args.clip))
+    except ClipError as exc:
+        raise CliError(str(exc)) from exc
+    with connect(args) as client:
+        if args.enable and call(client, "status")["lifecycle"] == "inactive":
+            call(client, "enable")
+        if args.upload:
+            call(client, "load_clip", clip=data)
+            reply = call(client, "play", clip=clip.name, loop=args.loop, speed=args.speed)
+            print(f"playing {clip.name!r} ({reply['duration']:.2f} s) from daemon time {reply['start']:.3f}")
+            return 0
+        offset, rtt = client.clock_offset()
+        channels = sorted(clip.channels)
+        duration = clip.duration / args.speed
+        step = 1.0 / args.fps
+        t0 = time.monotonic()
+        sent = accepted = late = 0
+        k = 0
+        while True:
+            t = k * step
+            if t > duration + 1e-9:
+                break
+            wake = t0 + t
+            delay = wake - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            values = clip.sample(min(t * args.speed, clip.duration))
+            frame = [wake + offset] + [values[c] for c in channels]
+            reply = call(client, "stream", channels=channels, frames=[frame])
+            sent += 1
+            accepted += reply["accepted"]
+            late += reply["late"]
+            k += 1
+            if k % max(1, int(args.fps / 4)) == 0 and sys.stdout.isatty():
+                print(f"\rstreaming {clip.name}: {t:6.2f}/{duration:.2f} s  {accepted} accepted, {late} late",
+                      end="", flush=True)
+        if sys.stdout.isatty():
+            print()
+    print(f"streamed {sent} frames of {clip.name!r} at {args.fps:g} fps: {accepted} accepted, {late} late "
+          f"(clock offset {offset * 1e3:.3f} ms, round trip {rtt * 1e6:.0f} us)")
+    return 0

@@ -1,0 +1,301 @@
+"""The emulated CiA 402 drive, driven in-process by canopen's own master (``BaseNode402``) and raw SDO."""
+
+from __future__ import annotations
+
+import struct
+import time
+import uuid
+
+import can
+import canopen
+import pytest
+from canopen.profiles.p402 import BaseNode402
+
+from sim_hardware.canopen import drive as drv
+from sim_hardware.canopen.network import DriveSet
+from sim_hardware.canopen.od import DEVICE_TYPE, build_od, write_eds
+
+
+def _channel() -> str:
+    return f"test-canopen-{uuid.uuid4().hex[:10]}"
+
+
+def _wait(predicate, timeout: float = 2.0, step: float = 0.005) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(step)
+    return predicate()
+
+
+@pytest.fixture
+def rig():
+    """Two drives on a fresh virtual channel and a canopen master network on the same channel."""
+    channel = _channel()
+    drives = DriveSet([1, 2], channel=channel, heartbeat_ms=20, seed=1).start()
+    net = canopen.Network()
+    net.NOTIFIER_CYCLE = 0.1
+    net.connect(interface="virtual", channel=channel)
+    yield drives, net
+    net.sync.stop()
+    net.disconnect()
+    drives.stop()
+
+
+def _setup_master(net: canopen.Network, node_id: int) -> BaseNode402:
+    """The canonical BaseNode402 bring-up: pre-op, read all PDOs, map CSP PDOs, operational."""
+    node = BaseNode402(node_id, build_od(node_id))
+    net.add_node(node)
+    node.nmt.state = "PRE-OPERATIONAL"
+    node.nmt.wait_for_heartbeat(1.0)
+    node.setup_402_state_machine(read_pdos=True)  # reads 0x1400-0x1403, 0x1600-0x1603, 0x1800-0x1803, 0x1A00-0x1A03
+    node.tpdo[1].clear()
+    node.tpdo[1].add_variable(0x6041)
+    node.tpdo[1].add_variable(0x6064)
+    node.tpdo[1].trans_type = 1
+    node.tpdo[1].enabled = True
+    node.rpdo[1].clear()
+    node.rpdo[1].add_variable(0x6040)
+    node.rpdo[1].add_variable(0x607A)
+    node.rpdo[1].trans_type = 1
+    node.rpdo[1].enabled = True
+    node.tpdo.save()
+    node.rpdo.save()
+    node.setup_402_state_machine(read_pdos=False)
+    return node
+
+
+def test_object_dictionary_and_eds_round_trip(tmp_path):
+    od = build_od(5)
+    assert od[0x1000].default == DEVICE_TYPE
+    for base in (0x1400, 0x1600, 0x1800, 0x1A00):
+        for k in range(4):
+            assert base + k in od
+    for index in (0x6040, 0x6041, 0x605A, 0x6060, 0x6061, 0x6064, 0x6065, 0x606C, 0x6077, 0x6078, 0x607A,
+                  0x6081, 0x6083, 0x6084, 0x60C2, 0x6502, 0x603F, 0x1017, 0x1018):
+        assert index in od, hex(index)
+    assert od[0x1800][1].default == 0x185
+    path = write_eds(tmp_path / "drive.eds", node_id=5)
+    back = canopen.import_od(str(path), 5)
+    assert back[0x1000].default == DEVICE_TYPE
+    assert back[0x607D][1].default == -(2**31)  # negative defaults survive the EDS round trip
+    assert back[0x1A02][2].default == 0x60640020
+    assert not list(tmp_path.glob("*.tmp"))
+
+
+def test_boot_up_heartbeat_and_sdo(rig):
+    _, net = rig
+    seen: list[int] = []
+    net.subscribe(0x701, lambda _id, data, _ts: seen.append(data[0]))
+    node = net.add_node(1, canopen.ObjectDictionary())
+    assert struct.unpack("<I", node.sdo.upload(0x1000, 0))[0] == DEVICE_TYPE
+    assert _wait(lambda: len(seen) >= 3)
+    assert set(seen) == {127}  # pre-operational heartbeats at 0x1017 = 20 ms
+    # NMT reset node: boot-up (state 0) then pre-operational again, defaults restored.
+    node.sdo.download(0x6065, 0, struct.pack("<I", 123))
+    seen.clear()
+    net.send_message(0, bytes([0x81, 1]))
+    assert _wait(lambda: 0 in seen and seen[-1] == 127)
+    assert struct.unpack("<I", node.sdo.upload(0x6065, 0))[0] == 5000
+    # A refused write aborts like a real drive: unsupported mode of operation.
+    with pytest.raises(canopen.SdoAbortedError):
+        node.sdo.download(0x6060, 0, struct.pack("<b", 3))
+    # Mapping an object that is not mappable is refused.
+    with pytest.raises(canopen.SdoAbortedError):
+        node.sdo.download(0x1A00, 1, struct.pack("<I", 0x60650020))
+
+
+def test_base_node_402_state_machine_and_csp_motion(rig):
+    drives, net = rig
+    nodes = [_setup_master(net, n) for n in (1, 2)]
+    net.sync.start(0.01)
+    for node in nodes:
+        node.rpdo[1].start(0.01)
+        node.nmt.state = "OPERATIONAL"
+    for node in nodes:
+        node.op_mode = "CYCLIC SYNCHRONOUS POSITION"
+        assert node.op_mode == "CYCLIC SYNCHRONOUS POSITION"
+        node.state = "OPERATION ENABLED"
+        assert node.state == "OPERATION ENABLED"
+    assert all(d.state == drv.OPERATION_ENABLED for d in drives.drives.values())
+    start = time.monotonic()
+    goal = {1: 30_000, 2: -20_000}
+    while (t := time.monotonic() - start) < 0.6:
+        for node in nodes:
+            node.rpdo[1]["Target position"].raw = round(goal[node.id] * min(t / 0.5, 1.0))
+        time.sleep(0.01)
+    for node in nodes:
+        assert _wait(lambda node=node: abs(drives.drives[node.id].position_counts - goal[node.id]) < 20, 1.0)
+        assert _wait(lambda node=node: abs(node.tpdo[1]["Position actual value"].raw - goal[node.id]) < 20, 1.0)
+    # Back down the state machine.
+    nodes[0].state = "SWITCH ON DISABLED"
+    assert drives.drives[1].state == drv.SWITCH_ON_DISABLED
+    assert drives.drives[2].state == drv.OPERATION_ENABLED
+
+
+def _sdo_node(net: canopen.Network, node_id: int):
+    return net.add_node(node_id, canopen.ObjectDictionary())
+
+
+def _cw(node, value: int) -> None:
+    node.sdo.download(0x6040, 0, struct.pack("<H", value))
+
+
+def _enable_via_sdo(node, mode: int) -> None:
+    node.sdo.download(0x6060, 0, struct.pack("<b", mode))
+    for cw in (0x06, 0x07, 0x0F):
+        _cw(node, cw)
+
+
+def test_profile_position_mode_and_quick_stop(rig):
+    drives, net = rig
+    node = _sdo_node(net, 1)
+    drive = drives.drives[1]
+    _enable_via_sdo(node, 1)
+    assert drive.state == drv.OPERATION_ENABLED
+    node.sdo.download(0x6081, 0, struct.pack("<I", 100_000))
+    node.sdo.download(0x607A, 0, struct.pack("<i", 40_000))
+    _cw(node, 0x1F)  # new set-point (bit 4 rising edge)
+    status = struct.unpack("<H", node.sdo.upload(0x6041, 0))[0]
+    assert status & 0x1000  # set-point acknowledged
+    _cw(node, 0x0F)
+    assert _wait(lambda: abs(drive.position_counts - 40_000) < 20, 2.0)
+    assert _wait(lambda: struct.unpack("<H", node.sdo.upload(0x6041, 0))[0] & 0x0400, 1.0)  # target reached
+    # Start a long move, then quick stop: the drive decelerates, then (option 2) switch on disabled.
+    node.sdo.download(0x607A, 0, struct.pack("<i", -400_000))
+    _cw(node, 0x1F)
+    assert _wait(lambda: abs(drive.velocity_counts) > 90_000, 2.0)
+    _cw(node, 0x0B)  # quick stop
+    assert drive.state == drv.QUICK_STOP_ACTIVE
+    assert _wait(lambda: drive.state == drv.SWITCH_ON_DISABLED, 1.0)
+    assert abs(drive.velocity_counts) < 1000
+    assert drive.position_counts > -400_000 + 100_000  # stopped well before the target
+
+
+def test_quick_stop_option_6_holds_and_resumes(rig):
+    drives, net = rig
+    node = _sdo_node(net, 2)
+    drive = drives.drives[2]
+    node.sdo.download(0x605A, 0, struct.pack("<h", 6))
+    _enable_via_sdo(node, 8)
+    _cw(node, 0x0B)
+    assert drive.state == drv.QUICK_STOP_ACTIVE
+    time.sleep(0.05)
+    assert drive.state == drv.QUICK_STOP_ACTIVE  # option 6: stay in quick stop, holding
+    assert struct.unpack("<H", node.sdo.upload(0x6041, 0))[0] & 0x6F == 0x07
+    _cw(node, 0x0F)  # transition 16
+    assert drive.state == drv.OPERATION_ENABLED
+    _cw(node, 0x00)
+    assert drive.state == drv.SWITCH_ON_DISABLED
+
+
+def test_fault_emcy_and_reset_on_rising_edge(rig):
+    drives, net = rig
+    node = _sdo_node(net, 2)
+    drive = drives.drives[2]
+    emcy: list[int] = []
+    node.emcy.add_callback(lambda e: emcy.append(e.code))
+    _enable_via_sdo(node, 8)
+    drives.inject("drive_fault", device=2, code=0x2310)
+    assert _wait(lambda: drive.state == drv.FAULT, 1.0)
+    assert _wait(lambda: 0x2310 in emcy, 1.0)
+    assert struct.unpack("<H", node.sdo.upload(0x603F, 0))[0] == 0x2310
+    assert node.sdo.upload(0x1001, 0)[0] & 0x03 == 0x03  # generic + current
+    _cw(node, 0x80)  # rising edge of bit 7 resets
+    assert drive.state == drv.SWITCH_ON_DISABLED
+    assert struct.unpack("<H", node.sdo.upload(0x603F, 0))[0] == 0
+    drives.inject("drive_fault", device=2, code=0x4310)
+    assert _wait(lambda: drive.state == drv.FAULT, 1.0)
+    _cw(node, 0x80)  # bit 7 already high: no edge, still faulted
+    assert drive.state == drv.FAULT
+    _cw(node, 0x00)
+    _cw(node, 0x80)
+    assert drive.state == drv.SWITCH_ON_DISABLED
+
+
+def test_following_error_faults_with_emcy_8611(rig):
+    drives, net = rig
+    node = _sdo_node(net, 1)
+    drive = drives.drives[1]
+    emcy: list[int] = []
+    node.emcy.add_callback(lambda e: emcy.append(e.code))
+    _enable_via_sdo(node, 8)
+    drives.inject("following_error", device=1, counts=20_000)
+    assert _wait(lambda: drive.state == drv.FAULT, 1.0)
+    assert _wait(lambda: drv.EMCY_FOLLOWING_ERROR in emcy, 1.0)
+    drives.inject("release", device=1)
+    assert not drive.jammed
+
+
+def test_sync_pdo_exchange_and_corrupted_rpdo(rig):
+    drives, net = rig
+    node = _sdo_node(net, 1)
+    drive = drives.drives[1]
+    frames: list[bytes] = []
+    emcy: list[int] = []
+    net.subscribe(0x381, lambda _id, data, _ts: frames.append(bytes(data)))
+    node.emcy.add_callback(lambda e: emcy.append(e.code))
+    _enable_via_sdo(node, 8)
+    node.nmt.state = "OPERATIONAL"
+    time.sleep(0.02)
+    net.send_message(0x401, struct.pack("<Hi", 0x0F, 500))  # RPDO3 default: controlword + target, sync
+    time.sleep(0.02)
+    assert drive._target != 500  # synchronous RPDO waits for the SYNC
+    net.send_message(0x80, b"")
+    assert _wait(lambda: len(frames) >= 1)
+    assert _wait(lambda: abs(drive.position_counts - 500) < 5)
+    net.send_message(0x80, b"")
+    assert _wait(lambda: len(frames) >= 2)
+    status, position = struct.unpack("<Hi", frames[-1])
+    assert status & 0x6F == 0x27 and abs(position - 500) < 5
+    net.send_message(0x401, b"\x0f\x00\x01")  # too short: EMCY 0x8210, not applied
+    assert _wait(lambda: drv.EMCY_PDO_LENGTH in emcy)
+    assert drive.state == drv.OPERATION_ENABLED
+
+
+def test_link_faults_drop_and_corrupt_frames(rig):
+    drives, net = rig
+    received: list[bytes] = []
+    net.subscribe(0x701, lambda _id, data, _ts: received.append(bytes(data)))
+    assert _wait(lambda: len(received) >= 2)
+    drives.inject("frames", drop=1.0, device=1)
+    time.sleep(0.03)
+    received.clear()
+    time.sleep(0.1)
+    assert received == []
+    assert drives.network.impairment.counts["dropped"] >= 5
+    drives.inject("frames", corrupt=1.0, device=1)
+    assert _wait(lambda: len(received) >= 2)
+    assert all(len(r) == 0 for r in received)  # one byte short
+    drives.inject("frames", delay_ms=50, device=1)
+    time.sleep(0.03)
+    received.clear()
+    t0 = time.monotonic()
+    assert _wait(lambda: len(received) >= 1)
+    assert time.monotonic() - t0 >= 0.02
+    drives.inject("clear")
+    received.clear()
+    assert _wait(lambda: len(received) >= 2)
+    assert all(r == b"\x7f" for r in received)
+    with pytest.raises(ValueError, match="drop"):
+        drives.inject("frames", drop=2.0)
+    with pytest.raises(ValueError, match="unknown fault"):
+        drives.inject("explode", device=1)
+
+
+def test_drive_set_rejects_bad_node_ids():
+    with pytest.raises(ValueError, match=r"1\.\.127"):
+        DriveSet([0, 1])
+
+
+def test_physics_keeps_running_without_master():
+    """Ground truth moves by itself in simulated time (coasting after a push)."""
+    channel = _channel()
+    with DriveSet([3], channel=channel) as drives:
+        drive = drives.drives[3]
+        drive._motor.velocity = 1000.0
+        assert _wait(lambda: drive.velocity_counts < 500, 1.0)
+        assert drive.position_counts > 10
+    bus = can.Bus(interface="virtual", channel=channel)
+    bus.shutdown()
