@@ -7,7 +7,11 @@ import importlib
 
 #: Modules that add ``likeness offline`` subcommands through ``register(subparsers)``.
 OFFLINE_COMMAND_MODULES: tuple[str, ...] = (
-    "offline.material.cli", "offline.mesh.cli", "offline.fem_cli", "offline.dataset.cli", "offline.train.cli",
+    "offline.mesh.cli",
+    "offline.fem_cli",
+    "offline.material.cli",
+    "offline.dataset.cli",
+    "offline.train.cli",
 )
 
 

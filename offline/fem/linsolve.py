@@ -183,13 +183,17 @@ class _PardisoSolver(SparseSolver):
         if _PardisoSolver._template is None:
             _PardisoSolver._template = pypardiso.PyPardisoSolver(mtype=2)
         self._ps = copy.copy(_PardisoSolver._template)
-        self._ps.pt = np.zeros_like(self._ps.pt)  # fresh PARDISO handle and parameters for this solver
-        self._ps.iparm = np.zeros_like(self._ps.iparm)
-        self._ps.perm = np.zeros_like(self._ps.perm)
-        self._ps.set_iparm(1, 2)  # nested dissection (METIS) ordering
-        self._analyzed_key = None
         self._upper_cache = None
         self.generation = 0
+        self._fresh_state()
+
+    def _fresh_state(self) -> None:
+        """A fresh PARDISO handle and parameters for this solver; the next factor() analyzes anew."""
+        self._ps.pt = np.zeros_like(self._ps.pt)
+        self._ps.iparm = np.zeros_like(self._ps.iparm)
+        self._ps.perm = np.zeros_like(self._ps.perm)
+        self._ps.set_iparm(1, 2)
+        self._analyzed_key = None
 
     def call(self, upper: sp.csr_matrix, b: np.ndarray, phase: int) -> np.ndarray:
         from pypardiso.pardiso_wrapper import PyPardisoError
@@ -228,9 +232,21 @@ class _PardisoSolver(SparseSolver):
         # mtype 2 (SPD): a non-positive pivot ends phase 22 with error -4 and iparm(30) naming the equation;
         # PARDISO does not clear iparm(30) on success, so reset it before each factorization.
         self._ps.iparm[29] = 0
-        self.call(upper, b, 22)
+        try:
+            self.call(upper, b, 22)
+        except Exception:
+            # A failed numeric phase leaves PARDISO's internal state unusable (even a later positive definite
+            # matrix is refused): release it and start from a fresh handle and analysis next time.
+            self._reset()
+            raise
         self.generation += 1
         return _PardisoFactorization(self, upper, self.generation)
+
+    def _reset(self) -> None:
+        with contextlib.suppress(Exception):
+            self._ps.free_memory(everything=True)
+        self._fresh_state()
+        self.generation += 1  # factorizations from before the failure must not solve with the new state
 
     def __del__(self) -> None:
         with contextlib.suppress(Exception):
