@@ -127,10 +127,7 @@ def default_head() -> str:
 
 
 def actuator_transforms(args, link_names):
-    """Link transforms from actuator values (config units of ``--head``: deg or mm) through the link map.
-
-    ``models.linkmap`` is imported lazily: a clear error names what is missing when it is not installed.
-    """
+    """Link transforms from actuator values (config units of ``--head``: deg or mm) through the link map."""
     import math
 
     from likeness.cli import CliError
@@ -163,11 +160,8 @@ def actuator_transforms(args, link_names):
             raise CliError(f"--actuators {item!r}: outside [{spec.to_config_units(spec.min):g}, "
                            f"{spec.to_config_units(spec.max):g}] {spec.unit}")
         values[name] = si
-    try:
-        from models.linkmap import LinkMap
-    except ImportError as exc:
-        raise CliError(f"--actuators needs models.linkmap, which is not available in this install ({exc}); "
-                       "use --links or --link instead") from exc
+    from models.linkmap import LinkMap
+
     try:
         transforms = LinkMap.load(linkmap).transforms(values)
     except (OSError, ValueError, KeyError) as exc:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
@@ -115,17 +114,6 @@ def test_bad_links_json_and_missing_mesh(tmp_path, capsys) -> None:
     assert "no skin.vtu" in capsys.readouterr().err
 
 
-@pytest.mark.skipif(importlib.util.find_spec("models.linkmap") is not None, reason="link map module is present")
-def test_actuators_without_linkmap_module_is_a_clear_error(tmp_path, capsys) -> None:
-    lm = tmp_path / "linkmap.json"
-    lm.write_text("{}")
-    rc = main(["offline", "simulate", "--mesh", str(SKIN), "--actuators", "jaw=3", "--linkmap", str(lm),
-               "--out", str(tmp_path / "x.vtu")])
-    assert rc == 2
-    assert "models.linkmap" in capsys.readouterr().err
-
-
-@pytest.mark.skipif(importlib.util.find_spec("models.linkmap") is None, reason="models.linkmap not in this tree")
 def test_actuators_through_a_link_map(tmp_path, mesh, capsys) -> None:
     from models.linkmap import LinkFit, LinkMap
 
