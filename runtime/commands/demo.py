@@ -8,13 +8,15 @@ from pathlib import Path
 
 from runtime.commands._common import SAMPLE_HEAD
 
-PERFORMANCE = SAMPLE_HEAD.parent / "performances" / "expressive.json"
+#: Played in order: actuator curves, then blendshape (``arkit.*``) curves solved through the skin predictor.
+PERFORMANCES = [SAMPLE_HEAD.parent / "performances" / name for name in ("expressive.json", "blendshapes.json")]
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("demo", help="play the sample head's performance on emulated hardware and plot it")
     p.add_argument("--config", type=Path, default=SAMPLE_HEAD, help="head spec (default: the sample head)")
-    p.add_argument("--performance", type=Path, default=PERFORMANCE, help="clip to play (JSON or CSV)")
+    p.add_argument("--performance", type=Path, nargs="+", default=PERFORMANCES,
+                   help="clips to play in order (JSON or CSV; default: the sample head's two performances)")
     p.add_argument("--out", type=Path, default=Path("demo-output"), help="directory for recording and plot")
     p.add_argument("--rate", type=float, default=None, help="loop rate in Hz (default: from the head spec)")
     p.add_argument("--no-realtime", action="store_true", help="do not ask for SCHED_FIFO")
@@ -37,8 +39,10 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         head = load_head(args.config)
-        data = clip_file_as_dict(args.performance)
-        clip = clip_from_dict(data, where=str(args.performance))
+        clips = []
+        for path in args.performance:
+            data = clip_file_as_dict(path)
+            clips.append((data, clip_from_dict(data, where=str(path))))
     except (SpecError, ClipError) as exc:
         raise CliError(str(exc)) from exc
     simulated = [b for b, s in head.buses.items() if s.simulated]
@@ -57,52 +61,64 @@ def run(args: argparse.Namespace) -> int:
         daemon.start()
     except (SpecError, BusError, OSError) as exc:
         raise CliError(f"cannot start the daemon: {exc}") from exc
+    recordings = []
+    fault = None
     try:
         print(f"daemon up at {daemon.cfg.runtime.rate_hz:g} Hz; commands {daemon.command_endpoint}; "
               f"{daemon.realtime_status}")
         with Client(daemon.command_endpoint, timeout=10.0) as client, Telemetry(daemon.telemetry_endpoint) as tel:
             client.call("enable")
-            reply = client.call("load_clip", clip=data)
-            print(f"performance {clip.name!r}: {reply['duration']:.2f} s, {len(reply['channels'])} channels, "
-                  f"{reply['keys']} keys")
             time.sleep(0.2)  # let the telemetry subscription settle
-            client.call("record", action="start", name=clip.name)
-            start = client.call("play", clip=clip.name)["start"]
-            duration = reply["duration"]
-            fault = None
-            shown = -1
-            while True:
-                msg = tel.recv(0.5)
-                now = client.call("clock")["t_send"]
-                if msg is not None and msg[0] == "event" and msg[1]["event"] in ("fault", "estop"):
-                    fault = msg[1]
+            for data, clip in clips:
+                fault = _play(client, tel, data, clip)
+                rec_reply = client.call("record", action="stop")
+                if fault is not None:
                     break
-                progress = min(1.0, max(0.0, (now - start) / duration))
-                pct = int(progress * 100)
-                if pct // 5 != shown:
-                    shown = pct // 5
-                    bar = "#" * (pct // 5) + "." * (20 - pct // 5)
-                    print(f"\r  playing [{bar}] {pct:3d}%  {now - start:5.2f}/{duration:.2f} s", end="", flush=True)
-                if now - start > duration + 0.5:
-                    break
-            print()
-            rec_reply = client.call("record", action="stop")
+                recordings.append((clip, rec_reply))
             status = client.call("status")
-            client.call("disable")
+            if fault is None:
+                client.call("disable")
     finally:
         daemon.stop()
     if fault is not None:
         print(f"performance stopped by {fault['event']}: {fault.get('message') or fault.get('reason')}")
         return 1
-    rec = load_recording(rec_reply["path"])
-    errors = tracking_errors(rec, settle_s=0.0)
-    print("tracking error (commanded vs measured):")
-    print_errors(errors)
+    for clip, rec_reply in recordings:
+        rec = load_recording(rec_reply["path"])
+        print(f"tracking error of {clip.name!r} (commanded vs measured):")
+        print_errors(tracking_errors(rec, settle_s=0.0))
+        png = plot_recording(rec, args.out / f"{clip.name}.png",
+                             title=f"{head.name}: {clip.name} — commanded vs measured")
+        print(f"recording: {rec_reply['path']} ({rec_reply['samples']} samples)\nplot: {png}")
     loop = status["loop"]
     print(f"loop: {loop['rate_hz']:g} Hz, {loop['cycles']} cycles, {loop['missed']} missed deadlines; jitter "
           f"p50 {loop.get('jitter_p50_us', 0):.1f} us, p99 {loop.get('jitter_p99_us', 0):.1f} us, max "
           f"{loop.get('jitter_max_us', 0):.1f} us; cycle work p50 {loop.get('work_p50_us', 0):.0f} us, "
           f"p99 {loop.get('work_p99_us', 0):.0f} us")
-    png = plot_recording(rec, args.out / f"{clip.name}.png", title=f"{head.name}: {clip.name} — commanded vs measured")
-    print(f"recording: {rec_reply['path']} ({rec_reply['samples']} samples)\nplot: {png}")
     return 0
+
+
+def _play(client, tel, data: dict, clip) -> dict | None:
+    """Load, record and play one clip with a progress bar; returns the fault or e-stop event that cut it short."""
+
+    reply = client.call("load_clip", clip=data)
+    print(f"performance {clip.name!r}: {reply['duration']:.2f} s, {len(reply['channels'])} channels, "
+          f"{reply['keys']} keys")
+    client.call("record", action="start", name=clip.name)
+    start = client.call("play", clip=clip.name)["start"]
+    duration = reply["duration"]
+    shown = -1
+    while True:
+        msg = tel.recv(0.5)
+        now = client.call("clock")["t_send"]
+        if msg is not None and msg[0] == "event" and msg[1]["event"] in ("fault", "estop"):
+            print()
+            return msg[1]
+        pct = int(min(1.0, max(0.0, (now - start) / duration)) * 100)
+        if pct // 5 != shown:
+            shown = pct // 5
+            bar = "#" * (pct // 5) + "." * (20 - pct // 5)
+            print(f"\r  playing [{bar}] {pct:3d}%  {now - start:5.2f}/{duration:.2f} s", end="", flush=True)
+        if now - start > duration + 0.5:
+            print()
+            return None

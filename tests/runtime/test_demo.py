@@ -26,3 +26,9 @@ def test_demo_plays_the_performance_and_writes_a_plot(tmp_path: Path) -> None:
     for name, err in errors.items():
         assert name in out.stdout
         assert err["rms"] < 3.0, (name, err)
+    # The blendshape performance is solved through the skin predictor and moves the motors too.
+    assert "performance 'blendshapes'" in out.stdout
+    shapes = load_recording(tmp_path / "blendshapes.npz")
+    assert (tmp_path / "blendshapes.png").read_bytes()[:4] == b"\x89PNG"
+    moved = abs(shapes["measured"]).max(axis=0)  # config units (degrees)
+    assert (moved > 0.5).sum() >= 5, dict(zip(shapes["names"], moved, strict=True))
