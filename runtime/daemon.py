@@ -30,6 +30,8 @@ import zmq
 from drivers.base import LifecycleState
 from drivers.errors import BusError
 from models.headspec import HeadSpec
+from models.linkmap import LinkMap
+from models.rigid import matrix_to_rotvec
 from runtime import protocol as P
 from runtime.api import CommandApi
 from runtime.config import DaemonConfig, daemon_config, resolve
@@ -77,6 +79,7 @@ class Daemon(CommandApi):
             target_solvers = default_target_solvers(head)
         self.solver = Solver(head, target_solvers)
         self.safety = SafetyFilter(head)
+        self.linkmap = _load_linkmap(head)
         self.timeline = Timeline()
         rt = self.cfg.runtime
         self.stream = JitterBuffer(rt.stream_delay_s, rt.stream_max_frames, rt.stream_max_ahead_s)
@@ -560,7 +563,14 @@ class Daemon(CommandApi):
             msg["stream"] = self.stream.stats()
         if self.extra:
             msg["extra"] = self.extra
+        if self.linkmap is not None and np.isfinite(self.measured).all():
+            msg["links"] = self._link_poses(self.measured)
         return msg
+
+    def _link_poses(self, q: np.ndarray) -> dict[str, list[float]]:
+        """Predicted link poses m(q) at measured actuator values: [x, y, z (m), rx, ry, rz (rotation vector, rad)]."""
+        poses = self.linkmap.poses(dict(zip(self.names, q.tolist(), strict=True)))
+        return {name: [*T[:3, 3].tolist(), *matrix_to_rotvec(T[:3, :3]).tolist()] for name, T in poses.items()}
 
     def _publish(self, state_msg: dict[str, Any] | None) -> None:
         pub = self._pub
@@ -575,3 +585,14 @@ class Daemon(CommandApi):
             pass
         except zmq.ZMQError as exc:
             log.warning("telemetry publish failed: %s", exc)
+
+
+def _load_linkmap(head: HeadSpec) -> LinkMap | None:
+    """The head's calibrated link map m(p) when its file exists (a map that does not match the head is refused)."""
+    path = head.path("linkmap")
+    if path is None:
+        return None
+    if not path.exists():
+        log.warning("link map %s not found: telemetry carries no predicted link poses (run likeness calibrate)", path)
+        return None
+    return LinkMap.for_head(head)
