@@ -291,7 +291,8 @@ def solve_static(mesh: TetMesh, material: Material, dirichlet: Dirichlet, *, x0:
     def newton(x_in: np.ndarray, lam: float, step: int) -> np.ndarray:
         nonlocal iterations
         xk = x_in.copy()
-        target = c_start + lam * (c_goal - c_start)
+        # the last step's target is the goal itself (c + 1.0 * (g - c) may differ from g by round-off)
+        target = c_goal if lam >= 1.0 else c_start + lam * (c_goal - c_start)
         fext = lam * f_grav
         for it in range(opts.max_iterations):
             t = time.perf_counter()
