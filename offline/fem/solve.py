@@ -1,9 +1,11 @@
 """Quasi-static equilibrium of a hyperelastic tet mesh under Dirichlet conditions and gravity (Newton's method).
 
 :func:`solve_static` minimises W(x) − f_ext·x over the free nodes with the constrained nodes moved to their targets.
-The boundary motion (and gravity) is applied in load steps; within a step the remaining boundary increment is folded
-into each Newton step (free DoFs see it through K_fc), so one step often suffices. A backtracking line search keeps
-every element's J > 0 and enforces Armijo decrease of the total energy once the boundary has arrived. Element
+The boundary motion (and gravity) is applied in load steps. The first Newton iteration of a step puts the constrained
+nodes exactly on the step's targets and predicts the free nodes through K_fc (a linearised extension of the boundary
+increment); the backtracking line search scales only the free part, keeping every element's J > 0, so from then on
+each iteration is Newton on the free DoFs with a fixed boundary and Armijo decrease of the total energy. If no free
+step lets the boundary increment in without inverting an element, the load step is halved. Element
 Hessians are projected to PSD only when the factorization reports an indefinite matrix or the Newton direction is
 not a descent direction. The symbolic factorization is reused across iterations; on failure the load step is
 halved, and after ``max_load_step_halvings`` a :class:`NotConverged` is raised with the last state saved to disk.
@@ -348,13 +350,18 @@ def solve_static(mesh: TetMesh, material: Material, dirichlet: Dirichlet, *, x0:
                 break
             d = np.zeros(3 * N)
             d[free_idx] = du
-            d[cdofs] = dc
             d = d.reshape(N, 3)
+            # The boundary goes all the way to this step's target at once; only the free DoFs are scaled by the
+            # line search, so after one iteration every step is plain Newton on the free DoFs with a fixed
+            # boundary and monotone (Armijo) energy decrease. A boundary increment that no free-DoF step can
+            # follow without inverting an element fails the load step, which is then halved.
+            base = xk.copy()
+            base.reshape(-1)[cdofs] = target
             t = time.perf_counter()
             alpha = 1.0
             accepted = False
             for _ in range(30):
-                xt = xk + alpha * d
+                xt = base + alpha * d
                 e_t = _en.total_energy(mesh, material, xt)
                 if np.isfinite(e_t):
                     if not boundary_done:
@@ -382,8 +389,6 @@ def solve_static(mesh: TetMesh, material: Material, dirichlet: Dirichlet, *, x0:
             if not accepted:
                 raise _StepFailed("line search found no admissible step")
             xk = xt
-            if alpha == 1.0 and not boundary_done:
-                xk.reshape(-1)[cdofs] = target  # exact arrival (x + (t - x) may differ from t by round-off)
         raise _StepFailed(f"no convergence in {opts.max_iterations} iterations")
 
     lam, dlam, halvings, steps_done = 0.0, 1.0 / n_steps, 0, 0
