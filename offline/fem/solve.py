@@ -8,7 +8,8 @@ each iteration is Newton on the free DoFs with a fixed boundary and Armijo decre
 step lets the boundary increment in without inverting an element, the load step is halved. Element
 Hessians are projected to PSD only when the factorization reports an indefinite matrix or the Newton direction is
 not a descent direction. The symbolic factorization is reused across iterations; on failure the load step is
-halved, and after ``max_load_step_halvings`` a :class:`NotConverged` is raised with the last state saved to disk.
+halved (and grows back after a success); after ``max_load_step_halvings`` successive halvings a
+:class:`NotConverged` is raised with the last state saved to disk.
 """
 
 from __future__ import annotations
@@ -391,7 +392,8 @@ def solve_static(mesh: TetMesh, material: Material, dirichlet: Dirichlet, *, x0:
             xk = xt
         raise _StepFailed(f"no convergence in {opts.max_iterations} iterations")
 
-    lam, dlam, halvings, steps_done = 0.0, 1.0 / n_steps, 0, 0
+    dlam0 = 1.0 / n_steps
+    lam, dlam, halvings, steps_done = 0.0, dlam0, 0, 0
     state_lam = 0.0
     while lam < 1.0 - 1e-12:
         lam1 = min(1.0, lam + dlam)
@@ -401,6 +403,8 @@ def solve_static(mesh: TetMesh, material: Material, dirichlet: Dirichlet, *, x0:
             x = newton(x, lam1, steps_done)
             lam, state_lam = lam1, lam1
             steps_done += 1
+            # a step that went through lets the next one grow back towards the planned size
+            halvings, dlam = 0, min(dlam0, 2.0 * dlam)
         except _StepFailed as exc:
             halvings += 1
             if opts.verbose:
@@ -410,7 +414,8 @@ def solve_static(mesh: TetMesh, material: Material, dirichlet: Dirichlet, *, x0:
                 result = StaticResult(x, False, iterations, steps_done, tuple(log), MappingProxyType(dict(timings)),
                                       _reactions(mesh, material, x, nodes, f_grav * state_lam))
                 path = _save_failure(opts.failure_dir, mesh, x, dirichlet, state_lam, log)
-                raise NotConverged(f"solve_static: {exc} at load factor {lam1:.4f} after {halvings - 1} halvings",
+                raise NotConverged(f"solve_static: {exc} at load factor {lam1:.4f} after {halvings - 1} successive "
+                                   "halvings",
                                    result, path) from None
             dlam *= 0.5
     timings["total"] = time.perf_counter() - t_total
