@@ -207,6 +207,14 @@ class _StepFailed(Exception):
     pass
 
 
+#: Line-search halvings allowed in the iteration that moves the boundary in (smallest free-DoF scale 1/16).
+_BOUNDARY_HALVINGS = 4
+#: A load step has stalled after this many Newton steps in a row with a line-search scale below _STALL_ALPHA (a
+#: nearly inverted state can take 100 such steps without progress; a smaller load step recovers sooner).
+_STALL_ITERATIONS = 3
+_STALL_ALPHA = 1e-4
+
+
 def _mean_edge_length(mesh: TetMesh) -> float:
     p = np.asarray(mesh.nodes)[np.asarray(mesh.tets)[:, :4]]
     from .mesh import QUADRATIC_EDGES
@@ -294,6 +302,7 @@ def solve_static(mesh: TetMesh, material: Material, dirichlet: Dirichlet, *, x0:
     def newton(x_in: np.ndarray, lam: float, step: int) -> np.ndarray:
         nonlocal iterations
         xk = x_in.copy()
+        tiny = 0
         # the last step's target is the goal itself (c + 1.0 * (g - c) may differ from g by round-off)
         target = c_goal if lam >= 1.0 else c_start + lam * (c_goal - c_start)
         fext = lam * f_grav
@@ -361,7 +370,10 @@ def solve_static(mesh: TetMesh, material: Material, dirichlet: Dirichlet, *, x0:
             t = time.perf_counter()
             alpha = 1.0
             accepted = False
-            for _ in range(30):
+            # While the boundary moves in, the free DoFs must take a fair share of the predicted step: a start
+            # with the boundary in place and the free nodes barely moved is nearly inverted (forces of 1e9 N and
+            # more were seen) and Newton stalls from there, so a smaller load step is the better answer.
+            for _ in range(30 if boundary_done else _BOUNDARY_HALVINGS + 1):
                 xt = base + alpha * d
                 e_t = _en.total_energy(mesh, material, xt)
                 if np.isfinite(e_t):
@@ -389,6 +401,9 @@ def solve_static(mesh: TetMesh, material: Material, dirichlet: Dirichlet, *, x0:
                       f"projected={n_proj} factor={factor_s:.3f}s")
             if not accepted:
                 raise _StepFailed("line search found no admissible step")
+            tiny = tiny + 1 if boundary_done and alpha < _STALL_ALPHA else 0
+            if tiny >= _STALL_ITERATIONS:
+                raise _StepFailed(f"Newton stalled ({tiny} steps in a row with alpha < {_STALL_ALPHA:g})")
             xk = xt
         raise _StepFailed(f"no convergence in {opts.max_iterations} iterations")
 
