@@ -273,18 +273,18 @@ def _mirror_rest(T: np.ndarray) -> np.ndarray:
 #: (mesh frame: x to the head's left, y up, z forward; checked against the mesh by the tests), so the link
 #: map's transforms apply to the mesh nodes directly.
 SAMPLE_ANCHORS: dict[str, tuple[float, float, float]] = {
-    "skull": (0.0005, 0.7616, 0.1257),
-    "jaw": (0.0004, 0.6313, 0.1265),
-    "lip_corner_l": (0.0247, 0.6602, 0.1358),
-    "lip_corner_r": (-0.0244, 0.6599, 0.1359),
-    "upper_lip": (0.0003, 0.6699, 0.1481),
-    "lower_lip": (0.0004, 0.6481, 0.1447),
-    "cheek_l": (0.0457, 0.6961, 0.1228),
-    "cheek_r": (-0.0459, 0.6966, 0.1223),
-    "brow_l": (0.0313, 0.7452, 0.1341),
-    "brow_r": (-0.0305, 0.7458, 0.1345),
-    "lid_l": (0.0323, 0.7348, 0.1341),
-    "lid_r": (-0.0315, 0.7342, 0.1341),
+    "skull": (-0.0005, 0.7632, 0.1245),
+    "jaw": (0.0000, 0.6310, 0.1224),
+    "lip_corner_l": (0.0292, 0.6590, 0.1326),
+    "lip_corner_r": (-0.0292, 0.6591, 0.1326),
+    "upper_lip": (0.0002, 0.6723, 0.1486),
+    "lower_lip": (-0.0005, 0.6483, 0.1447),
+    "cheek_l": (0.0459, 0.6980, 0.1224),
+    "cheek_r": (-0.0465, 0.6970, 0.1220),
+    "brow_l": (0.0313, 0.7461, 0.1338),
+    "brow_r": (-0.0313, 0.7461, 0.1333),
+    "lid_l": (0.0325, 0.7344, 0.1340),
+    "lid_r": (-0.0325, 0.7343, 0.1340),
 }
 
 

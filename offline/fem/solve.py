@@ -1,12 +1,15 @@
 """Quasi-static equilibrium of a hyperelastic tet mesh under Dirichlet conditions and gravity (Newton's method).
 
 :func:`solve_static` minimises W(x) − f_ext·x over the free nodes with the constrained nodes moved to their targets.
-The boundary motion (and gravity) is applied in load steps; within a step the remaining boundary increment is folded
-into each Newton step (free DoFs see it through K_fc), so one step often suffices. A backtracking line search keeps
-every element's J > 0 and enforces Armijo decrease of the total energy once the boundary has arrived. Element
+The boundary motion (and gravity) is applied in load steps. The first Newton iteration of a step puts the constrained
+nodes exactly on the step's targets and predicts the free nodes through K_fc (a linearised extension of the boundary
+increment); the backtracking line search scales only the free part, keeping every element's J > 0, so from then on
+each iteration is Newton on the free DoFs with a fixed boundary and Armijo decrease of the total energy. If no free
+step lets the boundary increment in without inverting an element, the load step is halved. Element
 Hessians are projected to PSD only when the factorization reports an indefinite matrix or the Newton direction is
 not a descent direction. The symbolic factorization is reused across iterations; on failure the load step is
-halved, and after ``max_load_step_halvings`` a :class:`NotConverged` is raised with the last state saved to disk.
+halved (and grows back after a success); after ``max_load_step_halvings`` successive halvings a
+:class:`NotConverged` is raised with the last state saved to disk.
 """
 
 from __future__ import annotations
@@ -204,6 +207,14 @@ class _StepFailed(Exception):
     pass
 
 
+#: Line-search halvings allowed in the iteration that moves the boundary in (smallest free-DoF scale 1/16).
+_BOUNDARY_HALVINGS = 4
+#: A load step has stalled after this many Newton steps in a row with a line-search scale below _STALL_ALPHA (a
+#: nearly inverted state can take 100 such steps without progress; a smaller load step recovers sooner).
+_STALL_ITERATIONS = 3
+_STALL_ALPHA = 1e-4
+
+
 def _mean_edge_length(mesh: TetMesh) -> float:
     p = np.asarray(mesh.nodes)[np.asarray(mesh.tets)[:, :4]]
     from .mesh import QUADRATIC_EDGES
@@ -291,7 +302,9 @@ def solve_static(mesh: TetMesh, material: Material, dirichlet: Dirichlet, *, x0:
     def newton(x_in: np.ndarray, lam: float, step: int) -> np.ndarray:
         nonlocal iterations
         xk = x_in.copy()
-        target = c_start + lam * (c_goal - c_start)
+        tiny = 0
+        # the last step's target is the goal itself (c + 1.0 * (g - c) may differ from g by round-off)
+        target = c_goal if lam >= 1.0 else c_start + lam * (c_goal - c_start)
         fext = lam * f_grav
         for it in range(opts.max_iterations):
             t = time.perf_counter()
@@ -347,13 +360,21 @@ def solve_static(mesh: TetMesh, material: Material, dirichlet: Dirichlet, *, x0:
                 break
             d = np.zeros(3 * N)
             d[free_idx] = du
-            d[cdofs] = dc
             d = d.reshape(N, 3)
+            # The boundary goes all the way to this step's target at once; only the free DoFs are scaled by the
+            # line search, so after one iteration every step is plain Newton on the free DoFs with a fixed
+            # boundary and monotone (Armijo) energy decrease. A boundary increment that no free-DoF step can
+            # follow without inverting an element fails the load step, which is then halved.
+            base = xk.copy()
+            base.reshape(-1)[cdofs] = target
             t = time.perf_counter()
             alpha = 1.0
             accepted = False
-            for _ in range(30):
-                xt = xk + alpha * d
+            # While the boundary moves in, the free DoFs must take a fair share of the predicted step: a start
+            # with the boundary in place and the free nodes barely moved is nearly inverted (forces of 1e9 N and
+            # more were seen) and Newton stalls from there, so a smaller load step is the better answer.
+            for _ in range(30 if boundary_done else _BOUNDARY_HALVINGS + 1):
+                xt = base + alpha * d
                 e_t = _en.total_energy(mesh, material, xt)
                 if np.isfinite(e_t):
                     if not boundary_done:
@@ -380,12 +401,14 @@ def solve_static(mesh: TetMesh, material: Material, dirichlet: Dirichlet, *, x0:
                       f"projected={n_proj} factor={factor_s:.3f}s")
             if not accepted:
                 raise _StepFailed("line search found no admissible step")
+            tiny = tiny + 1 if boundary_done and alpha < _STALL_ALPHA else 0
+            if tiny >= _STALL_ITERATIONS:
+                raise _StepFailed(f"Newton stalled ({tiny} steps in a row with alpha < {_STALL_ALPHA:g})")
             xk = xt
-            if alpha == 1.0 and not boundary_done:
-                xk.reshape(-1)[cdofs] = target  # exact arrival (x + (t - x) may differ from t by round-off)
         raise _StepFailed(f"no convergence in {opts.max_iterations} iterations")
 
-    lam, dlam, halvings, steps_done = 0.0, 1.0 / n_steps, 0, 0
+    dlam0 = 1.0 / n_steps
+    lam, dlam, halvings, steps_done = 0.0, dlam0, 0, 0
     state_lam = 0.0
     while lam < 1.0 - 1e-12:
         lam1 = min(1.0, lam + dlam)
@@ -395,6 +418,8 @@ def solve_static(mesh: TetMesh, material: Material, dirichlet: Dirichlet, *, x0:
             x = newton(x, lam1, steps_done)
             lam, state_lam = lam1, lam1
             steps_done += 1
+            # a step that went through lets the next one grow back towards the planned size
+            halvings, dlam = 0, min(dlam0, 2.0 * dlam)
         except _StepFailed as exc:
             halvings += 1
             if opts.verbose:
@@ -404,7 +429,8 @@ def solve_static(mesh: TetMesh, material: Material, dirichlet: Dirichlet, *, x0:
                 result = StaticResult(x, False, iterations, steps_done, tuple(log), MappingProxyType(dict(timings)),
                                       _reactions(mesh, material, x, nodes, f_grav * state_lam))
                 path = _save_failure(opts.failure_dir, mesh, x, dirichlet, state_lam, log)
-                raise NotConverged(f"solve_static: {exc} at load factor {lam1:.4f} after {halvings - 1} halvings",
+                raise NotConverged(f"solve_static: {exc} at load factor {lam1:.4f} after {halvings - 1} successive "
+                                   "halvings",
                                    result, path) from None
             dlam *= 0.5
     timings["total"] = time.perf_counter() - t_total
