@@ -21,8 +21,8 @@ from typing import Any
 
 import numpy as np
 
+from models.atomic import write_text
 from models.errors import SpecError
-from models.linkmap import write_atomic
 
 CSV_COLUMNS = ("time", "link", "x", "y", "z", "qw", "qx", "qy", "qz")
 TOPIC = b"tracker"
@@ -53,7 +53,7 @@ def samples_to_csv(samples: Iterable[MarkerSample]) -> str:
 def write_csv(path: str | Path, samples: Iterable[MarkerSample]) -> Path:
     """Write samples as a capture export CSV, atomically."""
     path = Path(path)
-    write_atomic(path, samples_to_csv(samples))
+    write_text(path, samples_to_csv(samples))
     return path
 
 

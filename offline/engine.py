@@ -124,19 +124,31 @@ class LocalPoolEngine(Engine):
         args_of: dict[Hashable, Sequence[Any]] = {}
         consecutive = 0  # pool rebuilds since the last finished task
 
-        def submit(key: Hashable) -> None:
+        def submit(queue: list[Hashable]) -> bool:
+            """Submit the last key of ``queue``; False (key left queued) when the pool broke meanwhile."""
+            key = queue[-1]
             if key not in args_of:
                 args_of[key] = tuple(make_args(key))
-            running[pool.submit(fn, *args_of[key])] = key
+            try:
+                fut = pool.submit(fn, *args_of[key])
+            except BrokenProcessPool:  # a worker died since the last wait: nothing of this key ran
+                return False
+            queue.pop()
+            running[fut] = key
+            return True
 
         while pending or isolated or running:
             alone = not running and bool(isolated)
+            submitted = True
             if alone:
-                submit(isolated.pop())  # a crash suspect runs with nothing else in flight
+                submitted = submit(isolated)  # a crash suspect runs with nothing else in flight
             else:
-                while pending and len(running) < limit:
-                    submit(pending.pop())
-            done, _ = cf.wait(running, return_when=cf.FIRST_COMPLETED)
+                while submitted and pending and len(running) < limit:
+                    submitted = submit(pending)
+            if submitted:
+                done, _ = cf.wait(running, return_when=cf.FIRST_COMPLETED)
+            else:  # the pool is broken: its in-flight futures fail at once; collect them, then rebuild below
+                done, _ = cf.wait(running, timeout=10.0)
             broken: list[Hashable] = []
             for fut in done:
                 key = running.pop(fut)
@@ -161,7 +173,7 @@ class LocalPoolEngine(Engine):
                                       attempts=errors[key] + crashes.get(key, 0))
                     else:
                         pending.append(key)
-            if broken or any(isinstance(f.exception(), BrokenProcessPool) for f in done):
+            if not submitted or broken or any(isinstance(f.exception(), BrokenProcessPool) for f in done):
                 # Every other in-flight future of a broken pool fails too: count the crash, requeue, rebuild.
                 for key in list(running.values()):
                     crashes[key] = crashes.get(key, 0) + 1

@@ -268,26 +268,6 @@ def run(args: argparse.Namespace) -> int:
 
 def _write_deformed(out, mesh, x, u) -> None:
     """Write deformed points with displacement and node-set flags as point data, atomically."""
-    import os
-    import tempfile
+    from offline.fem import TetMesh, save_mesh
 
-    import meshio
-    import numpy as np
-
-    point_data = {"displacement": u}
-    for name, idx in mesh.node_sets.items():
-        flag = np.zeros(mesh.n_nodes, dtype=np.int8)
-        flag[idx] = 1
-        point_data[f"set:{name}"] = flag
-    cell = "tetra" if mesh.order == 1 else "tetra10"
-    m = meshio.Mesh(x, [(cell, np.asarray(mesh.tets))], point_data=point_data)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=out.parent, prefix=f".{out.name}.", suffix=".vtu")
-    os.close(fd)
-    try:
-        meshio.write(tmp, m, file_format="vtu")
-        os.replace(tmp, out)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    save_mesh(out, TetMesh(x, mesh.tets, mesh.node_sets), point_data={"displacement": u})

@@ -8,13 +8,13 @@ actuator's configured unit), ``names``, ``units``, ``meta`` (JSON text).
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from models.atomic import atomic_path
 
 
 class Recorder:
@@ -50,21 +50,13 @@ class Recorder:
     def save(self, path: str | Path) -> Path:
         """Write the recording atomically; returns the path."""
         path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
         n = self.count
         meta = dict(self.meta, dropped=self.dropped, samples=n)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".npz", dir=path.parent)
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                np.savez_compressed(
-                    fh, t=self.t[:n], commanded=self.cmd[:n], measured=self.meas[:n],
-                    names=np.array(self.names), units=np.array(self.units), meta=np.array(json.dumps(meta)),
-                )
-            os.replace(tmp, path)
-        except BaseException:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-            raise
+        with atomic_path(path, suffix=".npz") as tmp:
+            np.savez_compressed(
+                tmp, t=self.t[:n], commanded=self.cmd[:n], measured=self.meas[:n],
+                names=np.array(self.names), units=np.array(self.units), meta=np.array(json.dumps(meta)),
+            )
         return path
 
 
@@ -126,14 +118,9 @@ def plot_recording(rec: dict[str, Any], out: str | Path, title: str = "") -> Pat
         ax.set_xlabel("time [s]", fontsize=8)
     fig.suptitle(title or "commanded vs measured", fontsize=11)
     fig.tight_layout()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".png", dir=out.parent)
-    os.close(fd)
     try:
-        fig.savefig(tmp, dpi=90, format="png")
-        os.replace(tmp, out)
+        with atomic_path(out, suffix=".png") as tmp:
+            fig.savefig(tmp, dpi=90, format="png")
     finally:
         plt.close(fig)
-        if os.path.exists(tmp):
-            os.unlink(tmp)
     return out

@@ -18,7 +18,6 @@ from __future__ import annotations
 import io
 import json
 import os
-import tempfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from models.atomic import write_bytes
 from models.errors import SpecError
 
 FORMAT = "likeness-pose-dataset"
@@ -34,16 +34,8 @@ STATUS_CONVERGED, STATUS_NOT_CONVERGED, STATUS_FAILED = 1, 0, -1
 
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` through a temp file in the same folder and ``os.replace``."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix="." + path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    """Write ``data`` to ``path`` atomically (see :mod:`models.atomic`)."""
+    write_bytes(path, data)
 
 
 def atomic_savez(path: Path, **arrays: Any) -> None:

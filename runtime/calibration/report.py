@@ -14,12 +14,12 @@ from typing import Any
 
 import numpy as np
 
-from models.linkmap import write_atomic
+from models.atomic import write_text
 
 
 def write_report(path: Path, report: Mapping[str, Any]) -> Path:
     """Write the report JSON atomically."""
-    write_atomic(path, json.dumps(report, indent=1, allow_nan=False, default=_jsonable) + "\n")
+    write_text(path, json.dumps(report, indent=1, allow_nan=False, default=_jsonable) + "\n")
     return path
 
 

@@ -25,7 +25,8 @@ from typing import Any
 
 import numpy as np
 
-from models.linkmap import LinkMap, LinkObservations, fit_linkmap, write_atomic
+from models.atomic import write_text
+from models.linkmap import LinkMap, LinkObservations, fit_linkmap
 from runtime.calibration.capture import CalibrationError, LinkEstimate, estimate
 from runtime.calibration.discovery import LimitResult, discover_limits, proposed_config, zero_offsets
 from runtime.calibration.journal import Journal
@@ -169,7 +170,7 @@ def _discovery(head, driver, collect: Callable, out: Path, s: CalibrationSetting
     res = discover_limits(head, driver, observe, actuators=s.discover_actuators, step=s.discover_step,
                           progress=bar.message)
     bar.done()
-    write_atomic(path, json.dumps({"limits": {n: r.to_json() for n, r in res.items()}}, indent=1) + "\n")
+    write_text(path, json.dumps({"limits": {n: r.to_json() for n, r in res.items()}}, indent=1) + "\n")
     return res
 
 
@@ -177,7 +178,7 @@ def _plan(head, s: CalibrationSettings, limits: Mapping[str, LimitResult], out: 
     plan = make_plan(head, samples=s.samples, seed=s.seed, sweep_levels=s.sweep_levels,
                      holdout_fraction=s.holdout_fraction, limits={n: r.proposed for n, r in limits.items()},
                      tie_groups=s.tie_groups)
-    write_atomic(out / "plan.json", json.dumps({"digest": plan.digest(), **plan.to_dict()}) + "\n")
+    write_text(out / "plan.json", json.dumps({"digest": plan.digest(), **plan.to_dict()}) + "\n")
     return plan
 
 
@@ -337,7 +338,7 @@ def _finish(
     write_report(out / "report.json", report)
     write_plot(out / "report.png", report, hold_err)
     if limits or offsets:
-        write_atomic(out / "proposed_config.toml", proposed_config(head, limits, offsets))
+        write_text(out / "proposed_config.toml", proposed_config(head, limits, offsets))
     return CalibrationResult(lm, report, out, recorded, dict(limits), offsets)
 
 
