@@ -191,11 +191,15 @@ def sp_hi(h):
 
 
 def test_shipped_sample_predictor_drives_the_sample_head(head):
-    """The predictor shipped with the sample head: trained range near neutral, 52 face units, jawOpen opens the jaw."""
+    """The predictor shipped with the sample head: 52 face units, jawOpen opens the jaw."""
+    import json
+
     solver = SkinTargetSolver.from_head(head)
     assert solver is not None and len(solver.units) == 52 and solver.handles("arkit.jawOpen")
     rest = solver.solve({"arkit.jawOpen": 0.0}, {})
-    assert rest.extra["skin_residual_mm"] < 0.1  # the neutral face is the neutral pose
+    report = json.loads((head.source.parent / "predictor_report.json").read_text())
+    # The neutral face is reached from the neutral pose, up to the predictor's own held-out error.
+    assert rest.extra["skin_residual_mm"] < 2e-3 * report["held_out"]["rmse_um"]
     for _ in range(10):
         res = solver.solve({"arkit.jawOpen": 0.05}, {})
     jaw = head.actuator_names.index("jaw")
