@@ -84,10 +84,6 @@ class FemSkin(PoseProblem):
     """The loaded FEM problem of a :class:`FemSpec`."""
 
     def __init__(self, spec: FemSpec) -> None:
-        import os
-
-        for var in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
-            os.environ.setdefault(var, str(spec.threads))
         from models.headspec import load_head
         from models.linkmap import LinkMap
         from offline.fem import SolverOptions, load_mesh, neo_hookean_from_E_nu
@@ -208,6 +204,12 @@ class FemSkin(PoseProblem):
         return rigid_transform_dirichlet(self.mesh, moves, fixed_sets=[self.spec.skull_set])
 
     def solve(self, p: np.ndarray, warm_state: np.ndarray | None, index: int | None = None) -> PoseSolution:
+        from offline.fem import kernel_threads
+
+        with kernel_threads(self.spec.threads):
+            return self._solve(p, warm_state)
+
+    def _solve(self, p: np.ndarray, warm_state: np.ndarray | None) -> PoseSolution:
         from offline.fem import NotConverged, solve_static
 
         bc = self.dirichlet(p)

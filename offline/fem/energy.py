@@ -12,7 +12,9 @@ Gravity is an external load: its energy is −Σ f_i·x_i with f_i = m_i g and n
 
 from __future__ import annotations
 
+import contextlib
 import weakref
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numba as nb
@@ -555,3 +557,18 @@ def deformation_gradients(mesh: TetMesh, x: np.ndarray) -> np.ndarray:
     d = _mesh_data(mesh)
     x = _check_x(mesh, x)
     return np.einsum("mai,mqaj->mqij", x[np.asarray(mesh.tets)], d.dNdX)
+
+
+@contextlib.contextmanager
+def kernel_threads(n: int) -> Iterator[None]:
+    """Run the numba kernels on at most ``n`` threads inside the block; the previous count is restored.
+
+    Changes the count at run time (``numba.set_num_threads``) instead of the environment, which numba reads
+    only once: per-task thread limits (dataset workers, small meshes) stay local to the code that asks.
+    """
+    before = nb.get_num_threads()
+    nb.set_num_threads(max(1, min(int(n), nb.config.NUMBA_NUM_THREADS)))
+    try:
+        yield
+    finally:
+        nb.set_num_threads(before)

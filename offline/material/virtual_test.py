@@ -149,15 +149,10 @@ def _backend() -> str:
 def _numba_threads_for(n_tets: int):
     """Run small meshes on one numba thread: on a busy 2-core machine the parallel kernels' thread barrier costs
     10-20x the work itself for a few hundred tets."""
-    import numba
+    from offline.fem import kernel_threads
 
-    before = numba.get_num_threads()
-    if n_tets < SMALL_MESH_TETS:
-        numba.set_num_threads(1)
-    try:
+    with kernel_threads(1 if n_tets < SMALL_MESH_TETS else 1 << 16):
         yield
-    finally:
-        numba.set_num_threads(before)
 
 
 def run_specimen(params: MaterialParams, specimen: Specimen, strains: np.ndarray, *, grips: str = "frictionless",
