@@ -136,7 +136,8 @@ def test_stream_frames_late_frames_and_watchdog(shared_daemon) -> None:
             time.sleep(max(0.0, t0 + 0.01 * (k + 1) - (time.monotonic() + offset)))
         assert accepted >= 35 and accepted + late == 40 and last >= 35
         assert _arrives(d, c, "jaw", 0.25 * last)
-        assert _status(c)["commanded"]["cheek_l"] == pytest.approx(-0.2 * last, abs=0.05)
+        # The play-out point reaches the last frame one jitter-buffer delay after it was sent.
+        assert wait_until(lambda: abs(_status(c)["commanded"]["cheek_l"] + 0.2 * last) < 0.05, 2.0)
         # A frame already behind the play-out point is dropped and counted, and an event says so.
         now = c.call("clock")["t_send"]
         r = c.call("stream", channels=["jaw"], frames=[[now - 1.0, 20.0]])
