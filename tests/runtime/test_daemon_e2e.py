@@ -220,7 +220,7 @@ def test_canopen_heartbeat_loss_faults_then_reset_and_resume(make_daemon) -> Non
         st = _status(c)
         assert st["lifecycle"] == "fault" and "active" not in st["buses"].values()  # commanding stopped
         # Motors stopped: the jaw was moving toward 12 degrees at 5.4 deg/s; the drives' quick stop brings it to
-        # rest within a fraction of a degree, far short of the target, and it stays there.
+        # rest within a degree or so, far short of the target, and it stays there.
         at_fault = _truth_deg(d, "jaw")
         deadline = time.monotonic() + 2.0
         previous = at_fault
@@ -232,7 +232,7 @@ def test_canopen_heartbeat_loss_faults_then_reset_and_resume(make_daemon) -> Non
             previous = now
         rest = _truth_deg(d, "jaw")
         assert abs(rest - previous) < 0.01, "the jaw is still moving 2 s after the fault"
-        assert abs(rest - at_fault) < 1.0 and rest < 11.5
+        assert abs(rest - at_fault) < 2.0 and rest < 11.5
         time.sleep(0.3)
         assert _truth_deg(d, "jaw") == pytest.approx(rest, abs=0.01)
         with pytest.raises(DaemonError) as info:
