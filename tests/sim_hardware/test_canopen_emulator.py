@@ -9,11 +9,11 @@ import uuid
 import can
 import canopen
 import pytest
-from canopen.profiles.p402 import BaseNode402
 
 from sim_hardware.canopen import drive as drv
 from sim_hardware.canopen.network import DriveSet
 from sim_hardware.canopen.od import DEVICE_TYPE, build_od, write_eds
+from tests.sim_hardware.canopen_master import setup_master as _setup_master
 
 
 def _channel() -> str:
@@ -41,29 +41,6 @@ def rig():
     net.sync.stop()
     net.disconnect()
     drives.stop()
-
-
-def _setup_master(net: canopen.Network, node_id: int) -> BaseNode402:
-    """The canonical BaseNode402 bring-up: pre-op, read all PDOs, map CSP PDOs, operational."""
-    node = BaseNode402(node_id, build_od(node_id))
-    net.add_node(node)
-    node.nmt.state = "PRE-OPERATIONAL"
-    node.nmt.wait_for_heartbeat(1.0)
-    node.setup_402_state_machine(read_pdos=True)  # reads 0x1400-0x1403, 0x1600-0x1603, 0x1800-0x1803, 0x1A00-0x1A03
-    node.tpdo[1].clear()
-    node.tpdo[1].add_variable(0x6041)
-    node.tpdo[1].add_variable(0x6064)
-    node.tpdo[1].trans_type = 1
-    node.tpdo[1].enabled = True
-    node.rpdo[1].clear()
-    node.rpdo[1].add_variable(0x6040)
-    node.rpdo[1].add_variable(0x607A)
-    node.rpdo[1].trans_type = 1
-    node.rpdo[1].enabled = True
-    node.tpdo.save()
-    node.rpdo.save()
-    node.setup_402_state_machine(read_pdos=False)
-    return node
 
 
 def test_object_dictionary_and_eds_round_trip(tmp_path):

@@ -15,10 +15,9 @@ from pathlib import Path
 import can
 import canopen
 import pytest
-from canopen.profiles.p402 import BaseNode402
 
-from sim_hardware.canopen.od import build_od
 from sim_hardware.socketcand import SocketcandServer, format_frame, parse_send
+from tests.sim_hardware.canopen_master import setup_master
 
 ROOT = Path(__file__).resolve().parents[2]
 READY = re.compile(
@@ -119,24 +118,7 @@ def test_cli_base_node_402_across_processes_inject_and_sigterm(served):
     net.NOTIFIER_CYCLE = 0.1
     net.connect(interface="socketcand", host="127.0.0.1", port=port, channel="can0", tcp_tune=True)
     try:
-        node = BaseNode402(2, build_od(2))
-        net.add_node(node)
-        node.nmt.state = "PRE-OPERATIONAL"
-        node.nmt.wait_for_heartbeat(2.0)
-        node.setup_402_state_machine(read_pdos=True)
-        node.tpdo[1].clear()
-        node.tpdo[1].add_variable(0x6041)
-        node.tpdo[1].add_variable(0x6064)
-        node.tpdo[1].trans_type = 1
-        node.tpdo[1].enabled = True
-        node.rpdo[1].clear()
-        node.rpdo[1].add_variable(0x6040)
-        node.rpdo[1].add_variable(0x607A)
-        node.rpdo[1].trans_type = 1
-        node.rpdo[1].enabled = True
-        node.tpdo.save()
-        node.rpdo.save()
-        node.setup_402_state_machine(read_pdos=False)
+        node = setup_master(net, 2, heartbeat_wait_s=2.0)
         net.sync.start(0.01)
         node.rpdo[1].start(0.01)
         node.nmt.state = "OPERATIONAL"
