@@ -145,14 +145,12 @@ def _backend() -> str:
     return "cholmod" if "cholmod" in available_backends() else "superlu"
 
 
-@contextlib.contextmanager
-def _numba_threads_for(n_tets: int):
-    """Run small meshes on one numba thread: on a busy 2-core machine the parallel kernels' thread barrier costs
-    10-20x the work itself for a few hundred tets."""
+def _numba_threads_for(n_tets: int) -> contextlib.AbstractContextManager:
+    """Run small meshes on one numba thread (larger ones keep the caller's count): on a busy 2-core machine the
+    parallel kernels' thread barrier costs 10-20x the work itself for a few hundred tets."""
     from offline.fem import kernel_threads
 
-    with kernel_threads(1 if n_tets < SMALL_MESH_TETS else 1 << 16):
-        yield
+    return kernel_threads(1) if n_tets < SMALL_MESH_TETS else contextlib.nullcontext()
 
 
 def run_specimen(params: MaterialParams, specimen: Specimen, strains: np.ndarray, *, grips: str = "frictionless",
