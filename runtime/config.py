@@ -32,6 +32,7 @@ class RuntimeSettings:
     # SCHED_RR priority of the daemon's other threads (0: leave them alone). Below ``priority`` for real buses; above
     # it when emulators run in-process, since they stand in for devices that never wait for the host.
     helper_priority: int = 70
+    cpu: int = -1  # pin the control thread to this CPU (-1: no pinning)
     spin_us: float = 200.0  # sleep until this long before a deadline, then spin
     switch_interval_s: float = 0.0005  # sys.setswitchinterval while the loop runs (other threads yield sooner)
     stream_delay_s: float = 0.05  # jitter buffer: streamed frames play this long after their timestamp
@@ -40,6 +41,7 @@ class RuntimeSettings:
     record_dir: str = "recordings"  # where ``record`` writes (relative to the working directory)
     record_max_s: float = 600.0
     auto_enable: bool = False  # enable torque right after start-up
+    clip_memory_bytes: int = 256 << 20  # memory budget of all loaded clips (compiled arrays)
 
 
 @dataclass(frozen=True)
@@ -140,6 +142,8 @@ def _check(cfg: DaemonConfig, source: str, head: HeadSpec) -> None:
     need(2 <= rt.stream_max_frames <= 1_000_000, "runtime.stream_max_frames", "must lie in [2, 1e6]",
          rt.stream_max_frames)
     need(bool(rt.record_dir), "runtime.record_dir", "must not be empty", rt.record_dir)
+    need(1 << 16 <= rt.clip_memory_bytes <= 1 << 34, "runtime.clip_memory_bytes", "must lie in [64 KiB, 16 GiB]",
+         rt.clip_memory_bytes)
     need(0 < rt.record_max_s <= 86400, "runtime.record_max_s", "must lie in (0, 86400] s", rt.record_max_s)
     need(sf.watchdog_hold_s > 0, "safety.watchdog_hold_s", "must be positive", sf.watchdog_hold_s)
     need(sf.watchdog_hold_s <= sf.watchdog_neutral_s, "safety.watchdog_neutral_s",

@@ -1,0 +1,727 @@
+"""The control core: one explicit state object and a pure ``step(state, params, inputs) -> outputs``.
+
+A cycle runs the stages read → sources → solve → safety → write on arrays:
+
+- **read**: the latest feedback of every bus (a snapshot the runner took without blocking) becomes the measured
+  positions; bus states, disconnections and stale feedback become faults.
+- **commands**: ready-made commands from the API server (e-stop first, whatever else is queued), and the outcomes of
+  bus lifecycle requests (enable, disable, reset run in the bus processes, asynchronously).
+- **sources**: the active source (clip, stream jitter buffer, pose, neutral, hold) gives a channel vector.
+- **solve**: channel vector → actuator targets (actuator channels, groups, target solvers).
+- **safety**: group constraints and limits, the skin-strain guard, and the motion shaper.
+- **write**: the shaped command vector, which the runner posts to the bus processes.
+
+The core has no threads, sockets, clocks or globals: time comes in with the inputs, so it can be stepped in tests
+and replayed from a recording of its inputs, bit for bit. Lifecycle (after ros2_control): unconfigured → inactive
+(buses open, torque off) → active (commanding) → fault or estop (latched) → ``reset`` → inactive.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from models.headspec import HeadSpec
+from runtime.config import DaemonConfig
+from runtime.core import commands as C
+from runtime.core.channels import ChannelMap
+from runtime.core.stream import StreamBuffer
+from runtime.safety import SafetyFilter
+from runtime.timeline import Timeline
+
+
+class Lifecycle(enum.Enum):
+    UNCONFIGURED = "unconfigured"
+    INACTIVE = "inactive"
+    ACTIVE = "active"
+    FAULT = "fault"
+    ESTOP = "estop"
+
+
+class Mode(enum.Enum):
+    HOLD = "hold"
+    CLIP = "clip"
+    STREAM = "stream"
+    POSE = "pose"
+    NEUTRAL = "neutral"
+
+
+#: A bus lifecycle transition that has not answered within this long fails.
+TRANSITION_TIMEOUT_S = 15.0
+
+
+@dataclass(frozen=True)
+class BusInput:
+    """One bus's latest feedback, as the runner read it (SI, this bus's actuators in order)."""
+
+    name: str
+    state: str  # drivers.base.LifecycleState value
+    connected: bool
+    positions: np.ndarray
+    stamp: float  # when the sample was taken (monotonic)
+    faults: dict[str, tuple[int, str]] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class CycleInputs:
+    """Everything a cycle depends on."""
+
+    t: float
+    buses: tuple[BusInput, ...]
+    commands: tuple[C.Command, ...] = ()
+    results: tuple[tuple[str, str, bool, str], ...] = ()  # (bus, op, ok, message) of finished bus requests
+    estop: str | None = None  # an out-of-band e-stop (shared flag, signal): its reason
+
+
+@dataclass
+class CycleOutputs:
+    """What a cycle asks the world to do."""
+
+    write: np.ndarray | None = None  # commanded positions (SI) to post to the buses, None: write nothing
+    bus_requests: list[tuple[str, str]] = field(default_factory=list)  # (bus, "enable" | "disable" | "reset")
+    replies: list[tuple[int, dict[str, Any]]] = field(default_factory=list)  # (token, body or {"error": ...})
+    events: list[dict[str, Any]] = field(default_factory=list)
+    telemetry: dict[str, Any] | None = None
+    record: np.ndarray | None = None  # rows [t, commanded..., measured...] recorded since the last output
+
+
+@dataclass(frozen=True)
+class CoreParams:
+    """Everything fixed for a run: the head's actuators, buses, channels and the daemon settings (SI)."""
+
+    names: tuple[str, ...]
+    scale: np.ndarray  # SI per configured unit, per actuator
+    period: float
+    buses: tuple[tuple[str, np.ndarray], ...]  # bus name → indices of its actuators, in the bus's order
+    channels: ChannelMap
+    cfg: DaemonConfig
+    telemetry_every: int
+    record_capacity: int
+
+    @classmethod
+    def build(cls, head: HeadSpec, cfg: DaemonConfig, channels: ChannelMap,
+              bus_order: Sequence[tuple[str, Sequence[str]]]) -> CoreParams:
+        index = {n: i for i, n in enumerate(head.actuator_names)}
+        rt = cfg.runtime
+        return cls(
+            names=head.actuator_names, scale=np.array([a.unit_scale for a in head.actuators]),
+            period=1.0 / rt.rate_hz,
+            buses=tuple((b, np.array([index[m] for m in motors], dtype=np.intp)) for b, motors in bus_order),
+            channels=channels, cfg=cfg, telemetry_every=max(1, round(rt.rate_hz / rt.telemetry_hz)),
+            record_capacity=int(rt.record_max_s * rt.rate_hz) + 1,
+        )
+
+
+@dataclass
+class Transition:
+    """A lifecycle request waiting for the buses: which op, whose reply, since when, which buses still pending."""
+
+    op: str
+    token: int | None
+    since: float
+    pending: set[str]
+    failed: list[str] = field(default_factory=list)
+
+
+@dataclass
+class CoreState:
+    """All mutable state of the control core (the daemon's only state that changes at loop rate)."""
+
+    lifecycle: Lifecycle
+    mode: Mode
+    safety: SafetyFilter  # commanded position and velocity (the shaper's state)
+    timeline: Timeline
+    stream: StreamBuffer
+    solvers: list[Any]  # target solvers (warm starts are state: reset on enable, fault, e-stop, reset)
+    measured: np.ndarray
+    stamps: np.ndarray  # feedback sample time per actuator
+    bus_states: dict[str, str]
+    bus_connected: dict[str, bool]
+    bus_faults: dict[str, dict[str, tuple[int, str]]]
+    channel_values: np.ndarray  # scratch: this cycle's channel vector
+    pose_target: np.ndarray | None = None
+    pose_speed: float = 0.25
+    transition: Transition | None = None
+    fault_info: dict[str, Any] | None = None
+    estop_reason: str | None = None
+    enabled_at: float = 0.0
+    last_t: float | None = None
+    watchdog_stage: str = ""
+    clip_done_reported: bool = False
+    cycle: int = 0
+    extra: dict[str, Any] = field(default_factory=dict)
+    recording: str | None = None
+    record_rows: np.ndarray | None = None
+    record_count: int = 0  # rows in record_rows not yet handed out
+    record_total: int = 0
+    record_t0: float = 0.0
+    clip_bytes: int = 0
+
+    @classmethod
+    def initial(cls, head: HeadSpec, params: CoreParams, solvers: Sequence[Any] = ()) -> CoreState:
+        n = len(params.names)
+        rt = params.cfg.runtime
+        return cls(
+            lifecycle=Lifecycle.INACTIVE, mode=Mode.HOLD, safety=SafetyFilter(head), timeline=Timeline(),
+            stream=StreamBuffer(params.channels.n, rt.stream_delay_s, rt.stream_max_frames, rt.stream_max_ahead_s),
+            solvers=list(solvers), measured=np.full(n, np.nan), stamps=np.full(n, -np.inf),
+            bus_states={b: "unconfigured" for b, _ in params.buses},
+            bus_connected={b: False for b, _ in params.buses}, bus_faults={b: {} for b, _ in params.buses},
+            channel_values=np.full(params.channels.n, np.nan), pose_speed=params.cfg.safety.safe_speed,
+        )
+
+
+class CoreError(Exception):
+    """A command refused: becomes an error reply with a protocol code."""
+
+    def __init__(self, code: str, message: str) -> None:
+        super().__init__(message)
+        self.code = code
+        self.message = message
+
+
+# ====================================================================== the step
+def step(state: CoreState, params: CoreParams, inputs: CycleInputs) -> CycleOutputs:
+    """Advance the core by one cycle at time ``inputs.t``; the only function that changes ``state``."""
+    out = CycleOutputs()
+    t = inputs.t
+    _read(state, params, inputs)
+    if inputs.estop is not None:
+        _estop(state, params, out, t, inputs.estop)
+    cmds = inputs.commands
+    if any(isinstance(c, C.EStop) for c in cmds):  # e-stop preempts whatever else is queued with it
+        cmds = tuple(c for c in cmds if isinstance(c, C.EStop)) + tuple(c for c in cmds if not isinstance(c, C.EStop))
+    for cmd in cmds:
+        try:
+            body = _HANDLERS[type(cmd)](state, params, out, t, cmd)
+        except CoreError as exc:
+            out.replies.append((cmd.token, {"error": {"code": exc.code, "message": exc.message}}))
+        else:
+            if body is not None:
+                out.replies.append((cmd.token, body))
+    for result in inputs.results:
+        _bus_result(state, params, out, t, *result)
+    _check_transition(state, params, out, t)
+    if state.lifecycle is Lifecycle.ACTIVE and state.transition is None:
+        _supervise(state, params, out, t)
+    if state.lifecycle is Lifecycle.ACTIVE and state.transition is None:
+        targets, speed = _sources(state, params, out, t)
+        dt = params.period if state.last_t is None else min(max(t - state.last_t, 1e-6), 4 * params.period)
+        out.write = state.safety.step(targets, dt, speed).copy()
+        state.last_t = t
+    else:
+        state.last_t = None
+    _record(state, params, out, t)
+    state.cycle += 1
+    if state.cycle % params.telemetry_every == 0:
+        out.telemetry = _telemetry(state, params, t)
+    return out
+
+
+# ---------------------------------------------------------------------- read
+def _read(state: CoreState, params: CoreParams, inputs: CycleInputs) -> None:
+    for (name, idx), bus in zip(params.buses, inputs.buses, strict=True):
+        state.measured[idx] = bus.positions
+        state.stamps[idx] = bus.stamp
+        state.bus_states[name] = bus.state
+        state.bus_connected[name] = bus.connected
+        state.bus_faults[name] = bus.faults
+
+
+def _supervise(state: CoreState, params: CoreParams, out: CycleOutputs, t: float) -> None:
+    """Active only: every bus active and connected, feedback fresh."""
+    for name, _ in params.buses:
+        if not state.bus_connected[name]:
+            _fault(state, params, out, t, "bus", f"bus {name}: connection lost", bus=name)
+            return
+        if state.bus_states[name] != "active":
+            faults = state.bus_faults[name]
+            detail = "; ".join(f"{d}: 0x{c:04X} {m}" for d, (c, m) in faults.items()) or \
+                f"bus state {state.bus_states[name]}"
+            _fault(state, params, out, t, "driver", f"bus {name}: {detail}", bus=name)
+            return
+    timeout = params.cfg.safety.feedback_timeout_s
+    if t - state.enabled_at > timeout:
+        age = t - state.stamps
+        stale = np.flatnonzero(age > timeout)
+        if stale.size:
+            names = ", ".join(params.names[i] for i in stale[:6])
+            _fault(state, params, out, t, "timeout", f"no fresh feedback for {timeout:g} s from {names}")
+
+
+# ---------------------------------------------------------------------- sources and solve
+def _sources(state: CoreState, params: CoreParams, out: CycleOutputs, t: float) -> tuple[np.ndarray, float]:
+    """Actuator targets (SI, NaN = hold) and the speed fraction for this cycle, from the active source."""
+    n = len(params.names)
+    sf = params.cfg.safety
+    mode = state.mode
+    values = state.channel_values
+    if mode is Mode.CLIP:
+        tl = state.timeline
+        ct = tl.clip_time(t)
+        if ct is None:
+            return np.full(n, np.nan), 1.0
+        pb = tl.playback
+        assert pb is not None
+        values.fill(np.nan)
+        pb.clip.sample_into(ct, values)
+        if tl.finished(t) and not state.clip_done_reported:
+            state.clip_done_reported = True
+            out.events.append({"event": "clip", "t": t, "state": "finished", "clip": pb.clip.name})
+        return solve_channels(state, params, out, values), 1.0
+    if mode is Mode.STREAM:
+        age = state.stream.starved_for(t)
+        if age > sf.watchdog_neutral_s:
+            out.events.append({"event": "watchdog", "t": t, "stage": "neutral", "age": age})
+            _set_mode(state, Mode.NEUTRAL)
+            state.stream.clear()
+            return state.safety.neutral.copy(), sf.safe_speed
+        if age > sf.watchdog_hold_s:
+            if state.watchdog_stage != "hold":
+                state.watchdog_stage = "hold"
+                out.events.append({"event": "watchdog", "t": t, "stage": "hold", "age": age})
+            return np.full(n, np.nan), 1.0
+        state.watchdog_stage = ""
+        if not state.stream.evaluate(t, values):
+            return np.full(n, np.nan), 1.0
+        return solve_channels(state, params, out, values), 1.0
+    if mode is Mode.POSE and state.pose_target is not None:
+        return state.pose_target, state.pose_speed
+    if mode is Mode.NEUTRAL:
+        return state.safety.neutral.copy(), sf.safe_speed
+    return np.full(n, np.nan), 1.0
+
+
+def solve_channels(state: CoreState, params: CoreParams, out: CycleOutputs, values: np.ndarray) -> np.ndarray:
+    """Channel vector (config units, NaN = not addressed) → actuator targets (SI, NaN = hold).
+
+    Explicit actuator channels win over group channels, which win over solved targets."""
+    cm = params.channels
+    x = np.full(cm.n_actuators, np.nan)
+    for s, a, b in cm.target_blocks:
+        seg = values[a:b]
+        if not np.isfinite(seg).any():
+            continue
+        solver = state.solvers[s]
+        p, extra = solver.solve_array(seg, state.safety.q)
+        np.copyto(x, p, where=np.isfinite(p))
+        if extra:
+            state.extra = extra
+    if cm.group_channel.size:
+        gv = values[cm.group_channel]
+        ok = np.isfinite(gv)
+        if ok.any():
+            x[cm.group_member[ok]] = gv[ok] * cm.group_factor[ok]
+    av = values[:cm.n_actuators]
+    ok = np.isfinite(av)
+    x[ok] = av[ok] * cm.act_scale[ok]
+    return x
+
+
+# ---------------------------------------------------------------------- lifecycle
+def _event(out: CycleOutputs, t: float, kind: str, **data: Any) -> None:
+    out.events.append({"event": kind, "t": t, **data})
+
+
+def _set_lifecycle(state: CoreState, out: CycleOutputs, t: float, new: Lifecycle) -> None:
+    if new is not state.lifecycle:
+        previous, state.lifecycle = state.lifecycle, new
+        _event(out, t, "lifecycle", state=new.value, previous=previous.value)
+
+
+def _set_mode(state: CoreState, mode: Mode) -> None:
+    if mode is not state.mode:
+        state.mode = mode
+        state.watchdog_stage = ""
+
+
+def _stop_motion(state: CoreState) -> None:
+    _set_mode(state, Mode.HOLD)
+    state.timeline.stop()
+    state.stream.clear()
+    state.pose_target = None
+
+
+def _reset_solvers(state: CoreState) -> None:
+    q = state.safety.q
+    for s in state.solvers:
+        s.reset_array(q)
+
+
+def _torque_off(params: CoreParams, out: CycleOutputs, state: CoreState) -> None:
+    for name, _ in params.buses:
+        if state.bus_states.get(name) == "active":
+            out.bus_requests.append((name, "disable"))
+
+
+def _fail_transition(state: CoreState, out: CycleOutputs, code: str, message: str) -> None:
+    tr = state.transition
+    state.transition = None
+    if tr is not None and tr.token is not None:
+        out.replies.append((tr.token, {"error": {"code": code, "message": message}}))
+
+
+def _fault(state: CoreState, params: CoreParams, out: CycleOutputs, t: float, source: str, message: str,
+           bus: str | None = None) -> None:
+    """Enter FAULT: stop commanding, torque off as configured, publish the event."""
+    if state.lifecycle in (Lifecycle.FAULT, Lifecycle.ESTOP, Lifecycle.UNCONFIGURED):
+        return
+    faults = {f"{b}/{d}": [c, m] for b, fs in state.bus_faults.items() for d, (c, m) in fs.items()}
+    state.fault_info = {"source": source, "message": message, "t": t, "bus": bus, "faults": faults}
+    _fail_transition(state, out, "fault", f"fault: {message}")
+    _stop_motion(state)
+    _reset_solvers(state)
+    _set_lifecycle(state, out, t, Lifecycle.FAULT)
+    out.events.append({"event": "fault", **state.fault_info})
+    if params.cfg.safety.fault_action == "disable":
+        _torque_off(params, out, state)
+
+
+def _estop(state: CoreState, params: CoreParams, out: CycleOutputs, t: float, reason: str) -> None:
+    if state.lifecycle is Lifecycle.UNCONFIGURED:
+        return
+    state.estop_reason = reason
+    _fail_transition(state, out, "estop", f"e-stop: {reason}")
+    _stop_motion(state)
+    _reset_solvers(state)
+    if state.lifecycle is not Lifecycle.ESTOP:
+        _set_lifecycle(state, out, t, Lifecycle.ESTOP)
+        _event(out, t, "estop", reason=reason)
+    if params.cfg.safety.estop_action == "disable":
+        _torque_off(params, out, state)
+
+
+def _require_ready(state: CoreState) -> None:
+    if state.lifecycle is Lifecycle.ESTOP:
+        raise CoreError("estop", f"e-stop is latched ({state.estop_reason}); send reset")
+    if state.lifecycle is Lifecycle.FAULT:
+        msg = (state.fault_info or {}).get("message", "")
+        raise CoreError("fault", f"head is in FAULT ({msg}); send reset")
+    if state.transition is not None:
+        raise CoreError("bad_state", f"a {state.transition.op} is in progress")
+
+
+def _require_active(state: CoreState, op: str) -> None:
+    _require_ready(state)
+    if state.lifecycle is not Lifecycle.ACTIVE:
+        raise CoreError("bad_state", f"{op} needs lifecycle active (is {state.lifecycle.value}); send enable")
+
+
+def _bus_result(state: CoreState, params: CoreParams, out: CycleOutputs, t: float, bus: str, op: str, ok: bool,
+                message: str) -> None:
+    tr = state.transition
+    if tr is None or tr.op != op or bus not in tr.pending:
+        if not ok:
+            _event(out, t, "bus", bus=bus, op=op, ok=False, message=message)
+        return
+    tr.pending.discard(bus)
+    if not ok:
+        tr.failed.append(f"bus {bus}: {message}")
+
+
+def _check_transition(state: CoreState, params: CoreParams, out: CycleOutputs, t: float) -> None:
+    tr = state.transition
+    if tr is None:
+        return
+    if tr.pending and t - tr.since > TRANSITION_TIMEOUT_S:
+        tr.failed.append(f"no answer from bus {', '.join(sorted(tr.pending))} within {TRANSITION_TIMEOUT_S:g} s")
+        tr.pending.clear()
+    if tr.pending:
+        return
+    state.transition = None
+    if tr.op == "enable":
+        if tr.failed:
+            _torque_off(params, out, state)
+            if tr.token is not None:
+                out.replies.append((tr.token, {"error": {"code": "hardware",
+                                                         "message": "enable failed: " + "; ".join(tr.failed)}}))
+            return
+        state.safety.reset({n: float(x) for n, x in zip(params.names, state.measured, strict=True)
+                            if math.isfinite(x)})
+        _reset_solvers(state)
+        state.enabled_at = t
+        state.last_t = None
+        _stop_motion(state)
+        _set_lifecycle(state, out, t, Lifecycle.ACTIVE)
+        if tr.token is not None:
+            out.replies.append((tr.token, {"lifecycle": state.lifecycle.value}))
+    elif tr.op == "disable":
+        if tr.token is not None:
+            if tr.failed:
+                out.replies.append((tr.token, {"error": {"code": "hardware",
+                                                         "message": "disable failed: " + "; ".join(tr.failed)}}))
+            else:
+                out.replies.append((tr.token, {"lifecycle": state.lifecycle.value}))
+    elif tr.op == "reset":
+        still = [b for b, s in state.bus_states.items() if s == "fault"]
+        if tr.failed or still:
+            detail = "; ".join(tr.failed) or f"bus {', '.join(still)} still in FAULT"
+            if tr.token is not None:
+                out.replies.append((tr.token, {"error": {"code": "hardware" if tr.failed else "fault",
+                                                         "message": f"reset failed: {detail}"}}))
+            return
+        state.fault_info = None
+        state.estop_reason = None
+        _set_lifecycle(state, out, t, Lifecycle.INACTIVE)
+        if tr.token is not None:
+            out.replies.append((tr.token, {"lifecycle": state.lifecycle.value}))
+
+
+# ---------------------------------------------------------------------- command handlers
+def _on_enable(state: CoreState, params: CoreParams, out: CycleOutputs, t: float, cmd: C.Enable) -> dict | None:
+    if state.lifecycle is Lifecycle.ACTIVE and state.transition is None:
+        return {"lifecycle": state.lifecycle.value}
+    _require_ready(state)
+    if state.lifecycle is not Lifecycle.INACTIVE:
+        raise CoreError("bad_state", f"enable needs lifecycle inactive (is {state.lifecycle.value})")
+    pending = set()
+    for name, _ in params.buses:
+        if not state.bus_connected[name]:
+            raise CoreError("hardware", f"enable failed: bus {name} is not connected")
+        if state.bus_states[name] == "fault":
+            raise CoreError("fault", f"bus {name} is in FAULT; send reset")
+        if state.bus_states[name] != "active":
+            out.bus_requests.append((name, "enable"))
+            pending.add(name)
+    state.transition = Transition("enable", cmd.token, t, pending)
+    return None  # answered when the buses are active
+
+
+def _on_disable(state: CoreState, params: CoreParams, out: CycleOutputs, t: float, cmd: C.Disable) -> dict | None:
+    _stop_motion(state)
+    if state.transition is not None and state.transition.op == "enable":
+        _fail_transition(state, out, "bad_state", "enable cancelled by disable")
+    if state.lifecycle is Lifecycle.ACTIVE or any(s == "active" for s in state.bus_states.values()):
+        pending = set()
+        for name, _ in params.buses:
+            if state.bus_states[name] == "active":
+                out.bus_requests.append((name, "disable"))
+                pending.add(name)
+        if state.lifecycle is Lifecycle.ACTIVE:
+            _set_lifecycle(state, out, t, Lifecycle.INACTIVE)
+        if pending and state.transition is None:
+            state.transition = Transition("disable", cmd.token, t, pending)
+            return None
+    return {"lifecycle": state.lifecycle.value}
+
+
+def _on_estop(state: CoreState, params: CoreParams, out: CycleOutputs, t: float, cmd: C.EStop) -> dict:
+    _estop(state, params, out, t, cmd.reason)
+    return {"lifecycle": state.lifecycle.value}
+
+
+def _on_reset(state: CoreState, params: CoreParams, out: CycleOutputs, t: float, cmd: C.Reset) -> dict | None:
+    if state.transition is not None:
+        _fail_transition(state, out, "bad_state", "cancelled by reset")
+    _stop_motion(state)
+    _reset_solvers(state)
+    pending = set()
+    for name, _ in params.buses:
+        s = state.bus_states[name]
+        if s in ("active", "fault") or not state.bus_connected[name]:
+            out.bus_requests.append((name, "reset"))
+            pending.add(name)
+    if state.lifecycle is Lifecycle.ACTIVE:
+        _set_lifecycle(state, out, t, Lifecycle.INACTIVE)
+    state.transition = Transition("reset", cmd.token, t, pending)
+    _check_transition(state, params, out, t)  # nothing to wait for: answers now
+    return None
+
+
+def _on_status(state: CoreState, params: CoreParams, out: CycleOutputs, t: float, cmd: C.Status) -> dict:
+    body = _snapshot(state, params, t)
+    body.update({
+        "estop": state.estop_reason, "fault": state.fault_info,
+        "moving": bool(np.any(np.abs(state.safety.v) > 1e-4)),
+        "timeline": state.timeline.describe(t), "stream": state.stream.stats(),
+        "recording": None if state.recording is None else {"name": state.recording, "samples": state.record_total},
+        "clip_bytes": state.clip_bytes,
+    })
+    if state.mode is Mode.POSE and state.pose_target is not None:
+        err = np.abs(state.pose_target - state.safety.q)
+        body["pose_reached"] = bool(np.all(err < 1e-6) and not body["moving"])
+    return body
+
+
+def _on_load_clip(state: CoreState, params: CoreParams, out: CycleOutputs, t: float, cmd: C.LoadClip) -> dict:
+    clip = cmd.clip
+    old = state.timeline.clips.get(clip.name)
+    budget = params.cfg.runtime.clip_memory_bytes
+    used = state.clip_bytes - (old.nbytes if old is not None else 0)
+    if used + clip.nbytes > budget:
+        raise CoreError("too_large", f"clip {clip.name!r} needs {clip.nbytes} bytes; {budget - used} of the "
+                        f"{budget}-byte clip budget left (unload_clip first)")
+    try:
+        state.timeline.load(clip)
+    except ValueError as exc:
+        raise CoreError("too_large", str(exc)) from None
+    state.clip_bytes = used + clip.nbytes
+    return {"clip": clip.name, "duration": clip.duration, "channels": list(clip.channel_names),
+            "keys": cmd.key_count}
+
+
+def _on_unload_clip(state: CoreState, params: CoreParams, out: CycleOutputs, t: float, cmd: C.UnloadClip) -> dict:
+    tl = state.timeline
+    clip = tl.clips.get(cmd.name)
+    if clip is None:
+        raise CoreError("not_found", f"no clip {cmd.name!r} loaded; loaded: {sorted(tl.clips)}")
+    if tl.playback is not None and tl.playback.clip is clip:
+        _stop_motion(state)
+    tl.unload(cmd.name)
+    state.clip_bytes -= clip.nbytes
+    return {"clip": cmd.name, "clips": sorted(tl.clips)}
+
+
+def _on_play(state: CoreState, params: CoreParams, out: CycleOutputs, t: float, cmd: C.Play) -> dict:
+    _require_active(state, "play")
+    if cmd.name not in state.timeline.clips:
+        raise CoreError("not_found", f"no clip {cmd.name!r} loaded; loaded: {sorted(state.timeline.clips)}")
+    if cmd.at is not None and not t - 3600 <= cmd.at <= t + 3600:
+        raise CoreError("bad_value", f"field 'at' must lie within an hour of the daemon clock ({t:.3f})")
+    state.stream.clear()
+    start = state.timeline.play(cmd.name, t, cmd.at, cmd.offset, cmd.speed, cmd.loop)
+    state.clip_done_reported = False
+    _set_mode(state, Mode.CLIP)
+    _event(out, t, "clip", state="playing", clip=cmd.name, start=start)
+    return {"clip": cmd.name, "start": start, "duration": state.timeline.clips[cmd.name].duration}
+
+
+def _on_pause(state: CoreState, params: CoreParams, out: CycleOutputs, t: float, cmd: C.Pause) -> dict:
+    _require_active(state, "pause")
+    state.timeline.pause(t)
+    return {"timeline": state.timeline.describe(t)}
+
+
+def _on_resume(state: CoreState, params: CoreParams, out: CycleOutputs, t: float, cmd: C.Resume) -> dict:
+    _require_active(state, "resume")
+    if state.timeline.playback is None:
+        raise CoreError("bad_state", "nothing to resume: no clip is playing")
+    state.timeline.resume(t)
+    _set_mode(state, Mode.CLIP)
+    return {"timeline": state.timeline.describe(t)}
+
+
+def _on_stop(state: CoreState, params: CoreParams, out: CycleOutputs, t: float, cmd: C.StopMotion) -> dict:
+    _stop_motion(state)
+    return {"mode": state.mode.value}
+
+
+def _on_seek(state: CoreState, params: CoreParams, out: CycleOutputs, t: float, cmd: C.Seek) -> dict:
+    _require_active(state, "seek")
+    if state.timeline.playback is None:
+        raise CoreError("bad_state", "nothing to seek: no clip is playing")
+    state.timeline.seek(t, cmd.time)
+    return {"timeline": state.timeline.describe(t)}
+
+
+def _on_stream(state: CoreState, params: CoreParams, out: CycleOutputs, t: float, cmd: C.Stream) -> dict:
+    _require_active(state, "stream")
+    if state.mode is not Mode.STREAM:
+        state.timeline.stop()
+        state.stream.clear()
+        _set_mode(state, Mode.STREAM)
+    counts = state.stream.push(t, cmd.times, cmd.channels, cmd.rows)
+    if counts["late"]:
+        _event(out, t, "dropped_frames", late=counts["late"], total=state.stream.late)
+    return {"accepted": counts["ok"], "late": counts["late"], "ahead": counts["ahead"], "full": counts["full"],
+            "buffered": state.stream.count, "t": t}
+
+
+def _on_pose(state: CoreState, params: CoreParams, out: CycleOutputs, t: float, cmd: C.Pose) -> dict:
+    _require_active(state, "pose")
+    values = np.full(params.channels.n, np.nan)
+    values[cmd.channels] = cmd.values
+    x = solve_channels(state, params, out, values)
+    base = state.pose_target if state.mode is Mode.POSE and state.pose_target is not None else state.safety.q
+    target = state.safety.constrain(np.where(np.isfinite(x), x, base))
+    state.timeline.stop()
+    state.stream.clear()
+    state.pose_target = target
+    state.pose_speed = cmd.speed
+    _set_mode(state, Mode.POSE)
+    return {"targets_si": target.copy(), "speed": cmd.speed}
+
+
+def _on_record(state: CoreState, params: CoreParams, out: CycleOutputs, t: float, cmd: C.Record) -> dict:
+    if cmd.action == "start":
+        if state.recording is not None:
+            raise CoreError("bad_state", f"already recording {state.recording!r}")
+        n = len(params.names)
+        if state.record_rows is None:
+            # rows are handed out every telemetry period, so a few periods of rows is all the core ever holds
+            state.record_rows = np.empty((8 * params.telemetry_every + 8, 1 + 2 * n))
+        state.recording = cmd.name
+        state.record_count = state.record_total = 0
+        state.record_t0 = t
+        _event(out, t, "record", state="started", name=cmd.name)
+        return {"recording": cmd.name}
+    if state.recording is None:
+        raise CoreError("bad_state", "not recording")
+    name, state.recording = state.recording, None
+    _flush_record(state, out)
+    _event(out, t, "record", state="stopped", name=name, samples=state.record_total)
+    return {"recording": name, "samples": state.record_total, "stopped": True}
+
+
+def _record(state: CoreState, params: CoreParams, out: CycleOutputs, t: float) -> None:
+    if state.recording is None or state.record_rows is None:
+        return
+    if state.record_total >= params.record_capacity:
+        return
+    rows = state.record_rows
+    if state.record_count >= rows.shape[0]:
+        _flush_record(state, out)
+    n = len(params.names)
+    row = rows[state.record_count]
+    row[0] = t - state.record_t0
+    row[1:1 + n] = state.safety.q
+    row[1 + n:] = state.measured
+    state.record_count += 1
+    state.record_total += 1
+    if state.record_count >= params.telemetry_every:
+        _flush_record(state, out)
+
+
+def _flush_record(state: CoreState, out: CycleOutputs) -> None:
+    if state.record_rows is None or not state.record_count:
+        return
+    block = state.record_rows[:state.record_count].copy()
+    out.record = block if out.record is None else np.vstack([out.record, block])
+    state.record_count = 0
+
+
+_HANDLERS: dict[type, Any] = {
+    C.Enable: _on_enable, C.Disable: _on_disable, C.EStop: _on_estop, C.Reset: _on_reset, C.Status: _on_status,
+    C.LoadClip: _on_load_clip, C.UnloadClip: _on_unload_clip, C.Play: _on_play, C.Pause: _on_pause,
+    C.Resume: _on_resume, C.StopMotion: _on_stop, C.Seek: _on_seek, C.Stream: _on_stream, C.Pose: _on_pose,
+    C.Record: _on_record,
+}
+
+
+# ---------------------------------------------------------------------- telemetry
+def _snapshot(state: CoreState, params: CoreParams, t: float) -> dict[str, Any]:
+    """Raw values (SI arrays) for telemetry and status; the API server formats them."""
+    body: dict[str, Any] = {
+        "t": t, "lifecycle": state.lifecycle.value, "mode": state.mode.value,
+        "commanded_si": state.safety.q.copy(), "measured_si": state.measured.copy(),
+        "buses": dict(state.bus_states), "connected": dict(state.bus_connected),
+        "feedback_age": {name: float(t - state.stamps[idx].max()) if idx.size else 0.0
+                         for name, idx in params.buses},
+    }
+    pb = state.timeline.playback
+    if pb is not None:
+        body["clip"] = {"name": pb.clip.name, "time": state.timeline.clip_time(t), "duration": pb.clip.duration}
+    if state.mode is Mode.STREAM:
+        body["stream"] = state.stream.stats()
+    if state.extra:
+        body["extra"] = dict(state.extra)
+    return body
+
+
+def _telemetry(state: CoreState, params: CoreParams, t: float) -> dict[str, Any]:
+    return _snapshot(state, params, t)

@@ -1,0 +1,186 @@
+"""The loop runner: the one realtime thread. It owns time, and each cycle it reads → steps the core → writes.
+
+Per cycle: sleep (then spin) to the next absolute deadline; take every bus's latest feedback and the commands that
+arrived on the link (never waiting for either); run :func:`runtime.core.core.step`; post the commanded positions to
+the buses and their lifecycle requests; hand replies, events, telemetry snapshots and recorded rows to the API
+server. Only this thread runs under SCHED_FIFO (and pinned to a CPU where allowed); deadline misses, wake-up jitter
+and work time are measured every cycle. Overrun policy: a cycle that starts more than a period late skips the
+missed deadlines instead of bursting to catch up, and the misses are counted and reported once a second.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import zmq
+
+from runtime import ipc
+from runtime.core import core as K
+from runtime.loop import LoopStats, RateScheduler, SwitchInterval, drop_realtime, freeze_heap, try_realtime
+
+log = logging.getLogger(__name__)
+
+#: Commands taken from the link per cycle at most (the rest wait for the next cycle).
+MAX_COMMANDS_PER_CYCLE = 64
+STATS_EVERY_S = 0.5
+
+
+class Runner:
+    """Runs the core at the configured rate on the calling thread until :meth:`stop`."""
+
+    def __init__(self, params: K.CoreParams, state: K.CoreState, links: Sequence[Any], sock: zmq.Socket,
+                 estop: ipc.EStopFlag, clock: Callable[[], float] = time.monotonic,
+                 input_log: list[K.CycleInputs] | None = None) -> None:
+        self.params = params
+        self.state = state
+        self.links = list(links)
+        self.sock = sock
+        self.estop = estop
+        self.clock = clock
+        self.stats = LoopStats(params.period)
+        self.input_log = input_log
+        self.realtime_status = "not started"
+        self.ready = threading.Event()
+        self._stop = threading.Event()
+        self._tickets: dict[int, tuple[int, str]] = {}  # ticket → (link index, op)
+        self._signal_estop: str | None = None
+        self.native_id = 0
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def trip_estop(self, reason: str) -> None:
+        """E-stop from this process (a signal handler): taken by the next cycle."""
+        self._signal_estop = reason
+
+    # ------------------------------------------------------------------ the loop
+    def run(self) -> None:
+        rt = self.params.cfg.runtime
+        self.native_id = threading.get_native_id()
+        if rt.realtime:
+            ok, msg = try_realtime(rt.priority)
+            if ok:
+                msg += _pin_cpu(rt.cpu)
+        else:
+            ok, msg = False, "realtime priority disabled in config ([runtime] realtime = false)"
+        self.realtime_status = msg
+        (log.info if ok else log.warning)("%s", msg)
+        self._send(("realtime", msg))
+        freeze_heap()
+        sched = RateScheduler(self.params.period, rt.spin_us * 1e-6, self.clock)
+        next_stats = 0.0
+        pending_misses = 0
+        last_miss_event = 0.0
+        self.ready.set()
+        try:
+            with SwitchInterval(rt.switch_interval_s):
+                while not self._stop.is_set():
+                    late, missed = sched.wait()
+                    t = self.clock()
+                    inputs = self._inputs(t)
+                    try:
+                        out = K.step(self.state, self.params, inputs)
+                    except Exception as exc:  # a bug or a failing solver: safe state, the loop lives on
+                        log.exception("control cycle failed")
+                        out = K.CycleOutputs()
+                        K._fault(self.state, self.params, out, t, "control loop",
+                                 f"control cycle failed: {type(exc).__name__}: {exc}")
+                    self._write(out)
+                    if missed:
+                        self.stats.missed += missed
+                        pending_misses += missed
+                    if pending_misses and t - last_miss_event >= 1.0:
+                        self._send(("event", {"event": "deadline_miss", "t": t, "count": pending_misses,
+                                              "total": self.stats.missed}))
+                        pending_misses = 0
+                        last_miss_event = t
+                    self._outbox(out)
+                    if t >= next_stats:
+                        next_stats = t + STATS_EVERY_S
+                        self._send_stats()
+                    self.stats.add(late, self.clock() - t, t)
+        except Exception:
+            log.exception("control loop crashed")
+        finally:
+            drop_realtime()
+
+    def _inputs(self, t: float) -> K.CycleInputs:
+        buses = []
+        for link in self.links:
+            fb = link.feedback()
+            buses.append(K.BusInput(link.name, fb.state.value, fb.connected, fb.positions, fb.stamp, fb.faults))
+        cmds = []
+        for _ in range(MAX_COMMANDS_PER_CYCLE):
+            try:
+                kind, cmd = ipc.recv(self.sock, zmq.NOBLOCK)
+            except zmq.Again:
+                break
+            if kind == "cmd":
+                cmds.append(cmd)
+        results = []
+        if self._tickets:
+            for ticket, (i, op) in list(self._tickets.items()):
+                res = self.links[i].result(ticket)
+                if res is not None:
+                    del self._tickets[ticket]
+                    results.append((self.links[i].name, op, res[0], res[1]))
+        estop = None
+        if self.estop.tripped():
+            estop = "api"
+        if self._signal_estop is not None:
+            estop, self._signal_estop = self._signal_estop, None
+        inputs = K.CycleInputs(t, tuple(buses), tuple(cmds), tuple(results), estop)
+        if self.input_log is not None:
+            self.input_log.append(inputs)
+        return inputs
+
+    def _write(self, out: K.CycleOutputs) -> None:
+        if out.write is not None:
+            q = out.write
+            t = self.clock()
+            for link, (_, idx) in zip(self.links, self.params.buses, strict=True):
+                link.post(q[idx], t)
+        for bus, op in out.bus_requests:
+            for i, link in enumerate(self.links):
+                if link.name == bus:
+                    self._tickets[link.request(op)] = (i, op)
+
+    def _outbox(self, out: K.CycleOutputs) -> None:
+        if out.record is not None:
+            self._send(("record", out.record))
+        for token, body in out.replies:
+            self._send(("reply", token, body))
+        for event in out.events:
+            self._send(("event", event))
+        if out.telemetry is not None:
+            self._send(("state", out.telemetry))
+
+    def _send_stats(self) -> None:
+        s = self.stats
+        k = min(s.n, s.window)
+        self._send(("stats", s.period, s.n, s.missed, s.skipped, s.lateness[:k].copy(), s.work[:k].copy(),
+                    s.periods[:k].copy()))
+
+    def _send(self, msg: Any) -> None:
+        try:
+            ipc.send(self.sock, msg, zmq.NOBLOCK)
+        except zmq.Again:
+            pass  # the server is not keeping up: telemetry is dropped, the loop never waits
+        except zmq.ZMQError as exc:
+            log.debug("link send failed: %s", exc)
+
+
+def _pin_cpu(cpu: int) -> str:
+    """Pin the calling thread to ``cpu`` (-1: leave it); returns a note for the status line."""
+    if cpu < 0 or not hasattr(os, "sched_setaffinity"):
+        return ""
+    try:
+        os.sched_setaffinity(0, {cpu})
+    except OSError as exc:
+        return f"; CPU pinning to {cpu} failed ({exc})"
+    return f", pinned to CPU {cpu}"

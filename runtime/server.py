@@ -1,0 +1,401 @@
+"""The API server: its own process, serving the ZeroMQ command (ROUTER) and telemetry (PUB) sockets.
+
+It receives, size-checks, decodes and validates every request and compiles clips and frames to arrays, then hands
+the control core ready-made commands over the link (:mod:`runtime.ipc`); the core's replies, events, telemetry
+snapshots and recorded rows come back over the same link and are formatted, published and written here. Nothing it
+does can hold up the control loop: it runs in another process. An ``estop`` also trips the shared e-stop flag
+before anything else is done with it, so it reaches the core within one cycle whatever is queued or being parsed.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import logging
+import math
+import os
+import signal
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zmq
+
+from runtime import ipc
+from runtime import protocol as P
+from runtime.config import DaemonConfig, resolve
+from runtime.core.channels import ChannelMap
+from runtime.protocol import ProtocolError
+from runtime.requests import LOCAL_OPS, OPS, to_command
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ServerSpec:
+    """What the server process needs, picklable: the head file, the settings, the channels and the link."""
+
+    head_path: str
+    overrides: dict[str, Any]
+    channels: ChannelMap
+    link: str  # the loop's PAIR endpoint
+    estop_flag: str  # shared-memory name of the e-stop counter
+    ready: str  # endpoint to report the bound endpoints on (PAIR, same socket as the link)
+    log_level: int = logging.WARNING
+
+
+def main(spec: ServerSpec) -> None:
+    """Process entry point: serve until the loop process says stop or goes away."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the daemon process stops us
+    logging.basicConfig(level=spec.log_level, format="%(asctime)s %(name)s: %(message)s")
+    _die_with_parent()
+    server = Server(spec)
+    try:
+        server.run()
+    finally:
+        server.close()
+
+
+def _die_with_parent() -> None:
+    """Ask the kernel to end this process when the daemon dies (Linux), so no server outlives a ``kill -9``."""
+    with contextlib.suppress(Exception):
+        import ctypes
+
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+
+
+class Server:
+    def __init__(self, spec: ServerSpec) -> None:
+        from models.headspec import load_head
+        from runtime.config import daemon_config
+
+        self.spec = spec
+        self.head = load_head(spec.head_path)
+        self.cfg: DaemonConfig = daemon_config(self.head, spec.overrides)
+        self.channels = spec.channels
+        self.names = self.head.actuator_names
+        self.units = [a.unit for a in self.head.actuators]
+        self.inv_scale = 1.0 / np.array([a.unit_scale for a in self.head.actuators])
+        self.estop_flag = ipc.EStopFlag(spec.estop_flag)
+        self.linkmap = _load_linkmap(self.head)
+        self.ctx = zmq.Context()
+        self.link = self.ctx.socket(zmq.PAIR)
+        self.link.setsockopt(zmq.LINGER, 0)
+        self.link.connect(spec.link)
+        self.tokens = itertools.count(1)
+        self.pending: dict[int, tuple[list[bytes], Any, str, float]] = {}
+        self.stats_summary: dict[str, Any] = {}
+        self.realtime = "not started"
+        self.recording: dict[str, Any] | None = None
+        self.auth: Any = None
+        self.router, self.pub = self._bind()
+        ipc.send(self.link, ("ready", self.command_endpoint, self.telemetry_endpoint))
+
+    # ------------------------------------------------------------------ sockets
+    def _bind(self) -> tuple[zmq.Socket, zmq.Socket]:
+        api = self.cfg.api
+        router = self.ctx.socket(zmq.ROUTER)
+        pub = self.ctx.socket(zmq.PUB)
+        for sock in (router, pub):
+            sock.setsockopt(zmq.LINGER, 0)
+        router.setsockopt(zmq.MAXMSGSIZE, api.hard_max_message_bytes)
+        router.setsockopt(zmq.ROUTER_MANDATORY, 0)
+        router.setsockopt(zmq.SNDHWM, 1000)
+        router.setsockopt(zmq.RCVHWM, 1000)
+        pub.setsockopt(zmq.SNDHWM, 1000)
+        if api.curve_secret_key:
+            from zmq.auth import load_certificate
+            from zmq.auth.thread import ThreadAuthenticator
+
+            base = self.head.source.parent
+            public, secret = load_certificate(str(resolve(base, api.curve_secret_key)))
+            if secret is None:
+                raise ValueError(f"api.curve_secret_key: {api.curve_secret_key} holds no secret key")
+            self.auth = ThreadAuthenticator(self.ctx)
+            self.auth.start()
+            self.auth.configure_curve(domain="*", location=str(resolve(base, api.curve_allow_dir)))
+            for sock in (router, pub):
+                sock.curve_secretkey = secret
+                sock.curve_publickey = public
+                sock.curve_server = True
+        router.bind(api.command)
+        pub.bind(api.telemetry)
+        self.command_endpoint = router.getsockopt_string(zmq.LAST_ENDPOINT)
+        self.telemetry_endpoint = pub.getsockopt_string(zmq.LAST_ENDPOINT)
+        return router, pub
+
+    def close(self) -> None:
+        for sock in (self.router, self.pub, self.link):
+            sock.close(0)
+        if self.auth is not None:
+            self.auth.stop()
+        self.ctx.term()
+        self.estop_flag.close()
+
+    # ------------------------------------------------------------------ serving
+    def run(self) -> None:
+        poller = zmq.Poller()
+        poller.register(self.router, zmq.POLLIN)
+        poller.register(self.link, zmq.POLLIN)
+        parent = os.getppid()
+        while True:
+            events = dict(poller.poll(200))
+            if self.link in events and not self._drain_link():
+                return
+            if self.router in events:
+                self._drain_requests()
+            if os.getppid() != parent:
+                return
+
+    def _drain_requests(self) -> None:
+        # Small requests first: an e-stop queued behind a large request is handled before it is decoded.
+        batch = []
+        for _ in range(256):
+            try:
+                batch.append(self.router.recv_multipart(zmq.NOBLOCK))
+            except zmq.Again:
+                break
+        batch.sort(key=lambda fr: len(fr[-1]) if fr else 0)
+        for frames in batch:
+            self._request(frames, time.monotonic())
+
+    def _request(self, frames: list[bytes], received: float) -> None:
+        if len(frames) < 2:
+            return
+        envelope, payload = frames[:-1], frames[-1]
+        limit = self.cfg.api.max_message_bytes
+        if len(payload) > limit:
+            self._reply(envelope, P.error_reply(None, "too_large",
+                                                f"request of {len(payload)} bytes exceeds {limit} bytes"))
+            return
+        try:
+            msg = P.unpack(payload)
+        except ProtocolError as exc:
+            self._reply(envelope, P.error_reply(None, exc.code, exc.message))
+            return
+        rid = P.request_id(msg)
+        try:
+            if not isinstance(msg, dict):
+                raise ProtocolError("bad_request", "a request must be a map with 'op' and 'id'")
+            op = msg.get("op")
+            if not isinstance(op, str):
+                raise ProtocolError("bad_request", "field 'op' must be a string")
+            if "id" in msg and rid is None:
+                raise ProtocolError("bad_request", "field 'id' must be an integer or a string of up to 128 chars")
+            if op not in OPS:
+                raise ProtocolError("unknown_op", f"unknown op {op[:40]!r}; known: {', '.join(sorted(OPS))}")
+            if op == "estop":
+                self.estop_flag.trip()  # reaches the core this cycle, before the command itself
+            if op in LOCAL_OPS:
+                self._reply(envelope, {"id": rid, "ok": True, **self._local(op, msg, received)})
+                return
+            token = next(self.tokens)
+            cmd = to_command(msg, token, self.channels, self.cfg.safety.safe_speed)
+        except ProtocolError as exc:
+            self._reply(envelope, P.error_reply(rid, exc.code, exc.message))
+            return
+        except Exception as exc:  # a bug must never take the server down
+            log.exception("internal error handling a request")
+            self._reply(envelope, P.error_reply(rid, "internal", f"{type(exc).__name__}: {exc}"))
+            return
+        self.pending[token] = (envelope, rid, op, received)
+        ipc.send(self.link, ("cmd", cmd))
+
+    def _reply(self, envelope: list[bytes], reply: dict[str, Any]) -> None:
+        try:
+            self.router.send_multipart([*envelope, P.pack(reply)], zmq.NOBLOCK)
+        except zmq.ZMQError as exc:
+            log.debug("reply not sent: %s", exc)
+
+    # ------------------------------------------------------------------ local ops
+    def _local(self, op: str, msg: dict[str, Any], received: float) -> dict[str, Any]:
+        if op == "clock":
+            f = P.Fields(msg, {"t_client"})
+            out: dict[str, Any] = {"t_recv": received, "clock": "monotonic"}
+            if f.has("t_client"):
+                out["t_client"] = f.number("t_client")
+            out["t_send"] = time.monotonic()
+            return out
+        P.Fields(msg, {"client"})
+        from likeness import __version__
+
+        acts = []
+        for a in self.head.actuators:
+            s = a.unit_scale
+            acts.append({"name": a.name, "unit": a.unit, "bus": a.bus, "min": a.min / s, "max": a.max / s,
+                         "neutral": a.neutral / s, "max_velocity": a.max_velocity / s,
+                         "max_acceleration": a.max_acceleration / s})
+        groups = [{"name": g.name, "kind": g.kind, "actuators": list(g.actuators), "gains": list(g.gains)}
+                  for g in self.head.groups]
+        rt = self.cfg.runtime
+        return {
+            "protocol": P.PROTOCOL_VERSION, "daemon": f"likeness {__version__}",
+            "head": {"name": self.head.name, "description": self.head.description, "actuators": acts,
+                     "groups": groups, "channels": self.channels.described()},
+            "rate_hz": rt.rate_hz, "telemetry": self.telemetry_endpoint, "ops": sorted(OPS),
+            "max_message_bytes": self.cfg.api.max_message_bytes, "stream_delay_s": rt.stream_delay_s,
+            "clip_memory_bytes": rt.clip_memory_bytes,
+        }
+
+    # ------------------------------------------------------------------ from the core
+    def _drain_link(self) -> bool:
+        for _ in range(1000):
+            try:
+                kind, *rest = ipc.recv(self.link, zmq.NOBLOCK)
+            except zmq.Again:
+                return True
+            if kind == "stop":
+                return False
+            if kind == "reply":
+                self._core_reply(*rest)
+            elif kind == "event":
+                self._publish(P.TOPIC_EVENT, rest[0])
+            elif kind == "state":
+                self._publish(P.TOPIC_STATE, self._state_message(rest[0]))
+            elif kind == "stats":
+                self.stats_summary = _summary(*rest)
+            elif kind == "realtime":
+                self.realtime = rest[0]
+            elif kind == "record" and self.recording is not None:
+                self.recording["rows"].append(rest[0])
+        return True
+
+    def _core_reply(self, token: int, body: dict[str, Any]) -> None:
+        entry = self.pending.pop(token, None)
+        if entry is None:
+            return
+        envelope, rid, op, _ = entry
+        err = body.get("error")
+        if err is not None:
+            self._reply(envelope, P.error_reply(rid, err["code"], err["message"]))
+            return
+        try:
+            body = self._format(op, body)
+        except ProtocolError as exc:
+            self._reply(envelope, P.error_reply(rid, exc.code, exc.message))
+            return
+        self._reply(envelope, {"id": rid, "ok": True, **body})
+
+    def _format(self, op: str, body: dict[str, Any]) -> dict[str, Any]:
+        if op == "status":
+            out = self._common(body)
+            for key in ("estop", "fault", "moving", "timeline", "stream", "recording", "pose_reached", "extra",
+                        "clip_bytes"):
+                if key in body:
+                    out[key] = body[key]
+            out["loop"] = self.stats_summary
+            out["realtime"] = self.realtime
+            return out
+        if op == "pose":
+            return {"targets": self._units(body["targets_si"]), "speed": body["speed"]}
+        if op == "record":
+            if body.get("stopped"):
+                return self._finish_recording(body)
+            self.recording = {"name": body["recording"], "rows": []}
+            return body
+        return body
+
+    def _finish_recording(self, body: dict[str, Any]) -> dict[str, Any]:
+        from runtime.recording import Recorder
+
+        rec = self.recording or {"name": body["recording"], "rows": []}
+        self.recording = None
+        rows = np.vstack(rec["rows"]) if rec["rows"] else np.empty((0, 1 + 2 * len(self.names)))
+        n = len(self.names)
+        rt = self.cfg.runtime
+        recorder = Recorder(self.names, self.units, 1.0 / self.inv_scale, max(1, len(rows)),
+                            {"head": self.head.name, "rate_hz": rt.rate_hz})
+        for row in rows:
+            recorder.add(row[0], row[1:1 + n], row[1 + n:])
+        path = Path(rt.record_dir) / f"{rec['name']}.npz"
+        recorder.save(path)
+        event = {"event": "record", "t": time.monotonic(), "state": "saved", "name": rec["name"],
+                 "path": str(path), "samples": len(rows)}
+        self._publish(P.TOPIC_EVENT, event)
+        return {"path": str(path.resolve()), "samples": len(rows), "dropped": max(0, body["samples"] - len(rows))}
+
+    # ------------------------------------------------------------------ telemetry
+    def _units(self, si: np.ndarray) -> dict[str, float | None]:
+        vals = (np.asarray(si) * self.inv_scale).tolist()
+        return {n: (v if math.isfinite(v) else None) for n, v in zip(self.names, vals, strict=True)}
+
+    def _common(self, snap: dict[str, Any]) -> dict[str, Any]:
+        return {"t": snap["t"], "lifecycle": snap["lifecycle"], "mode": snap["mode"],
+                "commanded": self._units(snap["commanded_si"]), "measured": self._units(snap["measured_si"]),
+                "buses": snap["buses"], "connected": snap["connected"], "feedback_age_s": snap["feedback_age"]}
+
+    def _state_message(self, snap: dict[str, Any]) -> dict[str, Any]:
+        msg = self._common(snap)
+        msg["loop"] = self.stats_summary
+        for key in ("clip", "stream", "extra"):
+            if key in snap:
+                msg[key] = snap[key]
+        measured = snap["measured_si"]
+        if self.linkmap is not None and np.isfinite(measured).all():
+            msg["links"] = self._link_poses(measured)
+        return msg
+
+    def _link_poses(self, q: np.ndarray) -> dict[str, list[float]]:
+        """Predicted link poses m(q) at measured actuator values: [x, y, z (m), rx, ry, rz (rotation vector)]."""
+        from models.rigid import matrix_to_rotvec
+
+        poses = self.linkmap.poses(dict(zip(self.names, q.tolist(), strict=True)))
+        return {name: [*T[:3, 3].tolist(), *matrix_to_rotvec(T[:3, :3]).tolist()] for name, T in poses.items()}
+
+    def _publish(self, topic: bytes, msg: dict[str, Any]) -> None:
+        try:
+            self.pub.send_multipart([topic, P.pack(_plain(msg))], zmq.NOBLOCK)
+        except zmq.Again:
+            pass
+        except zmq.ZMQError as exc:
+            log.warning("telemetry publish failed: %s", exc)
+
+
+def _plain(obj: Any) -> Any:
+    """numpy scalars and arrays → Python values msgpack can carry."""
+    if isinstance(obj, dict):
+        return {k: _plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_plain(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, np.generic):
+        return obj.item()
+    return obj
+
+
+def _summary(period: float, n: int, missed: int, skipped: int, lateness: np.ndarray, work: np.ndarray,
+             periods: np.ndarray) -> dict[str, Any]:
+    out: dict[str, Any] = {"rate_hz": 1.0 / period, "cycles": n, "missed": missed, "skipped": skipped}
+    k = len(lateness)
+    if k:
+        lat = np.abs(lateness) * 1e6
+        wk = work * 1e6
+        p = np.percentile(lat, [50, 99])
+        w = np.percentile(wk, [50, 99])
+        per = periods * 1e6
+        out.update(period_mean_us=float(per.mean()), period_max_us=float(per.max()),
+                   jitter_p50_us=float(p[0]), jitter_p99_us=float(p[1]), jitter_max_us=float(lat.max()),
+                   work_p50_us=float(w[0]), work_p99_us=float(w[1]), work_max_us=float(wk.max()))
+    return out
+
+
+def _load_linkmap(head: Any) -> Any:
+    from models.linkmap import LinkMap
+
+    path = head.path("linkmap")
+    if path is None or not path.exists():
+        return None
+    return LinkMap.for_head(head)
+
+
+
+
+if __name__ == "__main__":
+    import pickle
+    import sys
+
+    main(pickle.loads(sys.stdin.buffer.read()))
