@@ -43,7 +43,7 @@ log = logging.getLogger(__name__)
 SERVER_START_TIMEOUT_S = 60.0
 
 
-class DaemonError(RuntimeError):
+class DaemonStartError(RuntimeError):
     """The daemon could not start (a bus, the API server or the loop); the message says which and why."""
 
 
@@ -90,7 +90,7 @@ class Daemon:
 
     # ------------------------------------------------------------------ start / stop
     def start(self) -> None:
-        """Open the buses, start the API server process and the control loop; raises :class:`DaemonError`."""
+        """Open the buses, start the API server process and the control loop; raises :class:`DaemonStartError`."""
         try:
             self._start_buses()
             self._start_link()
@@ -144,10 +144,10 @@ class Daemon:
                     self.command_endpoint, self.telemetry_endpoint = rest
                     break
             if self._server.poll() is not None:
-                raise DaemonError(f"the API server process exited with code {self._server.returncode} "
+                raise DaemonStartError(f"the API server process exited with code {self._server.returncode} "
                                   "(endpoint in use? see the log)")
             if time.monotonic() > deadline:
-                raise DaemonError("the API server process did not start")
+                raise DaemonStartError("the API server process did not start")
         log.info("commands on %s, telemetry on %s", self.command_endpoint, self.telemetry_endpoint)
 
     def _start_loop(self) -> None:
@@ -162,7 +162,7 @@ class Daemon:
         self._thread = threading.Thread(target=self.runner.run, name="likeness-control", daemon=True)
         self._thread.start()
         if not self.runner.ready.wait(10.0):
-            raise DaemonError("control loop did not start")
+            raise DaemonStartError("control loop did not start")
 
     def stop(self) -> None:
         """Stop the loop and the server, torque off, close buses and emulators; safe to call twice."""

@@ -76,7 +76,5 @@ class EStopFlag:
             self._shm.close()
         finally:
             if self._owner:
-                try:
+                with contextlib.suppress(FileNotFoundError):
                     self._shm.unlink()
-                except FileNotFoundError:
-                    pass

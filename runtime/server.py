@@ -44,6 +44,78 @@ class ServerSpec:
     estop_flag: str  # shared-memory name of the e-stop counter
     ready: str  # endpoint to report the bound endpoints on (PAIR, same socket as the link)
     log_level: int = logging.WARNING
+    inline_bytes: int = 32 * 1024  # larger requests are decoded by the decoder process
+
+
+def decoder_main(spec: ServerSpec, endpoint_in: str, endpoint_out: str) -> None:
+    """The decoder process: large requests (clips, stream batches) are decoded, validated and compiled here, so
+    the server's own thread stays free to take an e-stop at any moment."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _die_with_parent()
+    ctx = zmq.Context()
+    pull = ctx.socket(zmq.PULL)
+    pull.connect(endpoint_in)
+    push = ctx.socket(zmq.PUSH)
+    push.setsockopt(zmq.LINGER, 0)
+    push.connect(endpoint_out)
+    parent = os.getppid()
+    try:
+        while os.getppid() == parent:
+            if not pull.poll(200):
+                continue
+            token, envelope, payload, received = ipc.recv(pull)
+            ipc.send(push, ("decoded", token, envelope, received, *_decode(payload, token, spec)))
+    finally:
+        pull.close(0)
+        push.close(0)
+        ctx.term()
+
+
+def _decode(payload: bytes, token: int, spec: ServerSpec) -> tuple[Any, str, Any, dict[str, Any] | None]:
+    """(request id, op, command or None, error reply or None) for one raw request."""
+    try:
+        msg = P.unpack(payload)
+    except ProtocolError as exc:
+        return None, "", None, P.error_reply(None, exc.code, exc.message)
+    rid = P.request_id(msg)
+    try:
+        op = _check_envelope(msg, rid)
+        if op in LOCAL_OPS:
+            raise ProtocolError("too_large", f"a {op} request needs no more than {spec.inline_bytes} bytes")
+        return rid, op, to_command(msg, token, spec.channels, _safe_speed(spec)), None
+    except ProtocolError as exc:
+        return rid, "", None, P.error_reply(rid, exc.code, exc.message)
+    except RecursionError:
+        return rid, "", None, P.error_reply(rid, "bad_request", "request nested too deeply")
+    except Exception as exc:
+        log.exception("internal error decoding a request")
+        return rid, "", None, P.error_reply(rid, "internal", f"{type(exc).__name__}: {exc}")
+
+
+def _check_envelope(msg: Any, rid: Any) -> str:
+    if not isinstance(msg, dict):
+        raise ProtocolError("bad_request", "a request must be a map with 'op' and 'id'")
+    op = msg.get("op")
+    if not isinstance(op, str):
+        raise ProtocolError("bad_request", "field 'op' must be a string")
+    if "id" in msg and rid is None:
+        raise ProtocolError("bad_request", "field 'id' must be an integer or a string of up to 128 chars")
+    if op not in OPS:
+        raise ProtocolError("unknown_op", f"unknown op {op[:40]!r}; known: {', '.join(sorted(OPS))}")
+    return op
+
+
+_SAFE_SPEED: dict[str, float] = {}
+
+
+def _safe_speed(spec: ServerSpec) -> float:
+    speed = _SAFE_SPEED.get(spec.head_path)
+    if speed is None:
+        from models.headspec import load_head
+        from runtime.config import daemon_config
+
+        speed = _SAFE_SPEED[spec.head_path] = daemon_config(load_head(spec.head_path), spec.overrides).safety.safe_speed
+    return speed
 
 
 def main(spec: ServerSpec) -> None:
@@ -92,7 +164,26 @@ class Server:
         self.recording: dict[str, Any] | None = None
         self.auth: Any = None
         self.router, self.pub = self._bind()
+        self._start_decoder()
         ipc.send(self.link, ("ready", self.command_endpoint, self.telemetry_endpoint))
+
+    def _start_decoder(self) -> None:
+        import pickle
+        import subprocess
+        import sys
+        import tempfile
+
+        self.tmp = tempfile.mkdtemp(prefix="likeness-api-")
+        self.to_decoder = self.ctx.socket(zmq.PUSH)
+        self.to_decoder.setsockopt(zmq.LINGER, 0)
+        self.to_decoder.bind(f"ipc://{self.tmp}/in")
+        self.from_decoder = self.ctx.socket(zmq.PULL)
+        self.from_decoder.bind(f"ipc://{self.tmp}/out")
+        self.decoder = subprocess.Popen([sys.executable, "-m", "runtime.server", "--decoder", f"ipc://{self.tmp}/in",
+                                         f"ipc://{self.tmp}/out"], stdin=subprocess.PIPE)
+        assert self.decoder.stdin is not None
+        self.decoder.stdin.write(pickle.dumps(self.spec))
+        self.decoder.stdin.close()
 
     # ------------------------------------------------------------------ sockets
     def _bind(self) -> tuple[zmq.Socket, zmq.Socket]:
@@ -128,7 +219,15 @@ class Server:
         return router, pub
 
     def close(self) -> None:
-        for sock in (self.router, self.pub, self.link):
+        import shutil
+
+        self.decoder.terminate()
+        try:
+            self.decoder.wait(2.0)
+        except Exception:
+            self.decoder.kill()
+        shutil.rmtree(self.tmp, ignore_errors=True)
+        for sock in (self.router, self.pub, self.link, self.to_decoder, self.from_decoder):
             sock.close(0)
         if self.auth is not None:
             self.auth.stop()
@@ -140,6 +239,7 @@ class Server:
         poller = zmq.Poller()
         poller.register(self.router, zmq.POLLIN)
         poller.register(self.link, zmq.POLLIN)
+        poller.register(self.from_decoder, zmq.POLLIN)
         parent = os.getppid()
         while True:
             events = dict(poller.poll(200))
@@ -147,6 +247,8 @@ class Server:
                 return
             if self.router in events:
                 self._drain_requests()
+            if self.from_decoder in events:
+                self._drain_decoded()
             if os.getppid() != parent:
                 return
 
@@ -171,6 +273,9 @@ class Server:
             self._reply(envelope, P.error_reply(None, "too_large",
                                                 f"request of {len(payload)} bytes exceeds {limit} bytes"))
             return
+        if len(payload) > self.spec.inline_bytes:  # decoded in the decoder process
+            ipc.send(self.to_decoder, (next(self.tokens), envelope, payload, received))
+            return
         try:
             msg = P.unpack(payload)
         except ProtocolError as exc:
@@ -178,15 +283,7 @@ class Server:
             return
         rid = P.request_id(msg)
         try:
-            if not isinstance(msg, dict):
-                raise ProtocolError("bad_request", "a request must be a map with 'op' and 'id'")
-            op = msg.get("op")
-            if not isinstance(op, str):
-                raise ProtocolError("bad_request", "field 'op' must be a string")
-            if "id" in msg and rid is None:
-                raise ProtocolError("bad_request", "field 'id' must be an integer or a string of up to 128 chars")
-            if op not in OPS:
-                raise ProtocolError("unknown_op", f"unknown op {op[:40]!r}; known: {', '.join(sorted(OPS))}")
+            op = _check_envelope(msg, rid)
             if op == "estop":
                 self.estop_flag.trip()  # reaches the core this cycle, before the command itself
             if op in LOCAL_OPS:
@@ -203,6 +300,20 @@ class Server:
             return
         self.pending[token] = (envelope, rid, op, received)
         ipc.send(self.link, ("cmd", cmd))
+
+    def _drain_decoded(self) -> None:
+        for _ in range(100):
+            try:
+                _, token, envelope, received, rid, op, cmd, error = ipc.recv(self.from_decoder, zmq.NOBLOCK)
+            except zmq.Again:
+                return
+            if error is not None:
+                self._reply(envelope, error)
+                continue
+            if op == "estop":
+                self.estop_flag.trip()
+            self.pending[token] = (envelope, rid, op, received)
+            ipc.send(self.link, ("cmd", cmd))
 
     def _reply(self, envelope: list[bytes], reply: dict[str, Any]) -> None:
         try:
@@ -398,4 +509,8 @@ if __name__ == "__main__":
     import pickle
     import sys
 
-    main(pickle.loads(sys.stdin.buffer.read()))
+    spec_in = pickle.loads(sys.stdin.buffer.read())
+    if len(sys.argv) == 4 and sys.argv[1] == "--decoder":
+        decoder_main(spec_in, sys.argv[2], sys.argv[3])
+    else:
+        main(spec_in)

@@ -57,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
     from likeness.cli import CliError
     from models.errors import SpecError
     from models.headspec import load_head
-    from runtime.daemon import Daemon
+    from runtime.daemon import Daemon, DaemonStartError
 
     try:
         head = load_head(args.config)
@@ -74,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         daemon.start()
-    except (BusError, OSError) as exc:
+    except (BusError, DaemonStartError, OSError) as exc:
         raise CliError(f"cannot start: {exc}") from exc
     old = {s: signal.signal(s, on_stop) for s in (signal.SIGINT, signal.SIGTERM)}
     old[signal.SIGUSR1] = signal.signal(signal.SIGUSR1, on_estop)

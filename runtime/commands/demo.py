@@ -34,7 +34,7 @@ def run(args: argparse.Namespace) -> int:
     from runtime.client import Client, Telemetry
     from runtime.commands.plot import print_errors
     from runtime.curves import ClipError, clip_file_as_dict, clip_from_dict
-    from runtime.daemon import Daemon
+    from runtime.daemon import Daemon, DaemonStartError
     from runtime.recording import load_recording, plot_recording, tracking_errors
 
     try:
@@ -59,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         daemon = Daemon(head, overrides)
         daemon.start()
-    except (SpecError, BusError, OSError) as exc:
+    except (SpecError, BusError, DaemonStartError, OSError) as exc:
         raise CliError(f"cannot start the daemon: {exc}") from exc
     recordings = []
     fault = None
