@@ -104,8 +104,8 @@ class ThreadBusLink:
             posted, self._targets = self._targets, None
             try:
                 if posted is not None and self.bus.state is LifecycleState.ACTIVE:
-                    q, _ = posted
-                    self.bus.write(dict(zip(self.actuators, q.tolist(), strict=True)))
+                    q, stamp = posted
+                    self.bus.write(dict(zip(self.actuators, q.tolist(), strict=True)), stamp)
                     written, write_stamp = q, time.monotonic()
                 self._publish(time.monotonic(), written, write_stamp, (time.perf_counter() - t0) * 1e6)
             except Exception as exc:

@@ -90,7 +90,7 @@ class Runner:
                         out = K.CycleOutputs()
                         K._fault(self.state, self.params, out, t, "control loop",
                                  f"control cycle failed: {type(exc).__name__}: {exc}")
-                    self._write(out)
+                    self._write(out, t)
                     if missed:
                         self.stats.missed += missed
                         pending_misses += missed
@@ -139,10 +139,11 @@ class Runner:
             self.input_log.append(inputs)
         return inputs
 
-    def _write(self, out: K.CycleOutputs) -> None:
+    def _write(self, out: K.CycleOutputs, t: float) -> None:
+        """Post the commands (stamped with the cycle's time, which the drivers' rate guard measures against) and
+        the lifecycle requests."""
         if out.write is not None:
             q = out.write
-            t = self.clock()
             for link, (_, idx) in zip(self.links, self.params.buses, strict=True):
                 link.post(q[idx], t)
         for bus, op in out.bus_requests:
