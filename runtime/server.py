@@ -294,6 +294,9 @@ class Server:
         except ProtocolError as exc:
             self._reply(envelope, P.error_reply(rid, exc.code, exc.message))
             return
+        except RecursionError:
+            self._reply(envelope, P.error_reply(rid, "bad_request", "request nested too deeply"))
+            return
         except Exception as exc:  # a bug must never take the server down
             log.exception("internal error handling a request")
             self._reply(envelope, P.error_reply(rid, "internal", f"{type(exc).__name__}: {exc}"))
@@ -394,7 +397,7 @@ class Server:
         if op == "status":
             out = self._common(body)
             for key in ("estop", "fault", "moving", "timeline", "stream", "recording", "pose_reached", "extra",
-                        "clip_bytes"):
+                        "clip_bytes", "guard"):
                 if key in body:
                     out[key] = body[key]
             out["loop"] = self.stats_summary
@@ -441,7 +444,7 @@ class Server:
     def _state_message(self, snap: dict[str, Any]) -> dict[str, Any]:
         msg = self._common(snap)
         msg["loop"] = self.stats_summary
-        for key in ("clip", "stream", "extra"):
+        for key in ("clip", "stream", "extra", "guard"):
             if key in snap:
                 msg[key] = snap[key]
         measured = snap["measured_si"]

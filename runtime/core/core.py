@@ -102,10 +102,11 @@ class CoreParams:
     cfg: DaemonConfig
     telemetry_every: int
     record_capacity: int
+    guard: Any = None  # skin-strain guard: limit(p_from, p_to) -> (p, verdict) and check(p) -> bool; None: no guard
 
     @classmethod
     def build(cls, head: HeadSpec, cfg: DaemonConfig, channels: ChannelMap,
-              bus_order: Sequence[tuple[str, Sequence[str]]]) -> CoreParams:
+              bus_order: Sequence[tuple[str, Sequence[str]]], guard: Any = None) -> CoreParams:
         index = {n: i for i, n in enumerate(head.actuator_names)}
         rt = cfg.runtime
         return cls(
@@ -113,7 +114,7 @@ class CoreParams:
             period=1.0 / rt.rate_hz,
             buses=tuple((b, np.array([index[m] for m in motors], dtype=np.intp)) for b, motors in bus_order),
             channels=channels, cfg=cfg, telemetry_every=max(1, round(rt.rate_hz / rt.telemetry_hz)),
-            record_capacity=int(rt.record_max_s * rt.rate_hz) + 1,
+            record_capacity=int(rt.record_max_s * rt.rate_hz) + 1, guard=guard,
         )
 
 
@@ -161,6 +162,9 @@ class CoreState:
     record_total: int = 0
     record_t0: float = 0.0
     clip_bytes: int = 0
+    guard_ok: np.ndarray | None = None  # the last target the skin guard accepted
+    guard_verdict: str = "ok"
+    guard_refused: int = 0  # targets limited or held by the guard since start
 
     @classmethod
     def initial(cls, head: HeadSpec, params: CoreParams, solvers: Sequence[Any] = ()) -> CoreState:
@@ -211,6 +215,8 @@ def step(state: CoreState, params: CoreParams, inputs: CycleInputs) -> CycleOutp
         _supervise(state, params, out, t)
     if state.lifecycle is Lifecycle.ACTIVE and state.transition is None:
         targets, speed = _sources(state, params, out, t)
+        if params.guard is not None:
+            targets = _guard(state, params, targets)
         dt = params.period if state.last_t is None else min(max(t - state.last_t, 1e-6), 4 * params.period)
         out.write = state.safety.step(targets, dt, speed).copy()
         state.last_t = t
@@ -252,6 +258,22 @@ def _supervise(state: CoreState, params: CoreParams, out: CycleOutputs, t: float
         if stale.size:
             names = ", ".join(params.names[i] for i in stale[:6])
             _fault(state, params, out, t, "timeout", f"no fresh feedback for {timeout:g} s from {names}")
+
+
+def _guard(state: CoreState, params: CoreParams, targets: np.ndarray) -> np.ndarray:
+    """The skin-strain guard on this cycle's target, whatever its source: a pose whose strain the skin cannot
+    take is pulled back toward the last accepted one (or that one is held)."""
+    x = state.safety.constrain(targets)
+    if state.guard_ok is None:
+        state.guard_ok = state.safety.q.copy()
+    if np.array_equal(x, state.guard_ok):
+        return x
+    p, verdict = params.guard.limit(state.guard_ok, x)
+    state.guard_ok = p
+    if verdict != "ok":
+        state.guard_refused += 1
+    state.guard_verdict = verdict
+    return p
 
 
 # ---------------------------------------------------------------------- sources and solve
@@ -348,6 +370,7 @@ def _stop_motion(state: CoreState) -> None:
 
 
 def _reset_solvers(state: CoreState) -> None:
+    state.guard_ok = None
     q = state.safety.q
     for s in state.solvers:
         s.reset_array(q)
@@ -710,6 +733,7 @@ def _snapshot(state: CoreState, params: CoreParams, t: float) -> dict[str, Any]:
         "t": t, "lifecycle": state.lifecycle.value, "mode": state.mode.value,
         "commanded_si": state.safety.q.copy(), "measured_si": state.measured.copy(),
         "buses": dict(state.bus_states), "connected": dict(state.bus_connected),
+        "guard": {"verdict": state.guard_verdict, "refused": state.guard_refused},
         "feedback_age": {name: float(t - state.stamps[idx].max()) if idx.size else 0.0
                          for name, idx in params.buses},
     }
