@@ -10,7 +10,7 @@ import pytest
 from models.errors import SpecError
 from models.headspec import load_head
 from runtime.config import daemon_config, endpoint_problem
-from runtime.solve import Solver, SolveResult, TargetSolver, UnknownChannel
+from runtime.solve import SolveResult, TargetSolver
 
 SAMPLE = Path(__file__).resolve().parents[2] / "heads" / "sample" / "head.toml"
 HEAD = load_head(SAMPLE)
@@ -53,6 +53,9 @@ def test_endpoint_rules() -> None:
 class _Weights:
     """A toy target solver: 'expr.open' opens the jaw proportionally (stands in for a skin predictor)."""
 
+    def channels(self) -> dict[str, str]:
+        return {"expr.open": "weight"}
+
     def handles(self, channel: str) -> bool:
         return channel.startswith("expr.")
 
@@ -60,13 +63,35 @@ class _Weights:
         return SolveResult({"jaw": math.radians(20) * targets["expr.open"]}, {"residual": 0.0})
 
 
-def test_solver_units_groups_and_target_channels() -> None:
-    solver = Solver(HEAD, [_Weights()])
-    assert isinstance(_Weights(), TargetSolver)
-    res = solver.solve({"blink": 30.0, "brow_l": 10.0, "expr.open": 0.5}, {})
-    assert res.actuators["lid_l"] == pytest.approx(math.radians(30)) == res.actuators["lid_r"]
-    assert res.actuators["brow_l"] == pytest.approx(math.radians(10))
-    assert res.actuators["jaw"] == pytest.approx(math.radians(10)) and res.extra == {"residual": 0.0}
-    assert solver.solve({"jaw": 5.0, "expr.open": 1.0}, {}).actuators["jaw"] == pytest.approx(math.radians(5))
+def test_solve_stage_units_groups_and_target_channels() -> None:
+    import numpy as np
+
+    from runtime.config import daemon_config
+    from runtime.core import core as K
+    from runtime.core.channels import ChannelMap, UnknownChannel
+    from runtime.core.solvers import as_array_solvers, channel_sets
+
+    solvers = [_Weights()]
+    assert isinstance(solvers[0], TargetSolver)
+    cm = ChannelMap.build(HEAD, channel_sets(solvers))
+    assert cm.kind("blink") == "group" and cm.kind("expr.open") == "target" and cm.kind("jaw") == "actuator"
+    params = K.CoreParams.build(HEAD, daemon_config(HEAD), cm, [(b, [a.name for a in HEAD.actuators_on(b)])
+                                                               for b in HEAD.buses])
+    state = K.CoreState.initial(HEAD, params, as_array_solvers(solvers, cm.target_blocks, cm.names,
+                                                               HEAD.actuator_names))
+    out = K.CycleOutputs()
+
+    def solve(**values: float) -> dict[str, float]:
+        vec = np.full(cm.n, np.nan)
+        for ch, v in values.items():
+            vec[cm.index_of(ch.replace("__", "."))] = v
+        x = K.solve_channels(state, params, out, vec)
+        return {n: v for n, v in zip(HEAD.actuator_names, x.tolist(), strict=True) if v == v}
+
+    res = solve(blink=30.0, brow_l=10.0, expr__open=0.5)
+    assert res["lid_l"] == pytest.approx(math.radians(30)) == res["lid_r"]
+    assert res["brow_l"] == pytest.approx(math.radians(10))
+    assert res["jaw"] == pytest.approx(math.radians(10)) and state.extra == {"residual": 0.0}
+    assert solve(jaw=5.0, expr__open=1.0)["jaw"] == pytest.approx(math.radians(5))
     with pytest.raises(UnknownChannel):
-        solver.check_channels(["jaw", "arkit.jawOpen"])
+        cm.indices(["jaw", "arkit.jawOpen"])

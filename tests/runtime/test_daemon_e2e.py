@@ -272,6 +272,9 @@ class _ExpressionSolver:
     """Target channels ``expr.*``: ``expr.smile`` raises both lip corners (stands in for a skin-predictor solve);
     ``expr.broken`` raises, as a faulty solver might."""
 
+    def channels(self) -> dict[str, str]:
+        return {"expr.smile": "weight", "expr.broken": "weight"}
+
     def handles(self, channel: str) -> bool:
         return channel.startswith("expr.")
 

@@ -14,8 +14,9 @@ from hypothesis import strategies as st
 
 from runtime.client import Client
 from runtime.daemon import Daemon
+from runtime.requests import OPS as KNOWN_OPS
 
-OPS = sorted(Daemon._OPS)
+OPS = sorted(KNOWN_OPS)
 CHANNELS = ["jaw", "blink", "brow_l", "lid_r", "lip_corner_l", "cheek_r", "nose", "", "arkit.jawOpen"]
 NUMBERS = st.one_of(
     st.floats(allow_nan=True, allow_infinity=True),
@@ -48,31 +49,38 @@ REQUEST = st.one_of(
 
 
 def _check_limits(daemon: Daemon) -> None:
-    sf = daemon.safety
-    assert np.all(np.isfinite(sf.q))
-    assert np.all(sf.q >= sf.lo - 1e-12) and np.all(sf.q <= sf.hi + 1e-12)
+    assert daemon.state is not None
+    sf = daemon.state.safety
+    q = sf.q.copy()
+    assert np.all(np.isfinite(q))
+    assert np.all(q >= sf.lo - 1e-12) and np.all(q <= sf.hi + 1e-12)
 
 
 @pytest.fixture(scope="module")
 def fuzz_daemon(shared_daemon):
     d = shared_daemon
-    d.enable()
-    yield d
-    d.disable()
+    d.call("enable")
+    with Client(d.command_endpoint, timeout=10) as c:
+        d.fuzz_client = c
+        yield d
+    d.call("disable")
 
 
 def _recover(daemon: Daemon) -> None:
-    if daemon.lifecycle in ("estop", "fault"):
-        assert (daemon.fault_info or {}).get("source") != "write", daemon.fault_info  # a driver guard refused
-        daemon.reset()
-    if daemon.lifecycle == "inactive":
-        daemon.enable()
+    c = daemon.fuzz_client
+    status = c.call("status")
+    if status["lifecycle"] in ("estop", "fault"):
+        assert (status.get("fault") or {}).get("source") != "driver", status["fault"]  # a driver guard refused
+        c.call("reset")
+        status = c.call("status")
+    if status["lifecycle"] == "inactive":
+        c.call("enable")
 
 
 @settings(max_examples=250, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(msg=REQUEST)
 def test_any_request_gets_a_reply_and_limits_hold(fuzz_daemon: Daemon, msg) -> None:
-    reply = fuzz_daemon.handle(msg)
+    reply = fuzz_daemon.fuzz_client.send_raw(msgpack.packb(msg, use_bin_type=True))
     assert isinstance(reply, dict) and isinstance(reply.get("ok"), bool) and "id" in reply
     if not reply["ok"]:
         assert reply["error"]["code"] in ("bad_request", "unknown_op", "bad_value", "unknown_channel", "not_found",
@@ -103,7 +111,8 @@ def test_hostile_streams_never_leave_limits(fuzz_daemon: Daemon) -> None:
     def watch() -> None:
         while not stop.is_set():
             truth = d.hw.simulated_positions()
-            worst.append(max(max(a.min - truth[a.name], truth[a.name] - a.max) for a in d.head.actuators))
+            worst.append(max(max(a.min - truth[a.name], truth[a.name] - a.max) for a in d.head.actuators
+                             if a.name in truth))
             stop.wait(0.01)
 
     watcher = threading.Thread(target=watch)
@@ -122,4 +131,5 @@ def test_hostile_streams_never_leave_limits(fuzz_daemon: Daemon) -> None:
         watcher.join()
     # Ground truth never beyond a limit by more than the drives' own tracking overshoot.
     assert max(worst) < math.radians(1.0)
-    assert d.lifecycle == "active" and d.fault_info is None
+    status = d.fuzz_client.call("status")
+    assert status["lifecycle"] == "active" and status["fault"] is None
