@@ -258,6 +258,9 @@ class BusLink:
         c = self._c if self._shm is not None else None
         if c is None:
             raise RuntimeError(f"bus {self.name!r}: post before start")
+        if len(targets) != self._layout.n:
+            raise ValueError(f"bus {self.name!r}: {len(targets)} targets for {self._layout.n} actuators "
+                             f"({', '.join(self.actuators)})")
         k = self._posted + 1
         c[_C_TG_BEGUN] = k
         buf = self._tg[k & 1]

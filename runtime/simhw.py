@@ -31,6 +31,11 @@ log = logging.getLogger(__name__)
 
 #: Seconds to wait for an emulator's ``ready:`` line (a cold Python start with canopen imports takes ~1 s).
 READY_TIMEOUT_S = 20.0
+#: Niceness added to emulator processes by default. An emulator stands in for hardware that never waits for a CPU:
+#: on a loaded 2-core machine a driver's fixed reply window (Dynamixel SDK: ~34 ms at 4 Mbaud) is missed when the
+#: emulator queues behind ordinary processes. A SCHED_FIFO control thread still preempts it. Needs CAP_SYS_NICE;
+#: without it the emulator keeps the parent's niceness.
+EMULATOR_NICE = -10
 
 
 class SimProcess:
@@ -146,9 +151,11 @@ class SimProcess:
         reply = self._request({"op": "positions"})
         return {int(k): float(v) for k, v in reply["positions"].items()}
 
-    def inject(self, fault: str, **params: Any) -> dict[str, Any]:
+    def inject(self, fault: str, device: int | None = None, **params: Any) -> dict[str, Any]:
         """Start a fault by the emulator's name for it (canopen: ``stop_heartbeat``, ``drive_fault``, ``jam``...;
-        dynamixel: ``overheat``, ``disconnect``, ``drop``...), with its parameters (``device=...``)."""
+        dynamixel: ``overheat``, ``disconnect``, ``drop``...) on ``device`` (an id) with its parameters."""
+        if device is not None:
+            params["device"] = int(device)
         return self._request({"op": "inject", "fault": fault, **params})
 
     def clear(self, fault: str | None = None, device: int | None = None) -> dict[str, Any]:
@@ -177,7 +184,7 @@ def start(
     initial: Mapping[str, float] | None = None,
     *,
     ready_timeout_s: float = READY_TIMEOUT_S,
-    nice: int = 0,
+    nice: int = EMULATOR_NICE,
 ) -> SimProcess:
     """Start the emulator of ``driver`` serving ``motors`` in a child process, each motor at ``initial[name]`` (SI,
     default 0); ``SimProcess.options`` are ``options`` rewritten so the real driver reaches it.
@@ -204,8 +211,10 @@ def start(
         shutil.rmtree(workdir, ignore_errors=True)
         raise BusInitError(f"bus {bus_name}: cannot start emulator ({exc})") from exc
     if nice:
-        with contextlib.suppress(OSError):
+        try:
             os.setpriority(os.PRIO_PROCESS, proc.pid, os.getpriority(os.PRIO_PROCESS, 0) + nice)
+        except OSError as exc:
+            log.debug("emulator of bus %s keeps its niceness (%s)", bus_name, exc)
     sim = SimProcess(driver, bus_name, proc, control, lambda: shutil.rmtree(workdir, ignore_errors=True))
     try:
         line = sim.wait_ready(ready_timeout_s)
