@@ -1,21 +1,31 @@
 """All motor buses of one head behind a single object, built from its :class:`~models.headspec.HeadSpec`.
 
-:class:`Hardware` turns actuator specs into :class:`~drivers.base.MotorConfig`s, starts in-process emulators for
-buses marked ``simulated = true`` (through :mod:`runtime.simhw`, imported only then), and creates the drivers through
-:mod:`drivers.registry`. Reads and writes are keyed by actuator name and split per bus; values are SI.
+Both facades turn actuator specs into :class:`~drivers.base.MotorConfig`s and start an emulator child process for
+each bus marked ``simulated = true`` (through :mod:`runtime.simhw`, imported only then):
+
+- :class:`LinkedHardware` runs every bus in a process of its own (:class:`runtime.buslink.BusLink`): the control
+  loop posts targets and takes feedback without ever waiting on a bus.
+- :class:`Hardware` calls the drivers synchronously in the caller's thread: for calibration, which moves one pose at
+  a time and waits on encoder readings, and as the baseline of ``benchmarks/bus_isolation.py``.
+
+Values are SI; reads and writes are keyed by actuator name (or per bus in link order).
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import time
 from collections.abc import Mapping
 from typing import Any
 
+import numpy as np
+
 from drivers.base import LifecycleState, MotorBus, MotorConfig, MotorState
-from drivers.errors import BusInitError, BusTimeout, CommandRejected
+from drivers.errors import BusError, BusInitError, BusTimeout, CommandRejected
 from drivers.registry import create_bus
 from models.headspec import ActuatorSpec, HeadSpec
+from runtime.buslink import BusFeedback, BusLink
 
 log = logging.getLogger(__name__)
 
@@ -42,9 +52,59 @@ def motor_config(act: ActuatorSpec) -> MotorConfig:
     )
 
 
+def start_emulators(
+    head: HeadSpec, *, nice: int | None = None
+) -> tuple[dict[str, list[MotorConfig]], dict[str, dict[str, Any]], dict[str, Any]]:
+    """Motor configs and driver options per bus of ``head``, with an emulator process started (at its actuators'
+    neutral positions) for each simulated bus; returns (motors, options, emulators) keyed by bus name.
+    Buses without actuators are skipped with a warning. On failure the emulators already started are stopped."""
+    motors: dict[str, list[MotorConfig]] = {}
+    options: dict[str, dict[str, Any]] = {}
+    sims: dict[str, Any] = {}
+    try:
+        for bus_name, spec in head.buses.items():
+            acts = head.actuators_on(bus_name)
+            if not acts:
+                log.warning("bus %s has no actuators; skipped", bus_name)
+                continue
+            motors[bus_name] = [motor_config(a) for a in acts]
+            options[bus_name] = dict(spec.options)
+            if spec.simulated:
+                from runtime import simhw
+
+                sim = simhw.start(spec.driver, bus_name, options[bus_name], motors[bus_name],
+                                  {a.name: a.neutral for a in acts},
+                                  nice=simhw.EMULATOR_NICE if nice is None else nice)
+                sims[bus_name] = sim
+                options[bus_name] = sim.options
+    except BaseException:
+        for sim in sims.values():
+            sim.close()
+        raise
+    return motors, options, sims
+
+
+def _simulated_positions(sims: Mapping[str, Any], configs: Mapping[str, Mapping[str, MotorConfig]]) -> dict[str, float]:
+    out: dict[str, float] = {}
+    for bus_name, sim in sims.items():
+        counts = sim.positions_counts()
+        for name, cfg in configs[bus_name].items():
+            c = counts.get(cfg.device_id)
+            if c is not None and math.isfinite(c):
+                out[name] = cfg.from_counts(c)
+    return out
+
+
+def _emulator(sims: Mapping[str, Any], bus: str) -> Any:
+    try:
+        return sims[bus]
+    except KeyError:
+        raise KeyError(f"bus {bus!r} is not simulated (simulated: {', '.join(sorted(sims)) or 'none'})") from None
+
+
 class Hardware:
-    """All buses of a head: builds MotorConfigs from the HeadSpec, starts in-process emulators for buses with
-    ``simulated = true``, creates drivers through ``drivers.registry``."""
+    """All buses of a head with their drivers called synchronously in the caller's thread (calibration, benchmarks);
+    simulated buses reach their emulator child processes."""
 
     #: Opening an emulated bus is retried this often on a timeout (real buses: once).
     SIMULATED_OPEN_ATTEMPTS = 3
@@ -68,24 +128,13 @@ class Hardware:
 
     @classmethod
     def from_head(cls, head: HeadSpec) -> Hardware:
-        """Create (not open) every bus of ``head``; simulated buses get a freshly started in-process emulator."""
+        """Create (not open) every bus of ``head``; simulated buses get a freshly started emulator process."""
         buses: dict[str, MotorBus] = {}
-        sims: dict[str, Any] = {}
+        motors, options, sims = start_emulators(head)
         try:
-            for bus_name, spec in head.buses.items():
-                acts = head.actuators_on(bus_name)
-                if not acts:
-                    log.warning("bus %s has no actuators; skipped", bus_name)
-                    continue
-                motors = [motor_config(a) for a in acts]
-                options = dict(spec.options)
-                if spec.simulated:
-                    from runtime import simhw
-
-                    sim = simhw.start(spec.driver, bus_name, options, motors, {a.name: a.neutral for a in acts})
-                    sims[bus_name] = sim
-                    options = sim.options
-                buses[bus_name] = create_bus(spec.driver, bus_name, options, motors)
+            for bus_name in motors:
+                buses[bus_name] = create_bus(head.buses[bus_name].driver, bus_name, options[bus_name],
+                                             motors[bus_name])
         except BaseException:
             for sim in sims.values():
                 sim.close()
@@ -200,22 +249,12 @@ class Hardware:
     # ------------------------------------------------------------------ emulation
     def simulated_positions(self) -> dict[str, float]:
         """Ground-truth SI positions of emulated motors, read on the emulator side (not through the drivers)."""
-        out: dict[str, float] = {}
-        for bus_name, sim in self._sims.items():
-            counts = sim.positions_counts()
-            for name, cfg in self.buses[bus_name].motors.items():
-                c = counts.get(cfg.device_id)
-                if c is not None and math.isfinite(c):
-                    out[name] = cfg.from_counts(c)
-        return out
+        return _simulated_positions(self._sims, {n: b.motors for n, b in self.buses.items()})
 
     def emulator(self, bus: str) -> Any:
-        """The emulator object of a simulated bus, for fault injection; KeyError if ``bus`` is not simulated."""
-        try:
-            return self._sims[bus].emulator
-        except KeyError:
-            raise KeyError(f"bus {bus!r} is not simulated (simulated: {', '.join(sorted(self._sims)) or 'none'})")\
-                from None
+        """The emulator (:class:`runtime.simhw.SimProcess`) of a simulated bus, for fault injection and ground
+        truth; KeyError if ``bus`` is not simulated."""
+        return _emulator(self._sims, bus)
 
 
 def _quiet(fn: Any) -> None:
@@ -223,3 +262,142 @@ def _quiet(fn: Any) -> None:
         fn()
     except Exception:
         log.exception("ignored error during shutdown")
+
+
+class LinkedHardware:
+    """All buses of a head, each in its own process behind a :class:`~runtime.buslink.BusLink`.
+
+    Build with :meth:`from_head` (emulators start there), then :meth:`start` (spawn and open every bus, torque off).
+    The loop side uses :meth:`post` and :meth:`feedback` per bus (non-blocking, link order: ``links[bus].actuators``);
+    lifecycle goes through :meth:`request`/:meth:`results`, or :meth:`call` where blocking is fine.
+    """
+
+    #: Opening an emulated bus is retried this often (real buses: once).
+    SIMULATED_OPEN_ATTEMPTS = 3
+
+    def __init__(
+        self, head: HeadSpec, links: Mapping[str, BusLink], simulators: Mapping[str, Any] | None = None
+    ) -> None:
+        self.head = head
+        self.links: dict[str, BusLink] = dict(links)
+        self._sims: dict[str, Any] = dict(simulators or {})
+        self._bus_of = {name: bus for bus, link in self.links.items() for name in link.actuators}
+        self.configs: dict[str, MotorConfig] = {
+            name: cfg for link in self.links.values() for name, cfg in link.motors.items()
+        }
+
+    @classmethod
+    def from_head(
+        cls,
+        head: HeadSpec,
+        *,
+        idle_hz: float = 100.0,
+        realtime_priority: int | None = None,
+        emulator_nice: int | None = None,
+    ) -> LinkedHardware:
+        """Start the emulators of simulated buses and create (not start) a link per bus.
+
+        ``idle_hz`` is the feedback rate of a bus that gets no targets; ``realtime_priority`` asks for SCHED_FIFO in
+        the bus processes; ``emulator_nice`` is added to the emulator processes' niceness (default
+        :data:`runtime.simhw.EMULATOR_NICE`).
+        """
+        motors, options, sims = start_emulators(head, nice=emulator_nice)
+        links = {
+            bus: BusLink(head.buses[bus].driver, bus, options[bus], motors[bus], idle_hz=idle_hz,
+                         realtime_priority=realtime_priority,
+                         open_attempts=cls.SIMULATED_OPEN_ATTEMPTS if bus in sims else 1)
+            for bus in motors
+        }
+        return cls(head, links, sims)
+
+    def start(self, timeout_s: float = 60.0) -> None:
+        """Spawn every bus process and open its bus (torque off); on failure every link is stopped again."""
+        try:
+            for link in self.links.values():
+                link.start(timeout_s)
+        except BaseException:
+            for link in self.links.values():
+                link.stop()
+            raise
+
+    def stop(self) -> None:
+        """Stop every bus process (torque off, close) and every emulator; idempotent, never raises."""
+        for link in self.links.values():
+            _quiet(link.stop)
+        for sim in self._sims.values():
+            _quiet(sim.close)
+        self._sims.clear()
+
+    def __enter__(self) -> LinkedHardware:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    # ------------------------------------------------------------------ loop side
+    def post(self, bus: str, targets: np.ndarray) -> None:
+        """Latest SI targets of one bus, in ``links[bus].actuators`` order; never blocks."""
+        self.links[bus].post(targets)
+
+    def feedback(self) -> dict[str, BusFeedback]:
+        """Latest feedback of every bus; never blocks."""
+        return {bus: link.feedback() for bus, link in self.links.items()}
+
+    def request(self, op: str) -> dict[str, int]:
+        """Ask every bus for ``op`` (``enable``, ``disable``, ``reset``); tickets by bus."""
+        return {bus: link.request(op) for bus, link in self.links.items()}
+
+    def results(self, tickets: Mapping[str, int]) -> dict[str, tuple[bool, str]] | None:
+        """Outcome per bus once every request of ``tickets`` is done; None while any is pending."""
+        out: dict[str, tuple[bool, str]] = {}
+        for bus, ticket in tickets.items():
+            res = self.links[bus].result(ticket)
+            if res is None:
+                return None
+            out[bus] = res
+        return out
+
+    def call(self, op: str, timeout_s: float = 10.0) -> None:
+        """Carry out ``op`` on every bus and wait; raises BusError naming the buses that failed."""
+        tickets = self.request(op)
+        deadline = time.monotonic() + timeout_s
+        pending = dict(tickets)
+        failed: list[str] = []
+        while pending:
+            for bus, ticket in list(pending.items()):
+                res = self.links[bus].result(ticket)
+                if res is not None:
+                    del pending[bus]
+                    if not res[0]:
+                        failed.append(f"{bus}: {res[1]}")
+            if pending and time.monotonic() > deadline:
+                failed.extend(f"{bus}: {op} did not complete in {timeout_s:g} s" for bus in pending)
+                break
+            time.sleep(0.002)
+        if failed:
+            raise BusError(f"{op} failed on " + "; ".join(failed))
+
+    # ------------------------------------------------------------------ state
+    def bus_of(self, actuator: str) -> str:
+        """Name of the bus that carries ``actuator``."""
+        return self._bus_of[actuator]
+
+    def positions(self) -> dict[str, float]:
+        """Latest measured SI positions by actuator name (NaN before a bus's first read)."""
+        out: dict[str, float] = {}
+        for link in self.links.values():
+            out.update(zip(link.actuators, link.feedback().positions.tolist(), strict=True))
+        return out
+
+    def faults(self) -> dict[str, tuple[int, str]]:
+        """Active faults of every bus, keyed ``"bus/device"``."""
+        return {f"{bus}/{dev}": f for bus, link in self.links.items() for dev, f in link.feedback().faults.items()}
+
+    def simulated_positions(self) -> dict[str, float]:
+        """Ground-truth SI positions of emulated motors, from the emulator processes (not through the drivers)."""
+        return _simulated_positions(self._sims, {bus: link.motors for bus, link in self.links.items()})
+
+    def emulator(self, bus: str) -> Any:
+        """The :class:`runtime.simhw.SimProcess` of a simulated bus; KeyError if ``bus`` is not simulated."""
+        return _emulator(self._sims, bus)

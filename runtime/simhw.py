@@ -1,32 +1,179 @@
-"""In-process emulated buses for heads whose config says ``simulated = true``.
+"""Emulated buses for heads whose config says ``simulated = true``, each emulator in a child process.
 
-Each adapter starts the emulator of one driver (``sim_hardware``, imported here only), rewrites the bus options so
-the real driver connects to it (a private python-can ``virtual`` channel; the emulator's pseudo-terminal), and exposes
-ground-truth positions in encoder counts by device id.
+:func:`start` launches ``likeness sim canopen`` (a socketcand server on a free loopback port) or ``likeness sim
+dynamixel`` (a pseudo-terminal) with ``sys.executable -m likeness.cli``, waits for its ``ready:`` line, and returns a
+:class:`SimProcess`: the bus options the real driver must use to reach it, ground truth in encoder counts by device
+id and fault injection, both over the emulator's ZeroMQ control endpoint. The emulator exits with this process
+(``--watch-parent``); a supervising thread logs its output and notices when it dies.
 """
 
 from __future__ import annotations
 
-import itertools
+import contextlib
+import logging
 import os
+import queue
+import re
+import shutil
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
 from typing import Any
 
 from drivers.base import MotorConfig
-from drivers.errors import ConfigError
+from drivers.errors import BusInitError, ConfigError
 
-_unique = itertools.count(1)
+log = logging.getLogger(__name__)
+
+#: Seconds to wait for an emulator's ``ready:`` line (a cold Python start with canopen imports takes ~1 s).
+READY_TIMEOUT_S = 20.0
+#: Niceness added to emulator processes by default. An emulator stands in for hardware that never waits for a CPU:
+#: on a loaded 2-core machine a driver's fixed reply window (Dynamixel SDK: ~34 ms at 4 Mbaud) is missed when the
+#: emulator queues behind ordinary processes. A SCHED_FIFO control thread still preempts it. Needs CAP_SYS_NICE;
+#: without it the emulator keeps the parent's niceness.
+EMULATOR_NICE = -10
 
 
-@dataclass
-class SimBus:
-    """A running emulator: the options the driver must use, the emulator object and its ground truth."""
+class SimProcess:
+    """One emulator child process: driver options to reach it, ground truth and fault injection.
 
-    options: dict[str, Any]
-    emulator: Any
-    positions_counts: Callable[[], dict[int, float]]
-    close: Callable[[], None]
+    ``positions_counts()`` and the injection calls are control-channel round trips (about a millisecond): call them
+    from supervision or test code, never from a control cycle.
+    """
+
+    def __init__(
+        self,
+        driver: str,
+        bus_name: str,
+        proc: subprocess.Popen[str],
+        control: str,
+        cleanup: Callable[[], None] | None = None,
+    ) -> None:
+        self.driver = driver
+        self.bus_name = bus_name
+        self.options: dict[str, Any] = {}
+        self.control = control
+        self.ready_line: str | None = None
+        self._proc = proc
+        self._cleanup = cleanup
+        self._closing = False
+        self._early: queue.SimpleQueue[str | None] = queue.SimpleQueue()
+        self._watch = threading.Thread(target=self._supervise, name=f"sim-{bus_name}-watch", daemon=True)
+        self._watch.start()
+
+    def wait_ready(self, timeout_s: float) -> str:
+        """The emulator's ``ready:`` line; BusInitError with its output if it exits or stays silent."""
+        seen: list[str] = []
+        deadline = time.monotonic() + timeout_s
+        while True:
+            left = deadline - time.monotonic()
+            try:
+                line = self._early.get(timeout=max(left, 0.0)) if left > 0 else None
+            except queue.Empty:
+                line = None
+            if line is None:
+                why = f"exited with code {self._proc.poll()}" if self._proc.poll() is not None \
+                    else f"did not report ready in {timeout_s} s"
+                raise BusInitError(f"bus {self.bus_name}: emulator {why}; output: {' | '.join(seen[-8:]) or 'none'}")
+            if line.startswith("ready:"):
+                self.ready_line = line
+                return line
+            seen.append(line)
+
+    # ------------------------------------------------------------------ process
+    @property
+    def pid(self) -> int:
+        return self._proc.pid
+
+    @property
+    def alive(self) -> bool:
+        """Whether the emulator process is still running."""
+        return self._proc.poll() is None
+
+    def _supervise(self) -> None:
+        """Forward the emulator's output to the log until it exits, then say so (an unexpected exit is an error)."""
+        out = self._proc.stdout
+        ready = False
+        if out is not None:
+            with contextlib.suppress(ValueError, OSError):
+                for raw in out:
+                    line = raw.rstrip()
+                    if not ready:
+                        self._early.put(line)
+                        ready = line.startswith("ready:")
+                    log.info("emulator %s: %s", self.bus_name, line)
+        self._early.put(None)
+        code = self._proc.wait()
+        if not self._closing:
+            log.error("emulator of bus %s (pid %d) exited unexpectedly with code %s", self.bus_name, self.pid, code)
+
+    def kill(self) -> None:
+        """Kill the emulator at once (tests use this to simulate a crashed device server)."""
+        with contextlib.suppress(ProcessLookupError):
+            self._proc.kill()
+        self._proc.wait()
+
+    def close(self, timeout_s: float = 3.0) -> None:
+        """Terminate the emulator (kill after ``timeout_s``) and remove what it left; idempotent, never raises."""
+        self._closing = True
+        if self._proc.poll() is None:
+            with contextlib.suppress(ProcessLookupError):
+                self._proc.terminate()
+            try:
+                self._proc.wait(timeout_s)
+            except subprocess.TimeoutExpired:
+                log.warning("emulator of bus %s did not stop in %.1f s; killing it", self.bus_name, timeout_s)
+                self.kill()
+        self._watch.join(timeout=1.0)
+        if self._proc.stdout is not None:
+            with contextlib.suppress(OSError):
+                self._proc.stdout.close()
+        if self._cleanup is not None:
+            cleanup, self._cleanup = self._cleanup, None
+            with contextlib.suppress(Exception):
+                cleanup()
+
+    # ------------------------------------------------------------------ control channel
+    def _request(self, message: Mapping[str, Any], timeout_s: float = 2.0) -> dict[str, Any]:
+        from sim_hardware.control import request
+
+        reply = request(self.control, message, timeout_s=timeout_s)
+        if not reply.get("ok"):
+            raise RuntimeError(f"emulator of bus {self.bus_name}: {reply.get('error', 'request failed')}")
+        return reply
+
+    def positions_counts(self) -> dict[int, float]:
+        """Ground-truth positions in encoder counts by device id, from the emulator (not through the driver)."""
+        reply = self._request({"op": "positions"})
+        return {int(k): float(v) for k, v in reply["positions"].items()}
+
+    def inject(self, fault: str, device: int | None = None, **params: Any) -> dict[str, Any]:
+        """Start a fault by the emulator's name for it (canopen: ``stop_heartbeat``, ``drive_fault``, ``jam``...;
+        dynamixel: ``overheat``, ``disconnect``, ``drop``...) on ``device`` (an id) with its parameters."""
+        if device is not None:
+            params["device"] = int(device)
+        return self._request({"op": "inject", "fault": fault, **params})
+
+    def clear(self, fault: str | None = None, device: int | None = None) -> dict[str, Any]:
+        """End injected faults: all of them, or (dynamixel) one kind or one device's."""
+        if self.driver == "canopen402":
+            if fault is not None or device is not None:
+                return self.inject(fault or "resume_heartbeat", device=device)
+            return self.inject("clear")
+        msg: dict[str, Any] = {"op": "clear"}
+        if fault is not None:
+            msg["fault"] = fault
+        if device is not None:
+            msg["device"] = device
+        return self._request(msg)
+
+    def status(self) -> dict[str, Any]:
+        """The emulator's own status map (per-device state, bus faults)."""
+        return self._request({"op": "status"})
 
 
 def start(
@@ -35,50 +182,88 @@ def start(
     options: Mapping[str, Any],
     motors: Sequence[MotorConfig],
     initial: Mapping[str, float] | None = None,
-) -> SimBus:
-    """Start the emulator of ``driver`` serving ``motors``, each starting at ``initial[name]`` (SI, default 0).
+    *,
+    ready_timeout_s: float = READY_TIMEOUT_S,
+    nice: int = EMULATOR_NICE,
+) -> SimProcess:
+    """Start the emulator of ``driver`` serving ``motors`` in a child process, each motor at ``initial[name]`` (SI,
+    default 0); ``SimProcess.options`` are ``options`` rewritten so the real driver reaches it.
 
-    ConfigError for a driver without an emulator.
+    ``nice`` is added to the child's niceness. ConfigError for a driver without an emulator; BusInitError when the
+    emulator does not come up (its output is in the message).
     """
+    if driver not in _ARGS:
+        raise ConfigError(f"buses.{bus_name}.simulated", f"no emulator for driver {driver!r}")
+    counts = {m.device_id: m.to_counts((initial or {}).get(m.name, 0.0)) for m in motors}
+    ids = ",".join(str(m.device_id) for m in motors)
+    start_at = ",".join(f"{k}={v}" for k, v in counts.items())
+    control = f"tcp://127.0.0.1:{_free_port()}"
+    workdir = tempfile.mkdtemp(prefix=f"likeness-sim-{bus_name}-")
+    args = _ARGS[driver](ids, start_at, control, workdir, dict(options))
+    cmd = [sys.executable, "-m", "likeness.cli", "sim", *args, "--watch-parent"]
+    env = dict(os.environ)
+    env["PYTHONUNBUFFERED"] = "1"
     try:
-        starter = _STARTERS[driver]
-    except KeyError:
-        raise ConfigError(f"buses.{bus_name}.simulated", f"no emulator for driver {driver!r}") from None
-    start_counts = {m.device_id: m.to_counts((initial or {}).get(m.name, 0.0)) for m in motors}
-    return starter(bus_name, dict(options), list(motors), start_counts)
+        proc = subprocess.Popen(
+            cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, text=True, env=env,
+        )
+    except OSError as exc:
+        shutil.rmtree(workdir, ignore_errors=True)
+        raise BusInitError(f"bus {bus_name}: cannot start emulator ({exc})") from exc
+    if nice:
+        try:
+            os.setpriority(os.PRIO_PROCESS, proc.pid, os.getpriority(os.PRIO_PROCESS, 0) + nice)
+        except OSError as exc:
+            log.debug("emulator of bus %s keeps its niceness (%s)", bus_name, exc)
+    sim = SimProcess(driver, bus_name, proc, control, lambda: shutil.rmtree(workdir, ignore_errors=True))
+    try:
+        line = sim.wait_ready(ready_timeout_s)
+        sim.options = _OPTIONS[driver](line, dict(options), workdir)
+    except BaseException:
+        sim.close()
+        raise
+    log.info("emulator of bus %s running (pid %d): %s", bus_name, proc.pid, line)
+    return sim
 
 
-def _start_canopen(
-    bus_name: str, options: dict[str, Any], motors: list[MotorConfig], start_counts: dict[int, int]
-) -> SimBus:
-    from sim_hardware.canopen.network import DriveSet
-
-    options["interface"] = "virtual"
-    # A private channel per emulator, so several heads (or tests) in one process never share a bus.
-    options["channel"] = f"{options.get('channel', bus_name)}-{os.getpid()}-{next(_unique)}"
-    drives = DriveSet([m.device_id for m in motors], channel=options["channel"], interface="virtual",
-                      initial_positions={k: float(v) for k, v in start_counts.items()})
-    drives.start()
-
-    def positions() -> dict[int, float]:
-        return {nid: float(d.position_counts) for nid, d in drives.drives.items()}
-
-    return SimBus(options, drives, positions, drives.stop)
+def _free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
 
 
-def _start_dynamixel(
-    bus_name: str, options: dict[str, Any], motors: list[MotorConfig], start_counts: dict[int, int]
-) -> SimBus:
-    from sim_hardware.dynamixel.server import DynamixelEmulator
-
-    model = options.get("model", "XM430-W350")
-    emu = DynamixelEmulator([m.device_id for m in motors], model=model, initial_positions=start_counts)
-    emu.start()
-    options["port"] = emu.port
-    return SimBus(options, emu, emu.positions, emu.close)
+def _canopen_args(ids: str, start_at: str, control: str, workdir: str, options: dict[str, Any]) -> list[str]:
+    channel = str(options.get("channel") or "can0")
+    if options.get("interface") not in (None, "virtual", "socketcand"):
+        log.info("simulated bus: interface %r replaced by socketcand to reach the emulator", options["interface"])
+    return ["canopen", "--nodes", ids, "--initial-positions", start_at, "--port", "0", "--channel", channel,
+            "--control", control]
 
 
-_STARTERS: dict[str, Callable[[str, dict[str, Any], list[MotorConfig], dict[int, int]], SimBus]] = {
-    "canopen402": _start_canopen,
-    "dynamixel": _start_dynamixel,
+def _canopen_options(line: str, options: dict[str, Any], workdir: str) -> dict[str, Any]:
+    match = re.search(r"on socketcand (\S+):(\d+) channel (\S+?)(?:,|$)", line)
+    if match is None:
+        raise BusInitError(f"cannot parse the canopen emulator's ready line: {line!r}")
+    options.update(interface="socketcand", host=match.group(1), port=int(match.group(2)), channel=match.group(3))
+    return options
+
+
+def _dynamixel_args(ids: str, start_at: str, control: str, workdir: str, options: dict[str, Any]) -> list[str]:
+    model = str(options.get("model", "XM430-W350"))
+    return ["dynamixel", "--ids", ids, "--model", model, "--initial-positions", start_at,
+            "--link", os.path.join(workdir, "dxl"), "--control", control]
+
+
+def _dynamixel_options(line: str, options: dict[str, Any], workdir: str) -> dict[str, Any]:
+    options["port"] = os.path.join(workdir, "dxl")
+    return options
+
+
+_ARGS: dict[str, Callable[[str, str, str, str, dict[str, Any]], list[str]]] = {
+    "canopen402": _canopen_args,
+    "dynamixel": _dynamixel_args,
+}
+_OPTIONS: dict[str, Callable[[str, dict[str, Any], str], dict[str, Any]]] = {
+    "canopen402": _canopen_options,
+    "dynamixel": _dynamixel_options,
 }

@@ -56,6 +56,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     parser.add_argument("--heartbeat-ms", type=int, default=0, help="heartbeat producer time at boot (0x1017)")
     parser.add_argument("--physics-hz", type=float, default=1000.0, help="motor model rate (default 1000)")
     parser.add_argument("--seed", type=int, default=None, help="seed of the frame-fault random generator")
+    parser.add_argument("--initial-positions", default="", metavar="ID=COUNTS,...",
+                        help="start position of drives in encoder counts, e.g. 1=0,2=-512 (default 0)")
+    parser.add_argument("--watch-parent", action="store_true",
+                        help="exit when the process that started this one exits")
     parser.set_defaults(func=run)
 
 
@@ -71,6 +75,7 @@ def run(args: argparse.Namespace) -> int:
 
     from sim_hardware.canopen.network import DriveSet
     from sim_hardware.canopen.od import write_eds
+    from sim_hardware.cliutil import ParentWatch, parse_counts
     from sim_hardware.socketcand import SocketcandServer
 
     if args.eds_out:
@@ -80,11 +85,19 @@ def run(args: argparse.Namespace) -> int:
             raise CliError(f"--eds-out: cannot write {args.eds_out}: {exc}") from exc
         print(f"wrote EDS of node {nodes[0]} to {path}", file=sys.stderr)
 
+    try:
+        initial = parse_counts(args.initial_positions)
+    except ValueError as exc:
+        raise CliError(f"--initial-positions: {exc}") from None
+    unknown = sorted(set(initial) - set(nodes))
+    if unknown:
+        raise CliError(f"--initial-positions: node ids {unknown} are not among --nodes {args.nodes}")
+    watch = ParentWatch(args.watch_parent)
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     internal = f"likeness-sim-canopen-{os.getpid()}"
     drives = DriveSet(nodes, channel=internal, heartbeat_ms=args.heartbeat_ms, physics_hz=args.physics_hz,
-                      seed=args.seed)
+                      seed=args.seed, initial_positions=initial)
     server = control = None
     try:
         try:
@@ -109,8 +122,9 @@ def run(args: argparse.Namespace) -> int:
             f"{server.host}:{server.port} channel {args.channel}{extra}",
             flush=True,
         )
-        while not stop.wait(0.5):
-            pass
+        while not stop.wait(0.2):
+            if watch.parent_gone():
+                break
     finally:
         if control is not None:
             control.close()

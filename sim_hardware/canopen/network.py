@@ -317,8 +317,10 @@ class DriveSet:
         op = req.pop("op", "inject")
         if op == "status":
             return {"drives": self.status()}
+        if op == "positions":
+            return {"positions": {str(n): d.position_counts for n, d in self.drives.items()}}
         if op != "inject":
-            raise ValueError(f"unknown op {op!r}; known: inject, status")
+            raise ValueError(f"unknown op {op!r}; known: inject, status, positions")
         fault = req.pop("fault", None)
         if not isinstance(fault, str):
             raise ValueError("inject needs a 'fault' name")

@@ -22,7 +22,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     parser.add_argument("--control", metavar="ENDPOINT", help="ZeroMQ endpoint for fault injection, e.g. tcp://127.0.0.1:5590")
     parser.add_argument("--initial-position", type=int, default=0, metavar="COUNTS",
                         help="Present Position of every servo at start (default 0)")
+    parser.add_argument("--initial-positions", default="", metavar="ID=COUNTS,...",
+                        help="Present Position of single servos, e.g. 1=2048,3=1000 (overrides --initial-position)")
     parser.add_argument("--seed", type=int, default=None, help="random seed of the packet fault injector")
+    parser.add_argument("--watch-parent", action="store_true",
+                        help="exit when the process that started this one exits")
     parser.set_defaults(func=run)
 
 
@@ -33,6 +37,7 @@ def run(args: argparse.Namespace) -> int:
     import threading
 
     from likeness.cli import CliError
+    from sim_hardware.cliutil import ParentWatch, parse_counts
     from sim_hardware.dynamixel.control_table import MODELS
     from sim_hardware.dynamixel.server import DynamixelEmulator, parse_ids
 
@@ -48,9 +53,18 @@ def run(args: argparse.Namespace) -> int:
     if not os.path.isdir(os.path.dirname(link)):
         raise CliError(f"--link: directory {os.path.dirname(link)} does not exist")
 
+    try:
+        single = {k: round(v) for k, v in parse_counts(args.initial_positions).items()}
+    except ValueError as exc:
+        raise CliError(f"--initial-positions: {exc}") from None
+    unknown = sorted(set(single) - set(ids))
+    if unknown:
+        raise CliError(f"--initial-positions: servo ids {unknown} are not among --ids {args.ids}")
+    initial = {i: single.get(i, args.initial_position) for i in ids}
+    watch = ParentWatch(args.watch_parent)
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
-    emulator = DynamixelEmulator(ids, args.model, initial_positions=args.initial_position, seed=args.seed)
+    emulator = DynamixelEmulator(ids, args.model, initial_positions=initial, seed=args.seed)
     control = None
     try:
         emulator.start()
@@ -65,8 +79,9 @@ def run(args: argparse.Namespace) -> int:
         span = f"ids {args.ids}"
         extra = f", control {control.endpoint}" if control else ""
         print(f"ready: {len(ids)} {args.model} servos ({span}) on {link} -> {emulator.port}{extra}", flush=True)
-        while not stop.wait(0.5):
-            pass
+        while not stop.wait(0.2):
+            if watch.parent_gone():
+                break
     finally:
         if control is not None:
             control.close()

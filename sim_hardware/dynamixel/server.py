@@ -301,7 +301,9 @@ class DynamixelEmulator:
             return {"cleared": request.get("fault") or "all", "device": request.get("device")}
         if op == "status":
             return self.status()
-        raise ValueError(f"unknown op {op!r}; expected inject, clear or status")
+        if op == "positions":
+            return {"positions": {str(k): v for k, v in self.positions().items()}}
+        raise ValueError(f"unknown op {op!r}; expected inject, clear, status or positions")
 
     # ------------------------------------------------------------------ serving
     def _reindex(self) -> None:
