@@ -256,6 +256,8 @@ def decode_request(raw: bytes) -> Request:
         raise RequestError(code, message, _lenient_id(raw)) from None
     except msgspec.DecodeError as exc:
         raise RequestError("bad_request", f"not a msgpack message: {exc}", None) from None
+    except UnicodeDecodeError:
+        raise RequestError("bad_request", "a string is not valid UTF-8", _lenient_id(raw)) from None
     except RecursionError:
         raise RequestError("bad_request", f"a value is nested deeper than {MAX_DEPTH} levels",
                            _lenient_id(raw)) from None
@@ -265,7 +267,7 @@ def _lenient_id(raw: bytes) -> Any:
     """The request's id when it is a valid one (an int, or a string of up to 128 chars), else None."""
     try:
         rid = _envelope_decoder.decode(raw).id
-    except msgspec.MsgspecError:
+    except (msgspec.MsgspecError, UnicodeDecodeError):
         return None
     except RecursionError:  # a deeply nested value elsewhere: find "id" among the top-level entries by hand
         rid = _scan_id(raw)
@@ -343,7 +345,7 @@ def _scan_id(raw: bytes, budget: int = 100_000) -> Any:
             if key == b"\xa2id":
                 return msgspec.msgpack.decode(raw[end:_skip(raw, end, 64)])
             pos = _skip(raw, end, budget)
-    except (IndexError, KeyError, ValueError, msgspec.MsgspecError, RecursionError):
+    except (IndexError, KeyError, ValueError, msgspec.MsgspecError, RecursionError):  # (UnicodeDecodeError too)
         pass
     return None
 
@@ -351,7 +353,7 @@ def _scan_id(raw: bytes, budget: int = 100_000) -> Any:
 def _lenient_op(raw: bytes) -> str | None:
     try:
         op = _envelope_decoder.decode(raw).op
-    except (msgspec.MsgspecError, RecursionError):
+    except (msgspec.MsgspecError, RecursionError, UnicodeDecodeError):
         return None
     return op if isinstance(op, str) else None
 
@@ -370,7 +372,9 @@ def _translate(text: str, raw: bytes) -> tuple[str, str]:
     if "[...]" in path:
         path = _resolve_wildcards(path, raw)
     name = path[2:] if path.startswith("$.") else path[1:]
-    in_clip = name.startswith(("clip.", "clip[")) and _lenient_op(raw) == "load_clip"
+    # Inside a load_clip's clip map every problem is a bad value (a malformed clip), as the protocol has always said.
+    in_clip = (name.startswith(("clip.", "clip[")) or (name == "clip" and what.startswith("Object "))) and (
+        _lenient_op(raw) == "load_clip")
 
     if path == "$.op" and what.startswith("Invalid value"):
         op = _lenient_op(raw) or ""
@@ -429,7 +433,7 @@ def _resolve_wildcards(path: str, raw: bytes) -> str:
     """Name the map key msgspec writes as ``[...]`` for clip channels and pose values (decodes again: error path)."""
     try:
         msg = msgspec.msgpack.decode(raw)
-    except (msgspec.MsgspecError, RecursionError):
+    except (msgspec.MsgspecError, RecursionError, UnicodeDecodeError):
         return path
     try:
         if path.startswith("$.clip.channels[...]"):
