@@ -190,7 +190,7 @@ def _bezier_segments(keys: np.ndarray) -> np.ndarray:
     for keys ``[t, v, in_dt, in_dv, out_dt, out_dv]``, with the same arithmetic (and so the same bits)."""
     a, b = keys[:-1], keys[1:]
     span = b[:, 0] - a[:, 0]
-    with np.errstate(divide="ignore"):
+    with np.errstate(divide="ignore", over="ignore"):
         fo = np.where(a[:, 4] > 0, np.minimum(1.0, span / a[:, 4]), 1.0)
         fi = np.where(b[:, 2] < 0, np.minimum(1.0, span / -b[:, 2]), 1.0)
     out = np.empty((len(a), 8))
