@@ -96,19 +96,31 @@ class CompiledClip:
         s = guess
         lo = np.zeros_like(s)
         hi = np.ones_like(s)
-        active = inside.copy()
+        active = inside
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             for _ in range(_NEWTON_STEPS):
-                x = ((xa * s + xb) * s + xc) * s + xd - t
-                active &= ~(np.abs(x) < _NEWTON_TOL)
+                x = xa * s
+                x += xb
+                x *= s
+                x += xc
+                x *= s
+                x += xd
+                x -= t
+                active = active & (np.abs(x) >= _NEWTON_TOL)  # x is finite: s stays in [0, 1]
                 if not active.any():
                     break
+                # lo and hi of curves already stopped go stale: their s no longer changes.
                 pos = x > 0
-                hi = np.where(active & pos, s, hi)
-                lo = np.where(active & ~pos, s, lo)
-                dx = (xa3 * s + xb2) * s + xc
-                mid = 0.5 * (lo + hi)
-                s_new = np.where(dx > 1e-12, s - x / dx, mid)
+                hi = np.where(pos, s, hi)
+                lo = np.where(pos, lo, s)
+                dx = xa3 * s
+                dx += xb2
+                dx *= s
+                dx += xc
+                mid = lo + hi
+                mid *= 0.5
+                step = s - x / dx
+                s_new = np.where(dx > 1e-12, step, mid)
                 s = np.where(active, np.where((lo < s_new) & (s_new < hi), s_new, mid), s)
         y = ((ya * s + yb) * s + yc) * s + yd
         vals[self.bez[inside]] = y[inside]

@@ -3,6 +3,7 @@ NaN for channels without a curve, pickle, and stay small; stream requests become
 
 from __future__ import annotations
 
+import itertools
 import pickle
 
 import msgpack
@@ -48,7 +49,7 @@ def _reference(clip: Clip, t: float) -> np.ndarray:
 
 def _probe_times(clip: Clip, extra: list[float]) -> list[float]:
     keys = sorted({k for c in clip.channels.values() for k in c.times})
-    mids = [(a + b) / 2 for a, b in zip(keys, keys[1:], strict=False)]
+    mids = [(a + b) / 2 for a, b in itertools.pairwise(keys)]
     return [*keys, *mids, keys[0] - 1.0, keys[-1] + 1.0, *extra]
 
 
