@@ -36,7 +36,7 @@ class CompiledClip:
     (``curve * M`` for hold slots), ``rank`` a time's index in ``grid``, the sorted distinct key times;
     ``code_base`` is ``curve * M + 1``; ``column`` each curve's column. Bezier curves (``bez``: curve numbers) keep
     per slot the power-basis cubic coefficients of time and value in the segment parameter (``bez_coef``, row =
-    slot index + ``bez_row``) and their first and last key times (``bez_span``).
+    slot index + ``bez_row``) and their first and last key times (``bez_first``, ``bez_last``).
     """
 
     name: str
@@ -53,7 +53,8 @@ class CompiledClip:
     code_base: np.ndarray
     bez: np.ndarray
     bez_row: np.ndarray
-    bez_span: np.ndarray
+    bez_first: np.ndarray
+    bez_last: np.ndarray
     bez_coef: np.ndarray
 
     @property
@@ -70,60 +71,73 @@ class CompiledClip:
         i = self.slot_code.searchsorted(self.code_base + r)  # per curve: 1 + its last slot at or before t
         u = t - self.slot_t.take(i)
         u /= self.slot_dt.take(i)
-        if self.bez.size:
-            guess = u.take(self.bez)
+        nbez = len(self.bez)
+        if nbez:
+            guess = u.copy() if nbez == len(u) else u.take(self.bez)
         u *= self.slot_dv.take(i)  # v0 + u (v1 - v0): the bits of Curve.value
         direct = len(self.column) == len(out)
-        np.add(u, self.slot_v.take(i), out=out if direct and not self.bez.size else u)
-        if self.bez.size:
-            self._bezier(t, i, guess, u)
+        np.add(u, self.slot_v.take(i), out=out if direct and not nbez else u)
+        if nbez:
+            self._bezier(t, i if nbez == len(u) else i.take(self.bez), guess, u)
             if direct:
                 out[:] = u
         if not direct:
             out.fill(np.nan)
             out[self.column] = u
 
-    def _bezier(self, t: float, i: np.ndarray, guess: np.ndarray, vals: np.ndarray) -> None:
+    def _bezier(self, t: float, i: np.ndarray, s: np.ndarray, vals: np.ndarray) -> None:
         """Overwrite the Bezier curves' entries of ``vals`` strictly inside their key range: the steps of
-        :func:`runtime.curves._bezier_eval` (safeguarded Newton on x(s) = t, then y(s)), all curves in lockstep, each
-        stopping where the scalar loop would."""
-        inside = (self.bez_span[:, 0] < t) & (t < self.bez_span[:, 1])
+        :func:`runtime.curves._bezier_eval` (safeguarded Newton on x(s) = t from ``s``, then y(s)), all curves in
+        lockstep, each stopping where the scalar loop would. ``i``: the Bezier curves' slot indices."""
+        inside = self.bez_first < t
+        inside &= self.bez_last > t
         if not inside.any():
             return
-        c = self.bez_coef.take(i.take(self.bez) + self.bez_row, axis=0)
-        xa, xb, xc, xd, ya, yb, yc, yd = c.T
-        xa3, xb2 = 3 * xa, 2 * xb
-        s = guess
-        lo = np.zeros_like(s)
-        hi = np.ones_like(s)
-        active = inside
-        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            for _ in range(_NEWTON_STEPS):
-                x = xa * s
-                x += xb
-                x *= s
-                x += xc
-                x *= s
-                x += xd
-                x -= t
-                active = active & (np.abs(x) >= _NEWTON_TOL)  # x is finite: s stays in [0, 1]
-                if not active.any():
-                    break
-                # lo and hi of curves already stopped go stale: their s no longer changes.
-                pos = x > 0
-                hi = np.where(pos, s, hi)
-                lo = np.where(pos, lo, s)
-                dx = xa3 * s
-                dx += xb2
-                dx *= s
-                dx += xc
-                mid = lo + hi
-                mid *= 0.5
-                step = s - x / dx
-                s_new = np.where(dx > 1e-12, step, mid)
-                s = np.where(active, np.where((lo < s_new) & (s_new < hi), s_new, mid), s)
-        y = ((ya * s + yb) * s + yc) * s + yd
-        vals[self.bez[inside]] = y[inside]
+        i = i + self.bez_row
+        xa, xb, xc, xd, ya, yb, yc, yd = self.bez_coef.take(i, axis=0).T
+        x = _cubic(xa, xb, xc, xd, s)
+        x -= t
+        active = inside & (np.abs(x) >= _NEWTON_TOL)
+        if active.any():
+            lo, hi = np.zeros_like(s), np.ones_like(s)
+            xa3, xb2 = 3 * xa, 2 * xb
+            with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+                for step in range(1, _NEWTON_STEPS + 1):
+                    # lo and hi of curves already stopped go stale: their s no longer changes.
+                    pos = x > 0
+                    hi = np.where(pos, s, hi)
+                    lo = np.where(pos, lo, s)
+                    dx = _cubic(0.0, xa3, xb2, xc, s)
+                    mid = lo + hi
+                    mid *= 0.5
+                    s_new = np.where(dx > 1e-12, s - x / dx, mid)
+                    s = np.where(active, np.where((lo < s_new) & (s_new < hi), s_new, mid), s)
+                    if step == _NEWTON_STEPS:
+                        break
+                    x = _cubic(xa, xb, xc, xd, s)
+                    x -= t
+                    active &= np.abs(x) >= _NEWTON_TOL  # x is finite: s stays in [0, 1]
+                    if not active.any():
+                        break
+        y = _cubic(ya, yb, yc, yd, s)
+        if len(self.bez) == len(vals) and inside.all():
+            vals[:] = y
+        else:
+            vals[self.bez[inside]] = y[inside]
+
+
+def _cubic(a: np.ndarray | float, b: np.ndarray, c: np.ndarray, d: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """((a s + b) s + c) s + d, in that order of operations (a = 0.0: (b s + c) s + d)."""
+    if isinstance(a, float):
+        v = b * s
+    else:
+        v = a * s
+        v += b
+        v *= s
+    v += c
+    v *= s
+    v += d
+    return v
 
 
 def compile_clip(clip: Clip | ClipSpec, channels: Sequence[str]) -> CompiledClip:
@@ -189,7 +203,8 @@ def _build(name: str, channels: tuple[str, ...], curves: list) -> CompiledClip:
     arrays = {"grid": grid, "slot_code": slot_code, "slot_t": slot_t, "slot_dt": slot_dt, "slot_v": slot_v,
               "slot_dv": slot_dv, "column": np.array([c[0] for c in curves], np.int64),
               "code_base": np.arange(len(curves), dtype=np.int64) * m + 1, "bez": np.array(bez, np.int64),
-              "bez_row": np.array(bez_row, np.int64), "bez_span": np.array(bez_span, np.float64).reshape(-1, 2),
+              "bez_row": np.array(bez_row, np.int64), "bez_first": np.array([b[0] for b in bez_span], np.float64),
+              "bez_last": np.array([b[1] for b in bez_span], np.float64),
               "bez_coef": np.vstack(rows) if rows else np.zeros((0, 8))}
     for arr in arrays.values():
         arr.flags.writeable = False
