@@ -30,7 +30,7 @@ INTERPS = ("step", "linear", "bezier")
 _RECORD_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}$")
 
 Name = Annotated[str, Meta(min_length=1, max_length=MAX_NAME)]
-RequestId = int | Annotated[str, Meta(max_length=MAX_NAME)] | None
+RequestId = int | Annotated[str, Meta(max_length=MAX_NAME)]
 
 
 class RequestError(ProtocolError):
@@ -44,7 +44,7 @@ class RequestError(ProtocolError):
 class _Request(Struct, forbid_unknown_fields=True, tag_field="op", kw_only=True, dict=True):
     """Fields every request has; ``dict=True`` lets validation keep derived arrays next to the fields."""
 
-    id: RequestId = None
+    id: RequestId = None  # type: ignore[assignment]  # absent: None; an explicit null is refused
 
 
 class Hello(_Request, tag="hello"):
@@ -233,10 +233,13 @@ OPS = tuple(sorted(OP_TYPES))
 _decoder = msgspec.msgpack.Decoder(Request)
 
 
+_NO_ID = object()
+
+
 class _Envelope(Struct):
     """What can be read of any map request when the full decode fails: its id and op."""
 
-    id: Any = None
+    id: Any = _NO_ID
     op: Any = None
 
 
@@ -350,6 +353,15 @@ def _scan_id(raw: bytes, budget: int = 100_000) -> Any:
     return None
 
 
+def _has_bad_id(raw: bytes) -> bool:
+    """Whether the request map has an ``id`` that is not a valid one."""
+    try:
+        env = _envelope_decoder.decode(raw)
+    except (msgspec.MsgspecError, RecursionError, UnicodeDecodeError):
+        return False
+    return env.id is not _NO_ID and _lenient_id(raw) is None
+
+
 def _lenient_op(raw: bytes) -> str | None:
     try:
         op = _envelope_decoder.decode(raw).op
@@ -377,6 +389,8 @@ def _translate(text: str, raw: bytes) -> tuple[str, str]:
         _lenient_op(raw) == "load_clip")
 
     if path == "$.op" and what.startswith("Invalid value"):
+        if _has_bad_id(raw):  # a malformed id is reported first, as it always was
+            return "bad_request", "field 'id' must be an integer or a string of up to 128 chars"
         op = _lenient_op(raw) or ""
         return "unknown_op", f"unknown op {op[:40]!r}; known: {', '.join(OPS)}"
     if path == "$.op" or (path == "$" and "field `op`" in what):

@@ -108,6 +108,8 @@ ERRORS = [
     ({"op": "hello", "id": True}, "bad_request", "'id'"),
     ({"op": "hello", "id": "x" * 129}, "bad_request", "'id'"),
     ({"op": "hello", "id": 1.5}, "bad_request", "'id'"),
+    ({"op": "hello", "id": None}, "bad_request", "'id'"),  # absent is fine, an explicit null is not
+    ({"op": "dance", "id": {}}, "bad_request", "'id'"),  # a malformed id is reported before the op
     # unknown fields
     ({"op": "status", "verbose": True}, "bad_request", "unknown field 'verbose' for op 'status'"),
     ({"op": "play", "clip": "a", "sped": 2}, "bad_request", "allowed: at, clip, from, loop, speed"),
