@@ -48,7 +48,11 @@ class _Request(Struct, forbid_unknown_fields=True, tag_field="op", kw_only=True,
 
 
 class Hello(_Request, tag="hello"):
-    client: Annotated[str, Meta(max_length=MAX_NAME)] | None = None
+    client: Any = None  # documented as a string; any value has always been accepted (and ignored)
+
+    def __post_init__(self) -> None:
+        if self.client is not None and _too_deep(self.client, MAX_DEPTH - 1):
+            raise ProtocolError("bad_request", f"field 'client': nested deeper than {MAX_DEPTH} levels")
 
 
 class Status(_Request, tag="status"):

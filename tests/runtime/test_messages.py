@@ -25,6 +25,7 @@ CLIP = {"name": "hi", "channels": {
 VALID = [
     ({"op": "hello", "id": 1}, M.Hello),
     ({"op": "hello", "id": "a", "client": "studio"}, M.Hello),
+    ({"op": "hello", "client": 5}, M.Hello),  # never checked: kept so
     ({"op": "status", "id": 2}, M.Status),
     ({"op": "enable", "id": 3}, M.Enable),
     ({"op": "disable"}, M.Disable),
@@ -73,11 +74,11 @@ def test_defaults_and_decoded_values() -> None:
     assert (play.at, play.from_, play.speed, play.loop) == (None, 0.0, 1.0, False)
     assert _decode({"op": "estop"}).reason == "api"
     assert _decode({"op": "record", "action": "start"}).name == "recording"
-    stream = _decode(VALID[15][0])
+    stream = _decode(VALID[16][0])
     arr = stream.array()
     assert arr.shape == (2, 3) and arr.dtype == np.float64 and not arr.flags.writeable
     assert arr[1].tolist() == [1250.01, 5.4, 0.0]
-    pose = _decode(VALID[16][0])
+    pose = _decode(VALID[17][0])
     assert pose.pose == {"jaw": 10.0, "blink": 20.0} and pose.speed is None
 
 
@@ -235,6 +236,7 @@ def test_deep_nesting_is_a_bad_request_not_a_recursion_error(levels: int) -> Non
         _packed_map(("id", msgpack.packb(5)), ("op", msgpack.packb("load_clip")), ("clip", clip_with_meta)),
         _packed_map(("id", msgpack.packb(5)), ("junk", _nested(levels)), ("op", msgpack.packb("hello"))),
         _packed_map(("id", msgpack.packb(5)), ("op", msgpack.packb("stream")), ("channels", _nested(levels))),
+        _packed_map(("id", msgpack.packb(5)), ("op", msgpack.packb("hello")), ("client", _nested(levels))),
     ]
     for raw in cases:
         with pytest.raises(RequestError) as info:
