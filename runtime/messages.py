@@ -90,7 +90,7 @@ class Clock(_Request, tag="clock"):
 class ChannelSpec(Struct, forbid_unknown_fields=True):
     """One channel of a clip: keys ``[t, value]`` (step, linear) or ``[t, value, in_dt, in_dv, out_dt, out_dv]``."""
 
-    keys: Annotated[list[list[float]], Meta(min_length=1, max_length=MAX_CLIP_KEYS)]
+    keys: msgspec.Raw  # parsed straight into an array by ClipSpec (see _float_rows)
     interp: Literal["step", "linear", "bezier"] = "linear"
 
 
@@ -102,7 +102,7 @@ class ClipSpec(Struct, forbid_unknown_fields=True, dict=True):
     meta: Any = None
 
     def __post_init__(self) -> None:
-        total = sum(len(c.keys) for c in self.channels.values())
+        total = sum(_array_header(c.keys)[0] for c in self.channels.values())
         if total > MAX_CLIP_KEYS:
             raise ProtocolError("too_large", f"clip {self.name!r} has {total} keys; at most {MAX_CLIP_KEYS}")
         if self.meta is not None and _too_deep(self.meta, MAX_DEPTH - 2):
@@ -124,7 +124,7 @@ class ClipSpec(Struct, forbid_unknown_fields=True, dict=True):
         return max(float(self.key_array(ch)[-1, 0]) for ch in self.channels)
 
     def key_count(self) -> int:
-        return sum(len(c.keys) for c in self.channels.values())
+        return sum(len(self.key_array(ch)) for ch in self.channels)
 
     def to_clip(self):  # -> runtime.curves.Clip (imported lazily: curves does not need messages)
         """The :class:`runtime.curves.Clip` of this spec (per-key Python objects: for files and tests, not cycles)."""
@@ -182,21 +182,14 @@ class Stream(_Request, tag="stream"):
     """Frames ``[t, v1 .. vN]`` for ``channels``; :meth:`array` holds them as one (frames, N + 1) float64 array."""
 
     channels: Annotated[list[Name], Meta(min_length=1, max_length=MAX_CHANNELS)]
-    frames: Annotated[list[list[float]], Meta(max_length=MAX_STREAM_FRAMES)]
+    frames: msgspec.Raw  # parsed straight into an array (see _float_rows)
 
     def __post_init__(self) -> None:
         if len(set(self.channels)) != len(self.channels):
             raise ProtocolError("bad_request", "field 'channels' lists a channel twice")
         width = len(self.channels) + 1
-        frames = self.frames
-        if frames and set(map(len, frames)) != {width}:
-            j = next(j for j, fr in enumerate(frames) if len(fr) != width)
-            raise ProtocolError("bad_request", f"frames[{j}] must be [t, {width - 1} values] (got {len(frames[j])} "
-                                "numbers)")
-        arr = np.fromiter(itertools.chain.from_iterable(frames), np.float64, len(frames) * width)
-        arr = arr.reshape(len(frames), width)
+        arr = _float_rows(self.frames, width, MAX_STREAM_FRAMES, "frames", f"[t, {width - 1} values]", "bad_request")
         _all_finite(arr, "frames")
-        arr.flags.writeable = False
         self._array = arr
 
     def array(self) -> np.ndarray:
@@ -483,12 +476,11 @@ def _all_finite(arr: np.ndarray, where: str) -> None:
 
 def _check_keys(spec: ChannelSpec, where: str) -> np.ndarray:
     """A channel's keys as one array after the checks of :func:`runtime.curves.make_curve` (same messages)."""
-    keys, width = spec.keys, 6 if spec.interp == "bezier" else 2
-    if set(map(len, keys)) != {width}:
-        j = next(j for j, key in enumerate(keys) if len(key) != width)
-        raise ProtocolError("bad_value", f"{where}.keys[{j}]: must be a list of {width} numbers for {spec.interp} "
-                            f"(got {len(keys[j])} numbers)")
-    arr = np.fromiter(itertools.chain.from_iterable(keys), np.float64, len(keys) * width).reshape(len(keys), width)
+    width = 6 if spec.interp == "bezier" else 2
+    arr = _float_rows(spec.keys, width, MAX_CLIP_KEYS, f"{where}.keys", f"a list of {width} numbers for {spec.interp}",
+                      "bad_value")
+    if not len(arr):
+        raise ProtocolError("bad_value", f"{where}.keys: must be a non-empty list of keys")
     _all_finite(arr, f"{where}.keys")
     if len(arr) > 1:
         bad = np.flatnonzero(np.diff(arr[:, 0]) <= 0)
@@ -502,8 +494,77 @@ def _check_keys(spec: ChannelSpec, where: str) -> np.ndarray:
             j = int(bad[0])
             raise ProtocolError("bad_value", f"{where}.keys[{j}]: need in_dt <= 0 <= out_dt (got in_dt="
                                 f"{float(arr[j, 2])!r}, out_dt={float(arr[j, 4])!r})")
+    return arr
+
+
+_ROWS = msgspec.msgpack.Decoder(list[list[float]])
+_ROW_PATH = re.compile(r"^\$(?:\[(\d+)\])?(?:\[(\d+)\])?$")
+
+
+def _array_header(raw: msgspec.Raw | bytes) -> tuple[int, int]:
+    """(items, header bytes) of a msgpack array; (0, 0) when it is not one."""
+    buf = memoryview(raw)
+    if not len(buf):
+        return 0, 0
+    head = buf[0]
+    if 0x90 <= head <= 0x9F:
+        return head & 0x0F, 1
+    if head == 0xDC and len(buf) >= 3:
+        return int.from_bytes(buf[1:3], "big"), 3
+    if head == 0xDD and len(buf) >= 5:
+        return int.from_bytes(buf[1:5], "big"), 5
+    return 0, 0
+
+
+def _float_rows(raw: msgspec.Raw, width: int, max_rows: int, where: str, row_hint: str, container_code: str
+                ) -> np.ndarray:
+    """A msgpack array of ``width``-number arrays as a read-only (rows, width) float64 array.
+
+    Rows of float64 values (what most packers write for floats) are read straight from the bytes with numpy; any
+    other encoding (integers, float32, wrong widths, wrong types) is decoded by msgspec and checked row by row.
+    Problems with the arrays themselves answer ``container_code``; a value that is not a number, ``bad_value``.
+    """
+    rows, head = _array_header(raw)
+    if rows > max_rows:
+        raise ProtocolError("too_large", f"field {where!r} has {rows} items; at most {max_rows}")
+    arr = _float64_rows(memoryview(raw), rows, head, width) if head else None
+    if arr is None:
+        try:
+            lists = _ROWS.decode(raw)
+        except msgspec.ValidationError as exc:
+            m = _AT.match(str(exc))
+            assert m is not None
+            pm = _ROW_PATH.match(m["path"] or "$")
+            j, k = (pm[1], pm[2]) if pm else (None, None)
+            if k is not None:
+                got = re.search(r"got `([^`]*)`", m["what"])
+                raise ProtocolError("bad_value", f"{where}[{j}][{k}] must be a number (got {got[1] if got else '?'})"
+                                    ) from None
+            if j is not None:
+                raise ProtocolError(container_code, f"{where}[{j}] must be {row_hint}") from None
+            raise ProtocolError(container_code, f"field {where!r} must be an array of {row_hint}") from None
+        if any(len(r) != width for r in lists):
+            j = next(j for j, r in enumerate(lists) if len(r) != width)
+            raise ProtocolError(container_code, f"{where}[{j}] must be {row_hint} (got {len(lists[j])} numbers)")
+        arr = np.fromiter(itertools.chain.from_iterable(lists), np.float64, len(lists) * width)
+        arr = arr.reshape(len(lists), width)
     arr.flags.writeable = False
     return arr
+
+
+def _float64_rows(buf: memoryview, rows: int, head: int, width: int) -> np.ndarray | None:
+    """The rows when every one is ``width`` msgpack float64 values (0xCB + 8 bytes big-endian), else None."""
+    row_head = bytes([0x90 | width]) if width < 16 else b"\xdc" + width.to_bytes(2, "big")
+    size = len(row_head) + 9 * width
+    if rows == 0 or len(buf) - head != rows * size:
+        return None
+    cells = np.frombuffer(buf, np.uint8, offset=head).reshape(rows, size)
+    if not (cells[:, :len(row_head)] == np.frombuffer(row_head, np.uint8)).all():
+        return None
+    cells = cells[:, len(row_head):].reshape(rows, width, 9)
+    if not (cells[:, :, 0] == 0xCB).all():
+        return None
+    return np.ascontiguousarray(cells[:, :, 1:]).view(">f8").reshape(rows, width).astype(np.float64)
 
 
 def _too_deep(value: Any, limit: int) -> bool:

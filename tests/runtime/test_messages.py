@@ -82,6 +82,29 @@ def test_defaults_and_decoded_values() -> None:
     assert pose.pose == {"jaw": 10.0, "blink": 20.0} and pose.speed is None
 
 
+@pytest.mark.parametrize("channels", [1, 14, 15, 52])
+@pytest.mark.parametrize("frames", [1, 15, 16, 2000])
+def test_float64_frames_read_from_the_bytes_equal_the_general_decode(channels: int, frames: int) -> None:
+    rng = np.random.default_rng(frames + channels)
+    values = rng.uniform(-30, 30, (frames, channels + 1))
+    names = [f"c{i}" for i in range(channels)]
+    floats = msgpack.packb({"op": "stream", "channels": names, "frames": values.tolist()})
+    mixed = values.tolist()
+    mixed[-1][-1] = 7  # one integer: not the all-float64 layout
+    fast, slow = decode_request(floats).array(), decode_request(msgpack.packb(
+        {"op": "stream", "channels": names, "frames": mixed})).array()
+    assert np.array_equal(fast, values)
+    assert np.array_equal(slow[:-1], values[:-1]) and slow[-1, -1] == 7.0
+    single = decode_request(msgpack.packb({"op": "stream", "channels": names, "frames": values.tolist()},
+                                          use_single_float=True)).array()
+    assert np.array_equal(single, values.astype(np.float32))
+    values[-1, 0] = np.nan
+    err = _error({"op": "stream", "channels": names, "frames": values.tolist()})
+    assert err.code == "bad_value" and f"frames[{frames - 1}][0]" in err.message
+    err = _error({"op": "stream", "channels": names, "frames": [*values[:-1].tolist(), values[-1, :-1].tolist()]})
+    assert err.code == "bad_request" and f"frames[{frames - 1}]" in err.message
+
+
 def test_clip_spec_matches_the_clip_parser() -> None:
     spec = _decode({"op": "load_clip", "clip": CLIP}).clip
     clip = clip_from_dict(CLIP)
@@ -157,11 +180,11 @@ ERRORS = [
     ({"op": "load_clip", "clip": {"name": "c", "channels": {"jaw": {"keys": [[0, 0]], "bogus": 1}}}},
      "bad_value", "unknown field 'bogus'"),
     ({"op": "load_clip", "clip": {"name": "c", "channels": {"a": {"keys": [[0, 0]]}, "jaw": {"keys": [[0, "x"]]}}}},
-     "bad_value", "clip.channels.jaw.keys[0][1]"),
+     "bad_value", "channels.jaw.keys[0][1] must be a number"),
     ({"op": "load_clip", "clip": {"name": "c", "channels": {"jaw": {"keys": [[0, 0], [0, 1]]}}}},
      "bad_value", "clip 'c'.channels.jaw.keys[1]: times must increase strictly"),
     ({"op": "load_clip", "clip": {"name": "c", "channels": {"jaw": {"keys": [[0, 0, 1]]}}}},
-     "bad_value", "keys[0]: must be a list of 2 numbers for linear"),
+     "bad_value", "jaw.keys[0] must be a list of 2 numbers for linear"),
     ({"op": "load_clip", "clip": {"name": "c", "channels": {"jaw": {"interp": "bezier",
                                                                       "keys": [[0, 0, 0.1, 0, 0, 0]]}}}},
      "bad_value", "need in_dt <= 0 <= out_dt"),
