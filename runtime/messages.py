@@ -440,6 +440,13 @@ def _choices(name: str) -> str:
     return ", ".join(INTERPS)
 
 
+class _ChannelShape(Struct, forbid_unknown_fields=True):
+    """A channel map's shape, to find which channel of a clip msgspec's error was about."""
+
+    keys: Any
+    interp: Literal["step", "linear", "bezier"] = "linear"
+
+
 def _resolve_wildcards(path: str, raw: bytes) -> str:
     """Name the map key msgspec writes as ``[...]`` for clip channels and pose values (decodes again: error path)."""
     try:
@@ -450,7 +457,7 @@ def _resolve_wildcards(path: str, raw: bytes) -> str:
         if path.startswith("$.clip.channels[...]"):
             for ch, spec in msg["clip"]["channels"].items():
                 try:
-                    msgspec.convert(spec, ChannelSpec)
+                    msgspec.convert(spec, _ChannelShape)
                 except msgspec.ValidationError:
                     return path.replace("[...]", f".{str(ch)[:MAX_NAME]}", 1)
         if path.startswith("$.pose[...]"):
