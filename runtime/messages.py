@@ -4,8 +4,10 @@
 :class:`RequestError` (a :class:`~runtime.protocol.ProtocolError`) with the codes of ``docs/protocol.md`` and the
 request id to echo. msgspec checks types, required and unknown fields, ranges and lengths while it decodes; what it
 cannot express (finite numbers, frame widths, key order, duplicate channels) is checked in ``__post_init__`` with
-numpy over whole arrays. Checks that need the daemon's state (``play.at`` against its clock, channel names against
-the head, clip count) are left to the caller.
+numpy over whole arrays. The bulk of big requests, stream frames and clip keys, is kept by msgspec as raw msgpack
+and read into float64 arrays by numpy (rows of float64 values straight from the bytes, anything else through a
+typed msgspec decode), so no Python float is made for them. Checks that need the daemon's state (``play.at``
+against its clock, channel names against the head, clip count) are left to the caller.
 """
 
 from __future__ import annotations
