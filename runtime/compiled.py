@@ -65,7 +65,9 @@ class CompiledClip:
     def sample(self, t: float, out: np.ndarray) -> None:
         """Write every channel's value at clip time ``t`` into ``out`` (one float64 per column; NaN for columns the
         clip has no curve for). Values hold before a curve's first key and after its last, as
-        :meth:`runtime.curves.Curve.value`."""
+        :meth:`runtime.curves.Curve.value`. ``t`` must be finite."""
+        if len(out) != len(self.channel_index):
+            raise ValueError(f"out has {len(out)} entries; the clip is compiled for {len(self.channel_index)} channels")
         t = float(t)
         r = self.grid.searchsorted(t, "right")  # distinct key times <= t
         i = self.slot_code.searchsorted(self.code_base + r)  # per curve: 1 + its last slot at or before t

@@ -92,6 +92,8 @@ def test_holds_outside_the_keys_and_interpolates_inside() -> None:
     cc.sample(1e6, out)
     assert out[:3].tolist() == [20.0, 9.0, 10.0]
     assert cc.channel_index == ("jaw", "blink", "brow_l", "nose") and cc.duration == 3.0
+    with pytest.raises(ValueError, match="4 channels"):
+        cc.sample(0.5, np.empty(3))
 
 
 def test_channels_outside_the_columns_or_listed_twice_are_refused() -> None:
