@@ -35,7 +35,7 @@ from runtime.config import DaemonConfig, daemon_config
 from runtime.core import core as K
 from runtime.core.channels import ChannelMap
 from runtime.core.solvers import as_array_solvers, channel_sets
-from runtime.hardware import Hardware
+from runtime.hardware import LinkedHardware
 from runtime.runner import Runner
 
 log = logging.getLogger(__name__)
@@ -51,7 +51,7 @@ class Daemon:
     """One head's daemon. ``start()`` opens the buses and serves; ``stop()`` disables torque and closes everything."""
 
     def __init__(self, head: HeadSpec, overrides: Mapping[str, Any] | None = None,
-                 hardware: Hardware | None = None, target_solvers: Iterable[Any] | None = None,
+                 hardware: LinkedHardware | None = None, target_solvers: Iterable[Any] | None = None,
                  record_inputs: bool = False) -> None:
         self.head = head
         self.overrides = dict(overrides or {})
@@ -106,15 +106,11 @@ class Daemon:
                 c.call("enable")
 
     def _start_buses(self) -> None:
-        from runtime.busthread import ThreadBusLink
-
+        """Every bus in a process of its own (emulators first, as processes too, for simulated buses)."""
         if self.hw is None:
-            self.hw = Hardware.from_head(self.head)
-        self.hw.open()
-        for bus in self.hw.buses.values():
-            link = ThreadBusLink(bus)
-            link.start()
-            self.links.append(link)
+            self.hw = LinkedHardware.from_head(self.head)
+        self.hw.start()
+        self.links = list(self.hw.links.values())
 
     def _start_link(self) -> None:
         self._tmp = tempfile.mkdtemp(prefix="likeness-")
@@ -185,14 +181,9 @@ class Daemon:
                     self._server.kill()
                     self._server.wait()
             self._server = None
-        for link in self.links:
-            try:
-                link.stop()
-            except Exception:
-                log.exception("bus %s: stop failed", link.name)
-        self.links = []
         if self.hw is not None and self._own_hw:
-            self.hw.close()
+            self.hw.stop()  # torque off, close every bus, stop the emulators
+        self.links = []
         if self._sock is not None:
             self._sock.close(0)
             self._sock = None

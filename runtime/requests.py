@@ -1,31 +1,26 @@
-"""Requests → ready-made core commands: field validation, channel lookup, clip compilation (API server side).
+"""Typed requests → ready-made core commands: channel lookup and clip compilation (API server side).
 
-Everything here runs in the API server's process, off the control path. :func:`to_command` turns one decoded request
-into a :mod:`runtime.core.commands` command, or raises :class:`~runtime.protocol.ProtocolError` with the documented
-code; ``hello`` and ``clock`` are answered by the server itself.
+Requests are decoded and validated in one pass by :func:`runtime.messages.decode_request` (msgspec Structs);
+:func:`to_command` binds their channels to the head's channel vector and compiles clips to arrays, so the control
+core receives nothing it has to parse. ``hello`` and ``clock`` are answered by the server itself.
 """
 
 from __future__ import annotations
 
-import re
-from collections.abc import Mapping
-from typing import Any
-
 import numpy as np
 
-from runtime import protocol as P
+from runtime import messages as M
 from runtime.core import commands as C
 from runtime.core.channels import ChannelMap, UnknownChannel
-from runtime.core.clips import bind_clip
-from runtime.curves import ClipError, clip_from_dict
-from runtime.protocol import Fields, ProtocolError
+from runtime.core.clips import BoundClip
+from runtime.protocol import ProtocolError
 
-MAX_STREAM_FRAMES_PER_REQUEST = 10_000
-RECORD_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}$")
 LOCAL_OPS = ("hello", "clock")
+OPS = M.OPS
 
 
 def check_channels(channels: ChannelMap, names: list[str] | tuple[str, ...]) -> np.ndarray:
+    """Channel-vector indices of ``names``; ``unknown_channel`` naming the first the head does not know."""
     try:
         return channels.indices(names)
     except UnknownChannel as exc:
@@ -33,85 +28,45 @@ def check_channels(channels: ChannelMap, names: list[str] | tuple[str, ...]) -> 
                             f"{', '.join(channels.names)}") from None
 
 
-def to_command(msg: Mapping[str, Any], token: int, channels: ChannelMap, safe_speed: float) -> C.Command:
-    """The core command for a decoded request (``op`` known and not local)."""
-    op = msg["op"]
-    if op in ("enable", "disable", "reset", "status", "pause", "resume", "stop"):
-        Fields(msg, set())
-        return _SIMPLE[op](token)
-    if op == "estop":
-        f = Fields(msg, {"reason"})
-        return C.EStop(token, f.string("reason", "api", max_len=200))
-    if op == "load_clip":
-        f = Fields(msg, {"clip"})
-        try:
-            clip = clip_from_dict(f.mapping("clip"))
-        except ClipError as exc:
-            raise ProtocolError("bad_value", str(exc)) from None
-        check_channels(channels, tuple(clip.channels))
-        bound = bind_clip(clip, channels)
-        return C.LoadClip(token, bound, bound.key_count, bound.nbytes)
-    if op == "unload_clip":
-        f = Fields(msg, {"clip"})
-        return C.UnloadClip(token, f.string("clip"))
-    if op == "play":
-        f = Fields(msg, {"clip", "at", "from", "speed", "loop"})
-        name = f.string("clip")
-        at = f.number("at") if f.has("at") else None
-        return C.Play(token, name, at, f.number("from", 0.0, lo=-3600, hi=86400),
-                      f.number("speed", 1.0, lo=0.01, hi=10.0), f.boolean("loop", False))
-    if op == "seek":
-        f = Fields(msg, {"time"})
-        return C.Seek(token, f.number("time", lo=-3600, hi=86400))
-    if op == "stream":
-        return _stream(msg, token, channels)
-    if op == "pose":
-        f = Fields(msg, {"pose", "speed"})
-        pose = f.mapping("pose")
-        if not pose or len(pose) > 256:
-            raise ProtocolError("bad_request", "field 'pose' must map 1..256 channels to values")
-        names, values = [], []
-        for ch, v in pose.items():
-            if not isinstance(ch, str):
-                raise ProtocolError("bad_request", "pose channel names must be strings")
-            names.append(ch)
-            values.append(P.finite_number(v, f"pose[{ch[:64]!r}]"))
+def to_command(req: M.Request, token: int, channels: ChannelMap, safe_speed: float) -> C.Command:
+    """The core command for a decoded request (not a local op)."""
+    simple = _SIMPLE.get(type(req))
+    if simple is not None:
+        return simple(token)
+    if isinstance(req, M.Estop):
+        return C.EStop(token, req.reason or "api")
+    if isinstance(req, M.LoadClip):
+        return _load_clip(req.clip, token, channels)
+    if isinstance(req, M.UnloadClip):
+        return C.UnloadClip(token, req.clip)
+    if isinstance(req, M.Play):
+        return C.Play(token, req.clip, req.at, float(req.from_ or 0.0), float(req.speed or 1.0), bool(req.loop))
+    if isinstance(req, M.Seek):
+        return C.Seek(token, req.time)
+    if isinstance(req, M.Stream):
+        idx = check_channels(channels, req.channels)
+        arr = req.array()
+        return C.Stream(token, np.ascontiguousarray(arr[:, 0]), idx, np.ascontiguousarray(arr[:, 1:]))
+    if isinstance(req, M.Pose):
+        names = list(req.pose)
         idx = check_channels(channels, names)
-        speed = f.number("speed", safe_speed, lo=0.01, hi=1.0)
-        return C.Pose(token, idx, np.array(values), speed)
-    if op == "record":
-        f = Fields(msg, {"action", "name"})
-        action = f.string("action")
-        if action == "start":
-            name = f.string("name", "recording", max_len=64)
-            if not RECORD_NAME.match(name):
-                raise ProtocolError("bad_value", "record name: letters, digits, _ . - only (max 64)")
-            return C.Record(token, "start", name)
-        if action == "stop":
-            return C.Record(token, "stop", "")
-        raise ProtocolError("bad_value", f"field 'action' must be 'start' or 'stop' (got {action[:32]!r})")
-    raise ProtocolError("unknown_op", f"unknown op {str(op)[:40]!r}; known: {', '.join(sorted(OPS))}")
+        speed = safe_speed if req.speed is None else req.speed
+        return C.Pose(token, idx, np.array([req.pose[n] for n in names], dtype=float), speed)
+    if isinstance(req, M.Record):
+        return C.Record(token, req.action, req.name or "recording")
+    raise ProtocolError("unknown_op", f"op {type(req).__name__} is not served by the core")
 
 
-def _stream(msg: Mapping[str, Any], token: int, channels: ChannelMap) -> C.Stream:
-    f = Fields(msg, {"channels", "frames"})
-    names = f.array("channels", 256)
-    if not names or not all(isinstance(c, str) and 0 < len(c) <= 128 for c in names):
-        raise ProtocolError("bad_request", "field 'channels' must be a non-empty array of channel names")
-    if len(set(names)) != len(names):
-        raise ProtocolError("bad_request", "field 'channels' lists a channel twice")
+def _load_clip(spec: M.ClipSpec, token: int, channels: ChannelMap) -> C.LoadClip:
+    from runtime.compiled import compile_clip
+
+    names = tuple(spec.channels)
     idx = check_channels(channels, names)
-    frames = f.array("frames", MAX_STREAM_FRAMES_PER_REQUEST)
-    width = len(names) + 1
-    rows = np.empty((len(frames), width))
-    for j, fr in enumerate(frames):
-        if not isinstance(fr, list) or len(fr) != width:
-            raise ProtocolError("bad_request", f"frames[{j}] must be [t, {len(names)} values]")
-        rows[j] = [P.finite_number(x, f"frames[{j}][{k}]") for k, x in enumerate(fr)]
-    return C.Stream(token, rows[:, 0].copy(), idx, rows[:, 1:].copy())
+    compiled = compile_clip(spec, names)
+    bound = BoundClip(spec.name, spec.duration, names, idx, compiled, int(compiled.nbytes), spec.key_count(),
+                      np.empty(len(names)))
+    return C.LoadClip(token, bound, bound.key_count, bound.nbytes)
 
 
-_SIMPLE = {"enable": C.Enable, "disable": C.Disable, "reset": C.Reset, "status": C.Status, "pause": C.Pause,
-           "resume": C.Resume, "stop": C.StopMotion}
-OPS = (*LOCAL_OPS, "status", "enable", "disable", "estop", "reset", "load_clip", "unload_clip", "play", "pause",
-       "resume", "stop", "seek", "stream", "pose", "record")
+_SIMPLE = {M.Enable: C.Enable, M.Disable: C.Disable, M.Reset: C.Reset, M.Status: C.Status, M.Pause: C.Pause,
+           M.Resume: C.Resume, M.Stop: C.StopMotion}

@@ -145,7 +145,7 @@ class Runner:
         if out.write is not None:
             q = out.write
             for link, (_, idx) in zip(self.links, self.params.buses, strict=True):
-                link.post(q[idx], t)
+                link.post(q[idx])
         for bus, op in out.bus_requests:
             for i, link in enumerate(self.links):
                 if link.name == bus:

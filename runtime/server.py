@@ -24,6 +24,7 @@ import numpy as np
 import zmq
 
 from runtime import ipc
+from runtime import messages as M
 from runtime import protocol as P
 from runtime.config import DaemonConfig, resolve
 from runtime.core.channels import ChannelMap
@@ -73,36 +74,20 @@ def decoder_main(spec: ServerSpec, endpoint_in: str, endpoint_out: str) -> None:
 
 def _decode(payload: bytes, token: int, spec: ServerSpec) -> tuple[Any, str, Any, dict[str, Any] | None]:
     """(request id, op, command or None, error reply or None) for one raw request."""
+    rid: Any = None
     try:
-        msg = P.unpack(payload)
-    except ProtocolError as exc:
-        return None, "", None, P.error_reply(None, exc.code, exc.message)
-    rid = P.request_id(msg)
-    try:
-        op = _check_envelope(msg, rid)
+        req = M.decode_request(payload)
+        rid, op = req.id, type(req).__struct_config__.tag
         if op in LOCAL_OPS:
             raise ProtocolError("too_large", f"a {op} request needs no more than {spec.inline_bytes} bytes")
-        return rid, op, to_command(msg, token, spec.channels, _safe_speed(spec)), None
+        return rid, op, to_command(req, token, spec.channels, _safe_speed(spec)), None
+    except M.RequestError as exc:
+        return exc.request_id, "", None, P.error_reply(exc.request_id, exc.code, exc.message)
     except ProtocolError as exc:
         return rid, "", None, P.error_reply(rid, exc.code, exc.message)
-    except RecursionError:
-        return rid, "", None, P.error_reply(rid, "bad_request", "request nested too deeply")
     except Exception as exc:
         log.exception("internal error decoding a request")
         return rid, "", None, P.error_reply(rid, "internal", f"{type(exc).__name__}: {exc}")
-
-
-def _check_envelope(msg: Any, rid: Any) -> str:
-    if not isinstance(msg, dict):
-        raise ProtocolError("bad_request", "a request must be a map with 'op' and 'id'")
-    op = msg.get("op")
-    if not isinstance(op, str):
-        raise ProtocolError("bad_request", "field 'op' must be a string")
-    if "id" in msg and rid is None:
-        raise ProtocolError("bad_request", "field 'id' must be an integer or a string of up to 128 chars")
-    if op not in OPS:
-        raise ProtocolError("unknown_op", f"unknown op {op[:40]!r}; known: {', '.join(sorted(OPS))}")
-    return op
 
 
 _SAFE_SPEED: dict[str, float] = {}
@@ -276,26 +261,22 @@ class Server:
         if len(payload) > self.spec.inline_bytes:  # decoded in the decoder process
             ipc.send(self.to_decoder, (next(self.tokens), envelope, payload, received))
             return
+        rid: Any = None
         try:
-            msg = P.unpack(payload)
-        except ProtocolError as exc:
-            self._reply(envelope, P.error_reply(None, exc.code, exc.message))
-            return
-        rid = P.request_id(msg)
-        try:
-            op = _check_envelope(msg, rid)
+            req = M.decode_request(payload)
+            rid, op = req.id, type(req).__struct_config__.tag
             if op == "estop":
                 self.estop_flag.trip()  # reaches the core this cycle, before the command itself
             if op in LOCAL_OPS:
-                self._reply(envelope, {"id": rid, "ok": True, **self._local(op, msg, received)})
+                self._reply(envelope, {"id": rid, "ok": True, **self._local(req, received)})
                 return
             token = next(self.tokens)
-            cmd = to_command(msg, token, self.channels, self.cfg.safety.safe_speed)
+            cmd = to_command(req, token, self.channels, self.cfg.safety.safe_speed)
+        except M.RequestError as exc:
+            self._reply(envelope, P.error_reply(exc.request_id, exc.code, exc.message))
+            return
         except ProtocolError as exc:
             self._reply(envelope, P.error_reply(rid, exc.code, exc.message))
-            return
-        except RecursionError:
-            self._reply(envelope, P.error_reply(rid, "bad_request", "request nested too deeply"))
             return
         except Exception as exc:  # a bug must never take the server down
             log.exception("internal error handling a request")
@@ -325,15 +306,13 @@ class Server:
             log.debug("reply not sent: %s", exc)
 
     # ------------------------------------------------------------------ local ops
-    def _local(self, op: str, msg: dict[str, Any], received: float) -> dict[str, Any]:
-        if op == "clock":
-            f = P.Fields(msg, {"t_client"})
+    def _local(self, req: Any, received: float) -> dict[str, Any]:
+        if isinstance(req, M.Clock):
             out: dict[str, Any] = {"t_recv": received, "clock": "monotonic"}
-            if f.has("t_client"):
-                out["t_client"] = f.number("t_client")
+            if req.t_client is not None:
+                out["t_client"] = req.t_client
             out["t_send"] = time.monotonic()
             return out
-        P.Fields(msg, {"client"})
         from likeness import __version__
 
         acts = []
