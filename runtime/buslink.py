@@ -250,10 +250,12 @@ class BusLink:
             self._proc.join(2.0)
 
     # ------------------------------------------------------------------ cyclic exchange (loop side)
-    def post(self, targets: np.ndarray) -> None:
+    def post(self, targets: np.ndarray, stamp: float | None = None) -> None:
         """Hand the bus the latest SI position targets (``len(actuators)``, link order); never blocks.
 
         Only targets posted after an ``enable`` completes are written; a later post replaces one not yet written.
+        ``stamp`` is when the targets were computed (default now): the driver's rate guard measures between the
+        stamps of successive writes, so a late delivery is not mistaken for a fast move.
         """
         c = self._c if self._shm is not None else None
         if c is None:
@@ -264,7 +266,7 @@ class BusLink:
         k = self._posted + 1
         c[_C_TG_BEGUN] = k
         buf = self._tg[k & 1]
-        buf[0] = time.monotonic()
+        buf[0] = time.monotonic() if stamp is None else stamp
         buf[1:] = targets
         c[_C_TG_DONE] = k
         self._posted = k
@@ -475,16 +477,16 @@ class _BusServer:
         self.faults_version = v
         self.faults_seen = dict(faults)
 
-    def latest_targets(self) -> tuple[int, np.ndarray | None]:
+    def latest_targets(self) -> tuple[int, np.ndarray | None, float]:
         c = self.c
         for _ in range(5):
             k = int(c[_C_TG_DONE])
             if k == 0:
-                return 0, None
+                return 0, None, 0.0
             snap = self.tg[k & 1].copy()
             if int(c[_C_TG_BEGUN]) < k + 2:
-                return k, snap[1:]
-        return self.written_k, None
+                return k, snap[1:], float(snap[0])
+        return self.written_k, None, 0.0
 
     # -------------------------------------------------------------- transactions
     def transaction(self) -> None:
@@ -493,10 +495,10 @@ class _BusServer:
         try:
             k = int(self.c[_C_TG_DONE])
             if k != self.written_k and k > self.enabled_k and self.bus.state is LifecycleState.ACTIVE:
-                k, targets = self.latest_targets()
+                k, targets, stamp = self.latest_targets()
                 if targets is not None:
                     self.written_k = k
-                    self.bus.write(dict(zip(self.names, targets.tolist(), strict=True)))
+                    self.bus.write(dict(zip(self.names, targets.tolist(), strict=True)), stamp)
                     self.written = targets
                     self.write_stamp = time.monotonic()
             if self.bus.state is not LifecycleState.UNCONFIGURED:

@@ -47,7 +47,7 @@ class Runner:
         self.realtime_status = "not started"
         self.ready = threading.Event()
         self._stop = threading.Event()
-        self._tickets: dict[int, tuple[int, str]] = {}  # ticket → (link index, op)
+        self._tickets: dict[tuple[int, int], str] = {}  # (link index, ticket) → op
         self._signal_estop: str | None = None
         self.native_id = 0
 
@@ -124,10 +124,10 @@ class Runner:
                 cmds.append(cmd)
         results = []
         if self._tickets:
-            for ticket, (i, op) in list(self._tickets.items()):
+            for (i, ticket), op in list(self._tickets.items()):
                 res = self.links[i].result(ticket)
                 if res is not None:
-                    del self._tickets[ticket]
+                    del self._tickets[i, ticket]
                     results.append((self.links[i].name, op, res[0], res[1]))
         estop = None
         if self.estop.tripped():
@@ -145,11 +145,11 @@ class Runner:
         if out.write is not None:
             q = out.write
             for link, (_, idx) in zip(self.links, self.params.buses, strict=True):
-                link.post(q[idx])
+                link.post(q[idx], t)
         for bus, op in out.bus_requests:
             for i, link in enumerate(self.links):
                 if link.name == bus:
-                    self._tickets[link.request(op)] = (i, op)
+                    self._tickets[i, link.request(op)] = op
 
     def _outbox(self, out: K.CycleOutputs) -> None:
         if out.record is not None:
