@@ -188,6 +188,18 @@ class FemSkin(PoseProblem):
     def face_units(self) -> tuple[tuple[str, ...], np.ndarray | None]:
         return self._fu_names, self._fu
 
+    def surface_regions(self) -> tuple[tuple[str, ...], np.ndarray]:
+        from offline.dataset.regions import label_surface
+
+        sets = self.mesh.node_sets
+        named = {n: sets[n] for n in (self.spec.skull_set, *self.moving.values())}
+        return label_surface(self.base_surface(), self.mesh.nodes, named)
+
+    def mesh_info(self) -> dict[str, Any]:
+        return {"kind": "tetrahedral FEM", "file": str(_mesh_file(self.spec.mesh)), "element_order": self.mesh.order,
+                "n_elements": int(self.mesh.n_tets), "n_nodes": int(self.mesh.n_nodes),
+                "n_surface_vertices": len(self.outer), "n_surface_triangles": len(self._faces)}
+
     def dirichlet(self, p: np.ndarray):
         """Boundary conditions of pose p: link node sets moved rigidly by m(p), the skull fixed."""
         from offline.fem import rigid_transform_dirichlet

@@ -50,6 +50,19 @@ def test_fem_pose_problem_moves_patches_and_stores_outer_surface(box_problem, tm
         assert 0.3 * pl < dz[above_left].mean() < 1.05 * pl
         if pr != 0:
             assert np.sign(dz[above_right].mean()) == np.sign(pr)
+    # Surface regions (for per-region errors) name the patch under each outer vertex; the mesh is recorded.
+    names = np.array(ds.region_names)[ds.vertex_region]
+    assert set(names[above_left]) == {"left"} and set(names[above_right]) == {"right"}
+    assert set(ds.region_names) == {"skull", "left", "right", "free"}
+    assert ds.manifest["mesh"]["element_order"] == mesh.order and ds.manifest["mesh"]["n_elements"] == mesh.n_tets
+    from offline.dataset.describe import mesh_info, regions
+
+    (tmp_path / "ds" / "dataset.json").write_text(
+        __import__("json").dumps({k: v for k, v in ds.manifest.items() if k != "mesh"}))
+    old = PoseDataset(tmp_path / "ds")  # as a dataset written before mesh and region records: rebuilt from inputs
+    old.vertex_region = None
+    assert mesh_info(old)["n_elements"] == mesh.n_tets and "read from the mesh file" in mesh_info(old)["note"]
+    assert regions(old)[0] == ds.region_names and np.array_equal(regions(old)[1], ds.vertex_region)
     # The stored pose is the FEM equilibrium of that pose's boundary conditions.
     from offline.fem import internal_forces
 
