@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from models.errors import SpecError
+from models.material import SkinMaterial, material_from_table
 
 #: Config unit → (kind, factor to SI, SI unit name).
 UNITS: dict[str, tuple[Literal["rotary", "linear"], float, str]] = {
@@ -103,6 +104,8 @@ class HeadSpec:
     description: str = ""
     #: Raw tables owned by other layers (e.g. ``runtime``, ``safety``, ``calibration``), validated there.
     sections: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+    #: The skin material (``[skin_material]``: inline or a fit-material result file); None when not given.
+    skin_material: SkinMaterial | None = None
 
     @property
     def actuator_names(self) -> tuple[str, ...]:
@@ -221,7 +224,11 @@ def head_from_dict(data: Mapping[str, Any], source: str | Path = "<head>") -> He
         p = Path(raw)
         paths[pkey] = p if p.is_absolute() else (src.parent / p).resolve()
 
-    known = {"head", "buses", "actuators", "groups", "links", "paths"}
+    skin_material = None
+    if "skin_material" in data:
+        skin_material = material_from_table(v.as_table(data["skin_material"], "skin_material"), source)
+
+    known = {"head", "buses", "actuators", "groups", "links", "paths", "skin_material"}
     sections = {}
     for key, value in data.items():
         if key in known:
@@ -239,6 +246,7 @@ def head_from_dict(data: Mapping[str, Any], source: str | Path = "<head>") -> He
         paths=paths,
         description=description,
         sections=sections,
+        skin_material=skin_material,
     )
 
 

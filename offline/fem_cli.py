@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import argparse
 
-MATERIALS = ("neohookean",)
+MATERIALS = ("neo_hookean",)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -34,7 +34,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--head", default=None, help="head config giving actuator units and ranges for --actuators "
                                                 "(default: the sample head)")
     p.add_argument("--out", required=True, help="output .vtu: deformed points, point data 'displacement' (m)")
-    p.add_argument("--material", choices=MATERIALS, default="neohookean")
+    p.add_argument("--material", choices=MATERIALS, default="neo_hookean",
+                   type=lambda t: t.strip().lower().replace("-", "_").replace("neohookean", "neo_hookean"))
     p.add_argument("--E", type=float, default=78000.0, help="Young's modulus in Pa (default 78000)")
     p.add_argument("--nu", type=float, default=0.47, help="Poisson's ratio (default 0.47)")
     p.add_argument("--backend", default="auto", help="sparse solver: auto, cholmod, pardiso or superlu")

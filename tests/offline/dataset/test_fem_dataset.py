@@ -118,3 +118,24 @@ def test_mesh_folder_surface_and_face_units_from_face_units_npz(box_problem, tmp
     np.savez(tmp_path / "face_units.npz", names=np.array(["x"]), offsets=np.zeros((1, 3, 3)), surface_nodes=top)
     with pytest.raises(SpecError, match="offsets"):
         FemSpec(config=spec.config, mesh=str(tmp_path), linkmap=spec.linkmap).build()
+
+
+def test_head_material_reaches_the_fem_and_E_does_not_change_poses(box_problem):
+    """Prescribed displacements only: the pose depends on nu (and shape parameters), not on E."""
+    import dataclasses
+
+    from models.material import SkinMaterial
+    from offline.dataset.fem_problem import material_fields
+
+    _root, _head, spec, _mesh = box_problem
+    p = np.array([0.0012, -0.0006])
+    soft = dataclasses.replace(spec, **material_fields(SkinMaterial("neo_hookean", 62_600.0, 0.47, source="a")))
+    stiff = dataclasses.replace(soft, youngs_modulus=626_000.0)
+    other_nu = dataclasses.replace(soft, poisson_ratio=0.40)
+    mr = dataclasses.replace(spec, **material_fields(SkinMaterial("mooney_rivlin", 62_600.0, 0.47, {"c01": 9000.0},
+                                                                  source="b")))
+    assert soft.build().material.name == "neo_hookean" and mr.build().material.name == "mooney_rivlin"
+    assert soft.describe()["material"]["source"] == "a" and soft.token != stiff.token
+    a, b, c = (s.build().solve(p, None).surface for s in (soft, stiff, other_nu))
+    np.testing.assert_allclose(a, b, atol=1e-9)
+    assert np.abs(a - c).max() > 1e-6  # nu does move the skin
