@@ -110,9 +110,17 @@ def material_from_fit_file(path: str | Path, nu: float | None = None) -> SkinMat
 _TABLE_KEYS = {"model", "E", "nu", "c01", "c20", "c30", "density", "fit", "note"}
 
 
-def material_from_table(table: Mapping[str, Any], source: str | Path, key: str = "skin_material") -> SkinMaterial:
-    """Validate a ``[skin_material]`` table of the head file ``source`` (paths resolve beside it)."""
-    src = str(source)
+def check_material_table(table: Mapping[str, Any], source: str | Path, key: str = "skin_material") -> None:
+    """Check a ``[skin_material]`` table without reading any file (heads load fast and anywhere; the fit file is
+    read by :func:`material_from_table` when the material is needed)."""
+    if "fit" in table:
+        _check_common(table, str(source), key)
+    else:
+        material_from_table(table, source, key)
+
+
+def _check_common(table: Mapping[str, Any], src: str, key: str) -> str:
+    """Keys, number types and the note; returns the note."""
     unknown = sorted(set(table) - _TABLE_KEYS)
     if unknown:
         raise SpecError(src, f"{key}.{unknown[0]}", f"unknown key; allowed: {', '.join(sorted(_TABLE_KEYS))}")
@@ -128,6 +136,14 @@ def material_from_table(table: Mapping[str, Any], source: str | Path, key: str =
         clash = sorted(set(table) & {"model", "E", "c01", "c20", "c30"})
         if clash:
             raise SpecError(src, f"{key}.{clash[0]}", "give either fit = FILE or inline parameters, not both")
+    return note
+
+
+def material_from_table(table: Mapping[str, Any], source: str | Path, key: str = "skin_material") -> SkinMaterial:
+    """The material of a ``[skin_material]`` table of the head file ``source`` (a fit file resolves beside it)."""
+    src = str(source)
+    note = _check_common(table, src, key)
+    if "fit" in table:
         path = Path(table["fit"])
         path = path if path.is_absolute() else Path(src).parent / path
         mat = material_from_fit_file(path, table.get("nu"))

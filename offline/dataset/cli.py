@@ -73,9 +73,13 @@ def run(args: argparse.Namespace) -> int:
             from offline.dataset.fem_problem import FemSpec, material_fields
         except ImportError as exc:
             raise CliError(f"the skin FEM is not available in this installation: {exc}") from exc
+        try:
+            material = head.skin_material()
+        except SpecError as exc:
+            raise CliError(str(exc)) from exc
         spec = FemSpec(config=str(args.config), mesh=str(args.mesh), linkmap=str(linkmap),
-                       backend=args.backend, threads=args.threads_per_worker, **material_fields(head.skin_material))
-        if head.skin_material is None:
+                       backend=args.backend, threads=args.threads_per_worker, **material_fields(material))
+        if material is None:
             print(f"note: {args.config} has no [skin_material]; simulating with {spec.material_source}",
                   file=sys.stderr)
         try:

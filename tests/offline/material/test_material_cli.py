@@ -120,7 +120,7 @@ def test_joint_fit_file_feeds_the_head_config(tmp_path: Path, capsys: pytest.Cap
 
     head_src = re.sub(r"\[skin_material\][^\[]*", "", head_src)
     (tmp_path / "head.toml").write_text(head_src + '\n[skin_material]\nfit = "fit.json"\nnote = "test"\n')
-    mat = load_head(tmp_path / "head.toml").skin_material
+    mat = load_head(tmp_path / "head.toml").skin_material()
     assert mat.model == "mooney_rivlin" and mat.shape["c01"] > 0
     assert abs(mat.E - doc["E_Pa"]) <= 1e-9 * doc["E_Pa"]
     assert "fit.json" in mat.source and str(tension) in mat.source
