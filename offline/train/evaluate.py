@@ -20,7 +20,10 @@ REPORT_NAME = "predictor_report.json"
 
 def evaluate_predictor(predictor: str | Path, dataset: str | Path | PoseDataset, split: str = "test",
                        threads: int = 1) -> dict[str, Any]:
-    """Metrics (see :mod:`offline.train.metrics`) of the ONNX ``predictor`` on the converged poses of ``split``."""
+    """Metrics (see :mod:`offline.train.metrics`) of the ONNX ``predictor`` on the converged poses of ``split``.
+
+    ``split="all"`` takes every converged pose: for a dataset of fresh poses the predictor never saw.
+    """
     from models.predictor import SkinPredictor
 
     ds = dataset if isinstance(dataset, PoseDataset) else PoseDataset(dataset)
@@ -32,7 +35,8 @@ def evaluate_predictor(predictor: str | Path, dataset: str | Path | PoseDataset,
         raise SpecError(str(predictor), "n_vertices", f"dataset has {ds.offsets.shape[1]} surface vertices",
                         sp.n_vertices)
     names, labels = regions(ds)
-    return surface_errors(sp.predict_offsets, ds.actuators, ds.offsets, ds.split(split), names, labels)
+    poses = ds.usable if split == "all" else ds.split(split)
+    return surface_errors(sp.predict_offsets, ds.actuators, ds.offsets, poses, names, labels)
 
 
 def check_report(report_path: str | Path, predictor: str | Path, dataset: str | Path,

@@ -16,8 +16,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--dataset", required=True, help="pose dataset folder the predictor was trained on")
     p.add_argument("--report", default=None, help="report to check (default: predictor_report.json beside the "
                    "predictor; no check if there is none)")
-    p.add_argument("--split", default="test", choices=("train", "validation", "test"),
-                   help="split to evaluate when no report is checked (default test)")
+    p.add_argument("--split", default="test", choices=("train", "validation", "test", "all"),
+                   help="split to evaluate when no report is checked (default test; all: every converged pose, "
+                   "for a dataset of fresh poses the predictor never saw)")
     p.add_argument("--threads", type=int, default=1, help="onnxruntime threads")
     p.set_defaults(func=run)
 
@@ -34,6 +35,8 @@ def run(args: argparse.Namespace) -> int:
     report = Path(args.report) if args.report else Path(args.predictor).with_name(REPORT_NAME)
     try:
         if args.report or (report.exists() and args.split == "test"):
+            if args.split != "test":
+                raise CliError("--report checks the test split; leave out --split")
             result = check_report(report, args.predictor, args.dataset, args.threads)
         else:
             result = {"split": args.split, args.split: evaluate_predictor(args.predictor, args.dataset, args.split,

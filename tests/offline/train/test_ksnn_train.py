@@ -174,6 +174,11 @@ def test_evaluate_cli_reproduces_the_report_and_catches_a_tampered_one(dataset, 
                "--report", str(tmp_path / "bad.json"))
     assert res.returncode == 1
     assert any("per_region.bump_0.mean_euclidean_um" in d for d in json.loads(res.stdout)["differences"])
+    # --split all: every converged pose (for datasets of fresh poses the predictor never saw); no report check.
+    res = _cli("offline", "evaluate", "--predictor", str(out / "predictor.onnx"), "--dataset", str(root),
+               "--split", "all")
+    assert res.returncode == 0, res.stderr
+    assert json.loads(res.stdout)["all"]["n_poses"] == len(PoseDataset(root).usable)
 
 
 def test_training_resumes_from_checkpoint(dataset, tmp_path):
