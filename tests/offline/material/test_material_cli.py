@@ -100,7 +100,7 @@ def test_joint_fit_file_feeds_the_head_config(tmp_path: Path, capsys: pytest.Cap
     from offline.dataset.fem_problem import FemSpec, material_fields
 
     tension, compression, fit = tmp_path / "t.csv", tmp_path / "c.csv", tmp_path / "fit.json"
-    assert main(["offline", "uniaxial", "--material", "mooney-rivlin", "--E", "70000", "--nu", "0.46", "--c01",
+    assert main(["offline", "uniaxial", "--material", "mooney_rivlin", "--E", "70000", "--nu", "0.46", "--c01",
                  "5000", "--strain=0.05:0.5:8", "--specimen", "strip", "--out", str(tension)]) == 0
     assert main(["offline", "uniaxial", "--material", "mooney_rivlin", "--E", "70000", "--nu", "0.46", "--c01",
                  "5000", "--strain=-0.2:-0.02:6", "--specimen", "cylinder", "--out", str(compression)]) == 0
