@@ -36,7 +36,8 @@ def evaluate_predictor(predictor: str | Path, dataset: str | Path | PoseDataset,
                         sp.n_vertices)
     names, labels = regions(ds)
     poses = ds.usable if split == "all" else ds.split(split)
-    return surface_errors(sp.predict_offsets, ds.actuators, ds.offsets, poses, names, labels)
+    return surface_errors(sp.predict_offsets, ds.actuators, ds.offsets, poses, names, labels,
+                          base=ds.base_vertices, faces=ds.faces)
 
 
 def check_report(report_path: str | Path, predictor: str | Path, dataset: str | Path,

@@ -114,8 +114,8 @@ def train_pipeline(dataset_dir: str | Path, out_dir: str | Path, config: TrainCo
 def _brief(m: dict[str, Any]) -> dict[str, Any]:
     """The headline numbers of a metrics document (no per-region table)."""
     keys = ("n_poses", "mean_euclidean_um", "rms_euclidean_um", "p99_euclidean_um", "max_euclidean_um",
-            "rmse_per_coordinate_um", "max_at")
-    return {k: m[k] for k in keys}
+            "rmse_per_coordinate_um", "max_at", "surface_strain")
+    return {k: m[k] for k in keys if k in m}
 
 
 def _compare_h_equals_a(results: Sequence[TrainResult], best: TrainResult, n_act: int, ds: PoseDataset,
@@ -134,7 +134,8 @@ def _compare_h_equals_a(results: Sequence[TrainResult], best: TrainResult, n_act
         out["h_equals_a"]["test"] = _brief(test)
     else:
         out["h_equals_a"]["test"] = _brief(surface_errors(_numpy_predict(h_a.weights), ds.actuators, ds.offsets,
-                                                          test_idx, names, labels))
+                                                          test_idx, names, labels, base=ds.base_vertices,
+                                                          faces=ds.faces))
     return out
 
 

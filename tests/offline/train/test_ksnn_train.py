@@ -100,6 +100,16 @@ def test_report_test_metrics_are_what_the_model_does_on_the_test_split(dataset, 
     assert sum(r["n_vertices"] for r in t["per_region"].values()) == ds.offsets.shape[1]
     name = t["max_at"]["region"]
     assert t["per_region"][name]["max_euclidean_um"] == pytest.approx(t["max_euclidean_um"])
+    # Surface strain: principal strains of the prediction against the FEM's, per triangle (the strain guard's input).
+    pos_pred = sp.predict_offsets(ds.actuators[test]).astype(np.float64) + ds.base_vertices
+    pos_fem = np.asarray(ds.offsets[test], dtype=np.float64) + ds.base_vertices
+    diff = np.abs(sp.principal_stretches(pos_pred) - sp.principal_stretches(pos_fem)).max(axis=-1)
+    st = t["surface_strain"]
+    assert st["n_triangles"] == len(ds.faces) and st["degenerate_triangles"] == 0
+    assert st["p99_abs"] == pytest.approx(np.percentile(diff, 99), rel=1e-5)
+    assert st["max_abs"] == pytest.approx(diff.max(), rel=1e-5) and st["max_abs"] > 0
+    k, tri = np.unravel_index(np.argmax(diff), diff.shape)
+    assert st["max_at"]["pose_index"] == test[k] and st["max_at"]["triangle"] == tri
     # ...and the network learned something: far better than predicting the mean training pose.
     mean_pose = np.asarray(ds.offsets[ds.split("train")]).mean(axis=0)
     baseline = np.sqrt(((mean_pose - ds.offsets[test]) ** 2).sum(-1)).mean() * 1e6
