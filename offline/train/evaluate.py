@@ -50,8 +50,11 @@ def check_report(report_path: str | Path, predictor: str | Path, dataset: str | 
         raise SpecError(str(path), "file", "report not found") from exc
     except json.JSONDecodeError as exc:
         raise SpecError(str(path), "json", f"not valid JSON: {exc}") from exc
-    if "test" not in report or "dataset" not in report:
-        raise SpecError(str(path), "test", "not a predictor report (no test metrics or dataset record)")
+    if report.get("format") != "likeness-predictor-report":
+        raise SpecError(str(path), "format", "not a predictor report with test metrics (reports from before the "
+                        "train / validation / test splits have none): regenerate it as docs/predictor.md shows, or "
+                        "evaluate fresh poses with --split all, which checks no report",
+                        report.get("format"))
     ds = PoseDataset(dataset)
     digest = ds.content_hash()
     test = evaluate_predictor(predictor, ds, "test", threads)

@@ -184,6 +184,12 @@ def test_evaluate_cli_reproduces_the_report_and_catches_a_tampered_one(dataset, 
                "--report", str(tmp_path / "bad.json"))
     assert res.returncode == 1
     assert any("per_region.bump_0.mean_euclidean_um" in d for d in json.loads(res.stdout)["differences"])
+    # A report from before the splits (no format, no test block) is refused with a clear message.
+    old = tmp_path / "old.json"
+    old.write_text(json.dumps({"held_out": {"rmse_um": 1.0}}))
+    res = _cli("offline", "evaluate", "--predictor", str(out / "predictor.onnx"), "--dataset", str(root),
+               "--report", str(old))
+    assert res.returncode == 1 and not res.stdout and "not a predictor report with test metrics" in res.stderr
     # --split all: every converged pose (for datasets of fresh poses the predictor never saw); no report check.
     res = _cli("offline", "evaluate", "--predictor", str(out / "predictor.onnx"), "--dataset", str(root),
                "--split", "all")
