@@ -9,6 +9,7 @@ are written atomically every few epochs, so a killed training resumes.
 
 from __future__ import annotations
 
+import hashlib
 import io
 import math
 import time
@@ -135,7 +136,11 @@ def train_ksnn(x_norm: np.ndarray, offsets: np.ndarray, train_idx: np.ndarray, v
     history: dict[str, list[float]] = {"train": [], "val": [], "lr": []}
     start_epoch = 0
     best = {"val": math.inf, "epoch": -1, "state": None}
-    key = {"n_act": n_act, "n_vert": n_vert, "hidden": hidden, "n_train": len(train_idx), "seed": config.seed}
+    # The checkpoint belongs to these exact train / validation poses: a changed split starts afresh.
+    split_id = hashlib.sha1(np.asarray(train_idx, np.int64).tobytes() + b"|" +
+                            np.asarray(val_idx, np.int64).tobytes()).hexdigest()[:16]
+    key = {"n_act": n_act, "n_vert": n_vert, "hidden": hidden, "n_train": len(train_idx), "seed": config.seed,
+           "split": split_id}
     if checkpoint is not None and checkpoint.exists():
         ck = torch.load(checkpoint, weights_only=False)
         if ck.get("key") == key:
