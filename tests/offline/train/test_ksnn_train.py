@@ -213,3 +213,10 @@ def test_training_resumes_from_checkpoint(dataset, tmp_path):
     assert len(second.history["val"]) == 10
     assert second.history["val"][:6] == first.history["val"]
     assert second.best_val_mse <= first.best_val_mse
+    # Same sizes, other poses: the checkpoint belongs to another split and is not resumed.
+    msgs.clear()
+    swapped_tr = np.sort(np.concatenate([tr[1:], va[:1]]))
+    swapped_va = np.sort(np.concatenate([va[1:], tr[:1]]))
+    third = train_ksnn(x, ds.offsets, swapped_tr, swapped_va, 13, ds.lo, ds.hi,
+                       TrainConfig(epochs=3, patience=100), checkpoint=ck, log=msgs.append)
+    assert not any("resumed" in m for m in msgs) and len(third.history["val"]) == 3
