@@ -19,6 +19,7 @@ Every file is written atomically, so a killed run leaves only whole files and re
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import io
 import json
@@ -111,7 +112,8 @@ class PoseStore:
         atomic_save_npy(self.root / "samples.npy", np.asarray(samples, dtype=np.float64))
         doc = {"format": FORMAT, "format_version": FORMAT_VERSION, **manifest}
         atomic_write_bytes(self.root / "dataset.json", json.dumps(doc, indent=1).encode())
-        self.splits()
+        if len(samples) >= 3:  # smaller datasets cannot be split; training refuses them when it asks
+            self.splits()
 
     def splits(self) -> Splits:
         """The stored train / validation / test split (assigned from the manifest seed and written on first use)."""
@@ -226,9 +228,14 @@ class PoseDataset:
         self.head = str(self.manifest.get("head", ""))
         if self.offsets.shape[0] != self.actuators.shape[0]:
             raise SpecError(str(self.root / "offsets.npy"), "shape", "pose count differs from actuators.npy")
-        self.splits: Splits = store.splits()
+        self._store = store
         self.region_names: tuple[str, ...] = tuple(str(x) for x in base.get("region_names", ()))
         self.vertex_region: np.ndarray | None = base.get("vertex_region")
+
+    @functools.cached_property
+    def splits(self) -> Splits:
+        """The dataset's train / validation / test split (assigned and stored on first use by an older dataset)."""
+        return self._store.splits()
 
     @property
     def id(self) -> str:

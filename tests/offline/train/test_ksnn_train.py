@@ -165,7 +165,7 @@ def test_test_split_cannot_influence_training(dataset, tmp_path):
 
 def _cli(*args: str) -> subprocess.CompletedProcess:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    return subprocess.run([sys.executable, "-m", "likeness.cli", *args], capture_output=True, text=True, env=env,
+    return subprocess.run([sys.executable, "-m", "likeness", *args], capture_output=True, text=True, env=env,
                           cwd=ROOT, timeout=120)
 
 
@@ -189,7 +189,7 @@ def test_evaluate_cli_reproduces_the_report_and_catches_a_tampered_one(dataset, 
     old.write_text(json.dumps({"held_out": {"rmse_um": 1.0}}))
     res = _cli("offline", "evaluate", "--predictor", str(out / "predictor.onnx"), "--dataset", str(root),
                "--report", str(old))
-    assert res.returncode == 1 and not res.stdout and "not a predictor report with test metrics" in res.stderr
+    assert res.returncode == 2 and not res.stdout and "not a predictor report with test metrics" in res.stderr
     # --split all: every converged pose (for datasets of fresh poses the predictor never saw); no report check.
     res = _cli("offline", "evaluate", "--predictor", str(out / "predictor.onnx"), "--dataset", str(root),
                "--split", "all")
