@@ -16,6 +16,7 @@ from offline.dataset.store import PoseDataset
 from offline.train.metrics import metrics_match, surface_errors
 
 REPORT_NAME = "predictor_report.json"
+REPORT_FORMAT = "likeness-predictor-report"
 
 
 def evaluate_predictor(predictor: str | Path, dataset: str | Path | PoseDataset, split: str = "test",
@@ -50,7 +51,7 @@ def check_report(report_path: str | Path, predictor: str | Path, dataset: str | 
         raise SpecError(str(path), "file", "report not found") from exc
     except json.JSONDecodeError as exc:
         raise SpecError(str(path), "json", f"not valid JSON: {exc}") from exc
-    if report.get("format") != "likeness-predictor-report":
+    if report.get("format") != REPORT_FORMAT:
         raise SpecError(str(path), "format", "not a predictor report with test metrics (reports from before the "
                         "train / validation / test splits have none): regenerate it as docs/predictor.md shows, or "
                         "evaluate fresh poses with --split all, which checks no report",

@@ -21,12 +21,11 @@ import numpy as np
 from offline.dataset.describe import material_info, mesh_info, regions
 from offline.dataset.splits import SPLIT_NAMES
 from offline.dataset.store import PoseDataset, atomic_write_bytes
-from offline.train.evaluate import REPORT_NAME, evaluate_predictor
+from offline.train.evaluate import REPORT_FORMAT, REPORT_NAME, evaluate_predictor
 from offline.train.export import export_int8, export_predictor, predictor_metadata
 from offline.train.ksnn import TrainConfig, TrainResult, resolve_hidden, train_ksnn
 from offline.train.metrics import surface_errors
 
-REPORT_FORMAT = "likeness-predictor-report"
 REPORT_VERSION = 1
 SELECTION = ("hidden size: lowest validation MSE (per-axis scaled offsets); epoch: best validation MSE with early "
              "stopping on validation; the test split plays no part in either")
