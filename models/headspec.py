@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from models.errors import SpecError
+from models.material import SkinMaterial, check_material_table, material_from_table
 
 #: Config unit → (kind, factor to SI, SI unit name).
 UNITS: dict[str, tuple[Literal["rotary", "linear"], float, str]] = {
@@ -103,6 +104,8 @@ class HeadSpec:
     description: str = ""
     #: Raw tables owned by other layers (e.g. ``runtime``, ``safety``, ``calibration``), validated there.
     sections: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+    #: The ``[skin_material]`` table (checked; a fit file it names is read by :meth:`skin_material`).
+    skin_material_table: Mapping[str, Any] | None = None
 
     @property
     def actuator_names(self) -> tuple[str, ...]:
@@ -123,6 +126,12 @@ class HeadSpec:
 
     def section(self, key: str) -> Mapping[str, Any]:
         return self.sections.get(key, {})
+
+    def skin_material(self) -> SkinMaterial | None:
+        """The skin material (inline, or read now from the fit-material file named); None when not given."""
+        if self.skin_material_table is None:
+            return None
+        return material_from_table(self.skin_material_table, self.source)
 
 
 # ---------------------------------------------------------------------------- loading
@@ -221,7 +230,12 @@ def head_from_dict(data: Mapping[str, Any], source: str | Path = "<head>") -> He
         p = Path(raw)
         paths[pkey] = p if p.is_absolute() else (src.parent / p).resolve()
 
-    known = {"head", "buses", "actuators", "groups", "links", "paths"}
+    skin_material = None
+    if "skin_material" in data:
+        skin_material = dict(v.as_table(data["skin_material"], "skin_material"))
+        check_material_table(skin_material, source)
+
+    known = {"head", "buses", "actuators", "groups", "links", "paths", "skin_material"}
     sections = {}
     for key, value in data.items():
         if key in known:
@@ -239,6 +253,7 @@ def head_from_dict(data: Mapping[str, Any], source: str | Path = "<head>") -> He
         paths=paths,
         description=description,
         sections=sections,
+        skin_material_table=skin_material,
     )
 
 

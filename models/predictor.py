@@ -344,6 +344,12 @@ def _dequantize_nbits(init: Mapping[str, np.ndarray], name: str, shape: tuple[in
     return ((vals - zero) * sc)[:, :k].T.copy()
 
 
+def surface_principal_stretches(base: np.ndarray, faces: np.ndarray, positions: np.ndarray) -> np.ndarray:
+    """Principal in-plane stretches (min, max) of each triangle of ``positions`` (..., V, 3) against ``base``."""
+    return _stretches(_triangle_metric(np.asarray(base, dtype=np.float64), faces),
+                      _triangle_metric(np.asarray(positions, dtype=np.float64), faces))
+
+
 def _triangle_metric(pos: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """First fundamental form of each triangle in its edge basis: (..., T, 3) entries (e1·e1, e1·e2, e2·e2)."""
     tri = np.take(pos, faces, axis=-2)  # (..., T, 3 corners, 3)

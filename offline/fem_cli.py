@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import argparse
 
-MATERIALS = ("neohookean",)
+MATERIALS = ("neo_hookean", "mooney_rivlin", "yeoh")  # models.material.MATERIAL_MODELS
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -34,9 +34,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--head", default=None, help="head config giving actuator units and ranges for --actuators "
                                                 "(default: the sample head)")
     p.add_argument("--out", required=True, help="output .vtu: deformed points, point data 'displacement' (m)")
-    p.add_argument("--material", choices=MATERIALS, default="neohookean")
-    p.add_argument("--E", type=float, default=78000.0, help="Young's modulus in Pa (default 78000)")
-    p.add_argument("--nu", type=float, default=0.47, help="Poisson's ratio (default 0.47)")
+    p.add_argument("--material", choices=MATERIALS, default=None,
+                   type=lambda t: t.strip().lower().replace("-", "_").replace("neohookean", "neo_hookean"),
+                   help="material model (default: the head's [skin_material], else neo_hookean)")
+    p.add_argument("--E", type=float, default=None,
+                   help="Young's modulus in Pa (default: the head's [skin_material], else 78000)")
+    p.add_argument("--nu", type=float, default=None,
+                   help="Poisson's ratio (default: the head's [skin_material], else 0.47)")
     p.add_argument("--backend", default="auto", help="sparse solver: auto, cholmod, pardiso or superlu")
     p.add_argument("--load-steps", default="auto", help="load increments: an integer or 'auto' (default)")
     p.add_argument("--max-iterations", type=int, default=30, help="Newton iterations per load step")
@@ -126,6 +130,35 @@ def default_head() -> str:
     return str(Path(__file__).resolve().parents[1] / "heads" / "sample" / "head.toml")
 
 
+def skin_material(args):
+    """The material to simulate: the head's ``[skin_material]`` (else E = 78 kPa, nu = 0.47, neo-Hookean), with
+    ``--material``, ``--E`` and ``--nu`` overriding its fields."""
+    import dataclasses
+
+    from likeness.cli import CliError
+    from models.errors import SpecError
+    from models.headspec import load_head
+    from models.material import SkinMaterial
+
+    head_path = args.head or default_head()
+    try:
+        base = load_head(head_path).skin_material()
+    except SpecError as exc:
+        raise CliError(str(exc)) from exc
+    if base is None:
+        base = SkinMaterial("neo_hookean", 78_000.0, 0.47, source=f"FEM default ({head_path} has no [skin_material])")
+    changes = {k: v for k, v in (("model", args.material), ("E", args.E), ("nu", args.nu)) if v is not None}
+    if not changes:
+        return base
+    if "model" in changes and changes["model"] != base.model:
+        changes["shape"] = {}
+    try:
+        return dataclasses.replace(base, **changes, source=base.source + f"; overridden on the command line: "
+                                   f"{', '.join(f'{k}={v}' for k, v in changes.items() if k != 'shape')}")
+    except ValueError as exc:
+        raise CliError(f"--material/--E/--nu: {exc}") from exc
+
+
 def actuator_transforms(args, link_names):
     """Link transforms from actuator values (config units of ``--head``: deg or mm) through the link map."""
     import math
@@ -181,14 +214,12 @@ def run(args: argparse.Namespace) -> int:
         NotConverged,
         SolverOptions,
         load_mesh,
-        neo_hookean_from_E_nu,
         rigid_transform_dirichlet,
         solve_static,
     )
     from offline.fem.linsolve import available_backends
 
-    if not (args.E > 0) or not (-1.0 < args.nu < 0.5):
-        raise CliError(f"--E {args.E} / --nu {args.nu}: need E > 0 and -1 < nu < 0.5")
+    material_spec = skin_material(args)
     if args.backend not in ("auto", "cholmod", "pardiso", "superlu"):
         raise CliError(f"--backend {args.backend}: choose auto, cholmod, pardiso or superlu")
     if args.backend != "auto" and args.backend not in available_backends():
@@ -235,7 +266,11 @@ def run(args: argparse.Namespace) -> int:
         transforms = actuator_transforms(args, set(centroids))
     full = {k: transforms.get(k, np.eye(4)) for k in links if k in centroids}
     dirichlet = rigid_transform_dirichlet(mesh, full, fixed_sets=["skull"])
-    material = neo_hookean_from_E_nu(args.E, args.nu)
+    from offline.material.models import MaterialParams
+
+    material = MaterialParams.from_skin_material(material_spec).to_fem_material(material_spec.density)
+    print(f"material: {material_spec.model}, E = {material_spec.E:.6g} Pa, nu = {material_spec.nu:g} "
+          f"({material_spec.source})")
     opts = SolverOptions(backend=args.backend, tol_force=args.tol, max_iterations=args.max_iterations,
                          load_steps=load_steps, failure_dir=Path(args.out).resolve().parent)
     moved = {k: float(np.abs(T - np.eye(4)).max()) > 0 for k, T in full.items()}

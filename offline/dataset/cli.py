@@ -70,11 +70,18 @@ def run(args: argparse.Namespace) -> int:
         if linkmap is None:
             raise CliError("--linkmap is required: the head config has no paths.linkmap")
         try:
-            from offline.dataset.fem_problem import FemSpec
+            from offline.dataset.fem_problem import FemSpec, material_fields
         except ImportError as exc:
             raise CliError(f"the skin FEM is not available in this installation: {exc}") from exc
+        try:
+            material = head.skin_material()
+        except SpecError as exc:
+            raise CliError(str(exc)) from exc
         spec = FemSpec(config=str(args.config), mesh=str(args.mesh), linkmap=str(linkmap),
-                       backend=args.backend, threads=args.threads_per_worker)
+                       backend=args.backend, threads=args.threads_per_worker, **material_fields(material))
+        if material is None:
+            print(f"note: {args.config} has no [skin_material]; simulating with {spec.material_source}",
+                  file=sys.stderr)
         try:
             spec.check()
         except (SpecError, OSError, ValueError) as exc:

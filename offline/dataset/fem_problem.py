@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from models.errors import SpecError
+from models.material import SkinMaterial
 from offline.dataset.problem import PoseProblem, PoseSolution, ProblemSpec
 
 OUTER_SET_NAMES = ("outer", "outer_surface", "surface")
@@ -39,6 +40,15 @@ def _mesh_file(mesh: str | Path) -> Path:
     return p
 
 
+def material_fields(material: SkinMaterial | None) -> dict[str, Any]:
+    """:class:`FemSpec` keyword arguments for a head's skin material (empty: the FEM default, said so)."""
+    if material is None:
+        return {}
+    return {"material_model": material.model, "youngs_modulus": material.E, "poisson_ratio": material.nu,
+            "material_shape": tuple(sorted(material.shape.items())), "density": material.density,
+            "material_source": material.source + (f" — {material.note}" if material.note else "")}
+
+
 @dataclass(frozen=True)
 class FemSpec(ProblemSpec):
     """Paths and solver settings of the FEM pose problem (picklable; built once per worker)."""
@@ -48,8 +58,15 @@ class FemSpec(ProblemSpec):
     linkmap: str
     backend: str = "auto"
     threads: int = 1
-    youngs_modulus: float = 78_000.0  # Pa, soft skin silicone
+    #: The skin material (names and parameters of :mod:`models.material`); :func:`material_fields` fills these
+    #: from a head's ``[skin_material]``. With only prescribed displacements (no loads, no gravity) the poses do
+    #: not depend on E, only on ν and the shape parameters.
+    material_model: str = "neo_hookean"
+    youngs_modulus: float = 78_000.0  # Pa
     poisson_ratio: float = 0.47
+    material_shape: tuple[tuple[str, float], ...] = ()
+    density: float = 1070.0
+    material_source: str = "FEM default E = 78 kPa, nu = 0.47 (the head config names no [skin_material])"
     skull_set: str = "skull"
     max_iterations: int = 30
     load_steps: int | str = 1
@@ -67,10 +84,15 @@ class FemSpec(ProblemSpec):
         doc = json.dumps({**self.__dict__, "stamp": stamp}, sort_keys=True, default=str)
         return "fem-" + hashlib.sha1(doc.encode()).hexdigest()[:16]
 
+    def skin_material(self) -> SkinMaterial:
+        """The material of this spec in the shared vocabulary."""
+        return SkinMaterial(self.material_model, self.youngs_modulus, self.poisson_ratio, dict(self.material_shape),
+                            self.density, source=self.material_source)
+
     def describe(self) -> dict[str, Any]:
         return {"kind": "fem", "config": self.config, "mesh": self.mesh, "linkmap": self.linkmap,
                 "backend": self.backend, "align_frames": self.align_frames,
-                "material": {"model": "neo_hookean", "E": self.youngs_modulus, "nu": self.poisson_ratio}}
+                "material": self.skin_material().as_dict()}
 
     def check(self) -> None:
         """Load everything once in this process so bad inputs fail before any worker starts."""
@@ -86,7 +108,8 @@ class FemSkin(PoseProblem):
     def __init__(self, spec: FemSpec) -> None:
         from models.headspec import load_head
         from models.linkmap import LinkMap
-        from offline.fem import SolverOptions, load_mesh, neo_hookean_from_E_nu
+        from offline.fem import SolverOptions, load_mesh
+        from offline.material.models import MaterialParams
 
         self.spec = spec
         self.head = load_head(spec.config)
@@ -110,7 +133,8 @@ class FemSkin(PoseProblem):
             self.frame_offset = np.zeros(3)
         self.outer, self._faces = self._outer_surface(mesh_path)
         self._fu_names, self._fu = self._face_units(mesh_path.parent)
-        self.material = neo_hookean_from_E_nu(spec.youngs_modulus, spec.poisson_ratio)
+        mat = spec.skin_material()
+        self.material = MaterialParams.from_skin_material(mat).to_fem_material(mat.density)
         self.options = SolverOptions(backend=spec.backend, max_iterations=spec.max_iterations,
                                      load_steps=spec.load_steps)
 
@@ -187,6 +211,18 @@ class FemSkin(PoseProblem):
 
     def face_units(self) -> tuple[tuple[str, ...], np.ndarray | None]:
         return self._fu_names, self._fu
+
+    def surface_regions(self) -> tuple[tuple[str, ...], np.ndarray]:
+        from offline.dataset.regions import label_surface
+
+        sets = self.mesh.node_sets
+        named = {n: sets[n] for n in (self.spec.skull_set, *self.moving.values())}
+        return label_surface(self.base_surface(), self.mesh.nodes, named)
+
+    def mesh_info(self) -> dict[str, Any]:
+        return {"kind": "tetrahedral FEM", "file": str(_mesh_file(self.spec.mesh)), "element_order": self.mesh.order,
+                "n_elements": int(self.mesh.n_tets), "n_nodes": int(self.mesh.n_nodes),
+                "n_surface_vertices": len(self.outer), "n_surface_triangles": len(self._faces)}
 
     def dirichlet(self, p: np.ndarray):
         """Boundary conditions of pose p: link node sets moved rigidly by m(p), the skull fixed."""

@@ -100,9 +100,10 @@ def generate_dataset(root: str | Path, spec: ProblemSpec, samples: np.ndarray, *
         "actuators": [{"name": n, "unit": u, "min": float(a), "max": float(b)}
                       for n, u, a, b in zip(names, units, lo, hi, strict=True)],
         "n_poses": len(samples), "seed": int(seed), "sampling": sampling, "problem": spec.describe(),
-        "n_vertices": int(problem.base_surface().shape[0]),
+        "n_vertices": int(problem.base_surface().shape[0]), "mesh": problem.mesh_info(),
     }
-    store.create(manifest, samples, problem.base_surface(), problem.faces(), fu_names, fu_offsets)
+    store.create(manifest, samples, problem.base_surface(), problem.faces(), fu_names, fu_offsets,
+                 regions=problem.surface_regions())
     samples = store.samples()  # on resume, the stored plan wins
     xs = (samples - np.asarray(lo)) / (np.asarray(hi) - np.asarray(lo))
     done = store.done()

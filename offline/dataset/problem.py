@@ -45,6 +45,15 @@ class PoseProblem(ABC):
         """Names and offsets (U, V, 3) of expression face units on the surface, if the problem has them."""
         return (), None
 
+    def surface_regions(self) -> tuple[tuple[str, ...], np.ndarray]:
+        """Region names and the region index (V,) of every surface vertex (default: one region)."""
+        return ("surface",), np.zeros(len(self.base_surface()), dtype=np.int32)
+
+    def mesh_info(self) -> dict[str, Any]:
+        """What was simulated, for reports: kind, element order, element and vertex counts (None: no elements)."""
+        return {"kind": type(self).__name__, "element_order": None, "n_elements": None, "n_nodes": None,
+                "n_surface_vertices": len(self.base_surface()), "n_surface_triangles": len(self.faces())}
+
 
 class ProblemSpec(ABC):
     """A picklable recipe for a :class:`PoseProblem`; ``token`` identifies it for the per-worker cache."""

@@ -8,6 +8,10 @@ Layout of a dataset folder::
     poses/pose_NNNNNN.npz  one per solved pose: p (A,), surface (V, 3) float32, converged, iterations, state
     actuators.npy, offsets.npy (N, V, 3) float32, status.npy (N,) int8  consolidated (1 converged, 0 not converged,
                                                                         -1 failed or missing)
+    splits.json          train / validation / test pose indices and the seed that made them (``splits``)
+
+``base.npz`` may also hold ``region_names`` and ``vertex_region`` (V,): the surface region of every vertex, used
+for per-region errors. A dataset written before splits existed gets them on first use, from its manifest seed.
 
 Every file is written atomically, so a killed run leaves only whole files and resumes by skipping them.
 ``offsets.npy`` is written and read through ``numpy.lib.format.open_memmap`` so datasets larger than memory work.
@@ -15,6 +19,8 @@ Every file is written atomically, so a killed run leaves only whole files and re
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import io
 import json
 import os
@@ -27,6 +33,7 @@ import numpy as np
 
 from models.atomic import write_bytes
 from models.errors import SpecError
+from offline.dataset.splits import SPLIT_NAMES, Splits, load_or_assign
 
 FORMAT = "likeness-pose-dataset"
 FORMAT_VERSION = 1
@@ -74,8 +81,12 @@ class PoseStore:
 
     # ------------------------------------------------------------------ creation
     def create(self, manifest: Mapping[str, Any], samples: np.ndarray, base_vertices: np.ndarray, faces: np.ndarray,
-               face_unit_names: Sequence[str] = (), face_unit_offsets: np.ndarray | None = None) -> None:
-        """Write manifest, samples and base of a new dataset (refuses a folder holding a different dataset)."""
+               face_unit_names: Sequence[str] = (), face_unit_offsets: np.ndarray | None = None,
+               regions: tuple[Sequence[str], np.ndarray] | None = None) -> None:
+        """Write manifest, samples, base and splits of a new dataset (refuses a folder holding a different one).
+
+        ``regions`` is (region names, region index (V,) of every surface vertex), stored for per-region errors.
+        """
         if (self.root / "dataset.json").exists():
             old = self.manifest()
             for key in ("actuators", "seed", "n_poses", "sampling"):
@@ -89,11 +100,24 @@ class PoseStore:
         if face_unit_offsets is not None and len(face_unit_names):
             extra = {"face_unit_names": np.array(list(face_unit_names)),
                      "face_unit_offsets": np.asarray(face_unit_offsets, dtype=np.float32)}
+        if regions is not None:
+            names, labels = regions
+            labels = np.asarray(labels, dtype=np.int32)
+            bad = labels.min(initial=0) < 0 or labels.max(initial=0) >= len(names)
+            if labels.shape != (len(base_vertices),) or bad:
+                raise ValueError(f"regions: expected one index < {len(names)} per surface vertex")
+            extra.update(region_names=np.array(list(names)), vertex_region=labels)
         atomic_savez(self.root / "base.npz", vertices=np.asarray(base_vertices, dtype=np.float64),
                      faces=np.asarray(faces, dtype=np.int64), **extra)
         atomic_save_npy(self.root / "samples.npy", np.asarray(samples, dtype=np.float64))
         doc = {"format": FORMAT, "format_version": FORMAT_VERSION, **manifest}
         atomic_write_bytes(self.root / "dataset.json", json.dumps(doc, indent=1).encode())
+        if len(samples) >= 3:  # smaller datasets cannot be split; training refuses them when it asks
+            self.splits()
+
+    def splits(self) -> Splits:
+        """The stored train / validation / test split (assigned from the manifest seed and written on first use)."""
+        return load_or_assign(self.root, len(self.samples()), int(self.manifest().get("seed", 0)))
 
     def manifest(self) -> dict[str, Any]:
         path = self.root / "dataset.json"
@@ -204,6 +228,42 @@ class PoseDataset:
         self.head = str(self.manifest.get("head", ""))
         if self.offsets.shape[0] != self.actuators.shape[0]:
             raise SpecError(str(self.root / "offsets.npy"), "shape", "pose count differs from actuators.npy")
+        self._store = store
+        self.region_names: tuple[str, ...] = tuple(str(x) for x in base.get("region_names", ()))
+        self.vertex_region: np.ndarray | None = base.get("vertex_region")
+
+    @functools.cached_property
+    def splits(self) -> Splits:
+        """The dataset's train / validation / test split (assigned and stored on first use by an older dataset)."""
+        return self._store.splits()
+
+    @property
+    def id(self) -> str:
+        """The dataset's name: the manifest's ``id`` if it has one, else the folder name."""
+        return str(self.manifest.get("id") or self.root.resolve().name)
+
+    def split(self, name: str) -> np.ndarray:
+        """Converged pose indices of split ``name`` (train, validation or test)."""
+        if name not in SPLIT_NAMES:
+            raise ValueError(f"unknown split {name!r}; expected one of {', '.join(SPLIT_NAMES)}")
+        return np.intersect1d(self.splits[name], self.usable)
+
+    def content_hash(self) -> str:
+        """SHA-256 over what training and evaluation read: actuators, offsets, status, base surface, splits.
+
+        Array bytes are hashed (not file bytes), so rewriting a file with the same content keeps the hash.
+        """
+        h = hashlib.sha256()
+        for name, arr in (("actuators", self.actuators), ("status", self.status),
+                          ("base_vertices", self.base_vertices), ("faces", self.faces)):
+            a = np.ascontiguousarray(arr)
+            h.update(f"{name}:{a.dtype.str}:{a.shape}".encode())
+            h.update(a.tobytes())
+        h.update(f"offsets:{self.offsets.dtype.str}:{self.offsets.shape}".encode())
+        for s in range(0, self.offsets.shape[0], 64):
+            h.update(np.ascontiguousarray(self.offsets[s:s + 64]).tobytes())
+        h.update(json.dumps(self.splits.to_json(), sort_keys=True).encode())
+        return "sha256:" + h.hexdigest()
 
     @property
     def usable(self) -> np.ndarray:

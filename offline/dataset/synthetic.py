@@ -11,6 +11,7 @@ from __future__ import annotations
 import hashlib
 import json
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -70,6 +71,13 @@ class SyntheticSkin(PoseProblem):
 
     def faces(self) -> np.ndarray:
         return self._faces.copy()
+
+    def surface_regions(self) -> tuple[tuple[str, ...], np.ndarray]:
+        """Each vertex in the region of the actuator whose bump moves it most (``bump_k``)."""
+        return tuple(f"bump_{k}" for k in range(len(self._bump))), np.argmax(self._bump, axis=0).astype(np.int32)
+
+    def mesh_info(self) -> dict[str, Any]:
+        return {**super().mesh_info(), "kind": "analytic sheet (no elements)"}
 
     def forcing(self, p: np.ndarray) -> np.ndarray:
         x = (np.asarray(p, dtype=float) - self._lo) / (self._hi - self._lo)

@@ -13,7 +13,17 @@ from pathlib import Path
 
 from likeness.cli import CliError
 
-_MODELS = ("neohookean", "mooney-rivlin", "yeoh")
+_MODELS = ("neo_hookean", "mooney_rivlin", "yeoh")  # models.material.MATERIAL_MODELS (kept import-free here)
+
+
+def _model_arg(text: str) -> str:
+    """A model name in the shared vocabulary; older spellings (neohookean, mooney-rivlin) are accepted."""
+    from models.material import canonical_material_model
+
+    try:
+        return canonical_material_model(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def _atomic_write_text(path: Path, text: str) -> None:
@@ -100,7 +110,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "uniaxial", help="virtual uniaxial tension/compression test (FEM), writes strain,force_N CSV",
         description="Stretch or compress a virtual specimen with the FEM and write nominal strain versus axial "
         "force. Tension uses the 55x5x2 mm strip, compression the 50x12 mm cylinder (--specimen auto).")
-    p.add_argument("--material", choices=_MODELS, default="neohookean", help="hyperelastic model")
+    p.add_argument("--material", type=_model_arg, choices=_MODELS, default="neo_hookean",
+                   help="hyperelastic model")
     p.add_argument("--E", type=float, default=78_000.0, help="small-strain Young's modulus, Pa (default 78000)")
     p.add_argument("--nu", type=float, default=0.47, help="small-strain Poisson's ratio (default 0.47)")
     p.add_argument("--c01", type=float, default=None, help="Mooney-Rivlin c01, Pa (c10 = mu/2 - c01)")
@@ -119,10 +130,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     q = subparsers.add_parser(
         "fit-material", help="fit hyperelastic parameters to measured force-strain data",
         description="Fit E and nu (and model shape parameters) to measurements by simulated annealing and/or "
-        "least squares. Accepts strain,force_N or displacement_m,force_N CSVs and the ';'-separated tensile-test "
-        "exports in data/tensile/ (specimen from the file header).")
-    q.add_argument("measurements", type=Path, help="measurement file")
-    q.add_argument("--model", choices=_MODELS, default="neohookean", help="model to fit (default neohookean)")
+        "least squares, and report which parameters the data identify (95 % intervals from the residual "
+        "Jacobian; tension-only data do not pin nu). Accepts strain,force_N or displacement_m,force_N CSVs and "
+        "the ';'-separated tensile-test exports in data/tensile/ (specimen from the file header); several "
+        "files are fitted jointly.")
+    q.add_argument("measurements", type=Path, nargs="+",
+                   help="measurement file(s); several files (e.g. a tension strip and a compression cylinder) are "
+                   "fitted jointly, each sample on its own specimen")
+    q.add_argument("--model", type=_model_arg, choices=_MODELS, default="neo_hookean",
+                   help="model to fit (default neo_hookean)")
     q.add_argument("--method", choices=("anneal", "lsq", "both"), default="both",
                    help="simulated annealing, least squares, or both keeping the better (default both)")
     _add_specimen_args(q, "auto")
@@ -143,7 +159,7 @@ def _material(args: argparse.Namespace):
     from offline.material.models import MaterialParams
 
     extra = {}
-    allowed = {"neohookean": (), "mooney-rivlin": ("c01",), "yeoh": ("c20", "c30")}[args.material]
+    allowed = {"neo_hookean": (), "mooney_rivlin": ("c01",), "yeoh": ("c20", "c30")}[args.material]
     for name in ("c01", "c20", "c30"):
         value = getattr(args, name)
         if value is None:
@@ -184,25 +200,38 @@ def _cmd_uniaxial(args: argparse.Namespace) -> int:
 
 def _cmd_fit(args: argparse.Namespace) -> int:
     from offline.material.fit import fit_measurement
-    from offline.material.measurements import MeasurementError, load_measurements
+    from offline.material.measurements import MeasurementError, combine_measurements, load_measurements
     from offline.material.specimen import SpecimenPlan
     from offline.material.virtual_test import VirtualTestError, run_plan
 
     plan = _plan(args)
     lo, hi = _parse_range(args.strain_range, "--strain-range")
     nu_bounds = _parse_range(args.nu_range, "--nu-range")
-    try:
-        meas = load_measurements(args.measurements, plan)
-    except MeasurementError as exc:
-        raise CliError(str(exc)) from None
-    if meas.specimen is not None:
-        plan = SpecimenPlan(meas.specimen, meas.specimen)
-        print(f"specimen from the file header: {meas.specimen.describe()}, cross-section "
-              f"{meas.specimen.area * 1e4:g} cm² (--specimen ignored)")
-    total = len(meas)
-    meas = meas.select(lo, hi)
+    loaded = []
+    total = 0
+    for path in args.measurements:
+        try:
+            one = load_measurements(path, plan)
+        except MeasurementError as exc:
+            raise CliError(str(exc)) from None
+        if one.specimen is not None:
+            print(f"{path.name}: specimen from the file header: {one.specimen.describe()}, cross-section "
+                  f"{one.specimen.area * 1e4:g} cm² (--specimen ignored)")
+        total += len(one)
+        one = one.select(lo, hi)
+        if len(one) == 0:
+            raise CliError(f"{path}: no samples lie in --strain-range {lo}:{hi}")
+        loaded.append(one)
+    if len(loaded) == 1:
+        meas = loaded[0]
+        if meas.specimen is not None:
+            plan = SpecimenPlan(meas.specimen, meas.specimen)
+    else:
+        meas, plan = combine_measurements(loaded, plan)
+        print(f"joint fit of {len(loaded)} files: " + "; ".join(f"{k}: {v['kind']}, {v['samples']} samples"
+                                                             for k, v in plan.as_dict().items()))
     if len(meas) < 3:
-        raise CliError(f"{args.measurements}: only {len(meas)} of {total} samples lie in --strain-range {lo}:{hi}")
+        raise CliError(f"only {len(meas)} of {total} samples lie in --strain-range {lo}:{hi}")
     settings = _mesh_settings(args)
 
     def fem_model(params, strain):
@@ -213,9 +242,10 @@ def _cmd_fit(args: argparse.Namespace) -> int:
                                  nu_bounds=nu_bounds, seed=args.seed, anneal_maxiter=args.anneal_maxiter,
                                  fem_model=fem_model if args.grips == "clamped" else None)
     except (ValueError, VirtualTestError) as exc:
-        raise CliError(f"{args.measurements}: {exc}") from None
+        raise CliError(f"{meas.source}: {exc}") from None
     summary = result.as_dict()
-    summary.update({"measurements": str(args.measurements), "file_format": meas.file_format,
+    files = [str(p) for p in args.measurements]
+    summary.update({"measurements": " + ".join(files), "measurements_files": files, "file_format": meas.file_format,
                     "samples_used": len(meas), "samples_in_file": total, "specimens": plan.as_dict()})
     for run in result.runs:
         se = "".join(f", ±{v:.3g} {k}" for k, v in run.stderr.items())
@@ -224,13 +254,16 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     print(f"chosen {result.method}: E = {result.params.E:.6g} Pa, nu = {result.params.nu:.4f}; RMS force error "
           f"{result.rms_force_N:.4g} N ({100 * result.relative_rms:.2f} % of max |force|), {len(meas)} samples")
     print(f"forward model: {result.surrogate}")
+    for line in result.identifiability.get("summary", []):
+        print(f"identifiability: {line}")
     if args.out is not None:
         _atomic_write_text(args.out, json.dumps(summary, indent=2) + "\n")
         print(f"wrote {args.out}")
     if args.plot is not None:
         from offline.material.plot import plot_fit
 
-        plot_fit(result, plan, args.plot, title=f"{args.measurements.name}: {args.model} fit")
+        names = " + ".join(p.name for p in args.measurements)
+        plot_fit(result, plan, args.plot, title=f"{names}: {args.model} fit")
         print(f"wrote {args.plot}")
     sys.stdout.flush()
     return 0

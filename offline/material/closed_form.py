@@ -24,9 +24,9 @@ from offline.material.models import MaterialParams
 def _w_derivatives(params: MaterialParams, i1b: np.ndarray, i2b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """∂W/∂Ī1 and ∂W/∂Ī2 of the model's isochoric energy (arrays; complex-safe)."""
     c = params.coefficients()
-    if params.model == "neohookean":
+    if params.model == "neo_hookean":
         return 0.5 * c["mu"] + 0.0 * i1b, 0.0 * i2b
-    if params.model == "mooney-rivlin":
+    if params.model == "mooney_rivlin":
         return c["c10"] + 0.0 * i1b, c["c01"] + 0.0 * i2b
     d = i1b - 3.0
     return c["c10"] + 2.0 * c["c20"] * d + 3.0 * c["c30"] * d * d, 0.0 * i2b

@@ -29,17 +29,18 @@ from typing import Any
 import numpy as np
 from scipy import optimize
 
+from models.material import MATERIAL_FIT_FORMAT
 from offline.material import closed_form
 from offline.material.measurements import Measurement
 from offline.material.models import NU_RANGE, MaterialParams, canonical_model_name
-from offline.material.specimen import SpecimenPlan
+from offline.material.specimen import PointPlan, SpecimenPlan
 
 METHODS: tuple[str, ...] = ("anneal", "lsq", "both")
 
 #: Bounds of the model shape parameters, relative to c10 = μ/2 (dimensionless), used as fit variables.
 _SHAPE_BOUNDS: dict[str, dict[str, tuple[float, float]]] = {
-    "neohookean": {},
-    "mooney-rivlin": {"c01_share": (0.0, 0.95)},  # c01 = share · μ/2, c10 = (1 − share) · μ/2
+    "neo_hookean": {},
+    "mooney_rivlin": {"c01_share": (0.0, 0.95)},  # c01 = share · μ/2, c10 = (1 − share) · μ/2
     "yeoh": {"c20_rel": (-0.2, 1.0), "c30_rel": (0.0, 0.5)},  # c20 = rel · c10, c30 = rel · c10
 }
 
@@ -94,7 +95,7 @@ class ParamSpace:
         nu = self.fixed_nu if self.fixed_nu is not None else v["nu"]
         half_mu = 0.5 * E / (2.0 * (1.0 + nu))
         extra: dict[str, float] = {}
-        if self.model == "mooney-rivlin":
+        if self.model == "mooney_rivlin":
             extra["c01"] = v["c01_share"] * half_mu
         elif self.model == "yeoh":
             extra["c20"] = v["c20_rel"] * half_mu
@@ -105,7 +106,7 @@ class ParamSpace:
         """Optimiser vector of ``params`` (clipped into the box)."""
         half_mu = params.mu / 2.0
         v = {"log10_E": math.log10(params.E), "nu": params.nu}
-        if params.model == "mooney-rivlin":
+        if params.model == "mooney_rivlin":
             v["c01_share"] = params.extra["c01"] / half_mu
         elif params.model == "yeoh":
             v["c20_rel"] = params.extra["c20"] / half_mu
@@ -145,6 +146,8 @@ class FitResult:
     runs: list[RunResult]
     fem_sweeps: int = 0
     runs_simulated: dict[str, np.ndarray] = field(default_factory=dict)
+    #: Which parameters the data identify, with 95 % intervals (:mod:`offline.material.identify`).
+    identifiability: dict[str, Any] = field(default_factory=dict)
 
     @property
     def rms_force_N(self) -> float:
@@ -164,6 +167,8 @@ class FitResult:
     def as_dict(self) -> dict[str, Any]:
         """JSON-friendly summary."""
         return {
+            "format": MATERIAL_FIT_FORMAT,
+            "format_version": 1,
             "model": self.params.model,
             "E_Pa": self.params.E,
             "nu": self.params.nu,
@@ -178,6 +183,7 @@ class FitResult:
             "rms_force_error_N": self.rms_force_N,
             "relative_rms_force_error": self.relative_rms,
             "max_abs_force_error_N": self.max_abs_error_N,
+            "identifiability": self.identifiability,
             "runs": [
                 {"method": r.method, "E_Pa": r.params.E, "nu": r.params.nu, "params": r.params.as_dict(),
                  "scaled_cost": r.cost, "evaluations": r.evaluations, "seconds": r.seconds,
@@ -242,9 +248,9 @@ def _run_lsq(space: ParamSpace, residual: Callable[[np.ndarray], np.ndarray], x0
 
 def fit_measurement(
     meas: Measurement,
-    plan: SpecimenPlan,
+    plan: SpecimenPlan | PointPlan,
     *,
-    model: str = "neohookean",
+    model: str = "neo_hookean",
     method: str = "both",
     grips: str = "frictionless",
     nu_bounds: tuple[float, float] = NU_RANGE,
@@ -293,7 +299,8 @@ def fit_measurement(
         best = min(runs, key=lambda r: r.cost)
         simulated = closed_form_forces(best.params, strain, plan)
         runs_sim = {r.method: closed_form_forces(r.params, strain, plan) for r in runs}
-        return FitResult(best.params, best.method, grips, surrogate, strain, force, simulated, runs, 0, runs_sim)
+        return FitResult(best.params, best.method, grips, surrogate, strain, force, simulated, runs, 0, runs_sim,
+                         _identify(space, residual, best.params, strain))
 
     if fem_model is None:
         raise ValueError("clamped grips need the FEM virtual test (fem_model)")
@@ -348,7 +355,16 @@ def fit_measurement(
             runs_sim[r.method] = fem_model(r.params, strain)
             sweeps += 1
     return FitResult(best.params, best.method, grips, surrogate, strain, force, runs_sim[best.method], runs, sweeps,
-                     runs_sim)
+                     runs_sim, _identify(space, residual, best.params, strain))
+
+
+def _identify(space: ParamSpace, residual: Callable[[np.ndarray], np.ndarray], params: MaterialParams,
+              strain: np.ndarray) -> dict[str, Any]:
+    """Identifiability at the chosen estimate, in the optimiser's own parameters (see :mod:`.identify`)."""
+    from offline.material.identify import identifiability
+
+    return identifiability(space.names, space.to_vector(params), space.lower, space.upper, residual, strain,
+                           space.fixed_nu)
 
 
 def _nu_grid(space: ParamSpace, n: int = 5) -> list[float]:

@@ -21,13 +21,14 @@ from __future__ import annotations
 import csv
 import io
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from models.errors import SpecError
-from offline.material.specimen import Specimen, SpecimenPlan
+from offline.material.specimen import PointPlan, Specimen, SpecimenPlan
 
 MAX_STRAIN_FRACTION = 10.0
 """Largest nominal strain accepted in our CSV formats (1000 %); larger values are taken for percent."""
@@ -291,3 +292,35 @@ def load_measurements(path: str | Path, plan: SpecimenPlan) -> Measurement:
     if _is_tensile_export(text):
         return _load_tensile_export(text, str(p))
     return _load_csv(text, str(p), plan)
+
+
+def combine_measurements(measurements: Sequence[Measurement], plan: SpecimenPlan) -> tuple[Measurement, PointPlan]:
+    """Join several files for one fit: every sample keeps its own specimen (its file's, else ``plan``'s by sign).
+
+    The fit then scales residuals per specimen, so a compression cylinder's large forces do not drown a strip's.
+    """
+    if not measurements:
+        raise ValueError("no measurements to combine")
+    specimens: list[Specimen] = []
+    labels: list[str] = []
+    index_parts = []
+    for meas in measurements:
+        if meas.specimen is not None:
+            groups = [(meas.specimen, np.ones(len(meas), dtype=bool), meas.source)]
+        else:
+            neg = meas.strain < 0
+            groups = [(plan.compression, neg, f"{meas.source} (compression)"),
+                      (plan.tension, ~neg, f"{meas.source} (tension)")]
+        idx = np.full(len(meas), -1, dtype=np.int64)
+        for spec, mask, label in groups:
+            if not mask.any():
+                continue
+            specimens.append(spec)
+            labels.append(label)
+            idx[mask] = len(specimens) - 1
+        index_parts.append(idx)
+    joined = Measurement(
+        np.concatenate([m.strain for m in measurements]), np.concatenate([m.force for m in measurements]),
+        np.concatenate([m.lines for m in measurements]), " + ".join(m.source for m in measurements), "joint",
+        None, {"files": ", ".join(m.source for m in measurements)})
+    return joined, PointPlan(tuple(specimens), np.concatenate(index_parts), tuple(labels))

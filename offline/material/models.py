@@ -18,32 +18,19 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-MODEL_NAMES: tuple[str, ...] = ("neohookean", "mooney-rivlin", "yeoh")
+from models.material import MATERIAL_MODELS, SHAPE_PARAMS, SkinMaterial, canonical_material_model
+
+MODEL_NAMES: tuple[str, ...] = MATERIAL_MODELS
 
 NU_RANGE: tuple[float, float] = (0.3, 0.499)
 """Realistic Poisson's ratio range for filled/unfilled silicone rubbers, used as fit bounds."""
 
-_EXTRA_PARAMS: dict[str, tuple[str, ...]] = {
-    "neohookean": (),
-    "mooney-rivlin": ("c01",),
-    "yeoh": ("c20", "c30"),
-}
-
-_ALIASES = {
-    "neo-hookean": "neohookean",
-    "neohooke": "neohookean",
-    "mooneyrivlin": "mooney-rivlin",
-    "mr": "mooney-rivlin",
-}
+_EXTRA_PARAMS = SHAPE_PARAMS
 
 
 def canonical_model_name(name: str) -> str:
-    """Return the canonical model name for ``name`` (case-insensitive, a few aliases), or raise ValueError."""
-    key = name.strip().lower().replace("_", "-")
-    key = _ALIASES.get(key, key)
-    if key not in MODEL_NAMES:
-        raise ValueError(f"unknown material model {name!r}; choose one of {', '.join(MODEL_NAMES)}")
-    return key
+    """Return the canonical model name for ``name`` (see :mod:`models.material`), or raise ValueError."""
+    return canonical_material_model(name)
 
 
 def mu_kappa_from_E_nu(E: float, nu: float) -> tuple[float, float]:
@@ -81,7 +68,7 @@ class MaterialParams:
             extra.setdefault(name, 0.0)
         object.__setattr__(self, "extra", extra)
         c = self.coefficients()
-        if model == "mooney-rivlin" and (c["c10"] < 0.0 or c["c01"] < 0.0):
+        if model == "mooney_rivlin" and (c["c10"] < 0.0 or c["c01"] < 0.0):
             raise ValueError(
                 f"Mooney-Rivlin needs 0 <= c01 <= mu/2 = {self.mu / 2:.6g} Pa so that c10 >= 0, got c01={c['c01']!r}"
             )
@@ -99,9 +86,9 @@ class MaterialParams:
     def coefficients(self) -> dict[str, float]:
         """The energy coefficients (Pa) of the model: mu/kappa, c10/c01/kappa or c10/c20/c30/kappa."""
         mu, kappa = mu_kappa_from_E_nu(self.E, self.nu)
-        if self.model == "neohookean":
+        if self.model == "neo_hookean":
             return {"mu": mu, "kappa": kappa}
-        if self.model == "mooney-rivlin":
+        if self.model == "mooney_rivlin":
             c01 = self.extra["c01"]
             return {"c10": mu / 2.0 - c01, "c01": c01, "kappa": kappa}
         return {"c10": mu / 2.0, "c20": self.extra["c20"], "c30": self.extra["c30"], "kappa": kappa}
@@ -111,11 +98,16 @@ class MaterialParams:
         from offline.fem import materials as fm
 
         c = self.coefficients()
-        if self.model == "neohookean":
+        if self.model == "neo_hookean":
             return fm.neo_hookean(c["mu"], c["kappa"], density=density)
-        if self.model == "mooney-rivlin":
+        if self.model == "mooney_rivlin":
             return fm.mooney_rivlin(c["c10"], c["c01"], c["kappa"], density=density)
         return fm.yeoh(c["c10"], c["c20"], c["c30"], c["kappa"], density=density)
+
+    @classmethod
+    def from_skin_material(cls, material: SkinMaterial) -> MaterialParams:
+        """The fit-side form of a head's skin material (same names and parameters)."""
+        return cls(material.model, material.E, material.nu, dict(material.shape))
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-friendly description: model, E, nu, extras and the derived energy coefficients."""

@@ -31,7 +31,8 @@ def plot_fit(result: FitResult, plan: SpecimenPlan, path: str | Path, title: str
             label = f"{run.method}: E = {run.params.E / 1e3:.1f} kPa, ν = {run.params.nu:.3f}"
             if result.grips == "frictionless":
                 dense = np.linspace(eps.min(), eps.max(), 200)
-                ax.plot(dense * 100, closed_form_forces(run.params, dense, plan), color=color, ls=ls, label=label)
+                curve = closed_form_forces(run.params, dense, SpecimenPlan(spec, spec))
+                ax.plot(dense * 100, curve, color=color, ls=ls, label=label)
             else:
                 sim = result.runs_simulated.get(run.method)
                 if sim is not None:

@@ -131,3 +131,42 @@ def make_plan(choice: str, strip_spec: Specimen | None = None, cylinder_spec: Sp
     if choice == "auto":
         return SpecimenPlan(s, c)
     raise ValueError(f"specimen must be one of {', '.join(SPECIMEN_CHOICES)}, got {choice!r}")
+
+
+@dataclass(frozen=True)
+class PointPlan:
+    """A specimen per sample, for joint fits of several files (e.g. a tension strip and a compression cylinder).
+
+    Samples with ``index == k`` were tested on ``specimens[k]`` (named ``labels[k]``, usually the file). Offers the
+    methods of :class:`SpecimenPlan` for the fitted strain array itself (same length as ``index``).
+    """
+
+    specimens: tuple[Specimen, ...]
+    index: np.ndarray
+    labels: tuple[str, ...]
+
+    def _check(self, strain: np.ndarray) -> np.ndarray:
+        eps = np.asarray(strain, dtype=float)
+        if eps.shape != self.index.shape:
+            raise ValueError(f"a joint specimen plan applies to its own {self.index.size} samples, got {eps.shape}")
+        return eps
+
+    def for_strains(self, strain: np.ndarray) -> list[tuple[Specimen, np.ndarray]]:
+        self._check(strain)
+        return [(self.specimens[k], self.index == k) for k in range(len(self.specimens)) if (self.index == k).any()]
+
+    def area_per_point(self, strain: np.ndarray) -> np.ndarray:
+        self._check(strain)
+        return np.array([s.area for s in self.specimens])[self.index]
+
+    def gauge_per_point(self, strain: np.ndarray) -> np.ndarray:
+        self._check(strain)
+        return np.array([s.length for s in self.specimens])[self.index]
+
+    def single(self, k: int) -> SpecimenPlan:
+        """The one-specimen plan of group ``k`` (for curves at other strains)."""
+        return SpecimenPlan(self.specimens[k], self.specimens[k])
+
+    def as_dict(self) -> dict[str, object]:
+        return {label: {**s.as_dict(), "samples": int((self.index == k).sum())}
+                for k, (label, s) in enumerate(zip(self.labels, self.specimens, strict=True))}

@@ -8,18 +8,20 @@ import argparse
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``train`` tool."""
     p = sub.add_parser("train", help="train the KSNN skin predictor on a pose dataset, export ONNX + report",
-                       description="Train three shallow tanh networks (x, y, z vertex offsets) on a pose dataset "
-                       "(80/20 split, hidden size chosen by validation from A, 1.5A, 2A), export one ONNX "
-                       "predictor with its metadata, and write report.json, vertex_error.png and "
-                       "training_curves.png. Rerunning resumes from the checkpoints in OUT/checkpoints.")
+                       description="Train three shallow tanh networks (x, y, z vertex offsets) on a pose dataset's "
+                       "train split (epoch and hidden size chosen on its validation split, from A, 1.5A, 2A by "
+                       "default), export one ONNX predictor with its metadata, evaluate it once on the test "
+                       "split, and write predictor_report.json, vertex_error.png and training_curves.png. "
+                       "Rerunning resumes from the checkpoints in OUT/checkpoints.")
     p.add_argument("--dataset", required=True, help="pose dataset folder (from `likeness offline dataset`)")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--epochs", type=int, default=300)
     p.add_argument("--batch-size", type=int, default=64)
     p.add_argument("--lr", type=float, default=3e-3)
     p.add_argument("--patience", type=int, default=60, help="stop after this many epochs without improvement")
-    p.add_argument("--hidden", type=int, nargs="*", default=None,
-                   help="hidden sizes to try (default: A, 1.5A, 2A for A actuators)")
+    p.add_argument("--hidden", nargs="*", default=None,
+                   help="hidden sizes to try: integers or multiples of the actuator count A (e.g. `--hidden A` "
+                   "for the paper's H = A; default: A 1.5A 2A)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=1, help="torch and onnxruntime threads")
     p.add_argument("--int8", action="store_true", help="also export the int8 (MatMulNBits) variant and its error")
@@ -43,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
         report = train_pipeline(args.dataset, args.out, config, hidden=args.hidden, int8=args.int8)
     except (SpecError, ValueError, FileNotFoundError) as exc:
         raise CliError(str(exc)) from exc
-    print(json.dumps({"predictor": report["predictor"], "hidden": report["hidden"],
-                      "held_out": report["held_out"], **({"int8": report["int8"]} if "int8" in report else {})},
-                     indent=1))
+    test = {k: v for k, v in report["test"].items() if k != "per_region"}
+    print(json.dumps({"predictor": report["predictor"], "hidden": report["training"]["selected_hidden"],
+                      "test": test, **({"int8": report["int8"]} if "int8" in report else {})}, indent=1))
     return 0

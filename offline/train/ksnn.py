@@ -1,17 +1,19 @@
 """KSNN training in PyTorch (offline only): three shallow networks (x, y, z) from actuators to vertex offsets.
 
 As in the paper: inputs normalized to [0, 1], one tanh hidden layer, a linear output layer per axis, Adam with
-mean-squared error, an 80/20 split, and the best checkpoint (lowest validation loss) kept. Targets are scaled per
+mean-squared error, and the best checkpoint (lowest validation loss) kept. The caller passes the dataset's train
+and validation poses (``offline.dataset.splits``); the test poses never reach this module. Targets are scaled per
 axis to unit standard deviation for training; the scale is folded back into the exported weights. Checkpoints
 are written atomically every few epochs, so a killed training resumes.
 """
 
 from __future__ import annotations
 
+import hashlib
 import io
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -30,7 +32,6 @@ class TrainConfig:
     batch_size: int = 64
     lr: float = 3e-3
     weight_decay: float = 0.0
-    val_fraction: float = 0.2
     seed: int = 0
     patience: int = 60  # epochs without validation improvement before stopping early
     threads: int = 1
@@ -49,16 +50,34 @@ class TrainResult:
     seconds: float = 0.0
 
 
-def split_indices(n: int, val_fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """Seeded 80/20 (default) split of ``n`` items into sorted train and validation indices."""
-    perm = np.random.default_rng(seed).permutation(n)
-    n_val = max(1, round(n * val_fraction))
-    return np.sort(perm[n_val:]), np.sort(perm[:n_val])
-
-
 def hidden_candidates(n_actuators: int) -> list[int]:
     """Hidden sizes tried by validation: A, 1.5 A and 2 A."""
     return sorted({n_actuators, math.ceil(1.5 * n_actuators), 2 * n_actuators})
+
+
+def resolve_hidden(spec: Sequence[int | str] | None, n_actuators: int) -> list[int]:
+    """Hidden sizes from a user list: integers, or multiples of the actuator count written ``A``, ``1.5A``, ``2A``.
+
+    ``["A"]`` is the paper's H = A option alone; None gives :func:`hidden_candidates`.
+    """
+    if not spec:
+        return hidden_candidates(n_actuators)
+    out: set[int] = set()
+    for item in spec:
+        text = str(item).strip()
+        try:
+            if text.upper().endswith("A"):
+                factor = float(text[:-1]) if text[:-1] else 1.0
+                value = math.ceil(factor * n_actuators)
+            else:
+                value = int(text)
+        except ValueError:
+            raise ValueError(f"hidden size {item!r}: expected an integer or a multiple of A such as A, 1.5A, 2A"
+                             ) from None
+        if value < 1:
+            raise ValueError(f"hidden size {item!r} gives {value}; must be at least 1")
+        out.add(value)
+    return sorted(out)
 
 
 def _module(n_in: int, hidden: int, n_out: int):
@@ -117,7 +136,11 @@ def train_ksnn(x_norm: np.ndarray, offsets: np.ndarray, train_idx: np.ndarray, v
     history: dict[str, list[float]] = {"train": [], "val": [], "lr": []}
     start_epoch = 0
     best = {"val": math.inf, "epoch": -1, "state": None}
-    key = {"n_act": n_act, "n_vert": n_vert, "hidden": hidden, "n_train": len(train_idx), "seed": config.seed}
+    # The checkpoint belongs to these exact train / validation poses: a changed split starts afresh.
+    split_id = hashlib.sha1(np.asarray(train_idx, np.int64).tobytes() + b"|" +
+                            np.asarray(val_idx, np.int64).tobytes()).hexdigest()[:16]
+    key = {"n_act": n_act, "n_vert": n_vert, "hidden": hidden, "n_train": len(train_idx), "seed": config.seed,
+           "split": split_id}
     if checkpoint is not None and checkpoint.exists():
         ck = torch.load(checkpoint, weights_only=False)
         if ck.get("key") == key:

@@ -1,8 +1,10 @@
-"""Dataset → KSNN → ONNX: choose the hidden size by validation, export, measure held-out error, write the report.
+"""Dataset → KSNN → ONNX → ``predictor_report.json``, with train / validation / test kept apart.
 
-Outputs in the ``out`` folder: ``predictor.onnx`` (float32), optionally ``predictor_int8.onnx``, ``report.json``
-(RMSE and mean/max vertex error in µm on held-out poses, per hidden size, int8 error), ``vertex_error.png``
-(mean held-out error per surface vertex) and ``training_curves.png``; ``checkpoints/`` makes training resumable.
+Training reads the dataset's train split; early stopping, the best epoch and the hidden size are chosen on the
+validation split only; the exported predictor is evaluated once on the test split for the report. Outputs in
+``out``: ``predictor.onnx`` (float32), optionally ``predictor_int8.onnx``, ``predictor_report.json`` (written
+whole, see ``docs/predictor.md``), ``vertex_error.png`` (mean test error per surface vertex),
+``training_curves.png``, and ``checkpoints/`` so training resumes.
 """
 
 from __future__ import annotations
@@ -16,101 +18,138 @@ from typing import Any
 
 import numpy as np
 
+from offline.dataset.describe import material_info, mesh_info, regions
+from offline.dataset.splits import SPLIT_NAMES
 from offline.dataset.store import PoseDataset, atomic_write_bytes
+from offline.train.evaluate import REPORT_FORMAT, REPORT_NAME, evaluate_predictor
 from offline.train.export import export_int8, export_predictor, predictor_metadata
-from offline.train.ksnn import TrainConfig, TrainResult, hidden_candidates, split_indices, train_ksnn
+from offline.train.ksnn import TrainConfig, TrainResult, resolve_hidden, train_ksnn
+from offline.train.metrics import surface_errors
+
+REPORT_VERSION = 1
+SELECTION = ("hidden size: lowest validation MSE (per-axis scaled offsets); epoch: best validation MSE with early "
+             "stopping on validation; the test split plays no part in either")
 
 
-def vertex_errors(pred: np.ndarray, truth: np.ndarray) -> dict[str, float]:
-    """RMSE per coordinate and mean/max Euclidean vertex error, all in micrometres."""
-    d = np.asarray(pred, dtype=np.float64) - np.asarray(truth, dtype=np.float64)
-    per_vertex = np.sqrt((d ** 2).sum(axis=-1))
-    return {"rmse_um": float(np.sqrt(np.mean(d ** 2)) * 1e6), "mean_vertex_error_um": float(per_vertex.mean() * 1e6),
-            "max_vertex_error_um": float(per_vertex.max() * 1e6)}
+def _numpy_predict(weights) -> Callable[[np.ndarray], np.ndarray]:
+    def predict(p: np.ndarray) -> np.ndarray:
+        x = weights.normalize(p)
+        h = np.tanh(np.einsum("ba,kah->kbh", x, weights.W1) + weights.b1[:, None, :])
+        return (np.einsum("kbh,khv->kbv", h, weights.W2) + weights.b2[:, None, :]).transpose(1, 2, 0)
 
-
-def _predict_all(model_path: Path, p: np.ndarray, threads: int, chunk: int = 256) -> np.ndarray:
-    from models.predictor import SkinPredictor
-
-    sp = SkinPredictor(model_path, threads=threads)
-    return np.concatenate([sp.predict_offsets(p[s:s + chunk]) for s in range(0, len(p), chunk)])
+    return predict
 
 
 def train_pipeline(dataset_dir: str | Path, out_dir: str | Path, config: TrainConfig | None = None,
-                   hidden: Sequence[int] | None = None, int8: bool = False,
+                   hidden: Sequence[int | str] | None = None, int8: bool = False,
                    log: Callable[[str], None] = print) -> dict[str, Any]:
-    """Run the whole training for one dataset folder; returns the report (also written to report.json)."""
+    """Run the whole training for one dataset folder; returns the report (also written to predictor_report.json)."""
     t0 = time.perf_counter()
     config = config or TrainConfig()
     ds = PoseDataset(dataset_dir)
     out = Path(out_dir)
     (out / "checkpoints").mkdir(parents=True, exist_ok=True)
-    usable = ds.usable
-    n_total = len(ds.status)
-    if len(usable) < 10:
-        raise ValueError(f"{dataset_dir}: only {len(usable)} converged poses; need at least 10 to train")
+    train_idx, val_idx, test_idx = (ds.split(name) for name in SPLIT_NAMES)
+    for name, idx, need in (("train", train_idx, 2), ("validation", val_idx, 1), ("test", test_idx, 1)):
+        if len(idx) < need:
+            raise ValueError(f"{dataset_dir}: the {name} split has {len(idx)} converged poses; need at least {need}")
+    n_act = len(ds.names)
+    candidates = resolve_hidden(hidden, n_act)
+    log(f"dataset {dataset_dir}: {len(ds.status)} poses, {len(ds.usable)} converged, {ds.offsets.shape[1]} "
+        f"vertices, {n_act} actuators; converged train {len(train_idx)} / validation {len(val_idx)} / test "
+        f"{len(test_idx)}; hidden sizes {candidates}")
     x_all = (ds.actuators - ds.lo) / (ds.hi - ds.lo)
-    tr_local, va_local = split_indices(len(usable), config.val_fraction, config.seed)
-    train_idx, val_idx = usable[tr_local], usable[va_local]
-    candidates = list(hidden) if hidden else hidden_candidates(len(ds.names))
-    log(f"dataset {dataset_dir}: {n_total} poses, {len(usable)} converged, {ds.offsets.shape[1]} vertices, "
-        f"{len(ds.names)} actuators; train {len(train_idx)} / held out {len(val_idx)}; hidden sizes {candidates}")
+    names, labels = regions(ds)
     results: list[TrainResult] = []
+    per_hidden: dict[str, Any] = {}
     for h in candidates:
         res = train_ksnn(x_all, ds.offsets, train_idx, val_idx, h, ds.lo, ds.hi, config,
                          checkpoint=out / "checkpoints" / f"ksnn_h{h}.pt", log=log)
         results.append(res)
-        log(f"H={h}: best validation MSE {res.best_val_mse:.4g} (scaled) at epoch {res.best_epoch}")
+        val = surface_errors(_numpy_predict(res.weights), ds.actuators, ds.offsets, val_idx, names, labels)
+        per_hidden[str(h)] = {"best_epoch": res.best_epoch, "epochs_run": len(res.history["val"]),
+                              "best_val_mse_scaled": res.best_val_mse, "train_seconds": round(res.seconds, 2),
+                              "validation": _brief(val)}
+        log(f"H={h}: best validation MSE {res.best_val_mse:.4g} (scaled) at epoch {res.best_epoch}; validation mean "
+            f"{val['mean_euclidean_um']:.1f} µm, max {val['max_euclidean_um']:.1f} µm")
     best = min(results, key=lambda r: r.best_val_mse)
-    truth = np.asarray(ds.offsets[val_idx], dtype=np.float64)
-    per_hidden = {}
-    for r in results:
-        pred = np.stack([r.weights.offsets(p) for p in ds.actuators[val_idx]])
-        per_hidden[str(r.hidden)] = {**vertex_errors(pred, truth), "best_epoch": r.best_epoch,
-                                     "train_seconds": round(r.seconds, 2)}
-    training_info = {
-        "dataset": str(Path(dataset_dir).resolve().name), "n_poses": int(n_total), "n_converged": len(usable),
-        "n_train": len(train_idx), "n_held_out": len(val_idx), "hidden": best.hidden,
-        "config": asdict(config),
-    }
+    dataset_info = {"id": ds.id, "hash": ds.content_hash(), "path": str(dataset_dir), "head": ds.head,
+                    "n_poses": len(ds.status), "n_converged": len(ds.usable)}
+    split_info = {"seed": ds.splits.seed, "fractions": dict(zip(SPLIT_NAMES, ds.splits.fractions, strict=True)),
+                  "poses": ds.splits.sizes(),
+                  "converged": {"train": len(train_idx), "validation": len(val_idx), "test": len(test_idx)}}
+    training_info = {"config": asdict(config), "hidden_candidates": candidates, "selected_hidden": best.hidden,
+                     "selection": SELECTION, "per_hidden": per_hidden}
     meta = predictor_metadata(
         head=ds.head, names=ds.names, units=ds.units, weights=best.weights, base_vertices=ds.base_vertices,
         faces=ds.faces, face_unit_names=ds.face_unit_names, face_unit_offsets=ds.face_unit_offsets,
-        training=training_info,
+        training={"dataset": dataset_info, "splits": split_info, "hidden": best.hidden},
     )
     model_path = export_predictor(out / "predictor.onnx", best.weights, meta)
-    pred_onnx = _predict_all(model_path, ds.actuators[val_idx], config.threads)
-    held_out = vertex_errors(pred_onnx, truth)
-    report: dict[str, Any] = {
-        "predictor": str(model_path), "hidden": best.hidden, "held_out": held_out,
-        "held_out_note": "the 20 % split, also used to pick the hidden size and the best epoch",
-        "per_hidden": per_hidden, **training_info,
-    }
-    # Record the held-out errors inside the model too, so the runtime can show what it is running.
-    meta["training"] = json.dumps({**training_info, "held_out": held_out})
+    # The test split, once: the exported float32 graph, as `likeness offline evaluate` runs it.
+    test = evaluate_predictor(model_path, ds, "test", config.threads)
+    comparison = _compare_h_equals_a(results, best, n_act, ds, test_idx, names, labels, test)
+    meta["training"] = json.dumps({"dataset": dataset_info, "splits": split_info, "hidden": best.hidden,
+                                   "test": _brief(test)})
     export_predictor(model_path, best.weights, meta)
-    per_vertex = np.sqrt(((pred_onnx - truth) ** 2).sum(-1)).mean(axis=0)
+    report: dict[str, Any] = {
+        "format": REPORT_FORMAT, "format_version": REPORT_VERSION, "predictor": str(model_path),
+        "dataset": dataset_info, "material": material_info(ds), "mesh": mesh_info(ds), "splits": split_info,
+        "training": training_info, "hidden_comparison": comparison, "test": test,
+    }
     if int8:
         q_path = export_int8(model_path, out / "predictor_int8.onnx")
-        pred_q = _predict_all(q_path, ds.actuators[val_idx], config.threads)
-        report["int8"] = {"predictor": str(q_path), "held_out": vertex_errors(pred_q, truth),
-                          "vs_float": vertex_errors(pred_q, pred_onnx)}
-    _plots(out, ds, per_vertex, results, best.hidden, held_out)
+        report["int8"] = {"predictor": str(q_path), "test": _brief(evaluate_predictor(q_path, ds, "test",
+                                                                                       config.threads))}
+    _plots(out, ds, test_idx, best, results, test)
     report["seconds"] = round(time.perf_counter() - t0, 2)
-    atomic_write_bytes(out / "report.json", json.dumps(report, indent=1).encode())
-    log(f"held-out: RMSE {held_out['rmse_um']:.1f} µm, mean vertex error {held_out['mean_vertex_error_um']:.1f} µm, "
-        f"max {held_out['max_vertex_error_um']:.1f} µm (H={best.hidden}) → {model_path}")
+    atomic_write_bytes(out / REPORT_NAME, json.dumps(report, indent=1).encode())
+    log(f"test ({len(test_idx)} poses): mean {test['mean_euclidean_um']:.1f} µm, RMS "
+        f"{test['rms_euclidean_um']:.1f} µm, p99 {test['p99_euclidean_um']:.1f} µm, max "
+        f"{test['max_euclidean_um']:.1f} µm in {test['max_at']['region']} (H={best.hidden}) → {model_path}")
     return report
 
 
-def _plots(out: Path, ds: PoseDataset, per_vertex: np.ndarray, results: Sequence[TrainResult], best_hidden: int,
-           held_out: dict[str, float]) -> None:
+def _brief(m: dict[str, Any]) -> dict[str, Any]:
+    """The headline numbers of a metrics document (no per-region table)."""
+    keys = ("n_poses", "mean_euclidean_um", "rms_euclidean_um", "p99_euclidean_um", "max_euclidean_um",
+            "rmse_per_coordinate_um", "max_at", "surface_strain")
+    return {k: m[k] for k in keys if k in m}
+
+
+def _compare_h_equals_a(results: Sequence[TrainResult], best: TrainResult, n_act: int, ds: PoseDataset,
+                        test_idx: np.ndarray, names, labels, test: dict[str, Any]) -> dict[str, Any]:
+    """The paper's H = A network beside the validation-selected one, on validation (selection) and test."""
+    h_a = next((r for r in results if r.hidden == n_act), None)
+    if h_a is None:
+        return {"note": f"H = A ({n_act}) was not among the hidden sizes trained"}
+    val = {r.hidden: r.best_val_mse for r in results}
+    out: dict[str, Any] = {
+        "note": "selection used validation only; test figures are reported for comparison, never used to choose",
+        "h_equals_a": {"hidden": n_act, "best_val_mse_scaled": val[n_act]},
+        "selected": {"hidden": best.hidden, "best_val_mse_scaled": val[best.hidden], "test": _brief(test)},
+    }
+    if h_a is best:
+        out["h_equals_a"]["test"] = _brief(test)
+    else:
+        out["h_equals_a"]["test"] = _brief(surface_errors(_numpy_predict(h_a.weights), ds.actuators, ds.offsets,
+                                                          test_idx, names, labels, base=ds.base_vertices,
+                                                          faces=ds.faces))
+    return out
+
+
+def _plots(out: Path, ds: PoseDataset, test_idx: np.ndarray, best: TrainResult, results: Sequence[TrainResult],
+           test: dict[str, Any]) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.tri import Triangulation
 
+    from models.atomic import atomic_path
+
+    pred = _numpy_predict(best.weights)(ds.actuators[test_idx])
+    per_vertex = np.sqrt(((pred - np.asarray(ds.offsets[test_idx])) ** 2).sum(-1)).mean(axis=0)
     base = ds.base_vertices
     # Front view: project on the two axes of largest extent.
     axes = np.sort(np.argsort(np.ptp(base, axis=0))[::-1][:2])  # e.g. x across, y up for a face
@@ -121,16 +160,16 @@ def _plots(out: Path, ds: PoseDataset, per_vertex: np.ndarray, results: Sequence
         pc = ax.tripcolor(tri, um, shading="gouraud", cmap="viridis")
     else:
         pc = ax.scatter(base[:, axes[0]], base[:, axes[1]], c=um, s=4, cmap="viridis")
-    fig.colorbar(pc, ax=ax, label="mean held-out vertex error (µm)")
+    fig.colorbar(pc, ax=ax, label="mean test vertex error (µm)")
     ax.set_aspect("equal")
-    ax.set_title(f"KSNN H={best_hidden}: mean {held_out['mean_vertex_error_um']:.1f} µm, "
-                 f"max {held_out['max_vertex_error_um']:.1f} µm")
+    ax.set_title(f"KSNN H={best.hidden}, test: mean {test['mean_euclidean_um']:.1f} µm, "
+                 f"max {test['max_euclidean_um']:.1f} µm")
     ax.set_xlabel("xyz"[axes[0]] + " (m)")
     ax.set_ylabel("xyz"[axes[1]] + " (m)")
     fig.tight_layout()
-    fig.savefig(out / ".vertex_error.png", format="png")
+    with atomic_path(out / "vertex_error.png", suffix=".png") as tmp:
+        fig.savefig(tmp, format="png")
     plt.close(fig)
-    (out / ".vertex_error.png").replace(out / "vertex_error.png")
     fig, ax = plt.subplots(figsize=(7, 4), dpi=110)
     for r in results:
         ax.semilogy(r.history["train"], label=f"train H={r.hidden}", lw=1)
@@ -139,6 +178,6 @@ def _plots(out: Path, ds: PoseDataset, per_vertex: np.ndarray, results: Sequence
     ax.set_ylabel("MSE (per-axis scaled offsets)")
     ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(out / ".training_curves.png", format="png")
+    with atomic_path(out / "training_curves.png", suffix=".png") as tmp:
+        fig.savefig(tmp, format="png")
     plt.close(fig)
-    (out / ".training_curves.png").replace(out / "training_curves.png")

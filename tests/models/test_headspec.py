@@ -64,3 +64,42 @@ def test_unreadable_and_invalid_files(tmp_path: Path) -> None:
     bad.write_text("[head\nname=")
     with pytest.raises(SpecError, match="not valid TOML"):
         load_head(bad)
+
+
+def _with_material(table: dict) -> dict:
+    data = tomllib.loads(SAMPLE.read_text())
+    data["skin_material"] = table
+    return data
+
+
+def test_skin_material_inline_and_its_errors(tmp_path: Path) -> None:
+    head = head_from_dict(_with_material({"model": "Mooney-Rivlin", "E": 70_000, "nu": 0.46, "c01": 5000.0,
+                                          "note": "why"}), tmp_path / "h.toml")
+    mat = head.skin_material()
+    assert mat.model == "mooney_rivlin" and mat.E == 70_000.0 and dict(mat.shape) == {"c01": 5000.0}
+    assert "inline [skin_material] in h.toml" in mat.source and mat.note == "why"
+    for table, fragment in [
+        ({"model": "neo_hookean", "E": 1e5}, "skin_material.nu: required"),
+        ({"model": "rubber", "E": 1e5, "nu": 0.4}, "unknown material model 'rubber'"),
+        ({"model": "neo_hookean", "E": 1e5, "nu": 0.5}, "nu must lie in"),
+        ({"model": "neo_hookean", "E": "soft", "nu": 0.4}, "skin_material.E: must be a number"),
+        ({"model": "neo_hookean", "E": 1e5, "nu": 0.4, "c01": 1.0}, "has no parameter c01"),
+        ({"model": "neo_hookean", "E": 1e5, "nu": 0.4, "colour": "pink"}, "skin_material.colour: unknown key"),
+        ({"fit": "fit.json", "E": 1e5}, "give either fit = FILE or inline parameters"),
+        ({"fit": "fit.json", "nu": "0.4"}, "skin_material.nu: must be a number"),
+    ]:
+        with pytest.raises(SpecError, match=fragment):
+            head_from_dict(_with_material(table), tmp_path / "h.toml")
+    # A fit file is read when the material is asked for, not when the head loads (the daemon never needs it).
+    head = head_from_dict(_with_material({"fit": "missing.json"}), tmp_path / "h.toml")
+    with pytest.raises(SpecError, match=r"missing\.json: file: cannot read material fit"):
+        head.skin_material()
+    (tmp_path / "other.json").write_text('{"format": "something-else"}')
+    with pytest.raises(SpecError, match="format: expected 'likeness-material-fit'"):
+        head_from_dict(_with_material({"fit": "other.json"}), tmp_path / "h.toml").skin_material()
+
+
+def test_sample_head_names_a_fitted_real_silicone() -> None:
+    mat = load_head(SAMPLE).skin_material()
+    assert mat is not None and mat.model == "neo_hookean"
+    assert "Ecoflex_00-50" in mat.source and mat.note  # the fit of a data/tensile file, and why it was chosen

@@ -50,6 +50,19 @@ def test_fem_pose_problem_moves_patches_and_stores_outer_surface(box_problem, tm
         assert 0.3 * pl < dz[above_left].mean() < 1.05 * pl
         if pr != 0:
             assert np.sign(dz[above_right].mean()) == np.sign(pr)
+    # Surface regions (for per-region errors) name the patch under each outer vertex; the mesh is recorded.
+    names = np.array(ds.region_names)[ds.vertex_region]
+    assert set(names[above_left]) == {"left"} and set(names[above_right]) == {"right"}
+    assert set(ds.region_names) == {"skull", "left", "right", "free"}
+    assert ds.manifest["mesh"]["element_order"] == mesh.order and ds.manifest["mesh"]["n_elements"] == mesh.n_tets
+    from offline.dataset.describe import mesh_info, regions
+
+    (tmp_path / "ds" / "dataset.json").write_text(
+        __import__("json").dumps({k: v for k, v in ds.manifest.items() if k != "mesh"}))
+    old = PoseDataset(tmp_path / "ds")  # as a dataset written before mesh and region records: rebuilt from inputs
+    old.vertex_region = None
+    assert mesh_info(old)["n_elements"] == mesh.n_tets and "read from the mesh file" in mesh_info(old)["note"]
+    assert regions(old)[0] == ds.region_names and np.array_equal(regions(old)[1], ds.vertex_region)
     # The stored pose is the FEM equilibrium of that pose's boundary conditions.
     from offline.fem import internal_forces
 
@@ -105,3 +118,24 @@ def test_mesh_folder_surface_and_face_units_from_face_units_npz(box_problem, tmp
     np.savez(tmp_path / "face_units.npz", names=np.array(["x"]), offsets=np.zeros((1, 3, 3)), surface_nodes=top)
     with pytest.raises(SpecError, match="offsets"):
         FemSpec(config=spec.config, mesh=str(tmp_path), linkmap=spec.linkmap).build()
+
+
+def test_head_material_reaches_the_fem_and_E_does_not_change_poses(box_problem):
+    """Prescribed displacements only: the pose depends on nu (and shape parameters), not on E."""
+    import dataclasses
+
+    from models.material import SkinMaterial
+    from offline.dataset.fem_problem import material_fields
+
+    _root, _head, spec, _mesh = box_problem
+    p = np.array([0.0012, -0.0006])
+    soft = dataclasses.replace(spec, **material_fields(SkinMaterial("neo_hookean", 62_600.0, 0.47, source="a")))
+    stiff = dataclasses.replace(soft, youngs_modulus=626_000.0)
+    other_nu = dataclasses.replace(soft, poisson_ratio=0.40)
+    mr = dataclasses.replace(spec, **material_fields(SkinMaterial("mooney_rivlin", 62_600.0, 0.47, {"c01": 9000.0},
+                                                                  source="b")))
+    assert soft.build().material.name == "neo_hookean" and mr.build().material.name == "mooney_rivlin"
+    assert soft.describe()["material"]["source"] == "a" and soft.token != stiff.token
+    a, b, c = (s.build().solve(p, None).surface for s in (soft, stiff, other_nu))
+    np.testing.assert_allclose(a, b, atol=1e-9)
+    assert np.abs(a - c).max() > 1e-6  # nu does move the skin

@@ -67,3 +67,17 @@ def test_bad_parameters_are_named() -> None:
         neo_hookean(0.0, 1e5)
     with pytest.raises(ValueError, match="nu"):
         mu_kappa_from_E_nu(1e5, 0.5)
+
+
+def test_one_material_vocabulary_across_config_fit_and_fem() -> None:
+    from models.material import MATERIAL_MODELS, SHAPE_PARAMS, SkinMaterial
+    from offline.fem.materials import MODEL_PARAMS
+    from offline.material.models import MODEL_NAMES, MaterialParams
+
+    assert tuple(MODEL_PARAMS) == MATERIAL_MODELS == MODEL_NAMES
+    for name in MATERIAL_MODELS:
+        shape = {k: 1000.0 for k in SHAPE_PARAMS[name]}
+        skin = SkinMaterial(name, 80_000.0, 0.45, shape)
+        fem = MaterialParams.from_skin_material(skin).to_fem_material(skin.density)
+        assert fem.name == name
+        assert fem.shear_modulus == pytest.approx(80_000.0 / (2 * 1.45))  # the same small-strain E and nu

@@ -10,9 +10,9 @@ from offline.material.closed_form import lateral_stretch, principal_piola, uniax
 from offline.material.models import MaterialParams
 
 CASES = [
-    MaterialParams("neohookean", 78_000.0, 0.47),
-    MaterialParams("neohookean", 40_000.0, 0.3),
-    MaterialParams("mooney-rivlin", 78_000.0, 0.47, {"c01": 6_000.0}),
+    MaterialParams("neo_hookean", 78_000.0, 0.47),
+    MaterialParams("neo_hookean", 40_000.0, 0.3),
+    MaterialParams("mooney_rivlin", 78_000.0, 0.47, {"c01": 6_000.0}),
     MaterialParams("yeoh", 78_000.0, 0.45, {"c20": -800.0, "c30": 300.0}),
 ]
 
@@ -30,7 +30,7 @@ def test_matches_fem_reference_closed_form(params: MaterialParams) -> None:
 
 
 def test_small_strain_limit_gives_E_and_nu() -> None:
-    params = MaterialParams("neohookean", 78_000.0, 0.47)
+    params = MaterialParams("neo_hookean", 78_000.0, 0.47)
     eps = 1e-6
     stress, lat = uniaxial_nominal_stress(params, np.array([1.0 + eps]))
     assert stress[0] / eps == pytest.approx(78_000.0, rel=1e-4)
@@ -38,7 +38,7 @@ def test_small_strain_limit_gives_E_and_nu() -> None:
 
 
 def test_nearly_incompressible_limit() -> None:
-    params = MaterialParams("neohookean", 60_000.0, 0.49999)
+    params = MaterialParams("neo_hookean", 60_000.0, 0.49999)
     lam = 1.0 + np.linspace(-0.2, 0.5, 8)
     stress, lat = uniaxial_nominal_stress(params, lam)
     np.testing.assert_allclose(stress, params.mu * (lam - lam**-2), rtol=1e-4, atol=1e-6)
@@ -57,12 +57,12 @@ def test_lateral_stress_is_zero_and_signs() -> None:
 
 def test_bad_parameters_refused() -> None:
     with pytest.raises(ValueError, match="nu"):
-        MaterialParams("neohookean", 78_000.0, 0.5)
+        MaterialParams("neo_hookean", 78_000.0, 0.5)
     with pytest.raises(ValueError, match="E must be positive"):
-        MaterialParams("neohookean", -1.0, 0.4)
+        MaterialParams("neo_hookean", -1.0, 0.4)
     with pytest.raises(ValueError, match="no parameter"):
-        MaterialParams("neohookean", 1.0, 0.4, {"c01": 1.0})
+        MaterialParams("neo_hookean", 1.0, 0.4, {"c01": 1.0})
     with pytest.raises(ValueError, match="c01"):
-        MaterialParams("mooney-rivlin", 78_000.0, 0.47, {"c01": 1e6})
+        MaterialParams("mooney_rivlin", 78_000.0, 0.47, {"c01": 1e6})
     with pytest.raises(ValueError, match="unknown material model"):
         MaterialParams("ogden", 1.0, 0.4)

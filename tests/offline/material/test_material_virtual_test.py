@@ -10,7 +10,7 @@ from offline.material.models import MaterialParams
 from offline.material.specimen import cylinder, make_plan, strip
 from offline.material.virtual_test import MeshSettings, run_plan, run_specimen, specimen_mesh
 
-PARAMS = MaterialParams("neohookean", 78_000.0, 0.47)
+PARAMS = MaterialParams("neo_hookean", 78_000.0, 0.47)
 STRAINS = np.array([-0.2, -0.1, 0.0, 0.1, 0.3, 0.5])
 
 
@@ -30,7 +30,7 @@ def test_frictionless_matches_closed_form_across_range() -> None:
     assert np.all(np.sign(forces[moved]) == np.sign(STRAINS[moved]))
 
 
-@pytest.mark.parametrize("params", [MaterialParams("mooney-rivlin", 50_000.0, 0.45, {"c01": 5_000.0}),
+@pytest.mark.parametrize("params", [MaterialParams("mooney_rivlin", 50_000.0, 0.45, {"c01": 5_000.0}),
                                     MaterialParams("yeoh", 50_000.0, 0.45, {"c20": 1_000.0, "c30": 100.0})],
                          ids=lambda p: p.model)
 def test_frictionless_other_models_and_quadratic_tets(params: MaterialParams) -> None:

@@ -41,6 +41,8 @@ def test_jaw_rotation_converges_moves_jaw_exactly_and_keeps_skull(tmp_path, mesh
     text = capsys.readouterr().out
     assert rc == 0, text
     assert "converged in" in text and "residual" in text and "total" in text
+    # The sample head's [skin_material]: fitted Ecoflex 00-50, nu from the head config.
+    assert "material: neo_hookean, E = 62646.7 Pa, nu = 0.47 (skin_material.fit in head.toml" in text
     res = meshio.read(out)
     u = res.point_data["displacement"]
     assert np.allclose(res.points, mesh.nodes + u)

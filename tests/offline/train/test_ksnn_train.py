@@ -1,8 +1,12 @@
-"""KSNN training: exported ONNX matches PyTorch, the report is real, training resumes from its checkpoint."""
+"""KSNN training: ONNX matches PyTorch, splits stay apart, the report is reproduced by `evaluate`, resume works."""
 
 from __future__ import annotations
 
 import json
+import os
+import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +21,7 @@ from offline.dataset.sampling import sample_poses  # noqa: E402
 from offline.dataset.store import PoseDataset  # noqa: E402
 from offline.dataset.synthetic import SyntheticSpec  # noqa: E402
 from offline.engine import SerialEngine  # noqa: E402
-from offline.train.ksnn import TrainConfig, hidden_candidates, split_indices, torch_offsets, train_ksnn  # noqa: E402
+from offline.train.ksnn import TrainConfig, hidden_candidates, resolve_hidden, torch_offsets, train_ksnn  # noqa: E402
 from offline.train.pipeline import train_pipeline  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[3]
@@ -36,64 +40,183 @@ def dataset(tmp_path_factory):
     return root, head
 
 
-def test_split_and_candidates():
-    tr, va = split_indices(100, 0.2, seed=1)
-    assert len(tr) == 80 and len(va) == 20 and not set(tr) & set(va)
-    assert hidden_candidates(13) == [13, 20, 26]
-
-
-def test_pipeline_exports_onnx_matching_torch_and_reports_errors(dataset, tmp_path):
-    root, head = dataset
+@pytest.fixture(scope="module")
+def trained(dataset, tmp_path_factory):
+    root, _ = dataset
+    out = tmp_path_factory.mktemp("out")
     cfg = TrainConfig(epochs=40, batch_size=32, lr=5e-3, patience=40)
-    report = train_pipeline(root, tmp_path / "out", cfg, hidden=[13, 26], int8=True, log=lambda s: None)
-    model = tmp_path / "out" / "predictor.onnx"
-    sp = SkinPredictor(model)
+    report = train_pipeline(root, out, cfg, hidden=["A", 26], int8=True, log=lambda s: None)
+    return out, report, cfg
+
+
+def test_hidden_sizes():
+    assert hidden_candidates(13) == [13, 20, 26]
+    assert resolve_hidden(["A"], 13) == [13]
+    assert resolve_hidden(["A", "1.5A", 40], 13) == [13, 20, 40]
+    assert resolve_hidden(None, 13) == [13, 20, 26]
+    with pytest.raises(ValueError, match="hidden size 'B'"):
+        resolve_hidden(["B"], 13)
+
+
+def test_pipeline_exports_onnx_matching_torch(dataset, trained):
+    root, head = dataset
+    out, report, _ = trained
+    sp = SkinPredictor(out / "predictor.onnx")
     sp.check_against(head)
-    assert sp.hidden == report["hidden"] and sp.hidden in (13, 26)
+    assert sp.hidden == report["training"]["selected_hidden"] and sp.hidden in (13, 26)
     ds = PoseDataset(root)
     P = ds.actuators[:20]
     ref = torch_offsets(sp.weights, P)
     np.testing.assert_allclose(sp.predict_offsets(P), ref, atol=1e-6 * max(1e-3, np.abs(ref).max()))
     np.testing.assert_allclose(sp.predict(P[0]), ref[0] + ds.base_vertices, atol=1e-6)
-    held = report["held_out"]
-    assert set(held) == {"rmse_um", "mean_vertex_error_um", "max_vertex_error_um"}
-    # The held-out numbers are what the exported model really does on the held-out poses.
-    _, va_local = split_indices(len(ds.usable), cfg.val_fraction, cfg.seed)
-    va = ds.usable[va_local]
-    err = np.sqrt(((sp.predict_offsets(ds.actuators[va]) - ds.offsets[va]) ** 2).sum(-1))
-    assert held["mean_vertex_error_um"] == pytest.approx(err.mean() * 1e6, rel=1e-4)
-    # ...and the network learned something: far better than predicting the mean pose.
-    mean_pose = np.asarray(ds.offsets[ds.usable]).mean(axis=0)
-    baseline = np.sqrt(((mean_pose - ds.offsets[va]) ** 2).sum(-1)).mean() * 1e6
-    assert held["mean_vertex_error_um"] < 0.5 * baseline
-    for name in ("report.json", "vertex_error.png", "training_curves.png"):
-        assert (tmp_path / "out" / name).stat().st_size > 1000
-    assert json.loads((tmp_path / "out" / "report.json").read_text())["hidden"] == report["hidden"]
-    assert json.loads(sp.metadata["likeness.training"])["held_out"] == pytest.approx(held)
-    # The int8 variant: MatMulNBits output layers, its measured error reported, weights readable for the Jacobian.
+    # The int8 variant: MatMulNBits output layers, weights readable for the Jacobian.
     q = SkinPredictor(report["int8"]["predictor"])
     q.check_against(head)
-    q_err = np.sqrt(np.mean((q.predict_offsets(ds.actuators[va]) - sp.predict_offsets(ds.actuators[va])) ** 2))
-    assert report["int8"]["vs_float"]["rmse_um"] == pytest.approx(q_err * 1e6, rel=1e-4)
-    assert report["int8"]["vs_float"]["rmse_um"] < 0.05 * held["rmse_um"] + 1.0
     step = np.abs(sp.weights.W2).max(axis=(0, 1)) / 127  # per-column bound on the 8-bit step
     assert np.all(np.abs(q.weights.W2 - sp.weights.W2) <= step[None, None, :] + 1e-12)
     np.testing.assert_allclose(q.jacobian(P[1]), sp.jacobian(P[1]), atol=0.02 * np.abs(sp.jacobian(P[1])).max())
+
+
+def test_report_test_metrics_are_what_the_model_does_on_the_test_split(dataset, trained):
+    root, _ = dataset
+    out, report, _ = trained
+    ds = PoseDataset(root)
+    sp = SkinPredictor(out / "predictor.onnx")
+    test = ds.splits.test[np.isin(ds.splits.test, ds.usable)]
+    assert report["splits"]["converged"]["test"] == len(test) > 0
+    d = sp.predict_offsets(ds.actuators[test]).astype(np.float64) - np.asarray(ds.offsets[test], dtype=np.float64)
+    err = np.sqrt((d ** 2).sum(-1))
+    t = report["test"]
+    assert t["mean_euclidean_um"] == pytest.approx(err.mean() * 1e6, rel=1e-6)
+    assert t["rms_euclidean_um"] == pytest.approx(np.sqrt((err ** 2).mean()) * 1e6, rel=1e-6)
+    assert t["p99_euclidean_um"] == pytest.approx(np.percentile(err, 99) * 1e6, rel=1e-6)
+    assert t["max_euclidean_um"] == pytest.approx(err.max() * 1e6, rel=1e-6)
+    rmse = np.sqrt((d ** 2).mean(axis=(0, 1))) * 1e6
+    assert [t["rmse_per_coordinate_um"][k] for k in "xyz"] == pytest.approx(rmse, rel=1e-6)
+    k, v = np.unravel_index(np.argmax(err), err.shape)
+    assert t["max_at"]["pose_index"] == test[k] and t["max_at"]["vertex"] == v
+    assert t["max_at"]["region"] == ds.region_names[ds.vertex_region[v]]
+    # Per region: the synthetic sheet names each vertex after the bump that moves it most.
+    assert sum(r["n_vertices"] for r in t["per_region"].values()) == ds.offsets.shape[1]
+    name = t["max_at"]["region"]
+    assert t["per_region"][name]["max_euclidean_um"] == pytest.approx(t["max_euclidean_um"])
+    # Surface strain: principal strains of the prediction against the FEM's, per triangle (the strain guard's input).
+    pos_pred = sp.predict_offsets(ds.actuators[test]).astype(np.float64) + ds.base_vertices
+    pos_fem = np.asarray(ds.offsets[test], dtype=np.float64) + ds.base_vertices
+    diff = np.abs(sp.principal_stretches(pos_pred) - sp.principal_stretches(pos_fem)).max(axis=-1)
+    st = t["surface_strain"]
+    assert st["n_triangles"] == len(ds.faces) and st["degenerate_triangles"] == 0
+    assert st["p99_abs"] == pytest.approx(np.percentile(diff, 99), rel=1e-5)
+    assert st["max_abs"] == pytest.approx(diff.max(), rel=1e-5) and st["max_abs"] > 0
+    k, tri = np.unravel_index(np.argmax(diff), diff.shape)
+    assert st["max_at"]["pose_index"] == test[k] and st["max_at"]["triangle"] == tri
+    # ...and the network learned something: far better than predicting the mean training pose.
+    mean_pose = np.asarray(ds.offsets[ds.split("train")]).mean(axis=0)
+    baseline = np.sqrt(((mean_pose - ds.offsets[test]) ** 2).sum(-1)).mean() * 1e6
+    assert t["mean_euclidean_um"] < 0.5 * baseline
+    # The report is written whole, names the dataset by its content and records how it was made.
+    on_disk = json.loads((out / "predictor_report.json").read_text())
+    assert on_disk["dataset"]["hash"] == ds.content_hash() and on_disk["dataset"]["id"] == ds.id
+    assert on_disk["mesh"]["n_surface_vertices"] == 64 and on_disk["mesh"]["element_order"] is None
+    assert on_disk["splits"]["poses"] == {"train": 106, "validation": 22, "test": 22}
+    assert on_disk["training"]["config"]["epochs"] == 40 and on_disk["material"]["model"] is None
+    for name in ("vertex_error.png", "training_curves.png"):
+        assert (out / name).stat().st_size > 1000
+    assert json.loads(sp.metadata["likeness.training"])["test"]["mean_euclidean_um"] == pytest.approx(
+        t["mean_euclidean_um"])
+
+
+def test_hidden_size_is_chosen_on_validation_and_compared_with_h_equals_a(trained):
+    _, report, _ = trained
+    per = report["training"]["per_hidden"]
+    assert set(per) == {"13", "26"}
+    chosen = min(per, key=lambda h: per[h]["best_val_mse_scaled"])
+    assert report["training"]["selected_hidden"] == int(chosen)
+    cmp = report["hidden_comparison"]
+    assert cmp["h_equals_a"]["hidden"] == 13 and cmp["selected"]["hidden"] == int(chosen)
+    assert cmp["selected"]["test"]["mean_euclidean_um"] == pytest.approx(report["test"]["mean_euclidean_um"])
+    assert cmp["h_equals_a"]["test"]["mean_euclidean_um"] > 0
+
+
+def test_test_split_cannot_influence_training(dataset, tmp_path):
+    """Scramble the test poses' targets: the trained weights stay bit-identical (only the test metrics move)."""
+    root, _ = dataset
+    copy = tmp_path / "scrambled"
+    shutil.copytree(root, copy)
+    ds = PoseDataset(copy)
+    test = ds.splits.test
+    off = np.load(copy / "offsets.npy", mmap_mode="r+")
+    off[test] = off[test] * 3.0 + 0.001
+    off.flush()
+    del off
+    cfg = TrainConfig(epochs=8, batch_size=32, patience=100)
+    a = train_pipeline(root, tmp_path / "a", cfg, hidden=["A"], log=lambda s: None)
+    b = train_pipeline(copy, tmp_path / "b", cfg, hidden=["A"], log=lambda s: None)
+    wa = SkinPredictor(tmp_path / "a" / "predictor.onnx").weights
+    wb = SkinPredictor(tmp_path / "b" / "predictor.onnx").weights
+    for name in ("W1", "b1", "W2", "b2"):
+        np.testing.assert_array_equal(getattr(wa, name), getattr(wb, name))
+    for doc in (a, b):
+        doc["training"]["per_hidden"]["13"].pop("train_seconds")
+    assert a["training"]["per_hidden"] == b["training"]["per_hidden"]
+    assert b["test"]["mean_euclidean_um"] > 2 * a["test"]["mean_euclidean_um"]
+    assert a["dataset"]["hash"] != b["dataset"]["hash"]
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    return subprocess.run([sys.executable, "-m", "likeness", *args], capture_output=True, text=True, env=env,
+                          cwd=ROOT, timeout=120)
+
+
+def test_evaluate_cli_reproduces_the_report_and_catches_a_tampered_one(dataset, trained, tmp_path):
+    root, _ = dataset
+    out, report, _ = trained
+    res = _cli("offline", "evaluate", "--predictor", str(out / "predictor.onnx"), "--dataset", str(root))
+    assert res.returncode == 0, res.stderr
+    doc = json.loads(res.stdout)
+    assert doc["matches"] and doc["differences"] == []
+    assert doc["test"]["max_euclidean_um"] == pytest.approx(report["test"]["max_euclidean_um"], rel=1e-9)
+    bad = json.loads((out / "predictor_report.json").read_text())
+    bad["test"]["per_region"]["bump_0"]["mean_euclidean_um"] *= 0.9
+    (tmp_path / "bad.json").write_text(json.dumps(bad))
+    res = _cli("offline", "evaluate", "--predictor", str(out / "predictor.onnx"), "--dataset", str(root),
+               "--report", str(tmp_path / "bad.json"))
+    assert res.returncode == 1
+    assert any("per_region.bump_0.mean_euclidean_um" in d for d in json.loads(res.stdout)["differences"])
+    # A report from before the splits (no format, no test block) is refused with a clear message.
+    old = tmp_path / "old.json"
+    old.write_text(json.dumps({"held_out": {"rmse_um": 1.0}}))
+    res = _cli("offline", "evaluate", "--predictor", str(out / "predictor.onnx"), "--dataset", str(root),
+               "--report", str(old))
+    assert res.returncode == 2 and not res.stdout and "not a predictor report with test metrics" in res.stderr
+    # --split all: every converged pose (for datasets of fresh poses the predictor never saw); no report check.
+    res = _cli("offline", "evaluate", "--predictor", str(out / "predictor.onnx"), "--dataset", str(root),
+               "--split", "all")
+    assert res.returncode == 0, res.stderr
+    assert json.loads(res.stdout)["all"]["n_poses"] == len(PoseDataset(root).usable)
 
 
 def test_training_resumes_from_checkpoint(dataset, tmp_path):
     root, _ = dataset
     ds = PoseDataset(root)
     x = (ds.actuators - ds.lo) / (ds.hi - ds.lo)
-    tr, va = split_indices(len(ds.usable), 0.2, 0)
+    tr, va = ds.split("train"), ds.split("validation")
     ck = tmp_path / "ck.pt"
     msgs: list[str] = []
-    first = train_ksnn(x, ds.offsets, ds.usable[tr], ds.usable[va], 13, ds.lo, ds.hi,
+    first = train_ksnn(x, ds.offsets, tr, va, 13, ds.lo, ds.hi,
                        TrainConfig(epochs=6, patience=100), checkpoint=ck, log=msgs.append)
     assert len(first.history["val"]) == 6 and ck.exists()
-    second = train_ksnn(x, ds.offsets, ds.usable[tr], ds.usable[va], 13, ds.lo, ds.hi,
+    second = train_ksnn(x, ds.offsets, tr, va, 13, ds.lo, ds.hi,
                         TrainConfig(epochs=10, patience=100), checkpoint=ck, log=msgs.append)
     assert any("resumed at epoch 6" in m for m in msgs)
     assert len(second.history["val"]) == 10
     assert second.history["val"][:6] == first.history["val"]
     assert second.best_val_mse <= first.best_val_mse
+    # Same sizes, other poses: the checkpoint belongs to another split and is not resumed.
+    msgs.clear()
+    swapped_tr = np.sort(np.concatenate([tr[1:], va[:1]]))
+    swapped_va = np.sort(np.concatenate([va[1:], tr[:1]]))
+    third = train_ksnn(x, ds.offsets, swapped_tr, swapped_va, 13, ds.lo, ds.hi,
+                       TrainConfig(epochs=3, patience=100), checkpoint=ck, log=msgs.append)
+    assert not any("resumed" in m for m in msgs) and len(third.history["val"]) == 3

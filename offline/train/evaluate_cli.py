@@ -1,0 +1,47 @@
+"""``likeness offline evaluate``: recompute a predictor's test metrics on its dataset and check its report."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add the ``evaluate`` tool."""
+    p = sub.add_parser("evaluate", help="recompute a predictor's test metrics and compare with its report",
+                       description="Evaluate an ONNX skin predictor on the test split of a pose dataset (mean, RMS, "
+                       "p99 and max Euclidean vertex error, per-coordinate RMSE, the region of the max, per-region "
+                       "errors) and compare with predictor_report.json (beside the predictor unless --report is "
+                       "given). Exit status 1 when the report does not match.")
+    p.add_argument("--predictor", required=True, help="predictor ONNX file")
+    p.add_argument("--dataset", required=True, help="pose dataset folder the predictor was trained on")
+    p.add_argument("--report", default=None, help="report to check (default: predictor_report.json beside the "
+                   "predictor; no check if there is none)")
+    p.add_argument("--split", default="test", choices=("train", "validation", "test", "all"),
+                   help="split to evaluate when no report is checked (default test; all: every converged pose, "
+                   "for a dataset of fresh poses the predictor never saw)")
+    p.add_argument("--threads", type=int, default=1, help="onnxruntime threads")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Evaluate, compare, print JSON."""
+    import json
+    from pathlib import Path
+
+    from likeness.cli import CliError
+    from models.errors import SpecError
+    from offline.train.evaluate import REPORT_NAME, check_report, evaluate_predictor
+
+    report = Path(args.report) if args.report else Path(args.predictor).with_name(REPORT_NAME)
+    try:
+        if args.report or (report.exists() and args.split == "test"):
+            if args.split != "test":
+                raise CliError("--report checks the test split; leave out --split")
+            result = check_report(report, args.predictor, args.dataset, args.threads)
+        else:
+            result = {"split": args.split, args.split: evaluate_predictor(args.predictor, args.dataset, args.split,
+                                                                         args.threads)}
+    except (SpecError, ValueError, FileNotFoundError) as exc:
+        raise CliError(str(exc)) from exc
+    print(json.dumps(result, indent=1))
+    return 0 if result.get("matches", True) else 1
