@@ -19,13 +19,13 @@ def make_daemon(rate_hz: float, realtime: bool, with_buses: bool = True, **extra
     """A started, enabled daemon on free loopback ports; ``with_buses=False`` runs the loop without bus I/O."""
     from models.headspec import load_head
     from runtime.daemon import Daemon
-    from runtime.hardware import Hardware
+    from runtime.hardware import LinkedHardware
 
     head = load_head(SAMPLE)
     overrides = {"api.command": "tcp://127.0.0.1:*", "api.telemetry": "tcp://127.0.0.1:*",
                  "runtime.rate_hz": rate_hz, "runtime.realtime": realtime, "runtime.telemetry_hz": min(50, rate_hz),
                  "safety.feedback_timeout_s": 0.5, **extra}
-    hardware = None if with_buses else Hardware(head, {})
+    hardware = None if with_buses else LinkedHardware(head, {})
     daemon = Daemon(head, overrides, hardware=hardware)
     daemon.start()
     daemon.enable()

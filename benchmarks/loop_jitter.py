@@ -21,10 +21,10 @@ def measure(rate_hz: float, realtime: bool, with_buses: bool, seconds: float) ->
     daemon = make_daemon(rate_hz, realtime, with_buses)
     try:
         time.sleep(0.3)
-        daemon.stats.reset()
+        stats_obj = daemon.runner.stats
+        stats_obj.reset()
         time.sleep(seconds)
-        with daemon._lock:
-            stats = daemon.stats.summary()
+        stats = stats_obj.summary()
         stats["realtime_status"] = daemon.realtime_status
         stats["lifecycle"] = daemon.lifecycle
     finally:

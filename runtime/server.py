@@ -360,11 +360,13 @@ class Server:
         entry = self.pending.pop(token, None)
         if entry is None:
             return
-        envelope, rid, op, _ = entry
+        envelope, rid, op, received = entry
         err = body.get("error")
         if err is not None:
             self._reply(envelope, P.error_reply(rid, err["code"], err["message"]))
             return
+        if op == "stream":
+            body["t_recv"] = received  # when the request reached the daemon (its clock), for latency accounting
         try:
             body = self._format(op, body)
         except ProtocolError as exc:
