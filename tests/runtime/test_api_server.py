@@ -1,0 +1,99 @@
+"""The API server process and the core behind it, on a daemon with no buses (fast, no emulators): replies, e-stop
+preemption behind large requests, clip budget and unloading, telemetry."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import msgpack
+import pytest
+import zmq
+
+from models.headspec import load_head
+from runtime.client import Client, DaemonError, Telemetry
+from runtime.daemon import Daemon
+from runtime.hardware import LinkedHardware
+
+SAMPLE = Path(__file__).resolve().parents[2] / "heads" / "sample" / "head.toml"
+
+
+@pytest.fixture(scope="module")
+def busless(tmp_path_factory: pytest.TempPathFactory):
+    head = load_head(SAMPLE)
+    tmp = tmp_path_factory.mktemp("busless")
+    d = Daemon(head, {"api.command": "tcp://127.0.0.1:*", "api.telemetry": "tcp://127.0.0.1:*",
+                      "runtime.record_dir": str(tmp), "runtime.rate_hz": 500.0,
+                      "runtime.clip_memory_bytes": 8 << 20},
+               hardware=LinkedHardware(head, {}), target_solvers=())
+    d.start()
+    yield d
+    d.stop()
+
+
+def _big_clip(name: str, keys: int) -> dict:
+    ts = [i * 0.001 for i in range(keys)]
+    return {"name": name, "channels": {"jaw": {"interp": "linear", "keys": [[t, 5.0 * (i % 3)] for i, t in
+                                                                           enumerate(ts)]}}}
+
+
+def test_hello_lists_ops_and_budget(busless: Daemon) -> None:
+    with Client(busless.command_endpoint, timeout=5) as c:
+        h = c.call("hello")
+    assert "unload_clip" in h["ops"] and h["clip_memory_bytes"] == 8 << 20
+    assert h["head"]["channels"]["blink"] == "deg" and not any(k.startswith("arkit.") for k in h["head"]["channels"])
+
+
+def test_estop_overtakes_a_large_request_being_decoded(busless: Daemon) -> None:
+    ctx = zmq.Context.instance()
+    big = ctx.socket(zmq.DEALER)
+    big.setsockopt(zmq.LINGER, 0)
+    big.connect(busless.command_endpoint)
+    with Client(busless.command_endpoint, timeout=5) as c:
+        if c.call("status")["lifecycle"] != "active":
+            c.call("reset")
+            c.call("enable")
+        payload = msgpack.packb({"op": "load_clip", "id": 1, "clip": _big_clip("big", 30000)})
+        assert len(payload) > 500_000
+        big.send(payload)
+        t0 = time.monotonic()
+        reply = c.call("estop", reason="overtake")
+        t_estop = time.monotonic() - t0
+        assert reply["lifecycle"] == "estop"
+        assert big.poll(10000)
+        big_reply = msgpack.unpackb(big.recv())
+        t_big = time.monotonic() - t0
+        assert big_reply["ok"], big_reply
+        assert t_estop < t_big  # the e-stop was not queued behind the large request
+        assert c.call("status")["estop"] == "overtake"
+        c.call("reset")
+    big.close()
+
+
+def test_clip_budget_and_unload(busless: Daemon) -> None:
+    with Client(busless.command_endpoint, timeout=10) as c:
+        names = []
+        with pytest.raises(DaemonError) as info:
+            for k in range(50):
+                names.append(c.call("load_clip", clip=_big_clip(f"c{k}", 20000))["clip"])
+        assert info.value.code == "too_large" and "budget" in info.value.message
+        used = c.call("status")["clip_bytes"]
+        assert 0 < used <= 8 << 20
+        for name in names:
+            c.call("unload_clip", clip=name)
+        assert c.call("status")["clip_bytes"] < used
+        assert not set(names) & set(c.call("status")["timeline"]["clips"])
+        with pytest.raises(DaemonError) as info:
+            c.call("unload_clip", clip=names[0])
+        assert info.value.code == "not_found"
+
+
+def test_replies_carry_the_request_id_and_telemetry_flows(busless: Daemon) -> None:
+    with Client(busless.command_endpoint, timeout=5) as c, Telemetry(busless.telemetry_endpoint) as tel:
+        if c.call("status")["lifecycle"] != "active":
+            c.call("enable")
+        assert c.request("pose", pose={"jaw": 3.0}, speed=1.0)["ok"]
+        msg = tel.wait_for(lambda t, m: t == "state" and m["lifecycle"] == "active" and m["loop"], 3.0)
+        assert msg is not None and msg[1]["loop"]["rate_hz"] == 500.0
+        raw = c.send_raw(msgpack.packb({"op": "pose", "id": "abc", "pose": {"nose": 1.0}}))
+        assert raw["id"] == "abc" and raw["error"]["code"] == "unknown_channel"
