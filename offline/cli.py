@@ -12,6 +12,7 @@ OFFLINE_COMMAND_MODULES: tuple[str, ...] = (
     "offline.material.cli",
     "offline.dataset.cli",
     "offline.train.cli",
+    "offline.guard_cli",
 )
 
 
