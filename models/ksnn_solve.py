@@ -108,10 +108,10 @@ class KsnnInverse:
         self._W1b = np.ascontiguousarray(self._W1.reshape(3, H, A))
         self._H = H
         self._eye = np.eye(A)
-        self._diag = np.arange(A) * (A + 1)  # flat indices of a (A, A) diagonal
         self._scale_in = 1.0 / (w.hi - w.lo)
         self._mid = 0.5 * (self._xlo + self._xhi)
-        self._half = 0.5 * (self._xhi - self._xlo)
+        half = 0.5 * (self._xhi - self._xlo)
+        self._ihalf = np.where(half > 0, 1.0 / np.where(half > 0, half, 1.0), 1e300)
 
     # ------------------------------------------------------------------ pieces
     def _terms(self, wts: np.ndarray) -> tuple[np.ndarray, float]:
@@ -155,15 +155,15 @@ class KsnnInverse:
         # Residual form: f = ‖R h + q‖² + κ' (+ λ‖x − x_prev‖²); J = R diag(1 − h²) W1 per axis block.
         q = self._q0 - self._Qd @ wts
         kq = kappa - float(q @ q)
-        R, Rb, W1b = self._R, self._Rb, self._W1b
-        mid, half = self._mid, self._half
-        diag = self._diag
+        R, Rb, W1b, eye = self._R, self._Rb, self._W1b, self._eye
+        mid, ihalf = self._mid, self._ihalf
         h = np.tanh(W1 @ x + b1)
         r = R @ h + q
         f = float(r @ r) + kq
         if smooth:
             dx = x - x_prev
             f += lam_s * float(dx @ dx)
+        on_bound = float((np.abs(x - mid) * ihalf).max()) >= 1.0 - 1e-12
         mu = self.damping / self.scale
         converged = False
         it = 0
@@ -174,7 +174,7 @@ class KsnnInverse:
             Hm = JT @ J
             if smooth:
                 g += lam_s * dx
-            if float((np.abs(x - mid) - half).max()) >= 0.0:  # some variable on a bound
+            if on_bound:
                 fixed = ((x <= xlo) & (g > 0)) | ((x >= xhi) & (g < 0))
                 if fixed.all():
                     converged = True
@@ -182,18 +182,18 @@ class KsnnInverse:
                 if fixed.any():  # held variables: identity rows, zero gradient
                     Hm[fixed, :] = 0.0
                     Hm[:, fixed] = 0.0
-                    Hm.flat[diag[fixed]] = 1.0
+                    Hm[fixed, fixed] = 1.0
                     g[fixed] = 0.0
             base = (lam_s if smooth else 0.0) + 1e-14 * float(Hm.trace())
             accepted = False
             for _ in range(8):
-                Hm.flat[diag] += base + mu
-                _, step, info = _dposv(Hm, g)
-                Hm.flat[diag] -= base + mu
+                _, step, info = _dposv(Hm + (base + mu) * eye, g)
                 if info != 0:
                     mu = max(mu * 10.0, 1e-12 * max(abs(f), 1e-30))
                     continue
-                x_new = np.minimum(np.maximum(x - step, xlo), xhi)
+                y = x - step
+                u = float((np.abs(y - mid) * ihalf).max())  # ≥ 1: some variable at or beyond a bound
+                x_new = np.minimum(np.maximum(y, xlo), xhi) if u > 1.0 else y
                 h_new = np.tanh(W1 @ x_new + b1)
                 r_new = R @ h_new + q
                 f_new = float(r_new @ r_new) + kq
@@ -211,6 +211,7 @@ class KsnnInverse:
             decrease = f - f_new
             moved = float(np.abs(x_new - x).max())
             x, f, h, r = x_new, f_new, h_new, r_new
+            on_bound = u >= 1.0 - 1e-12
             if smooth:
                 dx = dx_new
             if decrease <= tol * max(f, 1e-30) or moved < 1e-12:

@@ -6,9 +6,9 @@ The measure (``docs/skin_guard.md``) is the principal engineering strain of the 
 footprint of every rigid attachment (link patches and skull), and reduced to its extremes: (min over the surface
 of the smoothed smaller strain, max of the smoothed larger strain). :class:`SurfaceStrain` computes it on any
 surface (the FEM's, the predictor's); :class:`StrainGuard` computes it from the KSNN predictor, relative to the
-predictor's own neutral prediction, in two forms: ``full`` (every vertex, off the control loop) and the reduced
-in-cycle ``measure``/``check`` that evaluates only the patches that can come near a limit, straight from the
-hidden layer (edge vectors are linear in the hidden activations). numpy and scipy only.
+rest mesh (or the predictor's neutral prediction), in two forms: ``full`` (every vertex, off the control loop)
+and the reduced in-cycle ``measure``/``check`` that evaluates only the patches that can come near a limit,
+straight from the hidden layer (edge vectors are linear in the hidden activations). numpy and scipy only.
 """
 
 from __future__ import annotations
@@ -28,6 +28,9 @@ from models.predictor import DEFAULT_STRAIN_RANGE, KsnnWeights, SkinPredictor
 DEFAULT_RADIUS = 0.008
 #: Default width (m) of the band left out around the footprint of each rigid attachment.
 DEFAULT_BAND = 0.005
+#: Reference surfaces the predictor's strain can be measured against: the rest (base) mesh, as the FEM does, or
+#: the predictor's own prediction at the neutral pose (cancels its neutral error, but not its pose-dependent one).
+REFERENCES = ("rest", "neutral")
 #: Attachment footprint file format (``[paths] skin_guard`` of a head).
 FOOTPRINT_FORMAT = "likeness-skin-footprint"
 
@@ -204,11 +207,11 @@ class GuardCalibration:
 class StrainGuard:
     """Accept or refuse commanded actuator poses (SI, the head's actuator order) by the skin-strain measure.
 
-    The predictor's surface is measured against its own prediction at the neutral pose (the FEM's neutral is
-    the unstrained rest shape; the predictor's neutral carries a fixed sub-millimetre error that would otherwise
-    read as up to ±14 % strain on millimetre triangles). Poses outside the predictor's trained range are
-    evaluated at the range (clamped) but always refused by :meth:`check` (the model cannot vouch for them);
-    non-finite poses are refused.
+    ``reference``: "rest" measures the predicted surface against the rest mesh, as the FEM's is measured;
+    "neutral" against the predictor's own neutral prediction (which reads exactly zero at neutral, but on the
+    sample head agrees less with the FEM at large strains: ``docs/skin_guard.md``). Poses outside the
+    predictor's trained range are evaluated at the range (clamped) but always refused by :meth:`check` (the
+    model cannot vouch for them); non-finite poses are refused.
 
     The reduced check evaluates only a few patches (kept triangles' neighbourhoods), directly from the hidden
     activations: on ``samples`` seeded poses over the trained range, a greedy cover picks patches until, for
@@ -220,7 +223,7 @@ class StrainGuard:
                  strain_range: tuple[float, float] = DEFAULT_STRAIN_RANGE, attached: np.ndarray | None = None,
                  radius: float = DEFAULT_RADIUS, band: float = DEFAULT_BAND, samples: int = 2000,
                  levels: tuple[float, ...] = (0.8, 0.9, 1.0, 1.1, 1.25), seed: int = 0,
-                 names: tuple[str, ...] | None = None) -> None:
+                 names: tuple[str, ...] | None = None, reference: str = "rest") -> None:
         lo_s, hi_s = (float(x) for x in strain_range)
         if not -1.0 < lo_s < 0.0 < hi_s:
             raise ValueError(f"strain_range must satisfy -1 < min < 0 < max, got {strain_range}")
@@ -237,7 +240,10 @@ class StrainGuard:
             raise ValueError(f"neutral must have shape ({predictor.n_actuators},), got {self.neutral.shape}")
         base = predictor.base_vertices.astype(np.float64)
         self.surface = SurfaceStrain(base, predictor.faces, attached, radius, band)
-        self.reference = base + w.offsets(self.neutral)
+        if reference not in REFERENCES:
+            raise ValueError(f"reference must be one of {', '.join(REFERENCES)}, got {reference!r}")
+        self.reference_kind = reference
+        self.reference = base + w.offsets(self.neutral) if reference == "neutral" else base
         self._g0 = triangle_metric(self.reference, predictor.faces)
         H = w.hidden
         self._W1 = np.ascontiguousarray(np.concatenate([w.W1[k].T for k in range(3)], axis=0))  # (3H, A)
@@ -270,6 +276,9 @@ class StrainGuard:
         if not -1.0 < lo < 0.0 < hi:
             raise SpecError(str(head.source), "skin.strain_min", "need -1 < strain_min < 0 < strain_max", (lo, hi))
         radius, band = number("radius_mm", DEFAULT_RADIUS * 1e3), number("band_mm", DEFAULT_BAND * 1e3)
+        reference = cfg.get("reference", "rest")
+        if reference not in REFERENCES:
+            raise SpecError(str(head.source), "skin.reference", f"must be one of {', '.join(REFERENCES)}", reference)
         if radius <= 0:
             raise SpecError(str(head.source), "skin.radius_mm", "must be positive", radius)
         if band < 0:
@@ -282,7 +291,7 @@ class StrainGuard:
             attached = load_footprint(fp, predictor.n_vertices)
         neutral = np.clip([a.neutral for a in head.actuators], predictor.lo, predictor.hi)
         return cls(predictor, neutral, (lo, hi), attached, radius * 1e-3, band * 1e-3,
-                   names=tuple(a.name for a in head.actuators))
+                   names=tuple(a.name for a in head.actuators), reference=reference)
 
     def _full_hidden_field(self, P: np.ndarray) -> np.ndarray:
         """Smoothed field (B, K, 2) of a batch of normalized poses, numpy forward pass (calibration)."""

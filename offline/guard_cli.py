@@ -42,6 +42,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     e.add_argument("--config", required=True)
     e.add_argument("--dataset", nargs="+", required=True, help="pose dataset folders (likeness offline dataset)")
     e.add_argument("--out", required=True, help="report .json")
+    e.add_argument("--sample-out", help="also write a small test sample (.npz): evenly spaced poses of each dataset")
+    e.add_argument("--sample-size", type=int, default=12, help="poses per dataset in --sample-out (default 12)")
     e.set_defaults(func=run_evaluate)
 
     r = gs.add_parser("refine", help="the strain measure on the coarse skin and its 1:8 refinement (JSON)")
@@ -138,6 +140,14 @@ def run_evaluate(args: argparse.Namespace) -> int:
     fp = head.path("skin_guard")
     attached = load_footprint(fp, guard.predictor.n_vertices) if fp is not None else None
     report = agreement_report(guard, args.dataset, attached)
+    other = "neutral" if guard.reference_kind == "rest" else "rest"
+    alt = StrainGuard(guard.predictor, guard.neutral, guard.strain_range, attached, guard.surface.radius,
+                      guard.surface.band, samples=200, names=guard.names, reference=other)
+    alt_report = agreement_report(alt, args.dataset, attached)
+    report["reference_comparison"] = {
+        ref: {"guard_vs_fem": rep["guard_vs_fem"],
+              "median_abs_error_vs_fem": {k: d["median_abs_error_vs_fem"] for k, d in rep["per_dataset"].items()}}
+        for ref, rep in ((guard.reference_kind, report), (other, alt_report))}
     cal = guard.calibration
     report.update({
         "command": " ".join(["likeness", *sys.argv[1:]]),
@@ -145,7 +155,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
                    "predictor": {"path": str(guard.predictor.path), "sha256": file_hash(guard.predictor.path)},
                    "skin_guard": {"path": str(fp), "sha256": file_hash(fp)} if fp is not None else None},
         "settings": {"strain_range": list(guard.strain_range), "radius_m": guard.surface.radius,
-                     "band_m": guard.surface.band, "reference": "predictor's neutral prediction",
+                     "band_m": guard.surface.band, "reference": guard.reference_kind,
                      "kept_area_fraction": guard.surface.kept_area_fraction},
         "reduced": {"patches": cal.patches, "patches_total": cal.patches_total, "vertices": cal.vertices,
                     "calibration_samples": cal.samples, "calibration_seed": cal.seed,
@@ -154,6 +164,8 @@ def run_evaluate(args: argparse.Namespace) -> int:
     })
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(report, indent=1) + "\n")
+    if args.sample_out:
+        write_sample(args.sample_out, args.dataset, args.sample_size)
     print(f"{report['poses']} poses: guard vs FEM {report['guard_vs_fem']:.4f}, reduced vs full "
           f"{report['reduced_vs_full']:.4f} -> {args.out}")
     return 0
@@ -189,3 +201,28 @@ def run_refine(args: argparse.Namespace) -> int:
               f"{f['measure'][1]:+.3f} | single triangle coarse {c['single_triangle_all'][1]:+.3f} fine "
               f"{f['single_triangle_all'][1]:+.3f}")
     return 0
+
+
+def write_sample(path: str, datasets: list[str], per_dataset: int) -> None:
+    """Evenly spaced converged poses of each dataset: p, surface offsets (float32), base surface, faces."""
+    import numpy as np
+
+    from models.atomic import write_bytes
+    from offline.dataset.store import PoseDataset
+
+    P, off, src = [], [], []
+    base = faces = None
+    for root in datasets:
+        ds = PoseDataset(root)
+        idx = ds.usable
+        pick = idx[np.linspace(0, len(idx) - 1, min(per_dataset, len(idx))).round().astype(int)]
+        P.append(ds.actuators[pick])
+        off.append(np.asarray(ds.offsets[pick], dtype=np.float32))
+        src += [f"{Path(root).name}#{i}" for i in pick]
+        base, faces = ds.base_vertices, ds.faces
+    import io
+
+    buf = io.BytesIO()
+    np.savez_compressed(buf, p=np.concatenate(P), offsets=np.concatenate(off), base=base, faces=faces,
+                        source=np.array(src), command=np.array(" ".join(["likeness", *sys.argv[1:]])))
+    write_bytes(Path(path), buf.getvalue())

@@ -97,12 +97,13 @@ def _ok(m: np.ndarray, lo: float, hi: float) -> np.ndarray:
 def agreement_report(guard: StrainGuard, datasets: Iterable[str | Path], attached: np.ndarray | None
                      ) -> dict[str, Any]:
     """Guard (full and reduced) vs the FEM measure on every converged pose of the given pose datasets."""
-    from offline.dataset.store import PoseDataset
+    from offline.dataset.store import PoseDataset, PoseStore
 
     lo, hi = guard.strain_range
     per_set = {}
     all_fem, all_full, all_red = [], [], []
     for root in datasets:
+        PoseStore(root).consolidate()  # the poses solved so far (a run may still be adding to it)
         ds = PoseDataset(root)
         idx = ds.usable
         fem_surface = SurfaceStrain(ds.base_vertices, ds.faces, attached, guard.surface.radius, guard.surface.band)

@@ -65,16 +65,17 @@ class SkinTargetSolver:
         """The solver for the head's ``paths.predictor``, or None when the head names no existing predictor.
 
         An optional ``[skin]`` table tunes it: ``strain_min`` / ``strain_max`` (validated range of the strain
-        measure, default −0.2 / 0.5), ``radius_mm`` / ``band_mm`` (the measure's neighbourhood and attachment band,
-        ``models.strain_guard``), ``smoothness_mm`` (RMS surface error, mm, that a full-range jump of one actuator
-        costs, default 0.1) and ``iterations_per_frame`` (default 3). ``[paths] skin_guard`` names the attachment
-        footprint of the skin (``likeness offline guard footprint``).
+        measure, default −0.2 / 0.5), ``radius_mm`` / ``band_mm`` / ``reference`` (the measure's neighbourhood,
+        attachment band and reference surface, ``models.strain_guard``), ``smoothness_mm`` (RMS surface error,
+        mm, that a full-range jump of one actuator costs, default 0.1) and ``iterations_per_frame`` (default 3).
+        ``[paths] skin_guard`` names the attachment footprint of the skin (``likeness offline guard footprint``).
         """
         path = head.path("predictor")
         if path is None or not Path(path).is_file():
             return None
         cfg = dict(head.section("skin"))
-        allowed = {"strain_min", "strain_max", "radius_mm", "band_mm", "smoothness_mm", "iterations_per_frame"}
+        allowed = {"strain_min", "strain_max", "radius_mm", "band_mm", "reference", "smoothness_mm",
+                   "iterations_per_frame"}
         for key in cfg:
             if key not in allowed:
                 raise SpecError(str(head.source), f"skin.{key}", f"unknown key; allowed: {', '.join(sorted(allowed))}")

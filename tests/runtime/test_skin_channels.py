@@ -225,3 +225,20 @@ def test_skin_table_of_the_head_tunes_the_solver_and_is_validated(tmp_path, head
                      ({"iterations_per_frame": 0}, "skin.iterations_per_frame"), ({"colour": 1}, "skin.colour")):
         with pytest.raises(SpecError, match=key.replace(".", r"\.")):
             SkinTargetSolver.from_head(dataclasses.replace(head, sections={**head.sections, "skin": bad}))
+
+
+def test_reset_forgets_the_warm_start_and_channels_are_declared(tmp_path, head):
+    from models.strain_guard import StrainGuard
+
+    sp = write_predictor(tmp_path / "p.onnx", head, unit_poses={"jawOpen": pose(head, jaw=15.0, upper_lip=5.0)})
+    solver = SkinTargetSolver(head, sp)
+    assert isinstance(solver.strain_guard, StrainGuard)
+    assert solver.channels() == {"arkit.jawOpen": "weight"}
+    fresh = SkinTargetSolver(head, sp).solve({"arkit.jawOpen": 1.0}, {})
+    for _ in range(5):
+        warm = solver.solve({"arkit.jawOpen": 1.0}, {})
+    assert warm.actuators["jaw"] > fresh.actuators["jaw"] + 1e-3  # the warm start carried the solve further
+    solver.reset()
+    again = solver.solve({"arkit.jawOpen": 1.0}, {})
+    assert again.actuators == pytest.approx(fresh.actuators, abs=1e-12)
+    assert again.extra["skin_guard"] == "ok"
