@@ -197,9 +197,10 @@ def run_refine(args: argparse.Namespace) -> int:
     Path(args.out).write_text(json.dumps(report, indent=1) + "\n")
     for row in report["poses"]:
         c, f = row["coarse"], row["fine"]
+        fc = row["fine_on_coarse_triangles"]["measure"]
         print(f"measure coarse {c['measure'][0]:+.3f}/{c['measure'][1]:+.3f} fine {f['measure'][0]:+.3f}/"
-              f"{f['measure'][1]:+.3f} | single triangle coarse {c['single_triangle_all'][1]:+.3f} fine "
-              f"{f['single_triangle_all'][1]:+.3f}")
+              f"{f['measure'][1]:+.3f} fine solution on coarse triangles {fc[0]:+.3f}/{fc[1]:+.3f} | single "
+              f"triangle max coarse {c['single_triangle_all'][1]:+.3f} fine {f['single_triangle_all'][1]:+.3f}")
     return 0
 
 

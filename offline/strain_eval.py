@@ -246,5 +246,12 @@ def refinement_study(head: HeadSpec, mesh_dir: str | Path, poses: np.ndarray, ra
                              "single_triangle_all": [float(np.nanmin(eps[:, 0])), float(np.nanmax(eps[:, 1]))],
                              "single_triangle_kept": [float(np.nanmin(eps[kept, 0])), float(np.nanmax(eps[kept, 1]))],
                              "kept_area_fraction": surf.kept_area_fraction}
+                if name == "fine":
+                    # The fine solution at the coarse surface's vertices (the refinement keeps them first, in
+                    # order), measured on the coarse triangles: separates the measure's own mesh dependence from
+                    # the change of the FEM solution itself.
+                    coarse_surf = problems["coarse"][1]
+                    on_coarse = sol.surface[: len(coarse_surf.rest)]
+                    row["fine_on_coarse_triangles"] = {"measure": list(coarse_surf.extremes(on_coarse))}
             out["poses"].append(row)
     return out
