@@ -2,8 +2,9 @@
 
 The measure (``docs/skin_guard.md``) is the principal engineering strain of the outer skin surface, per triangle
 (ε = λ − 1 from the in-plane principal stretches λ), averaged area-weighted over a physical neighbourhood of
-``radius`` (default 8 mm, connected skin only), leaving out the band within ``band`` (default 5 mm) of the
-footprint of every rigid attachment (link patches and skull), and reduced to its extremes: (min over the surface
+``radius`` (default 8 mm, connected skin only), leaving out the triangles whose centroid lies closer than ``band``
+(default 7 mm, measured through the skin) to a rigid attachment region (link patches and skull), and reduced to
+its extremes: (min over the surface
 of the smoothed smaller strain, max of the smoothed larger strain). :class:`SurfaceStrain` computes it on any
 surface (the FEM's, the predictor's); :class:`StrainGuard` computes it from the KSNN predictor, relative to the
 rest mesh (or the predictor's neutral prediction), in two forms: ``full`` (every vertex, off the control loop)
@@ -26,13 +27,14 @@ from models.predictor import DEFAULT_STRAIN_RANGE, KsnnWeights, SkinPredictor
 #: Default neighbourhood radius (m) of the area-weighted average: above the coarse sample mesh's 5.6 mm edges,
 #: well below the size of a face feature (a lip is ~15 mm tall).
 DEFAULT_RADIUS = 0.008
-#: Default width (m) of the band left out around the footprint of each rigid attachment.
-DEFAULT_BAND = 0.005
+#: Default distance (m) from the rigid attachment regions (through the skin) below which triangles are not measured:
+#: about 3.6 mm beside an attachment under the sample skin's 6 mm, more where the skin is thinner.
+DEFAULT_BAND = 0.007
 #: Reference surfaces the predictor's strain can be measured against: the rest (base) mesh, as the FEM does, or
 #: the predictor's own prediction at the neutral pose (cancels its neutral error, but not its pose-dependent one).
 REFERENCES = ("rest", "neutral")
-#: Attachment footprint file format (``[paths] skin_guard`` of a head).
-FOOTPRINT_FORMAT = "likeness-skin-footprint"
+#: Attachment distance file format (``[paths] skin_guard`` of a head).
+FOOTPRINT_FORMAT = "likeness-skin-attachment-distance"
 
 
 # ---------------------------------------------------------------------------- per-triangle geometry
@@ -62,27 +64,17 @@ def principal_strains(g0: np.ndarray, g: np.ndarray) -> np.ndarray:
     return np.stack([lo, hi], axis=-1)
 
 
-def footprint_vertices(surface: np.ndarray, attachment_points: np.ndarray) -> np.ndarray:
-    """Boolean mask (V,) of surface vertices that are the nearest surface vertex of some attachment point."""
-    from scipy.spatial import cKDTree
-
-    mask = np.zeros(len(surface), dtype=bool)
-    if len(attachment_points):
-        _, idx = cKDTree(surface).query(np.asarray(attachment_points, dtype=np.float64))
-        mask[idx] = True
-    return mask
-
-
 class SurfaceStrain:
     """The strain measure on one triangulated surface at rest (``rest`` (V, 3) m, ``faces`` (T, 3)).
 
-    ``attached`` (V,) marks the footprint of rigid attachments; triangles whose rest centroid lies within ``band``
-    of a footprint vertex are left out. Each kept triangle's value is the area-weighted mean over the kept
-    triangles whose centroids lie within ``radius`` of its own and are reached through the mesh within
-    1.5 ``radius`` (so the upper and lower lip, close in space across the mouth, do not mix).
+    ``rim_distance`` (T,) is each triangle's rest-centroid distance to the nearest rigid attachment region (the
+    inner-surface triangles and edges of the attachment node sets); triangles closer than ``band`` are left out.
+    Each kept triangle's value is the area-weighted mean over the kept triangles whose centroids lie within
+    ``radius`` of its own and are reached through the mesh within 1.5 ``radius`` (so the upper and lower lip,
+    close in space across the mouth, do not mix).
     """
 
-    def __init__(self, rest: np.ndarray, faces: np.ndarray, attached: np.ndarray | None = None,
+    def __init__(self, rest: np.ndarray, faces: np.ndarray, rim_distance: np.ndarray | None = None,
                  radius: float = DEFAULT_RADIUS, band: float = DEFAULT_BAND) -> None:
         from scipy import sparse
         from scipy.sparse.csgraph import dijkstra
@@ -102,13 +94,13 @@ class SurfaceStrain:
         self.g0 = triangle_metric(rest, faces)
         n_tri = len(faces)
         kept = self.areas > 0
-        if attached is not None:
-            attached = np.asarray(attached, dtype=bool)
-            if attached.shape != (len(rest),):
-                raise ValueError(f"attached must be a (V,) mask of {len(rest)} vertices, got {attached.shape}")
-            if attached.any():
-                d, _ = cKDTree(rest[attached]).query(self.centroids)
-                kept &= d >= band
+        self.rim_distance = None
+        if rim_distance is not None:
+            rim = np.asarray(rim_distance, dtype=np.float64)
+            if rim.shape != (n_tri,):
+                raise ValueError(f"rim_distance must give one distance per triangle ({n_tri}), got {rim.shape}")
+            self.rim_distance = rim
+            kept &= rim >= band
         self.kept = kept
         kidx = np.flatnonzero(kept)
         if kidx.size == 0:
@@ -152,7 +144,8 @@ class SurfaceStrain:
         eps = self.triangle_strains(positions, reference)
         if eps.ndim == 2:
             return np.asarray(self.smooth @ eps)
-        return np.stack([np.asarray(self.smooth @ e) for e in eps])
+        b, t, _ = eps.shape
+        return np.asarray(self.smooth @ eps.transpose(1, 0, 2).reshape(t, 2 * b)).reshape(-1, b, 2).transpose(1, 0, 2)
 
     def extremes(self, positions: np.ndarray, reference: np.ndarray | None = None) -> tuple[float, float]:
         """The measure of one surface: (smallest smoothed ε_min, largest smoothed ε_max) over the kept skin."""
@@ -161,34 +154,36 @@ class SurfaceStrain:
 
 
 # ---------------------------------------------------------------------------- footprint file
-def save_footprint(path: str | Path, attached: np.ndarray, sets: Mapping[str, int], provenance: Mapping[str, Any]
-                   ) -> None:
-    """Write the attachment footprint (per predictor/outer-surface vertex) of a skin to ``path`` (.npz)."""
+def save_footprint(path: str | Path, rim_distance: np.ndarray, sets: Mapping[str, int],
+                   provenance: Mapping[str, Any]) -> None:
+    """Write each outer-surface triangle's distance to the rigid attachments (predictor face order) as .npz."""
     import io
     import json
 
     from models.atomic import write_bytes
 
     buf = io.BytesIO()
-    np.savez(buf, format=np.array(FOOTPRINT_FORMAT), attached=np.asarray(attached, dtype=bool),
+    np.savez(buf, format=np.array(FOOTPRINT_FORMAT), rim_distance=np.asarray(rim_distance, dtype=np.float64),
              sets=np.array(json.dumps(dict(sets))), provenance=np.array(json.dumps(dict(provenance), default=str)))
     write_bytes(Path(path), buf.getvalue())
 
 
-def load_footprint(path: str | Path, n_vertices: int) -> np.ndarray:
-    """The attachment footprint mask (V,) from a file written by :func:`save_footprint`."""
+def load_footprint(path: str | Path, n_triangles: int) -> np.ndarray:
+    """Per-triangle attachment distances (T,) from a file written by :func:`save_footprint`."""
     source = str(path)
     try:
         with np.load(path) as z:
             fmt = str(z["format"]) if "format" in z.files else ""
-            attached = np.asarray(z["attached"], dtype=bool) if "attached" in z.files else None
+            rim = np.asarray(z["rim_distance"], dtype=np.float64) if "rim_distance" in z.files else None
     except (OSError, ValueError) as exc:
-        raise SpecError(source, "file", f"cannot read the skin footprint: {exc}") from exc
-    if fmt != FOOTPRINT_FORMAT or attached is None:
-        raise SpecError(source, "format", f"not a {FOOTPRINT_FORMAT} file (needs 'format' and 'attached')")
-    if attached.shape != (n_vertices,):
-        raise SpecError(source, "attached", f"must mark the predictor's {n_vertices} vertices", attached.shape)
-    return attached
+        raise SpecError(source, "file", f"cannot read the attachment distances: {exc}") from exc
+    if fmt != FOOTPRINT_FORMAT or rim is None:
+        raise SpecError(source, "format", f"not a {FOOTPRINT_FORMAT} file (needs 'format' and 'rim_distance')")
+    if rim.shape != (n_triangles,):
+        raise SpecError(source, "rim_distance", f"must give the predictor's {n_triangles} triangles", rim.shape)
+    if not np.all(np.isfinite(rim)) or np.any(rim < 0):
+        raise SpecError(source, "rim_distance", "distances must be finite and non-negative")
+    return rim
 
 
 # ---------------------------------------------------------------------------- the guard
@@ -220,9 +215,9 @@ class StrainGuard:
     """
 
     def __init__(self, predictor: SkinPredictor, neutral: np.ndarray,
-                 strain_range: tuple[float, float] = DEFAULT_STRAIN_RANGE, attached: np.ndarray | None = None,
-                 radius: float = DEFAULT_RADIUS, band: float = DEFAULT_BAND, samples: int = 2000,
-                 levels: tuple[float, ...] = (0.8, 0.9, 1.0, 1.1, 1.25), seed: int = 0,
+                 strain_range: tuple[float, float] = DEFAULT_STRAIN_RANGE, rim_distance: np.ndarray | None = None,
+                 radius: float = DEFAULT_RADIUS, band: float = DEFAULT_BAND, samples: int = 6000,
+                 levels: tuple[float, ...] = (0.8, 0.9, 0.95, 1.0, 1.05, 1.1, 1.25), seed: int = 0,
                  names: tuple[str, ...] | None = None, reference: str = "rest") -> None:
         lo_s, hi_s = (float(x) for x in strain_range)
         if not -1.0 < lo_s < 0.0 < hi_s:
@@ -239,7 +234,7 @@ class StrainGuard:
         if self.neutral.shape != (predictor.n_actuators,):
             raise ValueError(f"neutral must have shape ({predictor.n_actuators},), got {self.neutral.shape}")
         base = predictor.base_vertices.astype(np.float64)
-        self.surface = SurfaceStrain(base, predictor.faces, attached, radius, band)
+        self.surface = SurfaceStrain(base, predictor.faces, rim_distance, radius, band)
         if reference not in REFERENCES:
             raise ValueError(f"reference must be one of {', '.join(REFERENCES)}, got {reference!r}")
         self.reference_kind = reference
@@ -258,7 +253,7 @@ class StrainGuard:
     @classmethod
     def for_head(cls, head: Any, predictor: SkinPredictor | None = None) -> StrainGuard | None:
         """The guard of a head: ``[paths] predictor`` (None when absent), ``[paths] skin_guard`` (attachment
-        footprint, optional) and ``[skin]`` ``strain_min``/``strain_max``/``radius_mm``/``band_mm``."""
+        distances, optional) and ``[skin]`` ``strain_min``/``strain_max``/``radius_mm``/``band_mm``."""
         path = head.path("predictor")
         if predictor is None:
             if path is None or not Path(path).is_file():
@@ -284,13 +279,13 @@ class StrainGuard:
         if band < 0:
             raise SpecError(str(head.source), "skin.band_mm", "must not be negative", band)
         fp = head.path("skin_guard")
-        attached = None
+        rim = None
         if fp is not None:
             if not Path(fp).is_file():
                 raise SpecError(str(head.source), "paths.skin_guard", "file not found", str(fp))
-            attached = load_footprint(fp, predictor.n_vertices)
+            rim = load_footprint(fp, len(predictor.faces))
         neutral = np.clip([a.neutral for a in head.actuators], predictor.lo, predictor.hi)
-        return cls(predictor, neutral, (lo, hi), attached, radius * 1e-3, band * 1e-3,
+        return cls(predictor, neutral, (lo, hi), rim, radius * 1e-3, band * 1e-3,
                    names=tuple(a.name for a in head.actuators), reference=reference)
 
     def _full_hidden_field(self, P: np.ndarray) -> np.ndarray:
@@ -298,10 +293,12 @@ class StrainGuard:
         w = self.weights
         h = np.tanh(np.einsum("ba,kah->bkh", P, w.W1) + w.b1)
         pos = np.einsum("bkh,khv->bvk", h, w.W2) + w.b2.T + self.surface.rest
-        eps = principal_strains(self._g0, triangle_metric(pos, self.surface.faces))
-        return np.stack([np.asarray(self.surface.smooth @ e) for e in eps])
+        eps = principal_strains(self._g0, triangle_metric(pos, self.surface.faces))  # (B, T, 2)
+        b, t, _ = eps.shape
+        out = self.surface.smooth @ eps.transpose(1, 0, 2).reshape(t, 2 * b)  # one sparse product for the batch
+        return np.asarray(out).reshape(-1, b, 2).transpose(1, 0, 2)
 
-    def _select(self, samples: int, levels: tuple[float, ...], seed: int) -> None:
+    def _select(self, samples: int, levels: tuple[float, ...], seed: int, track: float = 0.02) -> None:
         rng = np.random.default_rng(seed)
         A = self.weights.n_actuators
         X = rng.uniform(0.0, 1.0, (samples, A))
@@ -318,6 +315,12 @@ class StrainGuard:
             full_hi = fields[:, :, 1].max(axis=1) >= lev * hi_s
             items.append(fields[full_lo, :, 0] <= lev * lo_s)
             items.append(fields[full_hi, :, 1] >= lev * hi_s)
+        # Tracking: near a limit (the full extreme beyond 0.7 of it), a chosen patch must come within ``track``
+        # (a fraction of the limit) of the full extreme, so a pose just past the limit is seen as past it.
+        fmin, fmax = fields[:, :, 0].min(axis=1), fields[:, :, 1].max(axis=1)
+        near_lo, near_hi = fmin <= 0.7 * lo_s, fmax >= 0.7 * hi_s
+        items.append(fields[near_lo, :, 0] <= (fmin[near_lo] - track * lo_s)[:, None])
+        items.append(fields[near_hi, :, 1] >= (fmax[near_hi] - track * hi_s)[:, None])
         cover = np.concatenate(items)  # (items, patches)
         crit = np.zeros(fields.shape[1], dtype=bool)
         open_rows = np.ones(len(cover), dtype=bool)

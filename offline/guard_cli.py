@@ -1,6 +1,6 @@
 """``likeness offline guard ...``: build and judge the skin-strain guard against the FEM.
 
-- ``footprint``: write the attachment footprint of a skin (``[paths] skin_guard`` of the head).
+- ``footprint``: write each surface triangle's distance to the rigid attachments (``[paths] skin_guard``).
 - ``performances``: simulate the poses the head's performances command (FEM dataset folder, resumable).
 - ``evaluate``: guard (full, reduced) vs the FEM measure on pose datasets; writes a JSON report with input hashes.
 - ``refine``: the measure on the coarse skin and on its 1:8 refinement for a few poses (JSON report).
@@ -22,7 +22,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     gs = p.add_subparsers(dest="guard_command", metavar="STEP")
     p.set_defaults(func=lambda args: (p.print_help(), 2)[1])
 
-    f = gs.add_parser("footprint", help="write the outer-surface footprint of the skin's rigid attachments")
+    f = gs.add_parser("footprint", help="write each outer-surface triangle's distance to the rigid attachments")
     f.add_argument("--config", required=True, help="head spec TOML")
     f.add_argument("--mesh", required=True, help="skin mesh folder (skin.vtu + face_units.npz)")
     f.add_argument("--out", required=True, help="output .npz (name it in the head's [paths] skin_guard)")
@@ -77,24 +77,27 @@ def _load_surface(mesh_dir: Path) -> tuple[Any, Any]:
         raise CliError(f"{mesh_dir}: needs skin.vtu and face_units.npz (likeness offline mesh)")
     mesh = load_mesh(mesh_dir / "skin.vtu")
     with np.load(mesh_dir / "face_units.npz") as z:
-        outer = np.asarray(z["surface_nodes"], dtype=np.int64)
-    return mesh, outer
+        triangles = np.asarray(z["surface_triangles"], dtype=np.int64)
+    return mesh, triangles
 
 
 def run_footprint(args: argparse.Namespace) -> int:
-    """Write the footprint file."""
+    """Write the attachment distance file."""
+    import numpy as np
+
     from models.strain_guard import save_footprint
-    from offline.strain_eval import attachment_footprint, file_hash
+    from offline.strain_eval import attachment_distance, file_hash
 
     head = _head(args.config)
     mesh_dir = Path(args.mesh)
-    mesh, outer = _load_surface(mesh_dir)
-    attached, sets = attachment_footprint(head, mesh, outer)
-    save_footprint(args.out, attached, sets, {
+    mesh, triangles = _load_surface(mesh_dir)
+    rim, sets = attachment_distance(head, mesh, triangles)
+    save_footprint(args.out, rim, sets, {
         "command": " ".join(["likeness", *sys.argv[1:]]), "mesh_sha256": file_hash(mesh_dir / "skin.vtu"),
-        "surface_sha256": file_hash(mesh_dir / "face_units.npz"), "rule": "nearest outer vertex of each node"})
-    print(f"{int(attached.sum())} of {len(attached)} surface vertices over attachments ({', '.join(sets)}) "
-          f"-> {args.out}")
+        "surface_sha256": file_hash(mesh_dir / "face_units.npz"),
+        "rule": "centroid distance to boundary triangles/edges with all nodes in one attachment set"})
+    print(f"{len(rim)} surface triangles, distance to attachments ({', '.join(sets)}): median "
+          f"{np.median(rim) * 1e3:.1f} mm, min {rim.min() * 1e3:.1f} mm -> {args.out}")
     return 0
 
 
@@ -129,7 +132,7 @@ def run_performances(args: argparse.Namespace) -> int:
 def run_evaluate(args: argparse.Namespace) -> int:
     """Write the agreement report."""
     from likeness.cli import CliError
-    from models.strain_guard import StrainGuard, load_footprint
+    from models.strain_guard import StrainGuard
     from offline.strain_eval import agreement_report, file_hash
 
     head = _head(args.config)
@@ -138,12 +141,11 @@ def run_evaluate(args: argparse.Namespace) -> int:
     if guard is None:
         raise CliError(f"{args.config}: the head names no existing predictor")
     fp = head.path("skin_guard")
-    attached = load_footprint(fp, guard.predictor.n_vertices) if fp is not None else None
-    report = agreement_report(guard, args.dataset, attached)
+    report = agreement_report(guard, args.dataset)
     other = "neutral" if guard.reference_kind == "rest" else "rest"
-    alt = StrainGuard(guard.predictor, guard.neutral, guard.strain_range, attached, guard.surface.radius,
-                      guard.surface.band, samples=200, names=guard.names, reference=other)
-    alt_report = agreement_report(alt, args.dataset, attached)
+    alt = StrainGuard(guard.predictor, guard.neutral, guard.strain_range, guard.surface.rim_distance,
+                      guard.surface.radius, guard.surface.band, samples=200, names=guard.names, reference=other)
+    alt_report = agreement_report(alt, args.dataset)
     report["reference_comparison"] = {
         ref: {"guard_vs_fem": rep["guard_vs_fem"],
               "median_abs_error_vs_fem": {k: d["median_abs_error_vs_fem"] for k, d in rep["per_dataset"].items()}}

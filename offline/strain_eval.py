@@ -1,6 +1,6 @@
 """Checks of the skin-strain guard against the FEM: footprint, performance poses, agreement, mesh refinement.
 
-- :func:`attachment_footprint`: which outer-surface vertices lie over a rigid attachment (link node sets, skull).
+- :func:`attachment_distance`: each outer-surface triangle's distance to the rigid attachment regions.
 - :func:`performance_poses`: actuator poses a head's sample performances command (``arkit.*`` channels through the
   hidden-space inverse, without the guard, at the daemon's rate).
 - :func:`agreement_report`: the guard's decisions (full and reduced) against the same measure computed on FEM
@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from models.headspec import HeadSpec
-from models.strain_guard import StrainGuard, SurfaceStrain, footprint_vertices
+from models.strain_guard import StrainGuard, SurfaceStrain
 
 
 def file_hash(path: str | Path) -> str:
@@ -40,12 +40,46 @@ def attachment_sets(head: HeadSpec, mesh: Any, skull_set: str = "skull") -> dict
     return sets
 
 
-def attachment_footprint(head: HeadSpec, mesh: Any, outer: np.ndarray) -> tuple[np.ndarray, dict[str, int]]:
-    """Mask (V,) of outer-surface vertices (``outer``: mesh node indices) nearest to an attachment node."""
-    sets = attachment_sets(head, mesh)
+def attachment_distance(head: HeadSpec, mesh: Any, triangles: np.ndarray) -> tuple[np.ndarray, dict[str, int]]:
+    """Distance (T,) from each surface triangle's centroid (``triangles`` in mesh numbering) to the nearest rigid
+    attachment region: the boundary triangles and boundary edges whose nodes all lie in one attachment node set.
+
+    The regions are geometric (a refined mesh covers the same ones), so the distance does not depend on the mesh.
+    """
+    from offline.fem import boundary_faces
+    from offline.mesh.surface import closest_points
+
     nodes = np.asarray(mesh.nodes)
-    pts = np.concatenate([nodes[idx] for idx in sets.values()]) if sets else np.zeros((0, 3))
-    return footprint_vertices(nodes[outer], pts), {k: len(v) for k, v in sets.items()}
+    bf = boundary_faces(mesh)
+    tris, edges = [], []
+    sets = attachment_sets(head, mesh)
+    for idx in sets.values():
+        member = np.zeros(mesh.n_nodes, dtype=bool)
+        member[idx] = True
+        tris.append(bf[member[bf].all(axis=1)])
+        e = np.sort(bf[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+        edges.append(np.unique(e[member[e].all(axis=1)], axis=0))
+    centroids = nodes[np.asarray(triangles)].mean(axis=1)
+    d = np.full(len(centroids), np.inf)
+    t = np.concatenate(tris) if tris else np.zeros((0, 3), dtype=np.int64)
+    if len(t):
+        d = np.minimum(d, closest_points(nodes, t, centroids)[2])
+    e = np.concatenate(edges) if edges else np.zeros((0, 2), dtype=np.int64)
+    if len(e):
+        d = np.minimum(d, _segment_distance(centroids, nodes[e[:, 0]], nodes[e[:, 1]]))
+    return d, {k: len(v) for k, v in sets.items()}
+
+
+def _segment_distance(points: np.ndarray, a: np.ndarray, b: np.ndarray, candidates: int = 16) -> np.ndarray:
+    """Distance from each point to the nearest of the segments a–b (candidates: nearest by midpoint)."""
+    from scipy.spatial import cKDTree
+
+    k = min(candidates, len(a))
+    _, cand = cKDTree(0.5 * (a + b)).query(points, k=k)
+    cand = np.asarray(cand).reshape(len(points), k)
+    pa, ab = points[:, None, :] - a[cand], b[cand] - a[cand]
+    t = np.clip(np.einsum("pki,pki->pk", pa, ab) / np.maximum(np.einsum("pki,pki->pk", ab, ab), 1e-30), 0.0, 1.0)
+    return np.linalg.norm(pa - t[..., None] * ab, axis=2).min(axis=1)
 
 
 def performance_poses(head: HeadSpec, files: Sequence[str | Path], every_s: float = 0.1, rate_hz: float = 500.0
@@ -94,8 +128,7 @@ def _ok(m: np.ndarray, lo: float, hi: float) -> np.ndarray:
     return (m[:, 0] >= lo) & (m[:, 1] <= hi)
 
 
-def agreement_report(guard: StrainGuard, datasets: Iterable[str | Path], attached: np.ndarray | None
-                     ) -> dict[str, Any]:
+def agreement_report(guard: StrainGuard, datasets: Iterable[str | Path]) -> dict[str, Any]:
     """Guard (full and reduced) vs the FEM measure on every converged pose of the given pose datasets."""
     from offline.dataset.store import PoseDataset, PoseStore
 
@@ -106,7 +139,10 @@ def agreement_report(guard: StrainGuard, datasets: Iterable[str | Path], attache
         PoseStore(root).consolidate()  # the poses solved so far (a run may still be adding to it)
         ds = PoseDataset(root)
         idx = ds.usable
-        fem_surface = SurfaceStrain(ds.base_vertices, ds.faces, attached, guard.surface.radius, guard.surface.band)
+        if not np.array_equal(ds.faces, guard.surface.faces):
+            raise ValueError(f"{root}: the dataset's surface triangles differ from the predictor's")
+        fem_surface = SurfaceStrain(ds.base_vertices, ds.faces, guard.surface.rim_distance, guard.surface.radius,
+                                    guard.surface.band)
         P = ds.actuators[idx]
         fem = np.array([fem_surface.extremes(ds.base_vertices + np.asarray(ds.offsets[i], dtype=np.float64))
                         for i in idx]).reshape(-1, 2)
@@ -231,8 +267,8 @@ def refinement_study(head: HeadSpec, mesh_dir: str | Path, poses: np.ndarray, ra
             if name == "fine":
                 prob.frame_offset = problems["coarse"][0].frame_offset
             nodes = np.asarray(prob.mesh.nodes)
-            fp, _ = attachment_footprint(head, prob.mesh, prob.outer)
-            surf = SurfaceStrain(nodes[prob.outer], prob.faces(), fp, radius, band)
+            rim, _ = attachment_distance(head, prob.mesh, prob.outer[prob.faces()])
+            surf = SurfaceStrain(nodes[prob.outer], prob.faces(), rim, radius, band)
             problems[name] = (prob, surf)
         for p in poses:
             row: dict[str, Any] = {"p": [float(x) for x in p]}

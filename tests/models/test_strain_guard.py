@@ -36,11 +36,11 @@ def test_measure_reads_rigid_motion_as_zero_and_a_uniform_stretch_exactly():
 
 def test_band_leaves_out_the_rim_of_an_attachment_and_smoothing_caps_a_single_triangle():
     verts, faces = grid()
-    attached = np.zeros(len(verts), dtype=bool)
-    attached[: 16 * 3] = True  # three rows of vertices held by a rigid attachment
-    s = SurfaceStrain(verts, faces, attached, radius=0.008, band=0.005)
-    near = np.linalg.norm(s.centroids[:, None] - verts[attached][None], axis=2).min(axis=1) < 0.005
-    assert not s.kept[near].any() and s.kept[~near].all()
+    # A rigid attachment along the edge x < 8 mm: distance of each triangle's centroid to it.
+    rim = np.maximum(verts[faces].mean(axis=1)[:, 0] - 0.008, 0.0)
+    s = SurfaceStrain(verts, faces, rim, radius=0.008, band=0.005)
+    near = rim < 0.005
+    assert near.any() and not s.kept[near].any() and s.kept[~near].all()
     # One vertex pushed out of plane strains its six triangles hard; the neighbourhood average stays far lower.
     bump = verts.copy()
     centre = 8 * 16 + 8
@@ -48,10 +48,10 @@ def test_band_leaves_out_the_rim_of_an_attachment_and_smoothing_caps_a_single_tr
     single = s.triangle_strains(bump)[:, 1].max()
     assert single > 0.3 and s.extremes(bump)[1] < 0.5 * single
     # A bump inside the band (all its triangles' centroids within 6.7 mm of the attachment) does not count.
-    wide = SurfaceStrain(verts, faces, attached, radius=0.008, band=0.007)
-    rim = verts.copy()
-    rim[3 * 16 + 8, 2] += 0.004
-    assert wide.extremes(rim)[1] < 1e-9 < wide.triangle_strains(rim)[:, 1].max()
+    wide = SurfaceStrain(verts, faces, rim, radius=0.008, band=0.007)
+    bumped = verts.copy()
+    bumped[3 * 16 + 8, 2] += 0.004
+    assert wide.extremes(bumped)[1] < 1e-9 < wide.triangle_strains(bumped)[:, 1].max()
 
 
 def test_neighbourhoods_do_not_reach_across_a_gap():
@@ -126,8 +126,8 @@ def test_guard_agrees_with_the_fem_measure_on_the_shipped_sample(guard):
     """FEM surfaces of fresh poses (performances and a random sweep), not used to build the guard."""
     with np.load(FEM_SAMPLE) as z:
         P, offsets, base, faces = z["p"], z["offsets"].astype(np.float64), z["base"], z["faces"]
-    attached = load_footprint(ROOT / "heads" / "sample" / "skin_guard.npz", len(base))
-    fem_surface = SurfaceStrain(base, faces, attached, guard.surface.radius, guard.surface.band)
+    rim = load_footprint(ROOT / "heads" / "sample" / "skin_guard.npz", len(faces))
+    fem_surface = SurfaceStrain(base, faces, rim, guard.surface.radius, guard.surface.band)
     fem = np.array([fem_surface.extremes(base + o) for o in offsets])
     lo, hi = guard.strain_range
     fem_ok = (fem[:, 0] >= lo) & (fem[:, 1] <= hi)
