@@ -60,9 +60,10 @@ def frames(solver: SkinTargetSolver, n_random: int, seed: int = 0) -> list[tuple
     return out
 
 
-def pct(ts: list[float]) -> tuple[float, float]:
+def pct(ts: list[float]) -> tuple[float, float, float]:
+    """p50, p99 and p1 (the nearly undisturbed cost on a loaded machine), µs."""
     a = np.asarray(ts) * 1e6
-    return float(np.percentile(a, 50)), float(np.percentile(a, 99))
+    return float(np.percentile(a, 50)), float(np.percentile(a, 99)), float(np.percentile(a, 1))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -83,13 +84,13 @@ def main(argv: list[str] | None = None) -> int:
                                                 for k in ("performance", "random")}
     p_new = solver.neutral.copy()
     p_ref = solver.neutral.copy()
-    agree = 0
+    dev = 0.0
     passes = {"new": 0, "reference": 0}
-    its, tol = solver.max_iterations, solver.tol
+    its, tol, xtol = solver.max_iterations, solver.tol, solver.xtol
     clock = time.perf_counter
     for kind, w in fr:
         t0 = clock()
-        res = inv.solve(w, p_prev=p_new, max_iterations=its, tol=tol)
+        res = inv.solve(w, p_prev=p_new, max_iterations=its, tol=tol, xtol=xtol)
         ok_new = guard.passes(guard.measure_hidden(res.hidden))
         t1 = clock()
         targets = {n: float(x) for n, x in zip(names, w, strict=True) if x > 0}
@@ -106,7 +107,7 @@ def main(argv: list[str] | None = None) -> int:
         tk["solver"].append(t3 - t2)
         tk["reference"].append(t4 - t3)
         tk["forward"].append(t5 - t4)
-        agree += int(np.allclose(res.p, r_ref.p, atol=1e-7))
+        dev = max(dev, float(np.abs(res.p - r_ref.p).max()))
         passes["new"] += int(ok_new)
         passes["reference"] += int(ok_ref)
         p_new, p_ref = res.p, r_ref.p
@@ -115,17 +116,18 @@ def main(argv: list[str] | None = None) -> int:
           f"{guard.calibration.patches} patches, {guard.calibration.vertices} vertices); load average "
           f"{load[0]:.1f} on {os.cpu_count()} CPUs")
     for kind, tk in times.items():
-        c50, c99 = pct(tk["core"])
-        s50, s99 = pct(tk["solver"])
-        r50, r99 = pct(tk["reference"])
-        f50, f99 = pct(tk["forward"])
+        c50, c99, c1 = pct(tk["core"])
+        s50, s99, _ = pct(tk["solver"])
+        r50, r99, r1 = pct(tk["reference"])
+        f50, f99, f1 = pct(tk["forward"])
         print(f"  {kind:11s} ({len(tk['core'])} frames)  p50 / p99 µs: core {c50:6.1f} / {c99:6.1f}   "
               f"SkinTargetSolver.solve {s50:6.1f} / {s99:6.1f}   reference {r50:6.1f} / {r99:6.1f}   "
               f"one predictor pass {f50:5.1f} / {f99:5.1f}")
-        print(f"  {'':11s} core vs reference: p50 {r50 / c50:.1f}x faster, p99 {r99 / c99:.1f}x; "
-              f"p99 goal 100 µs {'met' if c99 <= 100 else 'NOT met'}")
-    print(f"  same poses as the reference solve (1e-7): {agree} of {len(fr)} frames; unguarded solutions passed "
-          f"by the new guard {passes['new']}, by the previous one {passes['reference']}")
+        print(f"  {'':11s} core vs reference: p50 {r50 / c50:.1f}x faster, p99 {r99 / c99:.1f}x; p1 core {c1:.1f}, "
+              f"reference {r1:.1f}, predictor pass {f1:.1f} µs; p99 goal 100 µs {'met' if c99 <= 100 else 'NOT met'}")
+    print(f"  largest pose difference from the reference solve: {np.degrees(dev):.4f}° (early stop at "
+          f"{xtol:g} of the range); unguarded solutions passed by the new guard {passes['new']} of {len(fr)}, by the "
+          f"previous one {passes['reference']}")
     rep = Path(args.report)
     if rep.is_file():
         r = json.loads(rep.read_text())

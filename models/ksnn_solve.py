@@ -131,10 +131,12 @@ class KsnnInverse:
         return max(float(h @ (self._G @ h + 2.0 * c)) + kappa, 0.0) * self.scale
 
     def solve(self, unit_weights: np.ndarray, p_prev: np.ndarray | None = None, p0: np.ndarray | None = None,
-              max_iterations: int = 20, tol: float = 1e-9) -> SolveResult:
+              max_iterations: int = 20, tol: float = 1e-9, xtol: float = 0.0) -> SolveResult:
         """Damped, projected Gauss-Newton from ``p0`` (default ``p_prev``, else mid-range) for face-unit weights.
 
-        ``tol`` bounds the relative decrease of the objective that counts as converged. Each iteration costs a
+        ``tol`` bounds the relative decrease of the objective that counts as converged; ``xtol`` (normalized
+        units, 0 = off) the largest actuator step that does (a warm-started frame whose first step is that small
+        is done). Each iteration costs a
         few dozen small array operations (O(H² A) flops) and one 13×13-sized Cholesky solve (LAPACK ``dposv``);
         variables at a bound whose gradient pushes outward are held (their rows become identity).
         """
@@ -216,7 +218,7 @@ class KsnnInverse:
             on_bound = u >= 1.0 - 1e-12
             if smooth:
                 dx = dx_new
-            if decrease <= tol * max(f, 1e-30):  # also ends a step that no longer moves
+            if decrease <= tol * max(f, 1e-30) or (xtol > 0.0 and float(np.abs(step).max()) <= xtol):
                 converged = True
                 break
         p = w.lo + x * (w.hi - w.lo)

@@ -356,8 +356,10 @@ class StrainGuard:
         self._n_t = n_t
         g0 = self._g0[tri]
         det0 = g0[:, 0] * g0[:, 2] - g0[:, 1] ** 2
-        # half the trace of G0⁻¹G = coef · (a, b, c); det(G0⁻¹G) = (a c − b²) / det0.
-        self._coef = np.ascontiguousarray(np.stack([0.5 * g0[:, 2], -g0[:, 1], 0.5 * g0[:, 0]]) / det0)
+        # half the trace of G0⁻¹G = Σ C ⊙ M over the symmetric 2×2 metric M; det(G0⁻¹G) = det M / det0.
+        self._C = np.ascontiguousarray(np.array([[0.5 * g0[:, 2], -0.5 * g0[:, 1]],
+                                                 [-0.5 * g0[:, 1], 0.5 * g0[:, 0]]]) / det0)
+        self._pm = np.array([[-1.0], [1.0]])
         self._idet = 1.0 / det0
         self._S = np.ascontiguousarray(S[:, tri].toarray().T)  # (n_t, P) dense: small
         # Agreement of the reduced check with the full measure on the selection sample itself.
@@ -377,17 +379,20 @@ class StrainGuard:
     def measure_hidden(self, h: np.ndarray) -> tuple[float, float]:
         """Reduced measure (min, max) from hidden activations (3H,) (for callers that already have them)."""
         n = self._n_t
-        e = np.matmul(h.reshape(3, 1, self._H).astype(np.float32), self._E)  # (3, 1, 2n)
+        e = np.matmul(h.reshape(3, 1, self._H).astype(np.float32), self._E)  # (3, 1, 2n) edge vectors
         e += self._e0
-        m = np.einsum("kin,kjn->ijn", e.reshape(3, 2, n), e.reshape(3, 2, n))  # (2, 2, n) edge dot products
-        a, b, c = m[0, 0], m[0, 1], m[1, 1]
-        coef = self._coef
-        half_tr = coef[0] * a + coef[1] * b + coef[2] * c
-        det = (a * c - b * b) * self._idet
-        disc = np.sqrt(np.maximum(half_tr * half_tr - det, 0.0))
-        lam = np.sqrt(np.maximum(np.stack([half_tr - disc, half_tr + disc]), 0.0))  # (2, n)
-        out = lam @ self._S  # (2, P)
-        return float(out[0].min() - 1.0), float(out[1].max() - 1.0)
+        e = e.reshape(3, 2, n)
+        m = np.einsum("kin,kjn->ijn", e, e)  # (2, 2, n) metric of each triangle
+        half_tr = np.einsum("ijn,ijn->n", m, self._C)  # half the trace of G0⁻¹G
+        det = (m[0, 0] * m[1, 1] - m[0, 1] * m[0, 1]) * self._idet
+        disc = half_tr * half_tr
+        disc -= det
+        np.sqrt(np.maximum(disc, 0.0, out=disc), out=disc)
+        lam = self._pm * disc  # (2, n): −disc, +disc
+        lam += half_tr
+        np.sqrt(np.maximum(lam, 0.0, out=lam), out=lam)
+        out = lam @ self._S  # (2, P) patch means of the principal stretches
+        return float(out[0].min()) - 1.0, float(out[1].max()) - 1.0
 
     def measure(self, p: np.ndarray) -> tuple[float, float]:
         """Reduced (min, max) of the measure at raw pose p (clamped to the trained range)."""
