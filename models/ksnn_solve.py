@@ -17,6 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg.lapack import dposv as _dposv
 
 from models.predictor import KsnnWeights
 
@@ -30,6 +31,7 @@ class SolveResult:
     iterations: int
     converged: bool
     objective: float
+    hidden: np.ndarray | None = None  # hidden activations (3H,) at p, for the strain guard
 
 
 class KsnnInverse:
@@ -89,83 +91,120 @@ class KsnnInverse:
             fs = fu[:, :, k] * s2[None, :]
             e += fs @ w.b2[k]
             M += fs @ fu[:, :, k].T
-        self._R = R
+        G = R.T @ R  # block-diagonal PSD Gram of the hidden layer (3H × 3H)
+        self._G = np.ascontiguousarray(G)
+        self._Gb = np.ascontiguousarray(np.stack([G[k * H:(k + 1) * H, k * H:(k + 1) * H] for k in range(3)]))
+        self._c0 = R.T @ q0  # linear term: c(w) = c0 − Cd w
+        self._R = np.ascontiguousarray(R)
+        self._Rb = np.ascontiguousarray(np.stack([R[k * H:(k + 1) * H, k * H:(k + 1) * H] for k in range(3)]))
         self._q0 = q0
-        self._Qd = Qd
+        self._Qd = np.ascontiguousarray(Qd)
+        self._Cd = np.ascontiguousarray(R.T @ Qd)
         self._const_b = const_b
         self._e = e
         self._M = M
-        self._W1 = np.concatenate([w.W1[k].T for k in range(3)], axis=0)  # (3H, A)
+        self._W1 = np.ascontiguousarray(np.concatenate([w.W1[k].T for k in range(3)], axis=0))  # (3H, A)
         self._b1 = np.concatenate(list(w.b1))
+        self._W1b = np.ascontiguousarray(self._W1.reshape(3, H, A))
+        self._H = H
         self._eye = np.eye(A)
+        self._scale_in = 1.0 / (w.hi - w.lo)
+        self._mid = 0.5 * (self._xlo + self._xhi)
+        half = 0.5 * (self._xhi - self._xlo)
+        self._ihalf = np.where(half > 0, 1.0 / np.where(half > 0, half, 1.0), 1e300)
 
     # ------------------------------------------------------------------ pieces
-    def _q(self, wts: np.ndarray) -> tuple[np.ndarray, float]:
-        q = self._q0 - self._Qd @ wts
-        const = self._const_b - 2.0 * wts @ self._e + wts @ self._M @ wts - q @ q
-        return q, const
+    def _terms(self, wts: np.ndarray) -> tuple[np.ndarray, float]:
+        """Linear term c and constant κ of f(h) = hᵀGh + 2hᵀc + κ (the unscaled squared surface error)."""
+        c = self._c0 - self._Cd @ wts
+        kappa = self._const_b - 2.0 * float(wts @ self._e) + float(wts @ (self._M @ wts))
+        return c, kappa
+
+    def hidden(self, x: np.ndarray) -> np.ndarray:
+        """Hidden activations (3H,) at normalized pose x."""
+        return np.tanh(self._W1 @ x + self._b1)
 
     def surface_error(self, p: np.ndarray, unit_weights: np.ndarray) -> float:
         """Exact mean squared weighted vertex error (m²) of the prediction at raw pose p vs the target."""
-        q, const = self._q(np.asarray(unit_weights, dtype=np.float64))
-        h = np.tanh(self._W1 @ self.weights.normalize(p) + self._b1)
-        r = self._R @ h + q
-        return max(float(r @ r + const), 0.0) * self.scale
+        c, kappa = self._terms(np.asarray(unit_weights, dtype=np.float64))
+        h = self.hidden(self.weights.normalize(p))
+        return max(float(h @ (self._G @ h + 2.0 * c)) + kappa, 0.0) * self.scale
 
     def solve(self, unit_weights: np.ndarray, p_prev: np.ndarray | None = None, p0: np.ndarray | None = None,
-              max_iterations: int = 20, tol: float = 1e-9) -> SolveResult:
+              max_iterations: int = 20, tol: float = 1e-9, xtol: float = 0.0) -> SolveResult:
         """Damped, projected Gauss-Newton from ``p0`` (default ``p_prev``, else mid-range) for face-unit weights.
 
-        ``tol`` bounds the relative decrease of the objective that counts as converged.
+        ``tol`` bounds the relative decrease of the objective that counts as converged; ``xtol`` (normalized
+        units, 0 = off) the largest actuator step that does (a warm-started frame whose first step is that small
+        is done). Each iteration costs a
+        few dozen small array operations (O(H² A) flops) and one 13×13-sized Cholesky solve (LAPACK ``dposv``);
+        variables at a bound whose gradient pushes outward are held (their rows become identity).
         """
         wts = np.asarray(unit_weights, dtype=np.float64)
-        if wts.shape != (self.n_units,) or not np.all(np.isfinite(wts)):
+        if wts.shape != (self.n_units,) or not np.isfinite(wts @ wts):
             raise ValueError(f"unit_weights must be {self.n_units} finite numbers, got shape {wts.shape}")
-        q, const = self._q(wts)
+        kappa = self._const_b - 2.0 * float(wts @ self._e) + float(wts @ (self._M @ wts))
         w = self.weights
         xlo, xhi = self._xlo, self._xhi
-        x_prev = None if p_prev is None else w.normalize(p_prev)
-        start = p0 if p0 is not None else p_prev
-        x = np.full(w.n_actuators, 0.5) if start is None else w.normalize(start)
-        x = np.clip(x, xlo, xhi)
+        W1, b1, H = self._W1, self._b1, self._H
+        A = w.n_actuators
+        x_prev = None if p_prev is None else (np.asarray(p_prev, dtype=np.float64) - w.lo) * self._scale_in
+        if p0 is None and x_prev is not None:
+            x = np.minimum(np.maximum(x_prev, xlo), xhi)
+        elif p0 is not None:
+            x = np.minimum(np.maximum((np.asarray(p0, dtype=np.float64) - w.lo) * self._scale_in, xlo), xhi)
+        else:
+            x = np.minimum(np.maximum(np.full(A, 0.5), xlo), xhi)
         lam_s = self.smoothness / self.scale  # in the unscaled objective
-
-        def objective(xv: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-            h = np.tanh(self._W1 @ xv + self._b1)
-            r = self._R @ h + q
-            f = float(r @ r + const)
-            if x_prev is not None:
-                d = xv - x_prev
-                f += lam_s * float(d @ d)
-            return f, h, r
-
-        f, h, r = objective(x)
+        smooth = x_prev is not None and lam_s > 0.0
+        # Residual form: f = ‖R h + q‖² + κ' (+ λ‖x − x_prev‖²); J = R diag(1 − h²) W1 per axis block.
+        q = self._q0 - self._Qd @ wts
+        kq = kappa - float(q @ q)
+        R, Rb, W1b, eye = self._R, self._Rb, self._W1b, self._eye
+        mid, ihalf = self._mid, self._ihalf
+        h = np.tanh(W1 @ x + b1)
+        r = R @ h + q
+        f = float(r @ r) + kq
+        if smooth:
+            dx = x - x_prev
+            f += lam_s * float(dx @ dx)
+        on_bound = float((np.abs(x - mid) * ihalf).max()) >= 1.0 - 1e-12
         mu = self.damping / self.scale
         converged = False
         it = 0
         for it in range(1, max_iterations + 1):  # noqa: B007 - it is reported
-            J = self._R @ ((1.0 - h * h)[:, None] * self._W1)  # (3H, A)
-            g = J.T @ r
-            Hm = J.T @ J
-            if x_prev is not None:
-                g = g + lam_s * (x - x_prev)
-                Hm = Hm + lam_s * self._eye
-            # Active set: variables at a bound whose gradient pushes outward stay fixed.
-            free = ~(((x <= xlo) & (g > 0)) | ((x >= xhi) & (g < 0)))
-            if not free.any():
-                converged = True
-                break
+            J = np.matmul(Rb * (1.0 - h * h).reshape(3, 1, H), W1b).reshape(3 * H, A)
+            JT = J.T
+            g = JT @ r
+            Hm = JT @ J
+            if smooth:
+                g += lam_s * dx
+            if on_bound:
+                fixed = ((x <= xlo) & (g > 0)) | ((x >= xhi) & (g < 0))
+                if fixed.all():
+                    converged = True
+                    break
+                if fixed.any():  # held variables: identity rows, zero gradient
+                    Hm[fixed, :] = 0.0
+                    Hm[:, fixed] = 0.0
+                    Hm[fixed, fixed] = 1.0
+                    g[fixed] = 0.0
+            base = (lam_s if smooth else 0.0) + 1e-14 * float(Hm.trace())
             accepted = False
-            all_free = bool(free.all())
-            Hf0 = Hm if all_free else Hm[np.ix_(free, free)]
-            gf = g if all_free else g[free]
-            eye = self._eye if all_free else np.eye(int(free.sum()))
-            reg = 1e-14 * float(np.trace(Hm))
             for _ in range(8):
-                step = np.zeros_like(x)
-                step[free] = -np.linalg.solve(Hf0 + (mu + reg) * eye, gf)
-                x_new = np.clip(x + step, xlo, xhi)
-                f_new, h_new, r_new = objective(x_new)
+                _, step, info = _dposv(Hm + (base + mu) * eye, g)
+                if info != 0:
+                    mu = max(mu * 10.0, 1e-12 * max(abs(f), 1e-30))
+                    continue
+                y = x - step
+                u = float((np.abs(y - mid) * ihalf).max())  # ≥ 1: some variable at or beyond a bound
+                x_new = np.minimum(np.maximum(y, xlo), xhi) if u > 1.0 else y
+                h_new = np.tanh(W1 @ x_new + b1)
+                r_new = R @ h_new + q
+                f_new = float(r_new @ r_new) + kq
+                if smooth:
+                    dx_new = x_new - x_prev
+                    f_new += lam_s * float(dx_new @ dx_new)
                 if f_new <= f:
                     accepted = True
                     break
@@ -175,12 +214,14 @@ class KsnnInverse:
                 break
             mu *= 0.3
             decrease = f - f_new
-            step = x_new - x
             x, f, h, r = x_new, f_new, h_new, r_new
-            if decrease <= tol * max(f, 1e-30) or float(np.max(np.abs(step))) < 1e-12:
+            on_bound = u >= 1.0 - 1e-12
+            if smooth:
+                dx = dx_new
+            if decrease <= tol * max(f, 1e-30) or (xtol > 0.0 and float(np.abs(step).max()) <= xtol):
                 converged = True
                 break
         p = w.lo + x * (w.hi - w.lo)
-        fit = max(float(r @ r + const), 0.0) * self.scale
+        fit = max(float(r @ r) + kq, 0.0) * self.scale
         return SolveResult(p=p, residual_rms=float(np.sqrt(fit)), iterations=it, converged=converged,
-                           objective=f * self.scale)
+                           objective=f * self.scale, hidden=h)

@@ -13,6 +13,7 @@ OFFLINE_COMMAND_MODULES: tuple[str, ...] = (
     "offline.dataset.cli",
     "offline.train.cli",
     "offline.train.evaluate_cli",
+    "offline.guard_cli",
 )
 
 

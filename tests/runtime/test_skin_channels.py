@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -138,7 +137,9 @@ def test_daemon_plays_blendshape_curves_through_the_predictor(tmp_path, head, ma
     from runtime.client import Client, Telemetry
     from tests.runtime.conftest import wait_until
 
-    shutil.copy(SAMPLE, tmp_path / "head.toml")
+    # The sample's attachment distances belong to its own skin, not to this test predictor's grid.
+    text = SAMPLE.read_text()
+    (tmp_path / "head.toml").write_text("\n".join(ln for ln in text.splitlines() if not ln.startswith("skin_guard")))
     target = pose(head, jaw=12.0, upper_lip=6.0)
     write_predictor(tmp_path / "predictor.onnx", head, unit_poses={"jawOpen": target,
                                                                     "browInnerUp": pose(head, brow_l=10, brow_r=10)})
@@ -225,3 +226,20 @@ def test_skin_table_of_the_head_tunes_the_solver_and_is_validated(tmp_path, head
                      ({"iterations_per_frame": 0}, "skin.iterations_per_frame"), ({"colour": 1}, "skin.colour")):
         with pytest.raises(SpecError, match=key.replace(".", r"\.")):
             SkinTargetSolver.from_head(dataclasses.replace(head, sections={**head.sections, "skin": bad}))
+
+
+def test_reset_forgets_the_warm_start_and_channels_are_declared(tmp_path, head):
+    from models.strain_guard import StrainGuard
+
+    sp = write_predictor(tmp_path / "p.onnx", head, unit_poses={"jawOpen": pose(head, jaw=15.0, upper_lip=5.0)})
+    solver = SkinTargetSolver(head, sp)
+    assert isinstance(solver.strain_guard, StrainGuard)
+    assert solver.channels() == {"arkit.jawOpen": "weight"}
+    fresh = SkinTargetSolver(head, sp).solve({"arkit.jawOpen": 1.0}, {})
+    for _ in range(5):
+        warm = solver.solve({"arkit.jawOpen": 1.0}, {})
+    assert warm.actuators["jaw"] > fresh.actuators["jaw"] + 1e-3  # the warm start carried the solve further
+    solver.reset()
+    again = solver.solve({"arkit.jawOpen": 1.0}, {})
+    assert again.actuators == pytest.approx(fresh.actuators, abs=1e-12)
+    assert again.extra["skin_guard"] == "ok"

@@ -1,0 +1,138 @@
+"""The skin-strain guard: the measure on known deformations, the reduced check vs the full one, the FEM sample."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from models.headspec import load_head
+from models.strain_guard import StrainGuard, SurfaceStrain, load_footprint
+
+ROOT = Path(__file__).resolve().parents[2]
+SAMPLE = ROOT / "heads" / "sample" / "head.toml"
+FEM_SAMPLE = Path(__file__).resolve().parent / "data" / "strain_guard_fem_sample.npz"
+
+
+def grid(n=16, size=0.06, z=0.0):
+    u, v = np.meshgrid(np.linspace(0, size, n), np.linspace(0, size, n), indexing="ij")
+    verts = np.stack([u.ravel(), v.ravel(), np.full(n * n, z)], 1)
+    idx = np.arange(n * n).reshape(n, n)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    return verts, np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+
+
+def test_measure_reads_rigid_motion_as_zero_and_a_uniform_stretch_exactly():
+    verts, faces = grid()
+    s = SurfaceStrain(verts, faces, radius=0.008, band=0.0)
+    rot = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    lo, hi = s.extremes(verts @ rot.T + [0.01, 0.02, 0.03])
+    assert abs(lo) < 1e-7 and abs(hi) < 1e-7  # sqrt of a near-zero discriminant: ~1e-8
+    stretched = verts * [1.3, 0.9, 1.0]
+    lo, hi = s.extremes(stretched)
+    assert lo == pytest.approx(-0.1, abs=1e-12) and hi == pytest.approx(0.3, abs=1e-12)
+
+
+def test_band_leaves_out_the_rim_of_an_attachment_and_smoothing_caps_a_single_triangle():
+    verts, faces = grid()
+    # A rigid attachment along the edge x < 8 mm: distance of each triangle's centroid to it.
+    rim = np.maximum(verts[faces].mean(axis=1)[:, 0] - 0.008, 0.0)
+    s = SurfaceStrain(verts, faces, rim, radius=0.008, band=0.005)
+    near = rim < 0.005
+    assert near.any() and not s.kept[near].any() and s.kept[~near].all()
+    # One vertex pushed out of plane strains its six triangles hard; the neighbourhood average stays far lower.
+    bump = verts.copy()
+    centre = 8 * 16 + 8
+    bump[centre, 2] += 0.004
+    single = s.triangle_strains(bump)[:, 1].max()
+    assert single > 0.3 and s.extremes(bump)[1] < 0.5 * single
+    # A bump inside the band (all its triangles' centroids within 6.7 mm of the attachment) does not count.
+    wide = SurfaceStrain(verts, faces, rim, radius=0.008, band=0.007)
+    bumped = verts.copy()
+    bumped[3 * 16 + 8, 2] += 0.004
+    assert wide.extremes(bumped)[1] < 1e-9 < wide.triangle_strains(bumped)[:, 1].max()
+
+
+def test_neighbourhoods_do_not_reach_across_a_gap():
+    a, fa = grid(8, 0.03)
+    b, fb = grid(8, 0.03, z=0.002)  # a second sheet 2 mm away, not connected (like the lips)
+    verts = np.vstack([a, b])
+    faces = np.vstack([fa, fb + len(a)])
+    s = SurfaceStrain(verts, faces, radius=0.008, band=0.0)
+    S = s.smooth.tocoo()
+    first = len(fa)
+    assert not np.any((S.row < first) & (S.col >= first)) and not np.any((S.row >= first) & (S.col < first))
+
+
+@pytest.fixture(scope="module")
+def guard():
+    g = StrainGuard.for_head(load_head(SAMPLE))
+    assert g is not None
+    return g
+
+
+def test_reduced_check_agrees_with_the_full_measure_on_fresh_poses(guard):
+    rng = np.random.default_rng(12345)  # not the calibration seed
+    P = rng.uniform(guard.lo, guard.hi, (1500, len(guard.lo)))
+    edge = rng.random(P.shape) < 0.1
+    P[edge] = np.where(rng.random(edge.sum()) < 0.5, guard.lo[np.nonzero(edge)[1]], guard.hi[np.nonzero(edge)[1]])
+    full = guard.full_batch(P)
+    lo, hi = guard.strain_range
+    full_ok = (full[:, 0] >= lo) & (full[:, 1] <= hi)
+    reduced_ok = np.array([guard.check(p) for p in P])
+    assert full_ok.any() and (~full_ok).any()
+    assert np.mean(full_ok == reduced_ok) >= 0.999
+    # The reduced measure is the full one over a subset of patches: never beyond it.
+    red = np.array([guard.measure(p) for p in P[:200]])
+    assert np.all(red[:, 1] <= full[:200, 1] + 1e-5) and np.all(red[:, 0] >= full[:200, 0] - 1e-5)
+
+
+def test_full_pass_matches_the_onnx_predictor_and_neutral_reads_near_zero(guard):
+    n = guard.neutral
+    assert guard.check(n)
+    lo, hi = guard.full(n)  # ONNX pass (float32)
+    ref = guard.full_batch(n[None])[0]  # numpy pass
+    assert lo == pytest.approx(ref[0], abs=1e-4) and hi == pytest.approx(ref[1], abs=1e-4)
+    assert -0.1 < lo <= 0.0 <= hi < 0.1  # the rest reference: the predictor's neutral error stays small
+
+
+def test_out_of_range_and_non_finite_poses_are_refused(guard):
+    p = guard.neutral.copy()
+    p[0] = guard.hi[0] + 0.05
+    assert not guard.check(p)
+    p[0] = np.nan
+    assert not guard.check(p)
+    with pytest.raises(ValueError, match="shape"):
+        guard.check(np.zeros(3))
+
+
+def test_limit_returns_ok_limited_or_held(guard):
+    rng = np.random.default_rng(3)
+    P = rng.uniform(guard.lo, guard.hi, (200, len(guard.lo)))
+    bad = next(p for p in P if not guard.check(p))
+    n = guard.neutral
+    pose, outcome = guard.limit(n, n)
+    assert outcome == "ok" and np.array_equal(pose, n)
+    pose, outcome = guard.limit(n, bad, steps=6)
+    assert outcome in ("limited", "held")
+    assert guard.check(pose)
+    if outcome == "limited":
+        assert 0 < np.linalg.norm(pose - n) < np.linalg.norm(bad - n)
+
+
+@pytest.mark.skipif(not FEM_SAMPLE.is_file(), reason="no shipped FEM sample")
+def test_guard_agrees_with_the_fem_measure_on_the_shipped_sample(guard):
+    """FEM surfaces of fresh poses (performances and a random sweep), not used to build the guard."""
+    with np.load(FEM_SAMPLE) as z:
+        P, offsets, base, faces = z["p"], z["offsets"].astype(np.float64), z["base"], z["faces"]
+    rim = load_footprint(ROOT / "heads" / "sample" / "skin_guard.npz", len(faces))
+    fem_surface = SurfaceStrain(base, faces, rim, guard.surface.radius, guard.surface.band)
+    fem = np.array([fem_surface.extremes(base + o) for o in offsets])
+    lo, hi = guard.strain_range
+    fem_ok = (fem[:, 0] >= lo) & (fem[:, 1] <= hi)
+    assert fem_ok.any() and (~fem_ok).any(), "the sample must hold poses on both sides of the limits"
+    full = guard.full_batch(P)
+    guard_ok = np.array([guard.check(p) for p in P])
+    assert np.mean(guard_ok == fem_ok) >= 0.9
+    assert np.median(np.abs(full - fem)) < 0.05
