@@ -41,6 +41,9 @@ from runtime.runner import Runner
 log = logging.getLogger(__name__)
 
 SERVER_START_TIMEOUT_S = 60.0
+#: Niceness added to the API server process: requests and telemetry stay timely on a busy host (the control loop
+#: itself runs SCHED_FIFO and preempts it). Needs CAP_SYS_NICE; without it the server keeps the daemon's niceness.
+SERVER_NICE = -10
 
 
 class DaemonStartError(RuntimeError):
@@ -129,6 +132,7 @@ class Daemon:
         # travels pickled on its standard input.
         self._server = subprocess.Popen([sys.executable, "-m", "runtime.server"], stdin=subprocess.PIPE,
                                         cwd=os.getcwd(), env=_child_env())
+        _renice(self._server.pid, SERVER_NICE)
         assert self._server.stdin is not None
         self._server.stdin.write(pickle.dumps(spec))
         self._server.stdin.close()
@@ -231,3 +235,11 @@ def _child_env() -> dict[str, str]:
     if root not in paths:
         env["PYTHONPATH"] = os.pathsep.join([root, *paths])
     return env
+
+
+def _renice(pid: int, delta: int) -> None:
+    """Add ``delta`` to a child's niceness (best effort)."""
+    try:
+        os.setpriority(os.PRIO_PROCESS, pid, os.getpriority(os.PRIO_PROCESS, 0) + delta)
+    except OSError as exc:
+        log.debug("process %d keeps its niceness (%s)", pid, exc)
