@@ -199,6 +199,39 @@ class GuardCalibration:
     agreement: float
 
 
+#: Bump when the patch selection changes, so cached selections are recomputed.
+SELECTION_VERSION = 1
+
+
+def _cache_dir() -> Path:
+    import os
+
+    base = os.environ.get("LIKENESS_CACHE") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "likeness")
+    return Path(base) / "strain_guard"
+
+
+def _cache_load(key: str) -> tuple[np.ndarray, float, int] | None:
+    path = _cache_dir() / f"{key}.npz"
+    try:
+        with np.load(path) as z:
+            return z["rows"].astype(np.intp), float(z["agreement"]), int(z["samples"])
+    except (OSError, KeyError, ValueError):
+        return None
+
+
+def _cache_save(key: str, rows: np.ndarray, agreement: float, samples: int) -> None:
+    from models.atomic import atomic_path
+
+    path = _cache_dir() / f"{key}.npz"
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_path(path, suffix=".npz") as tmp:
+            np.savez(tmp, rows=rows, agreement=agreement, samples=samples)
+    except OSError:
+        pass  # no writable cache: the selection is recomputed next time
+
+
 class StrainGuard:
     """Accept or refuse commanded actuator poses (SI, the head's actuator order) by the skin-strain measure.
 
@@ -298,7 +331,28 @@ class StrainGuard:
         out = self.surface.smooth @ eps.transpose(1, 0, 2).reshape(t, 2 * b)  # one sparse product for the batch
         return np.asarray(out).reshape(-1, b, 2).transpose(1, 0, 2)
 
-    def _select(self, samples: int, levels: tuple[float, ...], seed: int, track: float = 0.02) -> None:
+    def _select(self, samples: int, levels: tuple[float, ...], seed: int) -> None:
+        """Choose the reduced check's patches, or take them from the cache (the choice is a pure function of the
+        predictor, the attachment footprint and the settings, and takes seconds)."""
+        import hashlib
+
+        w = self.weights
+        h = hashlib.sha256()
+        for arr in (w.W1, w.b1, w.W2, w.b2, w.lo, w.hi, self.surface.rest, self.surface.faces, self.surface.kept,
+                    self.reference, self.neutral):
+            h.update(np.ascontiguousarray(arr).tobytes())
+        h.update(repr((self.strain_range, samples, levels, seed, self.surface.smooth.nnz, SELECTION_VERSION)).encode())
+        key = h.hexdigest()[:32]
+        cached = _cache_load(key)
+        if cached is None:
+            rows, agreement, n = self._choose(samples, levels, seed)
+            _cache_save(key, rows, agreement, n)
+        else:
+            rows, agreement, n = cached
+        self._prepare(rows, agreement, n, seed)
+
+    def _choose(self, samples: int, levels: tuple[float, ...], seed: int,
+                track: float = 0.02) -> tuple[np.ndarray, float, int]:
         rng = np.random.default_rng(seed)
         A = self.weights.n_actuators
         X = rng.uniform(0.0, 1.0, (samples, A))
@@ -334,6 +388,14 @@ class StrainGuard:
         crit[np.argmin(fields[-1, :, 0])] = True  # at least one patch each side even when nothing crosses
         crit[np.argmax(fields[-1, :, 1])] = True
         rows = np.flatnonzero(crit)
+        # Agreement of the reduced check with the full measure on the selection sample itself.
+        full_ok = (fields[:, :, 0].min(axis=1) >= lo_s) & (fields[:, :, 1].max(axis=1) <= hi_s)
+        red = fields[:, rows]
+        red_ok = (red[:, :, 0].min(axis=1) >= lo_s) & (red[:, :, 1].max(axis=1) <= hi_s)
+        return rows, float(np.mean(full_ok == red_ok)), len(X)
+
+    def _prepare(self, rows: np.ndarray, agreement: float, n_samples: int, seed: int) -> None:
+        """The reduced check's arrays for the chosen patches ``rows``."""
         S = self.surface.smooth[rows]
         tri = np.unique(S.indices)
         verts = np.unique(self.surface.faces[tri])
@@ -362,13 +424,9 @@ class StrainGuard:
         self._pm = np.array([[-1.0], [1.0]])
         self._idet = 1.0 / det0
         self._S = np.ascontiguousarray(S[:, tri].toarray().T)  # (n_t, P) dense: small
-        # Agreement of the reduced check with the full measure on the selection sample itself.
-        full_ok = (fields[:, :, 0].min(axis=1) >= lo_s) & (fields[:, :, 1].max(axis=1) <= hi_s)
-        red = fields[:, rows]
-        red_ok = (red[:, :, 0].min(axis=1) >= lo_s) & (red[:, :, 1].max(axis=1) <= hi_s)
-        self.calibration = GuardCalibration(samples=len(X), seed=seed, patches=len(rows),
+        self.calibration = GuardCalibration(samples=n_samples, seed=seed, patches=len(rows),
                                             patches_total=int(self.surface.kept.sum()), vertices=len(verts),
-                                            agreement=float(np.mean(full_ok == red_ok)))
+                                            agreement=agreement)
 
     # ------------------------------------------------------------------ in-cycle (reduced)
     def hidden(self, p: np.ndarray) -> np.ndarray:

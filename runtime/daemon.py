@@ -55,7 +55,7 @@ class Daemon:
 
     def __init__(self, head: HeadSpec, overrides: Mapping[str, Any] | None = None,
                  hardware: LinkedHardware | None = None, target_solvers: Iterable[Any] | None = None,
-                 record_inputs: bool = False) -> None:
+                 record_inputs: bool = False, strain_guard: bool = True) -> None:
         self.head = head
         self.overrides = dict(overrides or {})
         self.cfg: DaemonConfig = daemon_config(head, self.overrides)
@@ -67,6 +67,7 @@ class Daemon:
             target_solvers = default_target_solvers(head)
         self.target_solvers = list(target_solvers)
         self.channels = ChannelMap.build(head, channel_sets(self.target_solvers))
+        self.guard = _strain_guard(head, self.target_solvers) if strain_guard else None
         self.hw = hardware
         self._own_hw = hardware is None
         self.links: list[Any] = []
@@ -153,7 +154,7 @@ class Daemon:
     def _start_loop(self) -> None:
         assert self._sock is not None and self._estop is not None
         self.params = K.CoreParams.build(self.head, self.cfg, self.channels,
-                                         [(link.name, link.actuators) for link in self.links])
+                                         [(link.name, link.actuators) for link in self.links], guard=self.guard)
         solvers = as_array_solvers(self.target_solvers, self.channels.target_blocks, self.channels.names,
                                    self.names)
         self.state = K.CoreState.initial(self.head, self.params, solvers)
@@ -243,3 +244,15 @@ def _renice(pid: int, delta: int) -> None:
         os.setpriority(os.PRIO_PROCESS, pid, os.getpriority(os.PRIO_PROCESS, 0) + delta)
     except OSError as exc:
         log.debug("process %d keeps its niceness (%s)", pid, exc)
+
+
+def _strain_guard(head: HeadSpec, solvers: list[Any]) -> Any:
+    """The skin-strain guard of the safety stage: the skin solver's own (one build), else the head's predictor's,
+    else None (a head without a skin predictor has no strain guard)."""
+    for solver in solvers:
+        guard = getattr(solver, "strain_guard", None)
+        if guard is not None:
+            return guard
+    from models.strain_guard import StrainGuard
+
+    return StrainGuard.for_head(head)

@@ -138,6 +138,8 @@ class Server:
         self.inv_scale = 1.0 / np.array([a.unit_scale for a in self.head.actuators])
         self.estop_flag = ipc.EStopFlag(spec.estop_flag)
         self.linkmap = _load_linkmap(self.head)
+        self.guard = _load_guard(self.head)  # the full strain check, confirming the loop's reduced one
+        self.guard_mismatch = 0
         self.ctx = zmq.Context()
         self.link = self.ctx.socket(zmq.PAIR)
         self.link.setsockopt(zmq.LINGER, 0)
@@ -431,7 +433,23 @@ class Server:
         measured = snap["measured_si"]
         if self.linkmap is not None and np.isfinite(measured).all():
             msg["links"] = self._link_poses(measured)
+        if self.guard is not None and snap["lifecycle"] == "active":
+            msg["guard_full"] = self._confirm_guard(snap["t"], snap["commanded_si"])
         return msg
+
+    def _confirm_guard(self, t: float, q: np.ndarray) -> dict[str, Any]:
+        """Full strain check of the commanded pose (off the loop): its strain range, and an event when the loop's
+        reduced check decided otherwise."""
+        strain = self.guard.full(q)
+        full_ok = bool(self.guard.passes(strain) and self.guard.in_range(q))
+        reduced_ok = bool(self.guard.check(q))
+        if full_ok != reduced_ok:
+            self.guard_mismatch += 1
+            self._publish(P.TOPIC_EVENT, {"event": "skin_guard", "t": t, "full": full_ok, "reduced": reduced_ok,
+                                          "strain": [float(strain[0]), float(strain[1])],
+                                          "mismatches": self.guard_mismatch})
+        return {"ok": full_ok, "strain": [round(float(strain[0]), 4), round(float(strain[1]), 4)],
+                "mismatches": self.guard_mismatch}
 
     def _link_poses(self, q: np.ndarray) -> dict[str, list[float]]:
         """Predicted link poses m(q) at measured actuator values: [x, y, z (m), rx, ry, rz (rotation vector)]."""
@@ -476,6 +494,16 @@ def _summary(period: float, n: int, missed: int, skipped: int, lateness: np.ndar
                    jitter_p50_us=float(p[0]), jitter_p99_us=float(p[1]), jitter_max_us=float(lat.max()),
                    work_p50_us=float(w[0]), work_p99_us=float(w[1]), work_max_us=float(wk.max()))
     return out
+
+
+def _load_guard(head: Any) -> Any:
+    from models.strain_guard import StrainGuard
+
+    try:
+        return StrainGuard.for_head(head)
+    except Exception:
+        log.exception("the full skin-strain check is unavailable")
+        return None
 
 
 def _load_linkmap(head: Any) -> Any:
