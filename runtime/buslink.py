@@ -98,14 +98,16 @@ class BusProcessConfig:
     idle_hz: float = 100.0
     realtime_priority: int | None = None
     open_attempts: int = 1
+    nice: int = 0
 
 
 class BusLink:
     """The loop-side end of one bus running in its own process.
 
     ``post`` and ``feedback`` never block and never pickle; ``request``/``result`` carry lifecycle operations.
-    ``realtime_priority`` asks for SCHED_FIFO in the bus process (normal priority by default); ``open_attempts``
-    retries opening on a driver error (emulated buses that share a loaded CPU can miss a reply window).
+    ``realtime_priority`` asks for SCHED_FIFO in the bus process (normal priority by default); ``nice`` is added to
+    its niceness; ``open_attempts`` retries opening on a driver error (emulated buses that share a loaded CPU can miss
+    a reply window).
     """
 
     def __init__(
@@ -118,6 +120,7 @@ class BusLink:
         idle_hz: float = 100.0,
         realtime_priority: int | None = None,
         open_attempts: int = 1,
+        nice: int = 0,
     ) -> None:
         if not motors:
             raise ValueError(f"bus {name!r}: a bus link needs at least one motor")
@@ -132,6 +135,7 @@ class BusLink:
             driver=driver, name=name, options=dict(options),
             motors=tuple(dataclasses.asdict(m) | {"options": dict(m.options)} for m in motors),
             idle_hz=float(idle_hz), realtime_priority=realtime_priority, open_attempts=max(1, int(open_attempts)),
+            nice=int(nice),
         )
         n = len(self.actuators)
         self._layout = _Layout(n)
@@ -612,6 +616,9 @@ def _bus_main(cfg: BusProcessConfig, shm_name: str, ctrl: Connection, wake: Conn
     """Entry point of the bus process."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     logging.basicConfig(level=logging.INFO, format=f"%(asctime)s bus {cfg.name} %(levelname)s %(message)s")
+    if cfg.nice:
+        with contextlib.suppress(OSError):
+            os.nice(cfg.nice)
     if cfg.realtime_priority is not None:
         from runtime.loop import try_realtime
 
