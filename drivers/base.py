@@ -265,14 +265,19 @@ class MotorBus(abc.ABC):
                 raise LifecycleError(f"bus {self.name!r}: read needs an open bus (state is unconfigured)")
             return self._read()
 
-    def write(self, targets: Mapping[str, float]) -> None:
-        """Command position targets (SI) for some or all motors; refused unless every check passes."""
+    def write(self, targets: Mapping[str, float], stamp: float | None = None) -> None:
+        """Command position targets (SI) for some or all motors; refused unless every check passes.
+
+        ``stamp`` (``time.monotonic()``) is when the targets were computed, for the rate check; default now. A caller
+        that hands targets over to another thread or process passes it, so a delay in the hand-over never makes a
+        legal step look too fast (nor a fast one legal).
+        """
         with self._lock:
             if self._state is LifecycleState.FAULT:
                 device, (code, message) = next(iter(self._faults.items()), (self.name, (0, "fault")))
                 raise DeviceFault(device, code, f"bus {self.name!r} is in FAULT ({message})")
             self._require(LifecycleState.ACTIVE, "write")
-            now = time.monotonic()
+            now = time.monotonic() if stamp is None else float(stamp)
             checked: dict[str, float] = {}
             for name, value in targets.items():
                 motor = self._motors.get(name)

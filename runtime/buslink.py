@@ -487,7 +487,7 @@ class _BusServer:
                 return 0, None
             snap = self.tg[k & 1].copy()
             if int(c[_C_TG_BEGUN]) < k + 2:
-                return k, snap[1:]
+                return k, snap
         return self.written_k, None
 
     # -------------------------------------------------------------- transactions
@@ -497,10 +497,12 @@ class _BusServer:
         try:
             k = int(self.c[_C_TG_DONE])
             if k != self.written_k and k > self.enabled_k and self.bus.state is LifecycleState.ACTIVE:
-                k, targets = self.latest_targets()
-                if targets is not None:
+                k, snap = self.latest_targets()
+                if snap is not None:
                     self.written_k = k
-                    self.bus.write(dict(zip(self.names, targets.tolist(), strict=True)))
+                    targets = snap[1:]
+                    # rate check against the loop's own timing: a delay in this process must not fault the bus
+                    self.bus.write(dict(zip(self.names, targets.tolist(), strict=True)), stamp=float(snap[0]))
                     self.written = targets
                     self.write_stamp = time.monotonic()
             if self.bus.state is not LifecycleState.UNCONFIGURED:
