@@ -6,9 +6,9 @@ measured in the same run:
 (b) ``linked``: each bus runs in its own process behind a ``BusLink``; the loop only takes the latest feedback and
     posts targets.
 
-Each cycle commands a slow sine (±4 degrees, 0.5 Hz) on every actuator around neutral. Printed per configuration:
-missed deadlines, wake-up jitter p50/p99, cycle work p50/p99, feedback age p50/p99 (loop time minus the stamp of the
-oldest motor sample the cycle used) and bus transaction time; then the ratios sync / linked.
+Each cycle commands a slow sine (±4 degrees, 0.5 Hz) on every actuator from where it stood at enable. Printed per
+configuration: missed deadlines, wake-up jitter p50/p99, cycle work p50/p99, feedback age p50/p99 per bus (loop time
+minus the stamp of the oldest motor sample of that bus the cycle used); then the ratios sync / linked.
 Run: ``python benchmarks/bus_isolation.py [--seconds 10] [--rate 500]``.
 """
 
@@ -35,8 +35,10 @@ AMPLITUDE = math.radians(4.0)
 FREQUENCY_HZ = 0.5
 
 
-def _run_loop(rate_hz: float, seconds: float, priority: int, cycle: Callable[[float], float]) -> dict:
-    """Run ``cycle(t) -> feedback age`` at ``rate_hz`` for ``seconds`` in a SCHED_FIFO thread; loop statistics."""
+def _run_loop(rate_hz: float, seconds: float, priority: int, buses: list[str],
+              cycle: Callable[[float, np.ndarray], None]) -> dict:
+    """Run ``cycle(t, ages)`` at ``rate_hz`` for ``seconds`` in a SCHED_FIFO thread (it fills ``ages`` per bus, in
+    seconds); loop statistics and feedback ages."""
     from runtime.loop import LoopStats, RateScheduler, drop_realtime, freeze_heap, try_realtime
 
     period = 1.0 / rate_hz
@@ -47,7 +49,7 @@ def _run_loop(rate_hz: float, seconds: float, priority: int, cycle: Callable[[fl
         ok, message = try_realtime(priority)
         out["realtime"] = message
         stats = LoopStats(period, window=n + 16)
-        ages = np.zeros(n)
+        ages = np.full((n, len(buses)), np.nan)
         freeze_heap()
         sched = RateScheduler(period, spin=200e-6)
         t0 = time.monotonic()
@@ -57,10 +59,9 @@ def _run_loop(rate_hz: float, seconds: float, priority: int, cycle: Callable[[fl
             start = time.monotonic()
             stats.missed += missed
             try:
-                ages[i] = cycle(start - t0)
+                cycle(start - t0, ages[i])
             except Exception as exc:  # a bus error must not end the measurement; count it
                 errors += 1
-                ages[i] = np.nan
                 if errors <= 3:
                     out.setdefault("first_errors", []).append(f"{type(exc).__name__}: {exc}")
             stats.add(late, time.monotonic() - start, start)
@@ -68,9 +69,13 @@ def _run_loop(rate_hz: float, seconds: float, priority: int, cycle: Callable[[fl
             drop_realtime()
         out["stats"] = stats.summary()
         out["errors"] = errors
-        good = ages[np.isfinite(ages)] * 1e3
-        out["age_p50_ms"] = float(np.percentile(good, 50)) if good.size else float("nan")
-        out["age_p99_ms"] = float(np.percentile(good, 99)) if good.size else float("nan")
+        for j, bus in enumerate(buses):
+            good = ages[:, j][np.isfinite(ages[:, j])] * 1e3
+            out[f"age_{bus}"] = (float(np.percentile(good, 50)), float(np.percentile(good, 99))) if good.size \
+                else (float("nan"), float("nan"))
+        worst = np.nanmax(ages, axis=1) * 1e3
+        worst = worst[np.isfinite(worst)]
+        out["age_p99_ms"] = float(np.percentile(worst, 99)) if worst.size else float("nan")
 
     thread = threading.Thread(target=body, name="bench-loop")
     thread.start()
@@ -78,14 +83,18 @@ def _run_loop(rate_hz: float, seconds: float, priority: int, cycle: Callable[[fl
     return out
 
 
-def _targets(neutral: np.ndarray, t: float) -> np.ndarray:
-    """The commanded pose at loop time ``t`` around ``neutral`` (a 1 x n row of centres kept off the limits)."""
-    return neutral[0] + AMPLITUDE * math.sin(2 * math.pi * FREQUENCY_HZ * t)
+def _targets(start: np.ndarray, t: float) -> np.ndarray:
+    """The commanded pose at loop time ``t``: a sine from the pose held at enable, clipped to the limits.
+
+    ``start`` rows: held pose, lower limits, upper limits. Starting from the held pose keeps the first step small
+    whatever the previous run left behind (the drivers' rate check would refuse a jump).
+    """
+    return np.clip(start[0] + AMPLITUDE * math.sin(2 * math.pi * FREQUENCY_HZ * t), start[1], start[2])
 
 
-def _centres(head, names: list[str]) -> np.ndarray:
+def _start(head, names: list[str], held: np.ndarray) -> np.ndarray:
     acts = [head.actuator(n) for n in names]
-    return np.array([[min(max(a.neutral, a.min + AMPLITUDE), a.max - AMPLITUDE) for a in acts]])
+    return np.array([held, [a.min for a in acts], [a.max for a in acts]])
 
 
 def measure_sync(head, motors, options, rate_hz: float, seconds: float, priority: int) -> dict:
@@ -106,27 +115,29 @@ def measure_sync(head, motors, options, rate_hz: float, seconds: float, priority
                     if attempt == 2:
                         raise
         names = {b: [m.name for m in motors[b]] for b in motors}
-        neutral = {b: _centres(head, names[b]) for b in motors}
+        neutral = {}
+        for b, bus in buses.items():
+            states = bus.read()
+            neutral[b] = _start(head, names[b], np.array([states[n].position for n in names[b]]))
         io_us: list[float] = []
 
-        def cycle(t: float) -> float:
-            oldest = math.inf
+        bus_items = list(buses.items())
+
+        def cycle(t: float, ages: np.ndarray) -> None:
             t_io = time.monotonic()
-            for bus in buses.values():
+            for j, (_, bus) in enumerate(bus_items):
                 if bus.state is LifecycleState.FAULT:
                     continue
                 states = bus.read()
-                oldest = min(oldest, min(s.timestamp for s in states.values()))
-            for b, bus in buses.items():
+                ages[j] = time.monotonic() - min(s.timestamp for s in states.values())
+            for b, bus in bus_items:
                 if bus.state is LifecycleState.ACTIVE:
                     # the pose of the moment of writing: a read that blocked must not make this step look too fast
                     at = t + time.monotonic() - t_io
                     bus.write(dict(zip(names[b], _targets(neutral[b], at).tolist(), strict=True)))
-            now = time.monotonic()
-            io_us.append((now - t_io) * 1e6)
-            return now - oldest
+            io_us.append((time.monotonic() - t_io) * 1e6)
 
-        out = _run_loop(rate_hz, seconds, priority, cycle)
+        out = _run_loop(rate_hz, seconds, priority, list(buses), cycle)
         out["io_p50_us"] = float(np.percentile(io_us, 50))
         out["final_states"] = {b: bus.state.value for b, bus in buses.items()}
         return out
@@ -156,21 +167,28 @@ def measure_linked(head, motors, options, rate_hz: float, seconds: float, priori
                     if attempt == 2:
                         raise
                     link.call("reset")
-        neutral = {b: _centres(head, list(link.actuators)) for b, link in links.items()}
+        neutral = {b: _start(head, list(link.actuators), link.feedback().positions) for b, link in links.items()}
         link_list = list(links.items())
 
-        def cycle(t: float) -> float:
-            oldest = math.inf
-            now = time.monotonic()
-            for b, link in link_list:
+        def cycle(t: float, ages: np.ndarray) -> None:
+            for j, (b, link) in enumerate(link_list):
                 fb = link.feedback()
-                oldest = min(oldest, fb.stamp)
+                ages[j] = time.monotonic() - fb.stamp
                 if fb.state is LifecycleState.ACTIVE:
                     link.post(_targets(neutral[b], t))
-            return now - oldest
 
-        out = _run_loop(rate_hz, seconds, priority, cycle)
+        out = _run_loop(rate_hz, seconds, priority, list(links), cycle)
         fbs = {b: link.feedback() for b, link in links.items()}
+        # cost of the loop-side calls alone (median of 2000), with the bus processes running
+        b, link = link_list[0]
+        target = fbs[b].positions.copy()
+        for name, call in (("feedback", link.feedback), ("post", lambda: link.post(target))):
+            times = np.empty(2000)
+            for i in range(times.size):
+                t1 = time.perf_counter()
+                call()
+                times[i] = time.perf_counter() - t1
+            out[f"{name}_us"] = float(np.median(times) * 1e6)
         out["io_p50_us"] = float(np.mean([f.io_us for f in fbs.values()]))
         out["final_states"] = {b: f.state.value for b, f in fbs.items()}
         out["reads"] = {b: f.seq for b, f in fbs.items()}
@@ -184,8 +202,10 @@ def _row(name: str, r: dict) -> str:
     s = r["stats"]
     return (f"{name:<7} missed {s['missed']:5d}/{s['cycles']:6d}  jitter p50 {s.get('jitter_p50_us', 0):8.1f} us  "
             f"p99 {s.get('jitter_p99_us', 0):9.1f} us  work p50 {s.get('work_p50_us', 0):7.1f} us  "
-            f"p99 {s.get('work_p99_us', 0):8.1f} us  feedback age p50 {r['age_p50_ms']:6.2f} ms  "
-            f"p99 {r['age_p99_ms']:7.2f} ms  errors {r['errors']}  buses {r['final_states']}")
+            f"p99 {s.get('work_p99_us', 0):8.1f} us  feedback age (p50/p99 ms) "
+            + " ".join(f"{k[4:]} {v[0]:.2f}/{v[1]:.1f}" for k, v in r.items()
+                       if k.startswith("age_") and k != "age_p99_ms")
+            + f"  errors {r['errors']}  buses {r['final_states']}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -224,6 +244,8 @@ def main(argv: list[str] | None = None) -> int:
           f"jitter p99 {ratio(s.get('jitter_p99_us', 0), li.get('jitter_p99_us', 0))}, "
           f"work p99 {ratio(s.get('work_p99_us', 0), li.get('work_p99_us', 0))}, "
           f"feedback age p99 {ratio(sync['age_p99_ms'], linked['age_p99_ms'])}")
+    print(f"loop-side calls (median): BusLink.feedback {linked['feedback_us']:.1f} us, BusLink.post "
+          f"{linked['post_us']:.1f} us")
     print(f"bus transaction in the bus processes (last, mean of buses) {linked['io_p50_us']:.0f} us; "
           f"reads per bus {linked.get('reads')}; sync I/O per cycle p50 {sync['io_p50_us']:.0f} us")
     for name, r in (("sync", sync), ("linked", linked)):
