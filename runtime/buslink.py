@@ -239,6 +239,8 @@ class BusLink:
                     conn.close()
         self._ctrl = self._wake = None
         self._wake_fd = -1
+        self._last = dataclasses.replace(self._dead or self._last, connected=False,
+                                         state=LifecycleState.UNCONFIGURED)
         if self._shm is not None:
             self._c = self._fb = self._tg = None  # type: ignore[assignment]
             shm, self._shm = self._shm, None
@@ -616,7 +618,12 @@ class _BusServer:
 
 def _bus_main(cfg: BusProcessConfig, shm_name: str, ctrl: Connection, wake: Connection) -> None:
     """Entry point of the bus process."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent stops this process; Ctrl-C reaches the parent
+
+    def _terminate(*_: object) -> None:
+        raise SystemExit(0)  # SIGTERM (e.g. multiprocessing's exit handler): leave through the torque-off below
+
+    signal.signal(signal.SIGTERM, _terminate)
     logging.basicConfig(level=logging.INFO, format=f"%(asctime)s bus {cfg.name} %(levelname)s %(message)s")
     if cfg.nice:
         with contextlib.suppress(OSError):

@@ -253,3 +253,30 @@ def test_an_unreachable_bus_raises_the_drivers_typed_error(head: HeadSpec, tmp_p
         link.start(60)
     assert link.pid is None
     link.stop()
+
+
+def test_bus_and_emulator_processes_die_with_a_killed_parent() -> None:
+    """A daemon killed with SIGKILL leaves no bus process or emulator behind."""
+    import signal
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, time\n"
+        "from models.headspec import load_head\n"
+        "from runtime.hardware import LinkedHardware\n"
+        "hw = LinkedHardware.from_head(load_head(sys.argv[1]))\n"
+        "hw.start()\n"
+        "print(' '.join(str(p) for b in hw.links for p in (hw.links[b].pid, hw.emulator(b).pid)), flush=True)\n"
+        "time.sleep(120)\n"
+    )
+    env = dict(os.environ, PYTHONPATH=str(SAMPLE.parents[2]))
+    proc = subprocess.Popen([sys.executable, "-c", code, str(SAMPLE)], stdout=subprocess.PIPE, text=True, env=env)
+    try:
+        assert proc.stdout is not None
+        pids = [int(p) for p in proc.stdout.readline().split()]
+        assert len(pids) == 4 and all(_alive(p) for p in pids)
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    _wait("children gone after the parent's SIGKILL", lambda: not any(_alive(p) for p in pids), timeout_s=15)
