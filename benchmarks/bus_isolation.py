@@ -5,6 +5,7 @@ measured in the same run:
 (a) ``sync``: the drivers are called in the loop thread (read both buses, write both buses), as today's daemon does;
 (b) ``linked``: each bus runs in its own process behind a ``BusLink``; the loop only takes the latest feedback and
     posts targets.
+A third, ``bare``, runs the same loop with no bus at all: what the machine itself costs (other load, stalls).
 
 Each cycle commands a slow sine (±4 degrees, 0.5 Hz) on every actuator from where it stood at enable. Printed per
 configuration: missed deadlines, wake-up jitter p50/p99, cycle work p50/p99, feedback age p50/p99 per bus (loop time
@@ -198,10 +199,27 @@ def measure_linked(head, motors, options, rate_hz: float, seconds: float, priori
             link.stop()
 
 
+def measure_bare(head, motors, rate_hz: float, seconds: float, priority: int) -> dict:
+    """Reference: the same loop computing the same targets with no bus at all (what the machine itself costs)."""
+    names = {b: [m.name for m in motors[b]] for b in motors}
+    start = {b: _start(head, names[b], np.array([head.actuator(n).neutral for n in names[b]])) for b in motors}
+    sink = {b: np.zeros(len(names[b])) for b in motors}
+
+    def cycle(t: float, ages: np.ndarray) -> None:
+        for j, b in enumerate(start):
+            sink[b][:] = _targets(start[b], t)
+            ages[j] = 0.0
+
+    out = _run_loop(rate_hz, seconds, priority, list(motors), cycle)
+    out["final_states"] = {}
+    return out
+
+
 def _row(name: str, r: dict) -> str:
     s = r["stats"]
     return (f"{name:<7} missed {s['missed']:5d}/{s['cycles']:6d}  jitter p50 {s.get('jitter_p50_us', 0):8.1f} us  "
-            f"p99 {s.get('jitter_p99_us', 0):9.1f} us  work p50 {s.get('work_p50_us', 0):7.1f} us  "
+            f"p99 {s.get('jitter_p99_us', 0):9.1f} us  max {s.get('jitter_max_us', 0) / 1e3:6.1f} ms  "
+            f"work p50 {s.get('work_p50_us', 0):7.1f} us  "
             f"p99 {s.get('work_p99_us', 0):8.1f} us  feedback age (p50/p99 ms) "
             + " ".join(f"{k[4:]} {v[0]:.2f}/{v[1]:.1f}" for k, v in r.items()
                        if k.startswith("age_") and k != "age_p99_ms")
@@ -224,6 +242,7 @@ def main(argv: list[str] | None = None) -> int:
     motors, options, sims = start_emulators(head)
     try:
         load_before = os.getloadavg()
+        bare = measure_bare(head, motors, args.rate, args.seconds, args.priority)
         sync = measure_sync(head, motors, options, args.rate, args.seconds, args.priority)
         linked = measure_linked(head, motors, options, args.rate, args.seconds, args.priority, args.bus_priority)
         load_after = os.getloadavg()
@@ -233,6 +252,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"sample head, {args.rate:.0f} Hz, {args.seconds:g} s per configuration; loop: "
           f"{sync.get('realtime', '?')}; load average before/after {load_before[0]:.2f}/{load_after[0]:.2f} "
           f"on {os.cpu_count()} CPUs")
+    print(_row("bare", bare))
     print(_row("sync", sync))
     print(_row("linked", linked))
     s, li = sync["stats"], linked["stats"]

@@ -9,6 +9,7 @@ id and fault injection, both over the emulator's ZeroMQ control endpoint. The em
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import logging
 import os
@@ -21,6 +22,7 @@ import sys
 import tempfile
 import threading
 import time
+import weakref
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
@@ -36,6 +38,15 @@ READY_TIMEOUT_S = 20.0
 #: emulator queues behind ordinary processes. A SCHED_FIFO control thread still preempts it. Needs CAP_SYS_NICE;
 #: without it the emulator keeps the parent's niceness.
 EMULATOR_NICE = -10
+
+#: Emulators still running, stopped at interpreter exit if their owner did not close them.
+_RUNNING: weakref.WeakSet[SimProcess] = weakref.WeakSet()
+
+
+@atexit.register
+def _close_all() -> None:
+    for sim in list(_RUNNING):
+        sim.close()
 
 
 class SimProcess:
@@ -64,6 +75,7 @@ class SimProcess:
         self._early: queue.SimpleQueue[str | None] = queue.SimpleQueue()
         self._watch = threading.Thread(target=self._supervise, name=f"sim-{bus_name}-watch", daemon=True)
         self._watch.start()
+        _RUNNING.add(self)
 
     def wait_ready(self, timeout_s: float) -> str:
         """The emulator's ``ready:`` line; BusInitError with its output if it exits or stays silent."""
@@ -120,6 +132,7 @@ class SimProcess:
     def close(self, timeout_s: float = 3.0) -> None:
         """Terminate the emulator (kill after ``timeout_s``) and remove what it left; idempotent, never raises."""
         self._closing = True
+        _RUNNING.discard(self)
         if self._proc.poll() is None:
             with contextlib.suppress(ProcessLookupError):
                 self._proc.terminate()
