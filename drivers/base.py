@@ -268,9 +268,10 @@ class MotorBus(abc.ABC):
     def write(self, targets: Mapping[str, float], stamp: float | None = None) -> None:
         """Command position targets (SI) for some or all motors; refused unless every check passes.
 
-        ``stamp`` is when the targets were computed (``time.monotonic()``; default: now). The rate guard measures the
-        interval between the stamps of successive commands, so a write that reaches the bus late (a busy bus thread
-        or process) is judged by the trajectory it belongs to, not by the delay of its delivery."""
+        ``stamp`` (``time.monotonic()``) is when the targets were computed, for the rate check; default now. A caller
+        that hands targets over to another thread or process passes it, so a delay in the hand-over never makes a
+        legal step look too fast (nor a fast one legal).
+        """
         with self._lock:
             if self._state is LifecycleState.FAULT:
                 device, (code, message) = next(iter(self._faults.items()), (self.name, (0, "fault")))

@@ -29,7 +29,7 @@ import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, TypeVar
+from typing import Any, ClassVar, TypeVar
 
 from drivers.base import LifecycleState, MotorBus, MotorConfig, MotorState
 from drivers.errors import BusInitError, BusTimeout, CommandRejected, ConfigError, DeviceFault
@@ -125,6 +125,9 @@ class DynamixelBus(MotorBus):
     """X-series Dynamixel servos on one serial port (protocol 2.0)."""
 
     driver_name = "dynamixel"
+    #: Profile velocity (the servo's speed cap) as a multiple of each motor's max velocity: twice the rate check's
+    #: tolerance, so the cap never binds on a target the check accepted.
+    PROFILE_VELOCITY_FACTOR: ClassVar[float] = 2.0 * MotorBus.RATE_TOLERANCE
 
     def __init__(self, name: str, options: Mapping[str, Any], motors: Sequence[MotorConfig]) -> None:
         super().__init__(name, options, motors)
@@ -368,9 +371,10 @@ class DynamixelBus(MotorBus):
         layout = b"".join(a.to_bytes(2, "little") for a in INDIRECT_LAYOUT)
         self._txrx("map indirect addresses", device_id, self._ph.writeTxRx, ADDR_INDIRECT_ADDRESS_1,
                    len(layout), list(layout))
-        # The servo's own speed cap: the configured max velocity with the base class's rate tolerance.
+        # Profile velocity only as a hardware speed cap, well above anything the rate check lets through, so the
+        # servo's profile never shapes the commanded motion (motion planning belongs to the caller).
         velocity_limit = self._read_value(device_id, ADDR_VELOCITY_LIMIT, 4, "read velocity limit")
-        units = math.ceil(abs(motor.velocity_to_counts(motor.max_velocity)) * self.RATE_TOLERANCE
+        units = math.ceil(abs(motor.velocity_to_counts(motor.max_velocity)) * self.PROFILE_VELOCITY_FACTOR
                           / self._velocity_unit_counts)
         units = max(1, min(units, velocity_limit)) if velocity_limit else max(1, units)
         self._write_value(device_id, ADDR_PROFILE_VELOCITY, 4, units, "set profile velocity")

@@ -98,14 +98,16 @@ class BusProcessConfig:
     idle_hz: float = 100.0
     realtime_priority: int | None = None
     open_attempts: int = 1
+    nice: int = 0
 
 
 class BusLink:
     """The loop-side end of one bus running in its own process.
 
     ``post`` and ``feedback`` never block and never pickle; ``request``/``result`` carry lifecycle operations.
-    ``realtime_priority`` asks for SCHED_FIFO in the bus process (normal priority by default); ``open_attempts``
-    retries opening on a driver error (emulated buses that share a loaded CPU can miss a reply window).
+    ``realtime_priority`` asks for SCHED_FIFO in the bus process (normal priority by default); ``nice`` is added to
+    its niceness; ``open_attempts`` retries opening on a driver error (emulated buses that share a loaded CPU can miss
+    a reply window).
     """
 
     def __init__(
@@ -118,6 +120,7 @@ class BusLink:
         idle_hz: float = 100.0,
         realtime_priority: int | None = None,
         open_attempts: int = 1,
+        nice: int = 0,
     ) -> None:
         if not motors:
             raise ValueError(f"bus {name!r}: a bus link needs at least one motor")
@@ -132,6 +135,7 @@ class BusLink:
             driver=driver, name=name, options=dict(options),
             motors=tuple(dataclasses.asdict(m) | {"options": dict(m.options)} for m in motors),
             idle_hz=float(idle_hz), realtime_priority=realtime_priority, open_attempts=max(1, int(open_attempts)),
+            nice=int(nice),
         )
         n = len(self.actuators)
         self._layout = _Layout(n)
@@ -235,6 +239,8 @@ class BusLink:
                     conn.close()
         self._ctrl = self._wake = None
         self._wake_fd = -1
+        self._last = dataclasses.replace(self._dead or self._last, connected=False,
+                                         state=LifecycleState.UNCONFIGURED)
         if self._shm is not None:
             self._c = self._fb = self._tg = None  # type: ignore[assignment]
             shm, self._shm = self._shm, None
@@ -477,16 +483,17 @@ class _BusServer:
         self.faults_version = v
         self.faults_seen = dict(faults)
 
-    def latest_targets(self) -> tuple[int, np.ndarray | None, float]:
+    def latest_targets(self) -> tuple[int, np.ndarray | None]:
+        """(post counter, [stamp, targets...]) of the latest consistent post, or (last written, None)."""
         c = self.c
         for _ in range(5):
             k = int(c[_C_TG_DONE])
             if k == 0:
-                return 0, None, 0.0
+                return 0, None
             snap = self.tg[k & 1].copy()
             if int(c[_C_TG_BEGUN]) < k + 2:
-                return k, snap[1:], float(snap[0])
-        return self.written_k, None, 0.0
+                return k, snap
+        return self.written_k, None
 
     # -------------------------------------------------------------- transactions
     def transaction(self) -> None:
@@ -495,10 +502,12 @@ class _BusServer:
         try:
             k = int(self.c[_C_TG_DONE])
             if k != self.written_k and k > self.enabled_k and self.bus.state is LifecycleState.ACTIVE:
-                k, targets, stamp = self.latest_targets()
-                if targets is not None:
+                k, snap = self.latest_targets()
+                if snap is not None:
                     self.written_k = k
-                    self.bus.write(dict(zip(self.names, targets.tolist(), strict=True)), stamp)
+                    targets = snap[1:]
+                    # rate check against the loop's own timing: a delay in this process must not fault the bus
+                    self.bus.write(dict(zip(self.names, targets.tolist(), strict=True)), stamp=float(snap[0]))
                     self.written = targets
                     self.write_stamp = time.monotonic()
             if self.bus.state is not LifecycleState.UNCONFIGURED:
@@ -612,8 +621,16 @@ class _BusServer:
 
 def _bus_main(cfg: BusProcessConfig, shm_name: str, ctrl: Connection, wake: Connection) -> None:
     """Entry point of the bus process."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent stops this process; Ctrl-C reaches the parent
+
+    def _terminate(*_: object) -> None:
+        raise SystemExit(0)  # SIGTERM (e.g. multiprocessing's exit handler): leave through the torque-off below
+
+    signal.signal(signal.SIGTERM, _terminate)
     logging.basicConfig(level=logging.INFO, format=f"%(asctime)s bus {cfg.name} %(levelname)s %(message)s")
+    if cfg.nice:
+        with contextlib.suppress(OSError):
+            os.nice(cfg.nice)
     if cfg.realtime_priority is not None:
         from runtime.loop import try_realtime
 

@@ -294,17 +294,18 @@ class LinkedHardware:
         idle_hz: float = 100.0,
         realtime_priority: int | None = None,
         emulator_nice: int | None = None,
+        bus_nice: int = 0,
     ) -> LinkedHardware:
         """Start the emulators of simulated buses and create (not start) a link per bus.
 
         ``idle_hz`` is the feedback rate of a bus that gets no targets; ``realtime_priority`` asks for SCHED_FIFO in
         the bus processes; ``emulator_nice`` is added to the emulator processes' niceness (default
-        :data:`runtime.simhw.EMULATOR_NICE`).
+        :data:`runtime.simhw.EMULATOR_NICE`); ``bus_nice`` is added to the bus processes' niceness.
         """
         motors, options, sims = start_emulators(head, nice=emulator_nice)
         links = {
             bus: BusLink(head.buses[bus].driver, bus, options[bus], motors[bus], idle_hz=idle_hz,
-                         realtime_priority=realtime_priority,
+                         realtime_priority=realtime_priority, nice=bus_nice,
                          open_attempts=cls.SIMULATED_OPEN_ATTEMPTS if bus in sims else 1)
             for bus in motors
         }

@@ -9,18 +9,20 @@ id and fault injection, both over the emulator's ZeroMQ control endpoint. The em
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import logging
 import os
 import queue
 import re
-import shutil
+import secrets
 import socket
 import subprocess
 import sys
 import tempfile
 import threading
 import time
+import weakref
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
@@ -36,6 +38,15 @@ READY_TIMEOUT_S = 20.0
 #: emulator queues behind ordinary processes. A SCHED_FIFO control thread still preempts it. Needs CAP_SYS_NICE;
 #: without it the emulator keeps the parent's niceness.
 EMULATOR_NICE = -10
+
+#: Emulators still running, stopped at interpreter exit if their owner did not close them.
+_RUNNING: weakref.WeakSet[SimProcess] = weakref.WeakSet()
+
+
+@atexit.register
+def _close_all() -> None:
+    for sim in list(_RUNNING):
+        sim.close()
 
 
 class SimProcess:
@@ -64,6 +75,7 @@ class SimProcess:
         self._early: queue.SimpleQueue[str | None] = queue.SimpleQueue()
         self._watch = threading.Thread(target=self._supervise, name=f"sim-{bus_name}-watch", daemon=True)
         self._watch.start()
+        _RUNNING.add(self)
 
     def wait_ready(self, timeout_s: float) -> str:
         """The emulator's ``ready:`` line; BusInitError with its output if it exits or stays silent."""
@@ -120,6 +132,7 @@ class SimProcess:
     def close(self, timeout_s: float = 3.0) -> None:
         """Terminate the emulator (kill after ``timeout_s``) and remove what it left; idempotent, never raises."""
         self._closing = True
+        _RUNNING.discard(self)
         if self._proc.poll() is None:
             with contextlib.suppress(ProcessLookupError):
                 self._proc.terminate()
@@ -198,8 +211,9 @@ def start(
     ids = ",".join(str(m.device_id) for m in motors)
     start_at = ",".join(f"{k}={v}" for k, v in counts.items())
     control = f"tcp://127.0.0.1:{_free_port()}"
-    workdir = tempfile.mkdtemp(prefix=f"likeness-sim-{bus_name}-")
-    args = _ARGS[driver](ids, start_at, control, workdir, dict(options))
+    # a fresh path in the temp directory; the Dynamixel emulator makes it a symlink to its pty and removes it on exit
+    link = os.path.join(tempfile.gettempdir(), f"likeness-{bus_name}-{os.getpid()}-{secrets.token_hex(6)}")
+    args = _ARGS[driver](ids, start_at, control, link, dict(options))
     cmd = [sys.executable, "-m", "likeness.cli", "sim", *args, "--watch-parent"]
     env = dict(os.environ)
     env["PYTHONUNBUFFERED"] = "1"
@@ -208,22 +222,27 @@ def start(
             cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, text=True, env=env,
         )
     except OSError as exc:
-        shutil.rmtree(workdir, ignore_errors=True)
         raise BusInitError(f"bus {bus_name}: cannot start emulator ({exc})") from exc
     if nice:
         try:
             os.setpriority(os.PRIO_PROCESS, proc.pid, os.getpriority(os.PRIO_PROCESS, 0) + nice)
         except OSError as exc:
             log.debug("emulator of bus %s keeps its niceness (%s)", bus_name, exc)
-    sim = SimProcess(driver, bus_name, proc, control, lambda: shutil.rmtree(workdir, ignore_errors=True))
+    sim = SimProcess(driver, bus_name, proc, control, lambda: _remove_link(link))
     try:
         line = sim.wait_ready(ready_timeout_s)
-        sim.options = _OPTIONS[driver](line, dict(options), workdir)
+        sim.options = _OPTIONS[driver](line, dict(options), link)
     except BaseException:
         sim.close()
         raise
     log.info("emulator of bus %s running (pid %d): %s", bus_name, proc.pid, line)
     return sim
+
+
+def _remove_link(path: str) -> None:
+    with contextlib.suppress(FileNotFoundError):
+        if os.path.islink(path):
+            os.unlink(path)
 
 
 def _free_port() -> int:
@@ -232,7 +251,7 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def _canopen_args(ids: str, start_at: str, control: str, workdir: str, options: dict[str, Any]) -> list[str]:
+def _canopen_args(ids: str, start_at: str, control: str, link: str, options: dict[str, Any]) -> list[str]:
     channel = str(options.get("channel") or "can0")
     if options.get("interface") not in (None, "virtual", "socketcand"):
         log.info("simulated bus: interface %r replaced by socketcand to reach the emulator", options["interface"])
@@ -240,7 +259,7 @@ def _canopen_args(ids: str, start_at: str, control: str, workdir: str, options: 
             "--control", control]
 
 
-def _canopen_options(line: str, options: dict[str, Any], workdir: str) -> dict[str, Any]:
+def _canopen_options(line: str, options: dict[str, Any], link: str) -> dict[str, Any]:
     match = re.search(r"on socketcand (\S+):(\d+) channel (\S+?)(?:,|$)", line)
     if match is None:
         raise BusInitError(f"cannot parse the canopen emulator's ready line: {line!r}")
@@ -248,14 +267,14 @@ def _canopen_options(line: str, options: dict[str, Any], workdir: str) -> dict[s
     return options
 
 
-def _dynamixel_args(ids: str, start_at: str, control: str, workdir: str, options: dict[str, Any]) -> list[str]:
+def _dynamixel_args(ids: str, start_at: str, control: str, link: str, options: dict[str, Any]) -> list[str]:
     model = str(options.get("model", "XM430-W350"))
     return ["dynamixel", "--ids", ids, "--model", model, "--initial-positions", start_at,
-            "--link", os.path.join(workdir, "dxl"), "--control", control]
+            "--link", link, "--control", control]
 
 
-def _dynamixel_options(line: str, options: dict[str, Any], workdir: str) -> dict[str, Any]:
-    options["port"] = os.path.join(workdir, "dxl")
+def _dynamixel_options(line: str, options: dict[str, Any], link: str) -> dict[str, Any]:
+    options["port"] = link
     return options
 
 

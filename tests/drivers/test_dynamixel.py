@@ -86,7 +86,7 @@ def test_registry_and_open_configures_servos(bus: DynamixelBus, emu: DynamixelEm
         lo, hi = sorted((2048 + round(-0.6 * 4096 / (2 * math.pi)) * (1 if i % 2 else -1),
                          2048 + round(0.6 * 4096 / (2 * math.pi)) * (1 if i % 2 else -1)))
         assert (servo.read_item("min_position_limit"), servo.read_item("max_position_limit")) == (lo, hi)
-        wanted = math.ceil(4.0 * 4096 / (2 * math.pi) * 1.5 / (0.229 * 4096 / 60))  # 251 units
+        wanted = math.ceil(4.0 * 4096 / (2 * math.pi) * 3.0 / (0.229 * 4096 / 60))  # 501 units: a cap, not a profile
         assert servo.read_item("profile_velocity") == min(wanted, servo.read_item("velocity_limit"))
         assert not servo.torque_enabled
     states = bus.read()

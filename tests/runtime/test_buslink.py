@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from drivers.base import LifecycleState
-from drivers.errors import BusInitError
+from drivers.errors import BusInitError, ConfigError
 from models.headspec import HeadSpec, load_head
 from runtime.buslink import BusFeedback, BusLink
 from runtime.hardware import LinkedHardware, motor_config
@@ -253,3 +253,56 @@ def test_an_unreachable_bus_raises_the_drivers_typed_error(head: HeadSpec, tmp_p
         link.start(60)
     assert link.pid is None
     link.stop()
+
+
+def test_bus_and_emulator_processes_die_with_a_killed_parent() -> None:
+    """A daemon killed with SIGKILL leaves no bus process or emulator behind."""
+    import signal
+    import subprocess
+    import sys
+
+    code = (  # the CAN bus only: the point is the process tree, and one bus starts fastest
+        "import sys, time, tomllib\n"
+        "from models.headspec import head_from_dict\n"
+        "from runtime.hardware import LinkedHardware\n"
+        "data = tomllib.loads(open(sys.argv[1]).read())\n"
+        "data['buses'] = {'can0': data['buses']['can0']}\n"
+        "data['actuators'] = [a for a in data['actuators'] if a['bus'] == 'can0']\n"
+        "data['links'] = {}\n"
+        "data.pop('groups', None)\n"
+        "hw = LinkedHardware.from_head(head_from_dict(data, source=sys.argv[1]))\n"
+        "hw.start()\n"
+        "print(' '.join(str(p) for b in hw.links for p in (hw.links[b].pid, hw.emulator(b).pid)), flush=True)\n"
+        "time.sleep(120)\n"
+    )
+    env = dict(os.environ, PYTHONPATH=str(SAMPLE.parents[2]))
+    proc = subprocess.Popen([sys.executable, "-c", code, str(SAMPLE)], stdout=subprocess.PIPE, text=True, env=env)
+    try:
+        assert proc.stdout is not None
+        pids = [int(p) for p in proc.stdout.readline().split()]
+        assert len(pids) == 2 and all(_alive(p) for p in pids)
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    _wait("children gone after the parent's SIGKILL", lambda: not any(_alive(p) for p in pids), timeout_s=15)
+
+
+@pytest.mark.parametrize("bus", ["can0", "dxl"])
+def test_emulator_processes_start_at_the_given_pose_and_report_ground_truth(head: HeadSpec, bus: str) -> None:
+    from runtime import simhw
+
+    acts = head.actuators_on(bus)
+    motors = [motor_config(a) for a in acts]
+    initial = {a.name: (3 + i) * DEG for i, a in enumerate(acts)}
+    sim = simhw.start(head.buses[bus].driver, bus, head.buses[bus].options, motors, initial)
+    try:
+        assert sim.alive
+        counts = sim.positions_counts()
+        assert counts == pytest.approx({m.device_id: m.to_counts(initial[m.name]) for m in motors}, abs=1.0)
+        with pytest.raises(RuntimeError, match="unknown fault"):
+            sim.inject("melt", device=motors[0].device_id)
+    finally:
+        sim.close()
+    assert not sim.alive
+    with pytest.raises(ConfigError, match="no emulator for driver 'ethercat'"):
+        simhw.start("ethercat", bus, {}, motors)
