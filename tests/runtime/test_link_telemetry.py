@@ -14,8 +14,8 @@ from tests.runtime.conftest import SAMPLE, wait_until
 
 def test_state_telemetry_carries_link_poses_that_match_the_mechanism(make_daemon) -> None:
     d = make_daemon()
-    assert d.linkmap is not None
-    goal = {"jaw": 12.0, "cheek_l": 15.0, "lip_corner_l_up": 20.0}
+    assert d.head.path("linkmap") is not None and d.head.path("linkmap").is_file()
+    goal = {"jaw": 5.0, "cheek_l": 15.0, "lip_corner_l_up": 20.0}  # within the skin guard's range
     with Client(d.command_endpoint, timeout=5) as c, Telemetry(d.telemetry_endpoint, topics=(b"state",)) as tel:
         c.call("enable")
         c.call("pose", pose=goal, speed=1.0)
@@ -37,7 +37,7 @@ def test_state_telemetry_carries_link_poses_that_match_the_mechanism(make_daemon
     for name in ("jaw", "cheek_l", "lip_corner_l", "brow_l", "skull"):
         pose = np.asarray(state["links"][name])
         assert np.linalg.norm(pose[:3] - truth[name][:3, 3]) < 0.5e-3, name  # metres
-    # The jaw really moved: its predicted pose is several millimetres from neutral.
+    # The jaw really moved: its predicted pose is millimetres from neutral.
     rest = sample_mechanism(head).link_poses({n: 0.0 for n in head.actuator_names})
     moved = np.linalg.norm(np.asarray(state["links"]["jaw"][:3]) - rest["jaw"][:3, 3])
-    assert moved > 3e-3 and math.isfinite(moved)
+    assert moved > 1e-3 and math.isfinite(moved)

@@ -59,7 +59,7 @@ def test_example_client_drives_the_head(make_daemon) -> None:
 
 def test_daemon_process_status_stream_estop_and_sigterm(tmp_path: Path) -> None:
     clip = tmp_path / "wave.csv"
-    clip.write_text("time,jaw,blink\n0,0,0\n0.3,8,20\n0.6,0,0\n")
+    clip.write_text("time,jaw,blink\n0,0,0\n0.3,5,20\n0.6,0,0\n")
     proc = subprocess.Popen(
         [PY, "-m", "likeness", "daemon", "--command", "tcp://127.0.0.1:*", "--telemetry", "tcp://127.0.0.1:*",
          "--set", f'runtime.record_dir="{tmp_path}"'],
