@@ -15,8 +15,8 @@ Speed: one pose is a row-times-matrix product, bound by streaming the output-lay
 files onnxruntime runs without weight prepacking (its packed-GEMM path is 2–3× slower for one row than its
 row-times-matrix kernel on the plain layout) and takes the large weights from one NumPy allocation handed over as its
 initializers (NumPy asks the kernel for transparent huge pages there, which cuts TLB misses while streaming);
-MatMulNBits (int8) keeps its own prepacking. Outputs are written through IOBinding straight into the result array,
-which the caller may preallocate (``out=``) so that a control loop allocates nothing per call.
+MatMulNBits (int8) keeps its own prepacking. A caller may preallocate the result (``out=``): onnxruntime then writes
+straight into it through IOBinding, bound once, so a control loop allocates nothing per call.
 """
 
 from __future__ import annotations
@@ -167,6 +167,8 @@ class SkinPredictor:
         self._x1 = np.zeros((1, self.n_actuators), dtype=np.float32)
         self._io1 = self._session.io_binding()
         self._io1.bind_ortvalue_input(INPUT_NAME, ort.OrtValue.ortvalue_from_numpy(self._x1))
+        self._bound_out = 0
+        self._bound_ref: np.ndarray | None = None
 
     # ------------------------------------------------------------------ metadata
     def _meta(self, meta: Mapping[str, str], key: str, source: str) -> str:
@@ -300,18 +302,25 @@ class SkinPredictor:
     def predict_offsets(self, p: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """Offsets from the base mesh: (A,) → (V, 3) or (B, A) → (B, V, 3), float32 metres.
 
-        Returns a new array, or fills ``out`` (float32, C-contiguous, that shape) and returns it: onnxruntime writes
-        the result there directly, so a caller that keeps one ``out`` allocates nothing per call.
+        Returns a new array, or fills ``out`` (float32, C-contiguous, that shape) and returns it: onnxruntime then
+        writes straight into it (bound once while the same ``out`` comes back), so a caller that keeps one ``out``
+        allocates nothing per call.
         """
         import onnxruntime as ort
 
         batch, single = self._as_batch(p)
+        if out is None:  # onnxruntime's own output allocation (its arena) is cheaper than binding a fresh array
+            result = self._session.run([OUTPUT_NAME], {INPUT_NAME: batch})[0]
+            return result[0] if single else result
         result = self._out_array(out, len(batch), single)
         shape = [len(batch), self.n_vertices, 3]
         if len(batch) == 1:
             with self._lock:
                 self._x1[...] = batch
-                self._io1.bind_output(OUTPUT_NAME, "cpu", 0, np.float32, shape, result.ctypes.data)
+                if result.ctypes.data != self._bound_out:
+                    self._io1.bind_output(OUTPUT_NAME, "cpu", 0, np.float32, shape, result.ctypes.data)
+                    self._bound_out = result.ctypes.data
+                    self._bound_ref = result  # keep it alive while it is bound
                 self._session.run_with_iobinding(self._io1)
             return result
         io = self._session.io_binding()
