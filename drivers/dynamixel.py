@@ -2,7 +2,7 @@
 
 Open pings every configured id (a silent id raises :class:`BusTimeout` naming it), checks the
 model number, turns torque off and configures each servo (operating mode, return delay time,
-position limits, profile velocity, and an indirect-address block so one sync read returns
+position limits, profile velocity and acceleration, and an indirect-address block so one sync read returns
 hardware error, torque, current, velocity and position). Each cycle is one ``GroupSyncWrite``
 of goal positions and one ``GroupSyncRead`` (fast sync read where the model supports it).
 A hardware error bit puts the bus in FAULT with the bits as code; ``reset_fault`` reboots the
@@ -29,7 +29,7 @@ import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, ClassVar, TypeVar
+from typing import Any, TypeVar
 
 from drivers.base import LifecycleState, MotorBus, MotorConfig, MotorState
 from drivers.errors import BusInitError, BusTimeout, CommandRejected, ConfigError, DeviceFault
@@ -46,6 +46,7 @@ ADDR_MAX_POSITION_LIMIT = 48
 ADDR_MIN_POSITION_LIMIT = 52
 ADDR_TORQUE_ENABLE = 64
 ADDR_HARDWARE_ERROR = 70
+ADDR_PROFILE_ACCELERATION = 108
 ADDR_PROFILE_VELOCITY = 112
 ADDR_GOAL_POSITION = 116
 ADDR_PRESENT_CURRENT = 126
@@ -125,9 +126,6 @@ class DynamixelBus(MotorBus):
     """X-series Dynamixel servos on one serial port (protocol 2.0)."""
 
     driver_name = "dynamixel"
-    #: Profile velocity (the servo's speed cap) as a multiple of each motor's max velocity: twice the rate check's
-    #: tolerance, so the cap never binds on a target the check accepted.
-    PROFILE_VELOCITY_FACTOR: ClassVar[float] = 2.0 * MotorBus.RATE_TOLERANCE
 
     def __init__(self, name: str, options: Mapping[str, Any], motors: Sequence[MotorConfig]) -> None:
         super().__init__(name, options, motors)
@@ -371,12 +369,15 @@ class DynamixelBus(MotorBus):
         layout = b"".join(a.to_bytes(2, "little") for a in INDIRECT_LAYOUT)
         self._txrx("map indirect addresses", device_id, self._ph.writeTxRx, ADDR_INDIRECT_ADDRESS_1,
                    len(layout), list(layout))
-        # Profile velocity only as a hardware speed cap, well above anything the rate check lets through, so the
-        # servo's profile never shapes the commanded motion (motion planning belongs to the caller).
+        # Motion is shaped once, upstream (runtime.shaper); the servo only caps speed in hardware. Profile velocity is
+        # the configured max velocity (rounded up to whole units, within the servo's velocity limit), which the
+        # shaped commands stay below, so it never shapes normal motion; it still holds if a goal ever jumps (a fault,
+        # a reboot, a write around the rate guard), where "0 = unlimited" would leave only the position limits and
+        # let the servo slam at full speed. Profile acceleration 0: no acceleration ramp of the servo's own.
         velocity_limit = self._read_value(device_id, ADDR_VELOCITY_LIMIT, 4, "read velocity limit")
-        units = math.ceil(abs(motor.velocity_to_counts(motor.max_velocity)) * self.PROFILE_VELOCITY_FACTOR
-                          / self._velocity_unit_counts)
+        units = math.ceil(abs(motor.velocity_to_counts(motor.max_velocity)) / self._velocity_unit_counts - 1e-9)
         units = max(1, min(units, velocity_limit)) if velocity_limit else max(1, units)
+        self._write_value(device_id, ADDR_PROFILE_ACCELERATION, 4, 0, "set profile acceleration")
         self._write_value(device_id, ADDR_PROFILE_VELOCITY, 4, units, "set profile velocity")
 
     @property

@@ -10,12 +10,20 @@ File format (``format_version`` 1), written by ``offline.train.export`` and read
   ``actuators`` (JSON list of {name, unit, min, max}, SI), ``hidden``, ``n_vertices``, ``base_vertices``
   (base64 float32 (V, 3)), ``faces`` (base64 int32 (F, 3)), optionally ``face_units`` (JSON names) with
   ``face_unit_offsets`` (base64 float32 (U, V, 3)), and ``training`` (JSON provenance and held-out errors).
+
+Speed: one pose is a row-times-matrix product, bound by streaming the output-layer weights from memory. For float32
+files onnxruntime runs without weight prepacking (its packed-GEMM path is 2–3× slower for one row than its
+row-times-matrix kernel on the plain layout) and takes the large weights from one NumPy allocation handed over as its
+initializers (NumPy asks the kernel for transparent huge pages there, which cuts TLB misses while streaming);
+MatMulNBits (int8) keeps its own prepacking. A caller may preallocate the result (``out=``): onnxruntime then writes
+straight into it through IOBinding, bound once, so a control loop allocates nothing per call.
 """
 
 from __future__ import annotations
 
 import base64
 import json
+import threading
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,6 +39,10 @@ META_PREFIX = "likeness."
 INPUT_NAME = "actuators"
 OUTPUT_NAME = "offsets"
 AXES = ("x", "y", "z")
+#: Float initializers at least this large are handed to onnxruntime from one NumPy allocation (module docstring).
+_POOL_MIN_BYTES = 1 << 16
+#: Alignment of each initializer inside that allocation.
+_ALIGN = 64
 #: Skin strain range the silicone was validated for (engineering strain of the surface principal stretches).
 DEFAULT_STRAIN_RANGE = (-0.20, 0.50)
 
@@ -117,11 +129,26 @@ class SkinPredictor:
         source = str(self.path)
         if not self.path.is_file():
             raise SpecError(source, "file", "predictor model not found")
+        if threads < 1:
+            raise ValueError(f"threads must be at least 1, got {threads!r}")
         opts = ort.SessionOptions()
         opts.intra_op_num_threads = threads
         opts.inter_op_num_threads = 1
         opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
         opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        from models.onnx_tensors import read_initializers
+
+        try:
+            init = read_initializers(self.path)
+        except SpecError:
+            init = {}  # onnxruntime reports what is wrong with the file
+        self._pool: np.ndarray | None = None
+        self._pooled: dict[str, Any] = {}
+        if not any(name.endswith("_Q8") for name in init):  # float32 (see the module docstring)
+            opts.add_session_config_entry("session.disable_prepacking", "1")
+            self._pool, self._pooled = _pooled_initializers(init)
+            for name, value in self._pooled.items():
+                opts.add_initializer(name, value)  # onnxruntime uses this memory: it lives as long as the session
         try:
             self._session = ort.InferenceSession(source, sess_options=opts, providers=["CPUExecutionProvider"])
         except Exception as exc:  # onnxruntime raises its own exception types
@@ -135,6 +162,13 @@ class SkinPredictor:
         self.metadata: Mapping[str, str] = meta
         self._parse_metadata(meta, source)
         self._weights: KsnnWeights | None = None
+        # One-pose calls reuse one input buffer bound once; a lock keeps concurrent callers off it.
+        self._lock = threading.Lock()
+        self._x1 = np.zeros((1, self.n_actuators), dtype=np.float32)
+        self._io1 = self._session.io_binding()
+        self._io1.bind_ortvalue_input(INPUT_NAME, ort.OrtValue.ortvalue_from_numpy(self._x1))
+        self._bound_out = 0
+        self._bound_ref: np.ndarray | None = None
 
     # ------------------------------------------------------------------ metadata
     def _meta(self, meta: Mapping[str, str], key: str, source: str) -> str:
@@ -255,17 +289,54 @@ class SkinPredictor:
             raise ValueError("actuator values must be finite")
         return arr, single
 
-    def predict_offsets(self, p: np.ndarray) -> np.ndarray:
-        """Offsets from the base mesh: (A,) → (V, 3) or (B, A) → (B, V, 3), float32 metres."""
-        batch, single = self._as_batch(p)
-        out = self._session.run([OUTPUT_NAME], {INPUT_NAME: batch})[0]
-        return out[0] if single else out
-
-    def predict(self, p: np.ndarray) -> np.ndarray:
-        """Surface vertex positions (base + offsets): (A,) → (V, 3) or (B, A) → (B, V, 3), float32 metres."""
-        out = self.predict_offsets(p)
-        out += self.base_vertices
+    def _out_array(self, out: np.ndarray | None, batch: int, single: bool) -> np.ndarray:
+        shape = (self.n_vertices, 3) if single else (batch, self.n_vertices, 3)
+        if out is None:
+            return np.empty(shape, dtype=np.float32)
+        if (not isinstance(out, np.ndarray) or out.shape != shape or out.dtype != np.float32
+                or not out.flags.c_contiguous or not out.flags.writeable):
+            raise ValueError(f"out must be a writeable C-contiguous float32 array of shape {shape}, got "
+                             f"{getattr(out, 'dtype', type(out).__name__)} {getattr(out, 'shape', '')}")
         return out
+
+    def predict_offsets(self, p: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """Offsets from the base mesh: (A,) → (V, 3) or (B, A) → (B, V, 3), float32 metres.
+
+        Returns a new array, or fills ``out`` (float32, C-contiguous, that shape) and returns it: onnxruntime then
+        writes straight into it (bound once while the same ``out`` comes back), so a caller that keeps one ``out``
+        allocates nothing per call.
+        """
+        import onnxruntime as ort
+
+        batch, single = self._as_batch(p)
+        if out is None:  # onnxruntime's own output allocation (its arena) is cheaper than binding a fresh array
+            result = self._session.run([OUTPUT_NAME], {INPUT_NAME: batch})[0]
+            return result[0] if single else result
+        result = self._out_array(out, len(batch), single)
+        shape = [len(batch), self.n_vertices, 3]
+        if len(batch) == 1:
+            with self._lock:
+                self._x1[...] = batch
+                if result.ctypes.data != self._bound_out:
+                    self._io1.bind_output(OUTPUT_NAME, "cpu", 0, np.float32, shape, result.ctypes.data)
+                    self._bound_out = result.ctypes.data
+                    self._bound_ref = result  # keep it alive while it is bound
+                self._session.run_with_iobinding(self._io1)
+            return result
+        io = self._session.io_binding()
+        io.bind_ortvalue_input(INPUT_NAME, ort.OrtValue.ortvalue_from_numpy(batch))
+        io.bind_output(OUTPUT_NAME, "cpu", 0, np.float32, shape, result.ctypes.data)
+        self._session.run_with_iobinding(io)
+        return result
+
+    def predict(self, p: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """Surface vertex positions (base + offsets): (A,) → (V, 3) or (B, A) → (B, V, 3), float32 metres.
+
+        ``out`` as in :meth:`predict_offsets`.
+        """
+        result = self.predict_offsets(p, out)
+        result += self.base_vertices
+        return result
 
     # ------------------------------------------------------------------ weights and Jacobian
     @property
@@ -348,6 +419,33 @@ def surface_principal_stretches(base: np.ndarray, faces: np.ndarray, positions: 
     """Principal in-plane stretches (min, max) of each triangle of ``positions`` (..., V, 3) against ``base``."""
     return _stretches(_triangle_metric(np.asarray(base, dtype=np.float64), faces),
                       _triangle_metric(np.asarray(positions, dtype=np.float64), faces))
+
+
+def _pooled_initializers(init: Mapping[str, np.ndarray]) -> tuple[np.ndarray | None, dict[str, Any]]:
+    """The large initializers copied into one NumPy allocation, as onnxruntime values over that memory.
+
+    NumPy backs allocations of 4 MiB and more with transparent huge pages where the kernel allows it, which
+    onnxruntime's own copies do not get; streaming the output-layer weights then takes fewer TLB misses. Returns the
+    pool (the caller keeps it alive as long as the session) and {name: OrtValue}.
+    """
+    import onnxruntime as ort
+
+    big = {n: a for n, a in init.items() if a.nbytes >= _POOL_MIN_BYTES}
+    if not big:
+        return None, {}
+    offsets, total = {}, 0
+    for name, arr in big.items():
+        offsets[name] = total
+        total += -(-arr.nbytes // _ALIGN) * _ALIGN
+    pool = np.empty(total + _ALIGN, dtype=np.uint8)
+    start = -pool.ctypes.data % _ALIGN
+    values = {}
+    for name, arr in big.items():
+        o = start + offsets[name]
+        view = pool[o:o + arr.nbytes].view(arr.dtype).reshape(arr.shape)
+        view[...] = arr
+        values[name] = ort.OrtValue.ortvalue_from_numpy(view)
+    return pool, values
 
 
 def _triangle_metric(pos: np.ndarray, faces: np.ndarray) -> np.ndarray:

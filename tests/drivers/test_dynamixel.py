@@ -86,8 +86,9 @@ def test_registry_and_open_configures_servos(bus: DynamixelBus, emu: DynamixelEm
         lo, hi = sorted((2048 + round(-0.6 * 4096 / (2 * math.pi)) * (1 if i % 2 else -1),
                          2048 + round(0.6 * 4096 / (2 * math.pi)) * (1 if i % 2 else -1)))
         assert (servo.read_item("min_position_limit"), servo.read_item("max_position_limit")) == (lo, hi)
-        wanted = math.ceil(4.0 * 4096 / (2 * math.pi) * 3.0 / (0.229 * 4096 / 60))  # 501 units: a cap, not a profile
+        wanted = math.ceil(4.0 * 4096 / (2 * math.pi) / (0.229 * 4096 / 60))  # max velocity, 167 units: a cap only
         assert servo.read_item("profile_velocity") == min(wanted, servo.read_item("velocity_limit"))
+        assert servo.read_item("profile_acceleration") == 0  # no acceleration ramp of the servo's own
         assert not servo.torque_enabled
     states = bus.read()
     assert set(states) == {f"m{i}" for i in IDS}
@@ -123,7 +124,7 @@ def test_velocity_and_effort_in_si(bus: DynamixelBus, emu: DynamixelEmulator) ->
     emu.servo(1).write_item("max_position_limit", 4095)
     time.sleep(0.05)
     state = bus.read()["m1"]
-    speed_limit = 200 * 0.229 * 2 * math.pi / 60  # profile velocity capped at the velocity limit
+    speed_limit = min(167, emu.servo(1).read_item("velocity_limit")) * 0.229 * 2 * math.pi / 60  # profile velocity
     assert 0.5 * speed_limit < state.velocity <= speed_limit * 1.01
     assert state.effort != 0.0 and abs(state.effort) < 1193 * 2.69e-3
 

@@ -168,3 +168,53 @@ def test_principal_stretches(tmp_path, head):
     lo, hi = sp.strain_extremes(base * np.array([0.75, 1.0, 1.0]))
     assert lo == pytest.approx(-0.25, abs=1e-5) and hi == pytest.approx(0.0, abs=1e-5)
     assert sp.principal_stretches(np.stack([base, stretched])).shape == (2, len(faces), 2)
+
+
+def test_out_buffers_give_identical_results_and_are_checked(tmp_path, head):
+    path, w, base, *_ = write_model(tmp_path, head)
+    sp = SkinPredictor(path)
+    rng = np.random.default_rng(4)
+    P = rng.uniform(sp.lo, sp.hi, size=(5, sp.n_actuators))
+    batch = sp.predict_offsets(P)
+    out = np.full((sp.n_vertices, 3), np.nan, dtype=np.float32)
+    for i, p in enumerate(P):  # the one-pose path reuses its bound input buffer: every pose must come through
+        assert sp.predict_offsets(p, out=out) is out
+        np.testing.assert_array_equal(sp.predict_offsets(p), out)  # same kernel, same bits
+        np.testing.assert_allclose(out, batch[i], rtol=1e-5, atol=1e-9)  # one row vs a batch: rounding only
+    first = sp.predict_offsets(P[0])
+    first_copy = first.copy()
+    sp.predict_offsets(P[1])
+    np.testing.assert_array_equal(first, first_copy)  # a returned array is never overwritten by a later call
+    outb = np.empty((5, sp.n_vertices, 3), dtype=np.float32)
+    assert sp.predict(P, out=outb) is outb
+    np.testing.assert_allclose(outb, np.stack([w.offsets(p) for p in P]) + base, atol=2e-7)
+    np.testing.assert_allclose(sp.predict(P[2], out=out), outb[2], rtol=1e-5, atol=1e-9)
+    for bad in (np.empty((sp.n_vertices, 3), dtype=np.float64), np.empty((sp.n_vertices + 1, 3), dtype=np.float32),
+                np.empty((3, sp.n_vertices), dtype=np.float32).T, np.empty((5, sp.n_vertices, 3), dtype=np.float32)):
+        with pytest.raises(ValueError, match="out must be"):
+            sp.predict_offsets(P[0], out=bad)
+
+
+def test_int8_variant_stays_close_to_float(tmp_path, head):
+    pytest.importorskip("onnx")
+    from offline.train.export import export_int8
+
+    path, w, *_ = write_model(tmp_path, head)
+    sp = SkinPredictor(path)
+    q = SkinPredictor(export_int8(path, tmp_path / "int8.onnx"))
+    rng = np.random.default_rng(5)
+    P = rng.uniform(sp.lo, sp.hi, size=(32, sp.n_actuators))
+    ref = sp.predict_offsets(P)
+    got = q.predict_offsets(P)
+    scale = float(np.sqrt(np.mean(ref ** 2)))
+    rms = float(np.sqrt(np.mean((got - ref) ** 2)))
+    assert 0 < rms < 0.02 * scale  # quantized (not a float copy), yet within 2 % of the offsets' RMS
+    out = np.empty((sp.n_vertices, 3), dtype=np.float32)
+    np.testing.assert_allclose(q.predict_offsets(P[3], out=out), got[3], rtol=1e-4, atol=1e-8)
+    np.testing.assert_allclose(q.weights.W2, w.W2, atol=0.01 * np.abs(w.W2).max())  # dequantized weights
+
+
+def test_shipped_sample_predictor_loads_and_matches_its_weights():
+    sp = SkinPredictor(ROOT / "heads" / "sample" / "predictor.onnx")
+    p = (sp.lo + sp.hi) / 2
+    np.testing.assert_allclose(sp.predict_offsets(p), sp.weights.offsets(p), atol=1e-6)

@@ -1,0 +1,188 @@
+"""Shaper: whatever the targets, commands stay inside the position, velocity and acceleration limits and settle."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from models.headspec import load_head
+from runtime.shaper import DEFAULT_JERK_TIME, Shaper
+
+ROOT = Path(__file__).resolve().parents[2]
+HEAD = ROOT / "heads" / "sample" / "head.toml"
+DT = 0.004
+REL = 1e-9
+
+LO = np.array([-0.5, -0.02, 0.0])
+HI = np.array([0.7, 0.03, 1.2])
+VMAX = np.array([3.0, 0.1, 2.0])
+AMAX = np.array([40.0, 1.5, 10.0])
+
+
+def make(jmax=None) -> Shaper:
+    return Shaper(VMAX, AMAX, jmax, DT, lo=LO, hi=HI)
+
+
+def check_state(sh: Shaper, speed: np.ndarray, prev_q: np.ndarray) -> None:
+    assert np.all(sh.q >= sh.lo) and np.all(sh.q <= sh.hi), sh.q
+    assert np.all(np.abs(sh.v) <= sh.vmax * speed * (1 + REL)), (sh.v, sh.vmax * speed)
+    assert np.all(np.abs(sh.a) <= sh.amax * speed * (1 + REL)), (sh.a, sh.amax * speed)
+    # the commanded positions themselves move no faster than the velocity limit
+    assert np.all(np.abs(sh.q - prev_q) <= sh.vmax * speed * DT * (1 + REL) + 1e-15)
+
+
+def settle_cycles(sh: Shaper, speed: np.ndarray) -> int:
+    """An upper bound on the cycles any rest-to-rest or braking-then-move motion needs, with margin."""
+    v, a = sh.vmax * speed, sh.amax * speed
+    t = (sh.hi - sh.lo) / v + 3 * v / a + 6 * a / sh.jmax
+    return int(np.ceil(t.max() / DT)) + 50
+
+
+target_value = st.one_of(
+    st.floats(-2.0, 2.0),  # often out of range: the shaper clips
+    st.just(float("nan")),  # hold
+    st.sampled_from([-0.5, 0.7, 0.03, -0.02, 0.0, 1.2]),  # exactly at the limits
+)
+segment = st.tuples(st.lists(target_value, min_size=3, max_size=3), st.integers(1, 60))
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(segments=st.lists(segment, min_size=1, max_size=8), speed=st.floats(0.2, 1.0),
+       start=st.lists(st.floats(0.0, 1.0), min_size=3, max_size=3),
+       final=st.lists(st.floats(0.0, 1.0), min_size=3, max_size=3))
+def test_any_target_sequence_stays_in_limits_and_settles(segments, speed, start, final):
+    sh = make()
+    sh.reset(LO + np.array(start) * (HI - LO))
+    s = np.full(3, speed)
+    prev = sh.q.copy()
+    for values, cycles in segments:  # jumps, reversals, holds and out-of-range values, held for a few cycles each
+        targets = np.array(values)
+        for _ in range(cycles):
+            sh.step(targets, speed)
+            check_state(sh, s, prev)
+            prev = sh.q.copy()
+    goal = np.clip(LO + np.array(final) * (HI - LO), LO, HI)
+    for _ in range(settle_cycles(sh, s)):
+        sh.step(goal, speed)
+        check_state(sh, s, prev)
+        prev = sh.q.copy()
+    np.testing.assert_array_equal(sh.q, goal)  # exactly there, at rest
+    assert np.all(sh.v == 0) and np.all(sh.a == 0)
+    assert sh.clamps == 0
+
+
+@settings(max_examples=40, deadline=None)
+@given(frac=st.floats(0.0, 1.0), run_cycles=st.integers(5, 80), to_limit=st.booleans())
+def test_target_change_mid_motion_never_passes_a_limit(frac, run_cycles, to_limit):
+    sh = make()
+    sh.reset(LO.copy())
+    far = HI.copy()
+    prev = sh.q.copy()
+    for _ in range(run_cycles):  # accelerate toward the upper limit
+        sh.step(far)
+        check_state(sh, np.ones(3), prev)
+        prev = sh.q.copy()
+    # a new target just ahead of the moving command (closer than its stopping distance), or back toward the start
+    new = HI if to_limit else sh.q + frac * (HI - sh.q)
+    peak = sh.q.copy()
+    for _ in range(settle_cycles(sh, np.ones(3))):
+        sh.step(new)
+        check_state(sh, np.ones(3), prev)
+        prev = sh.q.copy()
+        peak = np.maximum(peak, sh.q)
+    np.testing.assert_allclose(sh.q, new, atol=1e-12)
+    assert np.all(peak <= HI)
+    assert sh.clamps == 0
+
+
+def test_slowing_down_mid_motion_brakes_within_the_full_limits():
+    sh = make()
+    sh.reset(LO.copy())
+    for _ in range(60):
+        sh.step(HI)
+    assert np.any(np.abs(sh.v) > 0.5 * VMAX)
+    prev_speed = np.abs(sh.v)
+    for _ in range(settle_cycles(sh, np.full(3, 0.1))):
+        sh.step(HI, 0.1)
+        assert np.all(sh.q <= HI) and np.all(sh.q >= LO)
+        assert np.all(np.abs(sh.a) <= AMAX * (1 + REL))
+        # above the new limit the speed only falls; below it, it stays below it
+        over = prev_speed > VMAX * 0.1 * (1 + REL)
+        assert np.all(np.abs(sh.v)[over] <= prev_speed[over] * (1 + REL))
+        assert np.all(np.abs(sh.v)[~over] <= VMAX[~over] * 0.1 * (1 + REL))
+        prev_speed = np.abs(sh.v)
+    np.testing.assert_allclose(sh.q, HI, atol=1e-12)
+    assert sh.clamps == 0
+
+
+def test_hold_brakes_to_a_stop_without_going_back():
+    sh = make()
+    sh.reset(LO.copy())
+    for _ in range(40):
+        sh.step(HI)
+    moving = sh.q.copy()
+    last = sh.q.copy()
+    hold = np.array([np.nan, HI[1], np.nan])
+    for _ in range(200):
+        sh.step(hold)
+        assert np.all(sh.q[[0, 2]] >= last[[0, 2]])  # never reverses toward where it was
+        last = sh.q.copy()
+    assert sh.v[0] == 0 and sh.v[2] == 0
+    assert np.all(sh.q[[0, 2]] > moving[[0, 2]]) and np.all(sh.q[[0, 2]] < HI[[0, 2]])
+    np.testing.assert_allclose(sh.q[1], HI[1], atol=1e-12)
+    stopped = sh.q.copy()
+    for _ in range(50):  # and stays there while held
+        sh.step(hold)
+    np.testing.assert_array_equal(sh.q[[0, 2]], stopped[[0, 2]])
+
+
+def test_reset_moving_toward_a_limit_brakes_and_stays_inside():
+    sh = make()
+    sh.reset(HI - 0.001 * (HI - LO), v=VMAX)  # at full speed just short of the upper limit: cannot stop in time
+    for _ in range(200):
+        sh.step(HI)
+        assert np.all(sh.q <= HI) and np.all(np.abs(sh.a) <= AMAX * (1 + REL))
+    np.testing.assert_allclose(sh.q, HI, atol=1e-12)
+    assert sh.fallbacks > 0
+
+
+def test_jerk_limit_default_and_per_actuator_option():
+    sh = make()
+    np.testing.assert_allclose(sh.jmax, AMAX / DEFAULT_JERK_TIME)
+    head = load_head(HEAD)
+    acts = list(head.actuators)
+    jaw = dataclasses.replace(acts[0], options={**acts[0].options, "max_jerk": 20000.0})  # deg/s³ on the jaw
+    sh = Shaper.from_head(dataclasses.replace(head, actuators=(jaw, *acts[1:])), DT)
+    assert sh.n == len(acts)
+    assert sh.jmax[0] == pytest.approx(20000.0 * jaw.unit_scale)
+    np.testing.assert_allclose(sh.jmax[1:], [a.max_acceleration / DEFAULT_JERK_TIME for a in acts[1:]])
+    np.testing.assert_allclose(sh.lo, [a.min for a in acts])
+    bad = dataclasses.replace(acts[0], options={"max_jerk": -1})
+    with pytest.raises(ValueError, match="max_jerk"):
+        Shaper.from_head(dataclasses.replace(head, actuators=(bad, *acts[1:])), DT)
+
+
+def test_bad_input_is_refused_by_name():
+    sh = make()
+    with pytest.raises(ValueError, match="targets must have shape"):
+        sh.step(np.zeros(4))
+    with pytest.raises(ValueError, match="finite or NaN"):
+        sh.step(np.array([np.inf, 0.0, 0.0]))
+    for speed in (0.0, 1.5, -0.1, np.array([0.5, 0.5, 2.0])):
+        with pytest.raises(ValueError, match="speed"):
+            sh.step(np.zeros(3), speed)
+    with pytest.raises(ValueError, match="vmax"):
+        Shaper(np.array([1.0, -1.0]), np.ones(2), None, DT)
+    with pytest.raises(ValueError, match="amax"):
+        Shaper(np.ones(2), np.ones(3), None, DT)
+    with pytest.raises(ValueError, match="dt"):
+        Shaper(np.ones(2), np.ones(2), None, 0.0)
+    with pytest.raises(ValueError, match="lo and hi"):
+        Shaper(np.ones(2), np.ones(2), None, DT, lo=np.zeros(2), hi=np.zeros(2))
+    with pytest.raises(ValueError, match="reset"):
+        sh.reset(np.array([np.nan, 0.0, 0.0]))
