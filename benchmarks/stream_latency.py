@@ -84,7 +84,7 @@ def stream_latency(daemon, trials: int) -> list[float]:
         for _ in range(trials):
             time.sleep(rng.uniform(0, daemon.period))  # a random phase in the cycle
             settle = time.monotonic() + 1.0
-            while np.any(np.abs(daemon.state.safety.v) > 1e-9) and time.monotonic() < settle:
+            while np.any(np.abs(daemon.state.shaper.v) > 1e-9) and time.monotonic() < settle:
                 time.sleep(0.002)
             fb = link.feedback()
             before, stamp0 = float(fb.written[j]), fb.write_stamp

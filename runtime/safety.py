@@ -58,9 +58,10 @@ class SafetyFilter:
                 x[i] = val
         return x
 
-    def constrain(self, x: np.ndarray) -> np.ndarray:
-        """Fill holds with the current command, apply group constraints, clip to position limits."""
-        x = np.where(np.isfinite(x), x, self.q)
+    def constrain(self, x: np.ndarray, current: np.ndarray | None = None) -> np.ndarray:
+        """Fill holds with the current command (``current``, default this filter's), apply group constraints, clip
+        to position limits."""
+        x = np.where(np.isfinite(x), x, self.q if current is None else current)
         for idx, gains in self._together:
             common = float(np.mean(x[idx] / gains))
             x[idx] = gains * common

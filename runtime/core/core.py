@@ -19,7 +19,6 @@ and replayed from a recording of its inputs, bit for bit. Lifecycle (after ros2_
 from __future__ import annotations
 
 import enum
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -31,7 +30,8 @@ from runtime.config import DaemonConfig
 from runtime.core import commands as C
 from runtime.core.channels import ChannelMap
 from runtime.core.stream import StreamBuffer
-from runtime.safety import SafetyFilter
+from runtime.safety import VELOCITY_MARGIN, SafetyFilter
+from runtime.shaper import Shaper
 from runtime.timeline import Timeline
 
 
@@ -135,7 +135,8 @@ class CoreState:
 
     lifecycle: Lifecycle
     mode: Mode
-    safety: SafetyFilter  # commanded position and velocity (the shaper's state)
+    safety: SafetyFilter  # limits, groups, neutral (stateless use: constrain against the shaper's command)
+    shaper: Shaper  # commanded position, velocity and acceleration (jerk-limited, ruckig)
     timeline: Timeline
     stream: StreamBuffer
     solvers: list[Any]  # target solvers (warm starts are state: reset on enable, fault, e-stop, reset)
@@ -171,13 +172,20 @@ class CoreState:
         n = len(params.names)
         rt = params.cfg.runtime
         return cls(
-            lifecycle=Lifecycle.INACTIVE, mode=Mode.HOLD, safety=SafetyFilter(head), timeline=Timeline(),
+            lifecycle=Lifecycle.INACTIVE, mode=Mode.HOLD, safety=SafetyFilter(head),
+            shaper=_make_shaper(head, params.period), timeline=Timeline(),
             stream=StreamBuffer(params.channels.n, rt.stream_delay_s, rt.stream_max_frames, rt.stream_max_ahead_s),
             solvers=list(solvers), measured=np.full(n, np.nan), stamps=np.full(n, -np.inf),
             bus_states={b: "unconfigured" for b, _ in params.buses},
             bus_connected={b: False for b, _ in params.buses}, bus_faults={b: {} for b, _ in params.buses},
             channel_values=np.full(params.channels.n, np.nan), pose_speed=params.cfg.safety.safe_speed,
         )
+
+
+def _make_shaper(head: HeadSpec, period: float) -> Shaper:
+    shaper = Shaper.from_head(head, dt=period, velocity_margin=VELOCITY_MARGIN)
+    shaper.reset(np.array([a.neutral for a in head.actuators]))
+    return shaper
 
 
 class CoreError(Exception):
@@ -215,10 +223,10 @@ def step(state: CoreState, params: CoreParams, inputs: CycleInputs) -> CycleOutp
         _supervise(state, params, out, t)
     if state.lifecycle is Lifecycle.ACTIVE and state.transition is None:
         targets, speed = _sources(state, params, out, t)
+        hold = np.isnan(targets)
         if params.guard is not None:
             targets = _guard(state, params, targets)
-        dt = params.period if state.last_t is None else min(max(t - state.last_t, 1e-6), 4 * params.period)
-        out.write = state.safety.step(targets, dt, speed).copy()
+        out.write = _shape(state, targets, speed, hold)
         state.last_t = t
     else:
         state.last_t = None
@@ -260,12 +268,21 @@ def _supervise(state: CoreState, params: CoreParams, out: CycleOutputs, t: float
             _fault(state, params, out, t, "timeout", f"no fresh feedback for {timeout:g} s from {names}")
 
 
+def _shape(state: CoreState, targets: np.ndarray, speed: float, hold: np.ndarray) -> np.ndarray:
+    """Group constraints and limits, then the shaper: an actuator told to hold (``hold``) whose constrained target
+    is just its present command brakes to a stop where it is instead of being sent back there."""
+    x = state.safety.constrain(targets, state.shaper.q)
+    if hold.any():
+        x = np.where(hold & (x == state.shaper.q), np.nan, x)
+    return state.shaper.step(x, speed).copy()
+
+
 def _guard(state: CoreState, params: CoreParams, targets: np.ndarray) -> np.ndarray:
     """The skin-strain guard on this cycle's target, whatever its source: a pose whose strain the skin cannot
     take is pulled back toward the last accepted one (or that one is held)."""
-    x = state.safety.constrain(targets)
+    x = state.safety.constrain(targets, state.shaper.q)
     if state.guard_ok is None:
-        state.guard_ok = state.safety.q.copy()
+        state.guard_ok = state.shaper.q.copy()
     if np.array_equal(x, state.guard_ok):
         return x
     p, verdict = params.guard.limit(state.guard_ok, x)
@@ -330,7 +347,7 @@ def solve_channels(state: CoreState, params: CoreParams, out: CycleOutputs, valu
         if not np.isfinite(seg).any():
             continue
         solver = state.solvers[s]
-        p, extra = solver.solve_array(seg, state.safety.q)
+        p, extra = solver.solve_array(seg, state.shaper.q)
         np.copyto(x, p, where=np.isfinite(p))
         if extra:
             state.extra = extra
@@ -371,7 +388,7 @@ def _stop_motion(state: CoreState) -> None:
 
 def _reset_solvers(state: CoreState) -> None:
     state.guard_ok = None
-    q = state.safety.q
+    q = state.shaper.q
     for s in state.solvers:
         s.reset_array(q)
 
@@ -464,8 +481,8 @@ def _check_transition(state: CoreState, params: CoreParams, out: CycleOutputs, t
                 out.replies.append((tr.token, {"error": {"code": "hardware",
                                                          "message": "enable failed: " + "; ".join(tr.failed)}}))
             return
-        state.safety.reset({n: float(x) for n, x in zip(params.names, state.measured, strict=True)
-                            if math.isfinite(x)})
+        q = np.where(np.isfinite(state.measured), state.measured, state.shaper.q)
+        state.shaper.reset(np.clip(q, state.safety.lo, state.safety.hi))
         _reset_solvers(state)
         state.enabled_at = t
         state.last_t = None
@@ -560,13 +577,13 @@ def _on_status(state: CoreState, params: CoreParams, out: CycleOutputs, t: float
     body = _snapshot(state, params, t)
     body.update({
         "estop": state.estop_reason, "fault": state.fault_info,
-        "moving": bool(np.any(np.abs(state.safety.v) > 1e-4)),
+        "moving": bool(np.any(np.abs(state.shaper.v) > 1e-4)),
         "timeline": state.timeline.describe(t), "stream": state.stream.stats(),
         "recording": None if state.recording is None else {"name": state.recording, "samples": state.record_total},
         "clip_bytes": state.clip_bytes,
     })
     if state.mode is Mode.POSE and state.pose_target is not None:
-        err = np.abs(state.pose_target - state.safety.q)
+        err = np.abs(state.pose_target - state.shaper.q)
         body["pose_reached"] = bool(np.all(err < 1e-6) and not body["moving"])
     return body
 
@@ -660,8 +677,8 @@ def _on_pose(state: CoreState, params: CoreParams, out: CycleOutputs, t: float, 
     values = np.full(params.channels.n, np.nan)
     values[cmd.channels] = cmd.values
     x = solve_channels(state, params, out, values)
-    base = state.pose_target if state.mode is Mode.POSE and state.pose_target is not None else state.safety.q
-    target = state.safety.constrain(np.where(np.isfinite(x), x, base))
+    base = state.pose_target if state.mode is Mode.POSE and state.pose_target is not None else state.shaper.q
+    target = state.safety.constrain(np.where(np.isfinite(x), x, base), state.shaper.q)
     state.timeline.stop()
     state.stream.clear()
     state.pose_target = target
@@ -702,7 +719,7 @@ def _record(state: CoreState, params: CoreParams, out: CycleOutputs, t: float) -
     n = len(params.names)
     row = rows[state.record_count]
     row[0] = t - state.record_t0
-    row[1:1 + n] = state.safety.q
+    row[1:1 + n] = state.shaper.q
     row[1 + n:] = state.measured
     state.record_count += 1
     state.record_total += 1
@@ -731,7 +748,7 @@ def _snapshot(state: CoreState, params: CoreParams, t: float) -> dict[str, Any]:
     """Raw values (SI arrays) for telemetry and status; the API server formats them."""
     body: dict[str, Any] = {
         "t": t, "lifecycle": state.lifecycle.value, "mode": state.mode.value,
-        "commanded_si": state.safety.q.copy(), "measured_si": state.measured.copy(),
+        "commanded_si": state.shaper.q.copy(), "measured_si": state.measured.copy(),
         "buses": dict(state.bus_states), "connected": dict(state.bus_connected),
         "guard": {"verdict": state.guard_verdict, "refused": state.guard_refused},
         "feedback_age": {name: float(t - state.stamps[idx].max()) if idx.size else 0.0
