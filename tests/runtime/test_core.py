@@ -224,3 +224,46 @@ def test_clip_budget_and_unload() -> None:
     assert rig.call(C.UnloadClip, name="probe")["clips"] == []
     assert rig.state.clip_bytes == 0
     assert rig.call(C.UnloadClip, name="probe")["error"]["code"] == "not_found"
+
+
+class _Counting:
+    """A target solver that counts its resets (the solver interface in its array form)."""
+
+    def __init__(self) -> None:
+        self.resets = 0
+
+    def channels(self) -> dict[str, str]:
+        return {"expr.open": "weight"}
+
+    def solve_array(self, block: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, dict]:
+        out = np.full(len(q), np.nan)
+        out[0] = math.radians(5.0) * float(block[0])
+        return out, {"warm": self.resets}
+
+    def reset_array(self, q: np.ndarray) -> None:
+        self.resets += 1
+
+
+def test_target_solvers_declare_channels_and_are_reset_on_fault_estop_and_reset() -> None:
+    solver = _Counting()
+    rig = Rig()
+    rig.channels = ChannelMap.build(HEAD, [solver.channels()])
+    buses = [(b, [a.name for a in HEAD.actuators_on(b)]) for b in HEAD.buses]
+    rig.params = K.CoreParams.build(HEAD, rig.cfg, rig.channels, buses)
+    rig.state = K.CoreState.initial(HEAD, rig.params, [solver])
+    assert rig.channels.kind("expr.open") == "target"
+    rig.call(C.Enable)
+    after_enable = solver.resets
+    assert after_enable >= 1
+    k = rig.channels.index_of("expr.open")
+    rig.call(C.Pose, channels=np.array([k]), values=np.array([1.0]), speed=1.0)
+    rig.cycle(C.EStop(70, "x"))
+    assert solver.resets > after_enable
+    n = solver.resets
+    rig.call(C.Reset)
+    assert solver.resets > n
+    rig.call(C.Enable)
+    n = solver.resets
+    rig.bus_state["can0"] = "fault"
+    rig.cycle()
+    assert rig.state.lifecycle is K.Lifecycle.FAULT and solver.resets > n
