@@ -51,6 +51,8 @@ class Mode(enum.Enum):
     NEUTRAL = "neutral"
 
 
+#: Bisections of the strain guard toward a refused target, per cycle.
+GUARD_BISECTIONS = 3
 #: A bus lifecycle transition that has not answered within this long fails.
 TRANSITION_TIMEOUT_S = 15.0
 
@@ -224,8 +226,10 @@ def step(state: CoreState, params: CoreParams, inputs: CycleInputs) -> CycleOutp
     if state.lifecycle is Lifecycle.ACTIVE and state.transition is None:
         targets, speed = _sources(state, params, out, t)
         hold = np.isnan(targets)
-        if params.guard is not None:
+        if params.guard is not None:  # constrains, then keeps to what the skin takes
             targets = _guard(state, params, targets)
+        else:
+            targets = state.safety.constrain(targets, state.shaper.q)
         out.write = _shape(state, targets, speed, hold)
         state.last_t = t
     else:
@@ -268,10 +272,9 @@ def _supervise(state: CoreState, params: CoreParams, out: CycleOutputs, t: float
             _fault(state, params, out, t, "timeout", f"no fresh feedback for {timeout:g} s from {names}")
 
 
-def _shape(state: CoreState, targets: np.ndarray, speed: float, hold: np.ndarray) -> np.ndarray:
-    """Group constraints and limits, then the shaper: an actuator told to hold (``hold``) whose constrained target
-    is just its present command brakes to a stop where it is instead of being sent back there."""
-    x = state.safety.constrain(targets, state.shaper.q)
+def _shape(state: CoreState, x: np.ndarray, speed: float, hold: np.ndarray) -> np.ndarray:
+    """The shaper on constrained targets ``x``: an actuator told to hold (``hold``) whose constrained target is just
+    its present command brakes to a stop where it is instead of being sent back there."""
     if hold.any():
         x = np.where(hold & (x == state.shaper.q), np.nan, x)
     return state.shaper.step(x, speed).copy()
@@ -285,7 +288,9 @@ def _guard(state: CoreState, params: CoreParams, targets: np.ndarray) -> np.ndar
         state.guard_ok = state.shaper.q.copy()
     if np.array_equal(x, state.guard_ok):
         return x
-    p, verdict = params.guard.limit(state.guard_ok, x)
+    # Three bisections: the furthest passing point within 1/8 of this cycle's (short) step; the segment between
+    # two constrained poses stays constrained (groups and limits are convex), so the result needs no second pass.
+    p, verdict = params.guard.limit(state.guard_ok, x, steps=GUARD_BISECTIONS)
     state.guard_ok = p
     if verdict != "ok":
         state.guard_refused += 1
