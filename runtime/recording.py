@@ -185,6 +185,31 @@ def read_lrec_header(path: str | Path) -> tuple[dict[str, Any], int]:
     return header, len(line)
 
 
+def recording_summary(path: str | Path) -> tuple[int, float]:
+    """(complete frames, time span in s) of a recording, reading only the header and the first and last frames of an
+    ``.lrec`` file; ValueError naming the file when it is not a recording."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            first = fh.read(1)
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot read recording: {exc.strerror or exc}") from exc
+    if first != b"{":
+        t = load_recording(path)["t"]
+        return len(t), float(t[-1] - t[0]) if len(t) else 0.0
+    header, start = read_lrec_header(path)
+    size = 8 * header["columns"]
+    with open(path, "rb") as fh:
+        n = (os.fstat(fh.fileno()).st_size - start) // size
+        if n == 0:
+            return 0, 0.0
+        fh.seek(start)
+        t0 = np.frombuffer(fh.read(8), "<f8")[0]
+        fh.seek(start + (n - 1) * size)
+        t1 = np.frombuffer(fh.read(8), "<f8")[0]
+    return int(n), float(t1 - t0)
+
+
 def _load_lrec(path: Path) -> dict[str, Any]:
     header, start = read_lrec_header(path)
     cols = header["columns"]

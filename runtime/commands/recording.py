@@ -51,7 +51,7 @@ def _span(rec: dict[str, Any]) -> float:
 
 def run_list(args: argparse.Namespace) -> int:
     from likeness.cli import CliError
-    from runtime.recording import load_recording
+    from runtime.recording import recording_summary
 
     if not args.dir.is_dir():
         raise CliError(f"{args.dir}: not a folder")
@@ -59,11 +59,11 @@ def run_list(args: argparse.Namespace) -> int:
     print(f"{'file':<40}{'frames':>10}{'span [s]':>12}")
     for path in files:
         try:
-            rec = load_recording(path)
+            frames, span = recording_summary(path)
         except ValueError as exc:
             print(f"{path.name:<40}  unreadable: {exc}")
             continue
-        print(f"{path.name:<40}{len(rec['t']):>10}{_span(rec):>12.3f}")
+        print(f"{path.name:<40}{frames:>10}{span:>12.3f}")
     if not files:
         print(f"(no recordings in {args.dir})")
     return 0

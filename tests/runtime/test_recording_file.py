@@ -124,3 +124,16 @@ def test_npz_recordings_still_load(tmp_path: Path) -> None:
         r.add(10.0 + k, np.array([k, k]), np.array([k, k + 1.0]))
     rec = load_recording(r.save(tmp_path / "old.npz"))
     assert len(rec["t"]) == 5 and rec["names"] == NAMES
+
+
+def test_summary_reads_frames_and_span_of_a_cut_file(tmp_path: Path) -> None:
+    from runtime.recording import recording_summary
+
+    path = tmp_path / "s.lrec"
+    with RecordingWriter(path, NAMES, UNITS) as w:
+        w.append(_rows(30))
+    path.write_bytes(path.read_bytes()[:-13])
+    frames, span = recording_summary(path)
+    assert frames == 29 and span == pytest.approx(0.002 * 28)
+    RecordingWriter(tmp_path / "empty.lrec", NAMES, UNITS).close()
+    assert recording_summary(tmp_path / "empty.lrec") == (0, 0.0)
