@@ -36,7 +36,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"likeness {__version__}")
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv: debug)")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub = parser.add_subparsers(dest="likeness_command", metavar="COMMAND")  # not "command": a subcommand has --command
     for name in COMMAND_MODULES:
         module = importlib.import_module(name)
         module.register(sub)
@@ -58,11 +58,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return int(func(args) or 0)
     except CliError as exc:
-        print(f"likeness {args.command}: error: {exc}", file=sys.stderr)
+        print(f"likeness {args.likeness_command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         return 130
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    # Run through the imported module, not this ``__main__`` copy: command modules raise ``likeness.cli.CliError``,
+    # a different class from ``__main__.CliError``, which would escape as a traceback.
+    from likeness.cli import main as _main
+
+    raise SystemExit(_main())

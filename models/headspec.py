@@ -15,6 +15,8 @@ from pathlib import Path
 from typing import Any, Literal
 
 from models.errors import SpecError
+from models.headschema import check_head_file
+from models.jsonfile import read_text
 from models.material import SkinMaterial, check_material_table, material_from_table
 
 #: Config unit → (kind, factor to SI, SI unit name).
@@ -106,6 +108,8 @@ class HeadSpec:
     sections: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
     #: The ``[skin_material]`` table (checked; a fit file it names is read by :meth:`skin_material`).
     skin_material_table: Mapping[str, Any] | None = None
+    #: ``[paths] predictor_optional``: run without the predictor's target channels when its file is missing.
+    predictor_optional: bool = False
 
     @property
     def actuator_names(self) -> tuple[str, ...]:
@@ -138,20 +142,20 @@ class HeadSpec:
 def load_head(path: str | Path) -> HeadSpec:
     """Load and validate a head spec TOML file."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise SpecError(str(path), "file", f"cannot read head spec: {exc.strerror or exc}") from exc
+    text = read_text(path, "head spec")  # SpecError when unreadable or not UTF-8
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
-        raise SpecError(str(path), "toml", f"not valid TOML: {exc}") from exc
+        raise SpecError(str(path), "toml", f"not valid TOML: {exc}") from None
+    except RecursionError:
+        raise SpecError(str(path), "toml", "arrays or tables nested too deeply") from None
     return head_from_dict(data, source=path)
 
 
 def head_from_dict(data: Mapping[str, Any], source: str | Path = "<head>") -> HeadSpec:
     """Validate a parsed head spec; ``source`` names the file in errors and anchors relative paths."""
     src = Path(source)
+    check_head_file(data, str(source))  # unknown tables and keys, value types
     v = _Validator(str(source))
     head = v.table(data, "head")
     name = v.string(head, "head.name")
@@ -224,7 +228,10 @@ def head_from_dict(data: Mapping[str, Any], source: str | Path = "<head>") -> He
         links.append(LinkSpec(lname, tuple(members), node_set, rigid))
 
     paths: dict[str, Path] = {}
-    for pkey, raw in v.table(data, "paths", required=False).items():
+    raw_paths = dict(v.table(data, "paths", required=False))
+    predictor_optional = v.boolean(raw_paths, "paths.predictor_optional", default=False)
+    raw_paths.pop("predictor_optional", None)
+    for pkey, raw in raw_paths.items():
         if not isinstance(raw, str) or not raw:
             raise SpecError(v.source, f"paths.{pkey}", "must be a non-empty path string", raw)
         p = Path(raw)
@@ -254,6 +261,7 @@ def head_from_dict(data: Mapping[str, Any], source: str | Path = "<head>") -> He
         description=description,
         sections=sections,
         skin_material_table=skin_material,
+        predictor_optional=predictor_optional,
     )
 
 

@@ -25,6 +25,7 @@ import numpy as np
 
 from models.atomic import write_text
 from models.errors import SpecError
+from models.jsonfile import load_json
 from models.rigid import (
     invert,
     matrix_to_quat,
@@ -342,13 +343,7 @@ class LinkMap:
     def load(cls, path: str | Path) -> LinkMap:
         """Read and validate a link map file."""
         path = Path(path)
-        try:
-            doc = json.loads(path.read_text(encoding="utf-8"))
-        except OSError as exc:
-            raise SpecError(str(path), "file", f"cannot read link map: {exc.strerror or exc}") from exc
-        except json.JSONDecodeError as exc:
-            raise SpecError(str(path), "json", f"not valid JSON: {exc}") from exc
-        return cls.from_dict(doc, source=str(path))
+        return cls.from_dict(load_json(path, "link map"), source=str(path))
 
     @classmethod
     def for_head(cls, head: Any) -> LinkMap:

@@ -8,15 +8,22 @@ dies anywhere resumes by skipping existing files.
 The local pool survives dead workers: ``ProcessPoolExecutor`` fails every pending future when one worker dies,
 so the pool is rebuilt and the in-flight tasks resubmitted. A task that was in flight during ``max_crashes``
 crashes is then run alone; if it kills its worker again it is reported as failed, so one poisonous pose
-cannot stall the run or take healthy poses with it.
+cannot stall the run or take healthy poses with it. Workers die with the process that started them (``kill -9``
+included): on Linux the kernel sends them SIGKILL when their parent dies (``PR_SET_PDEATHSIG``), elsewhere a
+thread in each worker notices the parent is gone within half a second and exits.
 """
 
 from __future__ import annotations
 
 import concurrent.futures as cf
+import ctypes
 import logging
 import multiprocessing as mp
 import os
+import signal
+import sys
+import threading
+import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Hashable, Iterable, Iterator, Sequence
 from concurrent.futures.process import BrokenProcessPool
@@ -82,7 +89,36 @@ class SerialEngine(Engine):
                 break
 
 
-def _init_worker(threads: int) -> None:
+PR_SET_PDEATHSIG = 1  # prctl option (linux/prctl.h)
+
+
+def die_with_parent(parent_pid: int) -> None:
+    """Make this process end when ``parent_pid`` (its parent) dies, however it dies.
+
+    On Linux the kernel delivers SIGKILL on the parent's death; the parent may have died before the request was
+    made, so the parent id is checked after it. Elsewhere a daemon thread polls the parent id every 0.5 s.
+    """
+    if sys.platform.startswith("linux"):
+        try:
+            libc = ctypes.CDLL(None, use_errno=True)
+            if libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) == 0:
+                if os.getppid() != parent_pid:
+                    os._exit(1)
+                return
+        except (OSError, AttributeError):
+            pass
+
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(0.5)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+
+
+def _init_worker(threads: int, parent_pid: int | None = None) -> None:
+    if parent_pid is not None:
+        die_with_parent(parent_pid)
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
         os.environ[var] = str(threads)
 
@@ -108,8 +144,10 @@ class LocalPoolEngine(Engine):
     def _new_pool(self) -> cf.ProcessPoolExecutor:
         if self._pool is not None:
             self._pool.shutdown(wait=False, cancel_futures=True)
+        # Workers are started by the thread that submits (the caller's); PR_SET_PDEATHSIG follows the parent
+        # process as long as that thread lives, which it does while the pool is in use.
         self._pool = cf.ProcessPoolExecutor(self.n_workers, mp_context=self._ctx, initializer=_init_worker,
-                                            initargs=(self.threads,))
+                                            initargs=(self.threads, os.getpid()))
         return self._pool
 
     def run(self, fn, keys, make_args, max_in_flight=None):

@@ -13,6 +13,7 @@ RUNTIME_COMMAND_MODULES: tuple[str, ...] = (
     "runtime.commands.status",
     "runtime.commands.keys",
     "runtime.commands.plot",
+    "runtime.commands.recording",
     "runtime.calibration.cli",
 )
 

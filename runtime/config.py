@@ -123,11 +123,18 @@ def _build(cls: type, raw: Mapping[str, Any], table: str, source: str) -> Any:
 
 
 def _check(cfg: DaemonConfig, source: str, head: HeadSpec) -> None:
+    from drivers.registry import available_backends
+
     rt, sf, api = cfg.runtime, cfg.safety, cfg.api
 
     def need(ok: bool, key: str, message: str, value: Any) -> None:
         if not ok:
             raise SpecError(source, key, message, value)
+
+    known = available_backends()
+    for bus in head.buses.values():
+        need(bus.driver in known, f"buses.{bus.name}.driver", f"unknown driver; known: {', '.join(known)}",
+             bus.driver)
 
     need(1.0 <= rt.rate_hz <= MAX_RATE_HZ, "runtime.rate_hz", f"must lie in [1, {MAX_RATE_HZ:g}]", rt.rate_hz)
     need(0 < rt.telemetry_hz <= rt.rate_hz, "runtime.telemetry_hz", "must lie in (0, rate_hz]", rt.telemetry_hz)

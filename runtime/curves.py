@@ -12,12 +12,14 @@ import bisect
 import csv
 import io
 import itertools
-import json
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+from models.errors import SpecError
+from models.jsonfile import parse_json, read_text
 
 INTERPS = ("step", "linear", "bezier")
 MAX_CHANNELS = 256
@@ -235,17 +237,23 @@ def _csv_number(cell: str, source: str, row: int, column: str) -> float:
 def load_clip_file(path: str | Path, interp: str = "linear") -> Clip:
     """Load a clip from ``.json`` (the clip map) or ``.csv`` (named after the file)."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ClipError(f"{path}: cannot read clip: {exc.strerror or exc}") from exc
     if path.suffix.lower() == ".csv":
-        return clip_from_csv(text, path.stem, interp, str(path))
+        return clip_from_csv(_clip_text(path), path.stem, interp, str(path))
+    return clip_from_dict(_clip_json(path), where=str(path))
+
+
+def _clip_text(path: Path) -> str:
     try:
-        data = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise ClipError(f"{path}: not valid JSON: {exc}") from exc
-    return clip_from_dict(data, where=str(path))
+        return read_text(path, "clip")
+    except SpecError as exc:  # unreadable or not UTF-8: one line naming the file and byte
+        raise ClipError(str(exc)) from None
+
+
+def _clip_json(path: Path) -> Any:
+    try:
+        return parse_json(_clip_text(path), str(path), "clip")
+    except SpecError as exc:  # syntax error or nesting too deep: one line naming the file and position
+        raise ClipError(str(exc)) from None
 
 
 def clip_file_as_dict(path: str | Path, interp: str = "linear") -> dict[str, Any]:
@@ -254,7 +262,7 @@ def clip_file_as_dict(path: str | Path, interp: str = "linear") -> dict[str, Any
     clip = load_clip_file(path, interp)  # validates either way
     if path.suffix.lower() == ".csv":
         return clip_to_dict(clip)
-    return json.loads(path.read_text(encoding="utf-8"))
+    return _clip_json(path)
 
 
 def _short(x: Any, limit: int = 60) -> str:

@@ -1,13 +1,27 @@
-"""Recording of commanded and measured trajectories (``.npz``), and their plot as a PNG.
+"""Recordings of commanded and measured trajectories: the streamed ``.lrec`` file, the older ``.npz``, and plots.
 
-The control thread appends one row per cycle into preallocated arrays (no allocation per cycle); :meth:`save`
-writes atomically. File contents: ``t`` (s from start), ``commanded`` and ``measured`` (samples × actuators, in each
-actuator's configured unit), ``names``, ``units``, ``meta`` (JSON text).
+Two file formats hold the same columns: ``t`` (s from the first row), ``commanded`` and ``measured`` (samples ×
+actuators, in each actuator's configured unit), ``names``, ``units``, ``meta``.
+
+* ``.lrec`` (written while recording by :class:`RecordingWriter`, append-only, crash-safe): one JSON header line
+  (UTF-8, ending in a newline, padded with spaces so its length is a multiple of 8 bytes) with ``format``
+  (:data:`LREC_FORMAT`), ``version``, ``names``, ``units``, ``columns`` (``1 + 2 × actuators``), ``dtype``
+  (``"<f8"``) and ``meta``; then fixed-size records of ``columns`` little-endian float64 each:
+  ``[t, commanded..., measured...]``. A file cut at any byte (``kill -9``, power loss) reads up to its last complete
+  record: the reader ignores a trailing partial record.
+* ``.npz`` (written at once by :meth:`Recorder.save`): arrays ``t``, ``commanded``, ``measured``, ``names``,
+  ``units`` and ``meta`` (JSON text).
+
+The control thread appends one row per cycle into preallocated arrays (no allocation per cycle); :meth:`Recorder.save`
+writes an ``.npz`` atomically.
 """
 
 from __future__ import annotations
 
 import json
+import os
+import time
+import zipfile
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -60,13 +74,170 @@ class Recorder:
         return path
 
 
-def load_recording(path: str | Path) -> dict[str, Any]:
-    """Read a recording file; ValueError naming the file and the missing array when malformed."""
+#: ``format`` value of an ``.lrec`` header.
+LREC_FORMAT = "likeness.recording"
+LREC_VERSION = 1
+LREC_SUFFIX = ".lrec"
+MAX_HEADER = 1 << 20  # bytes; a longer first line is not a recording header
+
+
+class RecordingWriter:
+    """Appends rows ``[t, commanded..., measured...]`` (configured units) to an ``.lrec`` file as they arrive.
+
+    Each :meth:`append` hands its bytes to the operating system at once (so a killed process loses nothing it
+    appended), and the file is fsynced when the last sync is ``sync_s`` old or more (so a power loss loses at most
+    about that much) and on :meth:`close`. Time is stored relative to ``t0`` (default: the first row's ``t``).
+    """
+
+    def __init__(self, path: str | Path, names: Sequence[str], units: Sequence[str],
+                 meta: dict[str, Any] | None = None, *, t0: float | None = None, sync_s: float = 1.0) -> None:
+        self.path = Path(path)
+        self.names = [str(n) for n in names]
+        self.units = [str(u) for u in units]
+        if len(self.units) != len(self.names):
+            raise ValueError(f"{self.path}: {len(self.names)} names but {len(self.units)} units")
+        self.columns = 1 + 2 * len(self.names)
+        self.t0 = t0
+        self.sync_s = float(sync_s)
+        self.rows = 0
+        header = {"format": LREC_FORMAT, "version": LREC_VERSION, "names": self.names, "units": self.units,
+                  "columns": self.columns, "dtype": "<f8", "meta": dict(meta or {})}
+        line = json.dumps(header, separators=(",", ":"), allow_nan=False).encode()
+        line += b" " * (-(len(line) + 1) % 8) + b"\n"
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._fd: int | None = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_APPEND, 0o666)
+        self._write(line)
+        self._sync()
+
+    def append(self, rows: np.ndarray) -> None:
+        """Append rows (one row or a 2-D block of shape (n, columns)); ValueError on a wrong width."""
+        if self._fd is None:
+            raise ValueError(f"{self.path}: recording is closed")
+        block = np.asarray(rows, dtype=float)
+        if block.ndim == 1:
+            block = block[None, :]
+        if block.ndim != 2 or block.shape[1] != self.columns:
+            raise ValueError(f"{self.path}: rows must have {self.columns} columns (got shape {block.shape})")
+        if not len(block):
+            return
+        if self.t0 is None:
+            self.t0 = float(block[0, 0])
+        block = block.astype("<f8", copy=True)
+        block[:, 0] -= self.t0
+        self._write(block.tobytes())
+        self.rows += len(block)
+        if time.monotonic() - self._synced >= self.sync_s:
+            self._sync()
+
+    def flush(self) -> None:
+        """Force what was appended to disk now."""
+        if self._fd is not None:
+            self._sync()
+
+    def close(self) -> None:
+        """Sync and close (idempotent)."""
+        if self._fd is not None:
+            try:
+                os.fsync(self._fd)
+            finally:
+                os.close(self._fd)
+                self._fd = None
+
+    def __enter__(self) -> RecordingWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _write(self, data: bytes) -> None:
+        view = memoryview(data)
+        while view:
+            view = view[os.write(self._fd, view):]
+
+    def _sync(self) -> None:
+        os.fsync(self._fd)
+        self._synced = time.monotonic()
+
+
+def read_lrec_header(path: str | Path) -> tuple[dict[str, Any], int]:
+    """The header of an ``.lrec`` file and its length in bytes; ValueError naming the file and what is wrong."""
     path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            line = fh.readline(MAX_HEADER)
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot read recording: {exc.strerror or exc}") from exc
+    if not line.endswith(b"\n"):
+        raise ValueError(f"{path}: incomplete recording header (no end of line within the first {len(line)} bytes)")
+    try:
+        header = json.loads(line)
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{path}: recording header is not JSON ({exc})") from exc
+    if not isinstance(header, dict) or header.get("format") != LREC_FORMAT:
+        raise ValueError(f"{path}: not a recording file (header format is not {LREC_FORMAT!r})")
+    if header.get("version") != LREC_VERSION or header.get("dtype") != "<f8":
+        raise ValueError(f"{path}: unsupported recording version {header.get('version')!r} "
+                         f"or dtype {header.get('dtype')!r} (expected {LREC_VERSION}, '<f8')")
+    names, units = header.get("names"), header.get("units")
+    if (not isinstance(names, list) or not isinstance(units, list) or len(names) != len(units)
+            or header.get("columns") != 1 + 2 * len(names)):
+        raise ValueError(f"{path}: recording header: names, units and columns do not agree")
+    return header, len(line)
+
+
+def recording_summary(path: str | Path) -> tuple[int, float]:
+    """(complete frames, time span in s) of a recording, reading only the header and the first and last frames of an
+    ``.lrec`` file; ValueError naming the file when it is not a recording."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            first = fh.read(1)
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot read recording: {exc.strerror or exc}") from exc
+    if first != b"{":
+        t = load_recording(path)["t"]
+        return len(t), float(t[-1] - t[0]) if len(t) else 0.0
+    header, start = read_lrec_header(path)
+    size = 8 * header["columns"]
+    with open(path, "rb") as fh:
+        n = (os.fstat(fh.fileno()).st_size - start) // size
+        if n == 0:
+            return 0, 0.0
+        fh.seek(start)
+        t0 = np.frombuffer(fh.read(8), "<f8")[0]
+        fh.seek(start + (n - 1) * size)
+        t1 = np.frombuffer(fh.read(8), "<f8")[0]
+    return int(n), float(t1 - t0)
+
+
+def _load_lrec(path: Path) -> dict[str, Any]:
+    header, start = read_lrec_header(path)
+    cols = header["columns"]
+    with open(path, "rb") as fh:
+        fh.seek(start)
+        data = fh.read()
+    n = len(data) // (8 * cols)
+    block = np.frombuffer(data, dtype="<f8", count=n * cols).reshape(n, cols).astype(float)
+    k = len(header["names"])
+    meta = dict(header.get("meta") or {}, samples=n, partial_bytes=len(data) - n * 8 * cols)
+    return {"t": block[:, 0], "commanded": block[:, 1:1 + k], "measured": block[:, 1 + k:],
+            "names": [str(x) for x in header["names"]], "units": [str(x) for x in header["units"]], "meta": meta}
+
+
+def load_recording(path: str | Path) -> dict[str, Any]:
+    """Read a recording file (``.lrec`` or ``.npz``); ValueError naming the file and what is wrong when malformed."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            first = fh.read(1)
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot read recording: {exc.strerror or exc}") from exc
+    if first == b"{":
+        return _load_lrec(path)
     try:
         with np.load(path, allow_pickle=False) as data:
             out = {k: data[k] for k in data.files}
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, AttributeError) as exc:
         raise ValueError(f"{path}: not a recording file ({exc})") from exc
     for key in ("t", "commanded", "measured", "names", "units"):
         if key not in out:

@@ -11,6 +11,7 @@ residual, iterations, time and guard outcome. Imports only numpy, scipy and onnx
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Mapping
 from pathlib import Path
@@ -24,6 +25,8 @@ from models.ksnn_solve import KsnnInverse
 from models.predictor import DEFAULT_STRAIN_RANGE, SkinPredictor
 from models.strain_guard import StrainGuard
 from runtime.solve import SolveResult
+
+log = logging.getLogger(__name__)
 
 PREFIX = "arkit."
 
@@ -66,7 +69,11 @@ class SkinTargetSolver:
 
     @classmethod
     def from_head(cls, head: HeadSpec) -> SkinTargetSolver | None:
-        """The solver for the head's ``paths.predictor``, or None when the head names no existing predictor.
+        """The solver for the head's ``paths.predictor``, or None when the head names none.
+
+        A predictor file that is named but missing is a :class:`SpecError` (the daemon stops at start-up rather than
+        silently dropping the ``arkit.*`` channels) unless ``[paths] predictor_optional = true``, which logs a warning
+        and returns None.
 
         An optional ``[skin]`` table tunes it: ``strain_min`` / ``strain_max`` (validated range of the strain
         measure, default −0.2 / 0.5), ``radius_mm`` / ``band_mm`` / ``reference`` (the measure's neighbourhood,
@@ -75,8 +82,16 @@ class SkinTargetSolver:
         ``[paths] skin_guard`` names the attachment footprint of the skin (``likeness offline guard footprint``).
         """
         path = head.path("predictor")
-        if path is None or not Path(path).is_file():
+        if path is None:
             return None
+        if not Path(path).is_file():
+            if head.predictor_optional:
+                log.warning("%s: predictor file %s not found; running without the arkit.* target channels "
+                            "([paths] predictor_optional = true)", head.source, path)
+                return None
+            raise SpecError(str(head.source), "paths.predictor",
+                            f"predictor file not found: {path} (set [paths] predictor_optional = true to run "
+                            "without its target channels)")
         cfg = dict(head.section("skin"))
         allowed = {"strain_min", "strain_max", "radius_mm", "band_mm", "reference", "smoothness_mm",
                    "iterations_per_frame"}

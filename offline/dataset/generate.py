@@ -105,6 +105,7 @@ def generate_dataset(root: str | Path, spec: ProblemSpec, samples: np.ndarray, *
     store.create(manifest, samples, problem.base_surface(), problem.faces(), fu_names, fu_offsets,
                  regions=problem.surface_regions())
     samples = store.samples()  # on resume, the stored plan wins
+    store.remove_leftovers()  # temp files of a killed run
     xs = (samples - np.asarray(lo)) / (np.asarray(hi) - np.asarray(lo))
     done = store.done()
     solved_idx: list[int] = []

@@ -138,6 +138,22 @@ class PoseStore:
         with np.load(self.root / "base.npz") as z:
             return {k: z[k] for k in z.files}
 
+    def remove_leftovers(self) -> list[Path]:
+        """Delete the temp files a killed run left behind (hidden ``.*.tmp`` beside their targets); returns them.
+
+        Atomic writes go through such temp files, so none of them is ever a finished result. Run it only when no
+        other process writes to this dataset.
+        """
+        removed = []
+        for folder in (self.root, self.poses_dir):
+            if not folder.is_dir():
+                continue
+            for f in folder.glob(".*.tmp"):
+                if f.is_file():
+                    f.unlink(missing_ok=True)
+                    removed.append(f)
+        return removed
+
     # ------------------------------------------------------------------ poses
     def pose_path(self, index: int) -> Path:
         return self.poses_dir / f"pose_{index:06d}.npz"

@@ -1,4 +1,4 @@
-"""``likeness plot``: a recording (``.npz`` from the ``record`` op) → PNG of commanded vs measured, with errors."""
+"""``likeness plot``: a recording (``.lrec`` or ``.npz``) → PNG of commanded vs measured, with errors."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from pathlib import Path
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("plot", help="plot a recording: commanded vs measured per actuator (PNG)")
-    p.add_argument("recording", type=Path, help="recording file (.npz)")
+    p.add_argument("recording", type=Path, help="recording file (.lrec or .npz)")
     p.add_argument("-o", "--out", type=Path, default=None, help="PNG path (default: beside the recording)")
     p.set_defaults(func=run)
 

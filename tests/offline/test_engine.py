@@ -84,3 +84,63 @@ def test_dask_local_cluster_runs_every_task_even_when_a_worker_dies(tmp_path):
                             max_in_flight=3))
     assert (marks / "crash_5").exists()  # the worker running task 5 died once; Dask rescheduled the task
     check_all(tmp_path, outs, keys)
+
+
+def report_and_sleep(out_dir: str, key: int) -> str:
+    """A task that records its worker's pid, then outlives any test (only its parent's death ends it early)."""
+    import time
+
+    (Path(out_dir) / f"pid_{key}").write_text(str(os.getpid()))
+    time.sleep(120)
+    return ""
+
+
+POOL_PARENT = """
+import sys
+from offline.engine import LocalPoolEngine
+from tests.offline.test_engine import report_and_sleep
+with LocalPoolEngine(2) as eng:
+    for _ in eng.run(report_and_sleep, [0, 1], lambda k: (sys.argv[1], k)):
+        pass
+"""
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    try:  # a zombie (dead, not yet reaped by init) counts as gone
+        return Path(f"/proc/{pid}/stat").read_text().split(") ")[-1][0] != "Z"
+    except OSError:
+        return True
+
+
+def test_local_pool_workers_die_with_their_parent_killed_by_sigkill(tmp_path):
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    root = Path(__file__).resolve().parents[2]
+    env = dict(os.environ, PYTHONPATH=str(root))
+    parent = subprocess.Popen([sys.executable, "-c", POOL_PARENT, str(tmp_path)], env=env, cwd=root)
+    pids: list[int] = []
+    try:
+        deadline = time.monotonic() + 60
+        while len(pids) < 2 and time.monotonic() < deadline:
+            pids = [int(p.read_text()) for p in tmp_path.glob("pid_*") if p.read_text()]
+            time.sleep(0.05)
+        assert len(pids) == 2, "workers did not start"
+        parent.send_signal(signal.SIGKILL)
+        parent.wait(10)
+        deadline = time.monotonic() + 2.0
+        while any(_alive(p) for p in pids) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert not [p for p in pids if _alive(p)], "workers outlived their parent"
+    finally:
+        parent.kill()
+        parent.wait()
+        for p in pids:
+            if _alive(p):
+                os.kill(p, signal.SIGKILL)

@@ -142,3 +142,21 @@ def test_dask_local_generation_matches_serial(tmp_path, head):
     assert summary["complete"]
     a, b = PoseDataset(tmp_path / "serial"), PoseDataset(tmp_path / "dask")
     np.testing.assert_allclose(np.asarray(a.offsets), np.asarray(b.offsets), atol=1e-9)
+
+
+def test_resume_removes_temp_files_of_a_killed_run(tmp_path, head):
+    lo, hi = ranges(head)
+    spec = SyntheticSpec(tuple(lo), tuple(hi), grid=6)
+    samples = sample_poses(head, 6, seed=4)
+    root = tmp_path / "ds"
+    run(head, root, spec, samples, SerialEngine(), max_poses=3)
+    store = PoseStore(root)
+    leftovers = [store.poses_dir / ".pose_000004.npz.k2j3h4.tmp", root / ".offsets.npy.tmp",
+                 root / ".failures.json.x8a9.tmp"]
+    for f in leftovers:
+        f.write_bytes(b"half a file")
+    keep = root / "notes.tmp"  # not a hidden temp file of ours
+    keep.write_text("operator notes")
+    summary = run(head, root, spec, samples, SerialEngine())
+    assert summary["complete"] and summary["solved_now"] == 3
+    assert not [f for f in leftovers if f.exists()] and keep.exists()

@@ -1,0 +1,156 @@
+"""The typed shape of a head spec TOML file: which tables and keys exist and the type of each value.
+
+Checked (with msgspec) before the values are validated in :mod:`models.headspec`, so a misspelled table
+(``[saftey]``) or key (``max_velocty``) is refused, naming the file, the table or key and what is allowed, instead of
+being silently ignored. Value ranges and cross-references (a bus that exists, min below max) are checked there. The
+keys of ``[runtime]``, ``[safety]`` and ``[api]`` belong to the daemon (``runtime.config``) and are checked by it.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Mapping
+from typing import Any
+
+import msgspec
+
+from models.errors import SpecError
+
+
+class _Table(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
+    """A TOML table whose keys are all known."""
+
+
+class HeadTable(_Table, kw_only=True):
+    name: str
+    description: str = ""
+
+
+class BusTable(_Table, kw_only=True):
+    driver: str
+    options: dict[str, Any] = {}
+    simulated: bool = False
+
+
+class ActuatorTable(_Table, kw_only=True):
+    name: str
+    bus: str
+    id: int
+    unit: str
+    min: float
+    max: float
+    neutral: float | None = None
+    max_velocity: float
+    max_acceleration: float
+    counts_per_rev: int = 4096
+    gear_ratio: float = 1.0
+    direction: int = 1
+    zero_count: int = 0
+    options: dict[str, Any] = {}
+
+
+class GroupTable(_Table, kw_only=True):
+    kind: str
+    actuators: list[str]
+    gains: list[float] | None = None
+    max_spread: float | None = None
+
+
+class LinkTable(_Table, kw_only=True):
+    actuators: list[str] = []
+    node_set: str | None = None
+    rigid: bool = False
+
+
+class PathsTable(_Table, kw_only=True):
+    """Files of learned models, relative to the head file. Without ``predictor_optional`` a missing predictor file
+    stops the daemon at start-up; with it the daemon runs without the ``arkit.*`` target channels."""
+
+    predictor: str | None = None
+    linkmap: str | None = None
+    predictor_optional: bool = False
+
+
+class SkinTable(_Table, kw_only=True):
+    """``[skin]``: tuning of the skin target solver (see ``runtime.skin``)."""
+
+    strain_min: float | None = None
+    strain_max: float | None = None
+    smoothness_mm: float | None = None
+    iterations_per_frame: int | None = None
+
+
+class HeadFile(_Table, kw_only=True):
+    """The top level. Required tables are optional here so that :mod:`models.headspec` names them when missing."""
+
+    head: dict[str, Any] | None = None
+    buses: dict[str, Any] | None = None
+    actuators: Any = None
+    groups: dict[str, Any] = {}
+    links: dict[str, Any] = {}
+    paths: dict[str, Any] = {}
+    skin_material: dict[str, Any] | None = None
+    skin: dict[str, Any] | None = None
+    runtime: dict[str, Any] = {}
+    safety: dict[str, Any] = {}
+    api: dict[str, Any] = {}
+
+
+def table_names() -> tuple[str, ...]:
+    """Every top-level table a head file may hold."""
+    return HeadFile.__struct_fields__
+
+
+_UNKNOWN = re.compile(r"Object contains unknown field `(?P<field>[^`]*)`")
+_MISSING = re.compile(r"Object missing required field `(?P<field>[^`]*)`")
+_AT = re.compile(r" - at `\$(?P<path>[^`]*)`$")
+
+
+def _spec_error(exc: msgspec.ValidationError, source: str, key: str, cls: type) -> SpecError:
+    text = str(exc)
+    at = _AT.search(text)
+    sub = at.group("path") if at else ""
+    text = text[: at.start()] if at else text
+    where = f"{key}{sub}" if key else sub.lstrip(".")
+    if m := _UNKNOWN.match(text):
+        name = m.group("field")
+        if not where:
+            return SpecError(source, name, f"unknown table or top-level key; known tables: {', '.join(table_names())}")
+        allowed = cls.__struct_fields__ if not sub else ()
+        hint = f"; allowed: {', '.join(sorted(allowed))}" if allowed else ""
+        return SpecError(source, f"{where}.{name}", f"unknown key{hint}")
+    if m := _MISSING.match(text):
+        return SpecError(source, f"{where}.{m.group('field')}" if where else m.group("field"), "missing required key")
+    expected = text.replace("`", "").replace("Expected", "expected").replace("object", "table")
+    return SpecError(source, where or "(file)", expected)
+
+
+def _convert(raw: Any, cls: type, source: str, key: str) -> Any:
+    try:
+        return msgspec.convert(raw, cls, strict=True)
+    except msgspec.ValidationError as exc:
+        raise _spec_error(exc, source, key, cls) from None
+
+
+def check_head_file(data: Mapping[str, Any], source: str) -> None:
+    """Check the tables, keys and value types of a parsed head file; SpecError naming the file and key."""
+    if not isinstance(data, Mapping):
+        raise SpecError(source, "(file)", "a head spec must be a TOML table")
+    top = _convert(dict(data), HeadFile, source, "")
+    if top.head is not None:
+        _convert(top.head, HeadTable, source, "head")
+    for name, raw in (top.buses or {}).items():
+        _convert(raw, BusTable, source, f"buses.{name}")
+    if isinstance(top.actuators, list):
+        for i, raw in enumerate(top.actuators):
+            label = f"actuators[{i}]"
+            if isinstance(raw, Mapping) and isinstance(raw.get("name"), str):
+                label += f" ({raw['name']})"
+            _convert(raw, ActuatorTable, source, label)
+    for name, raw in top.groups.items():
+        _convert(raw, GroupTable, source, f"groups.{name}")
+    for name, raw in top.links.items():
+        _convert(raw, LinkTable, source, f"links.{name}")
+    _convert(top.paths, PathsTable, source, "paths")
+    if top.skin is not None:
+        _convert(top.skin, SkinTable, source, "skin")
