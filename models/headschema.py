@@ -68,6 +68,7 @@ class PathsTable(_Table, kw_only=True):
 
     predictor: str | None = None
     linkmap: str | None = None
+    skin_guard: str | None = None  # attachment footprint of the skin for the strain guard
     predictor_optional: bool = False
 
 
@@ -78,6 +79,9 @@ class SkinTable(_Table, kw_only=True):
     strain_max: float | None = None
     smoothness_mm: float | None = None
     iterations_per_frame: int | None = None
+    radius_mm: float | None = None  # strain guard: smoothing neighbourhood (models.strain_guard)
+    band_mm: float | None = None  # strain guard: band left out around attachment rims
+    reference: str | None = None  # strain guard: "rest" or "neutral"
 
 
 class HeadFile(_Table, kw_only=True):

@@ -208,6 +208,9 @@ class Server:
     def close(self) -> None:
         import shutil
 
+        if self.recording is not None:  # the daemon stops while recording: the file is complete up to here
+            self.recording["writer"].close()
+            self.recording = None
         self.decoder.terminate()
         try:
             self.decoder.wait(2.0)
@@ -355,7 +358,7 @@ class Server:
             elif kind == "realtime":
                 self.realtime = rest[0]
             elif kind == "record" and self.recording is not None:
-                self.recording["rows"].append(rest[0])
+                self._record_rows(rest[0])
         return True
 
     def _core_reply(self, token: int, body: dict[str, Any]) -> None:
@@ -391,28 +394,45 @@ class Server:
         if op == "record":
             if body.get("stopped"):
                 return self._finish_recording(body)
-            self.recording = {"name": body["recording"], "rows": []}
+            self._start_recording(body["recording"])
             return body
         return body
 
-    def _finish_recording(self, body: dict[str, Any]) -> dict[str, Any]:
-        from runtime.recording import Recorder
+    def _start_recording(self, name: str) -> None:
+        """A crash-safe recording file, streamed as the core hands rows over (``docs/operations.md``)."""
+        from runtime.recording import RecordingWriter
 
-        rec = self.recording or {"name": body["recording"], "rows": []}
-        self.recording = None
-        rows = np.vstack(rec["rows"]) if rec["rows"] else np.empty((0, 1 + 2 * len(self.names)))
-        n = len(self.names)
         rt = self.cfg.runtime
-        recorder = Recorder(self.names, self.units, 1.0 / self.inv_scale, max(1, len(rows)),
-                            {"head": self.head.name, "rate_hz": rt.rate_hz})
-        for row in rows:
-            recorder.add(row[0], row[1:1 + n], row[1 + n:])
-        path = Path(rt.record_dir) / f"{rec['name']}.npz"
-        recorder.save(path)
-        event = {"event": "record", "t": time.monotonic(), "state": "saved", "name": rec["name"],
-                 "path": str(path), "samples": len(rows)}
-        self._publish(P.TOPIC_EVENT, event)
-        return {"path": str(path.resolve()), "samples": len(rows), "dropped": max(0, body["samples"] - len(rows))}
+        base = Path(rt.record_dir)
+        path = base / f"{name}.lrec"
+        k = 1
+        while path.exists():  # never overwrite an earlier recording
+            k += 1
+            path = base / f"{name}-{k}.lrec"
+        writer = RecordingWriter(path, self.names, self.units, {"head": self.head.name, "rate_hz": rt.rate_hz})
+        self.recording = {"name": name, "writer": writer, "rows": 0}
+
+    def _record_rows(self, rows: np.ndarray) -> None:
+        """Rows [t, commanded..., measured...] (SI) → configured units, appended to the file."""
+        rec = self.recording
+        assert rec is not None
+        n = len(self.names)
+        block = np.array(rows, dtype=float)
+        block[:, 1:1 + n] *= self.inv_scale
+        block[:, 1 + n:] *= self.inv_scale
+        rec["writer"].append(block)
+        rec["rows"] += len(block)
+
+    def _finish_recording(self, body: dict[str, Any]) -> dict[str, Any]:
+        rec, self.recording = self.recording, None
+        if rec is None:
+            return {"path": None, "samples": 0, "dropped": body["samples"]}
+        writer = rec["writer"]
+        writer.close()
+        path = writer.path
+        self._publish(P.TOPIC_EVENT, {"event": "record", "t": time.monotonic(), "state": "saved",
+                                      "name": rec["name"], "path": str(path), "samples": rec["rows"]})
+        return {"path": str(path.resolve()), "samples": rec["rows"], "dropped": max(0, body["samples"] - rec["rows"])}
 
     # ------------------------------------------------------------------ telemetry
     def _units(self, si: np.ndarray) -> dict[str, float | None]:
