@@ -382,8 +382,8 @@ class Server:
     def _format(self, op: str, body: dict[str, Any]) -> dict[str, Any]:
         if op == "status":
             out = self._common(body)
-            for key in ("estop", "fault", "moving", "timeline", "stream", "recording", "pose_reached", "extra",
-                        "clip_bytes", "guard"):
+            for key in ("estop", "fault", "moving", "timeline", "stream", "recording", "pose_reached", "pose_settled",
+                        "extra", "clip_bytes", "guard"):
                 if key in body:
                     out[key] = body[key]
             out["loop"] = self.stats_summary

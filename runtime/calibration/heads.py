@@ -286,6 +286,12 @@ class DaemonHead:
             if st.get("fault") or st.get("lifecycle") != "active":
                 raise CalibrationError(f"daemon left active while moving: {st.get('lifecycle')} {st.get('fault')}")
             ok = bool(st.get("pose_reached"))
+            if not ok and st.get("pose_settled"):
+                # the skin-strain guard stopped it short of the plan's pose: calibrate where the head really is
+                commanded = st.get("commanded") or {}
+                self._target = {n: self.head.actuator(n).from_config_units(float(commanded[n]))
+                                for n in self._target if commanded.get(n) is not None}
+                ok = True
             if ok:
                 measured = st.get("measured") or {}
                 for name, target in self._target.items():
@@ -306,6 +312,10 @@ class DaemonHead:
                 still_since = None
             time.sleep(0.01)
         raise CalibrationError(f"daemon did not settle at the pose within {self.timeout_s} s ({worst})")
+
+    def commanded(self) -> dict[str, float]:
+        """The pose last commanded (SI): the plan's, or where the daemon's safety stage stopped it."""
+        return dict(self._target)
 
     def measured(self) -> dict[str, float]:
         st = self._call("status")

@@ -137,7 +137,7 @@ def calibrate_live(
             times = [x.time for x in samples]
             journal.append({
                 "type": "pose", "index": pose.index, "kind": pose.kind, "holdout": pose.holdout,
-                "commanded": pose.values, "measured": measured,
+                "commanded": _commanded(driver, pose.values), "measured": measured,
                 "t0": min(times) if times else None, "t1": max(times) if times else None,
                 "links": {n: e.to_json() for n, e in est.items()},
             })
@@ -347,3 +347,9 @@ def _sha256(path: Path) -> str | None:
         return hashlib.sha256(Path(path).read_bytes()).hexdigest()
     except OSError:
         return None
+
+
+def _commanded(driver: Any, planned: Mapping[str, float]) -> dict[str, float]:
+    """What the driver really commanded for a planned pose (a safety stage may stop short of it)."""
+    get = getattr(driver, "commanded", None)
+    return dict(planned) if get is None else {**planned, **get()}

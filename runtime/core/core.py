@@ -590,6 +590,8 @@ def _on_status(state: CoreState, params: CoreParams, out: CycleOutputs, t: float
     if state.mode is Mode.POSE and state.pose_target is not None:
         err = np.abs(state.pose_target - state.shaper.q)
         body["pose_reached"] = bool(np.all(err < 1e-6) and not body["moving"])
+        # stopped where the safety stage let it go: at the target, or short of it where the strain guard limited it
+        body["pose_settled"] = bool(not body["moving"] and (body["pose_reached"] or state.guard_verdict != "ok"))
     return body
 
 
