@@ -62,7 +62,8 @@ class ApiSettings:
 
     command: str = "tcp://127.0.0.1:5555"
     telemetry: str = "tcp://127.0.0.1:5556"
-    allow_remote: bool = False  # binding anything but loopback needs this
+    allow_remote: bool = False  # binding anything but loopback needs this (and CURVE, or insecure_remote)
+    insecure_remote: bool = False  # allow_remote without CURVE: plain text on the network, on purpose
     max_message_bytes: int = 1 << 20  # larger requests get a too_large error reply
     hard_max_message_bytes: int = 16 << 20  # larger ones are dropped by ZeroMQ (peer disconnected)
     curve_secret_key: str = ""  # server secret key file (from ``likeness keys``); empty: no CURVE
@@ -170,6 +171,10 @@ def _check(cfg: DaemonConfig, source: str, head: HeadSpec) -> None:
          "must lie in [1024, hard_max_message_bytes]", api.max_message_bytes)
     need(bool(api.curve_secret_key) == bool(api.curve_allow_dir), "api.curve_allow_dir",
          "CURVE needs both curve_secret_key and curve_allow_dir", api.curve_allow_dir)
+    need(not api.allow_remote or bool(api.curve_secret_key) or api.insecure_remote, "api.allow_remote",
+         "remote clients without CURVE authentication would command the head in plain text: configure "
+         "curve_secret_key and curve_allow_dir (likeness keys), or set insecure_remote = true on purpose",
+         api.allow_remote)
     if api.curve_secret_key:
         base = head.source.parent
         for key in ("curve_secret_key", "curve_allow_dir"):

@@ -332,6 +332,14 @@ def _skip(raw: bytes, pos: int, budget: int) -> int:
     return pos
 
 
+def request_id_of(raw: bytes, budget: int = 2000) -> Any:
+    """The id of a request too large to decode, read from its top-level keys within ``budget`` steps (else None)."""
+    rid = _scan_id(raw, budget)
+    if (isinstance(rid, int) and not isinstance(rid, bool)) or (isinstance(rid, str) and len(rid) <= MAX_NAME):
+        return rid
+    return None
+
+
 def _scan_id(raw: bytes, budget: int = 100_000) -> Any:
     """The top-level ``id`` of a msgpack map, read without decoding the other values (None if not found)."""
     try:

@@ -199,6 +199,9 @@ class Server:
                 sock.curve_secretkey = secret
                 sock.curve_publickey = public
                 sock.curve_server = True
+        if api.allow_remote:
+            log.warning("remote clients allowed on %s: %s", api.command, "CURVE authentication with an allow-list"
+                        if api.curve_secret_key else "NO authentication, plain text (insecure_remote = true)")
         router.bind(api.command)
         pub.bind(api.telemetry)
         self.command_endpoint = router.getsockopt_string(zmq.LAST_ENDPOINT)
@@ -257,10 +260,18 @@ class Server:
     def _request(self, frames: list[bytes], received: float) -> None:
         if len(frames) < 2:
             return
+        # The only envelopes: [identity, request] (DEALER) or [identity, b"", request] (REQ). Anything else is
+        # refused, answered to the identity alone, never echoed.
+        if not (len(frames) == 2 or (len(frames) == 3 and frames[1] == b"")):
+            size = sum(len(f) for f in frames[1:])
+            self._reply(frames[:1], P.error_reply(None, "bad_request", f"a request is one frame; got "
+                                                  f"{len(frames) - 1} frames ({size} bytes)"))
+            return
         envelope, payload = frames[:-1], frames[-1]
         limit = self.cfg.api.max_message_bytes
         if len(payload) > limit:
-            self._reply(envelope, P.error_reply(None, "too_large",
+            rid = M.request_id_of(payload)  # when it can be read cheaply
+            self._reply(envelope, P.error_reply(rid, "too_large",
                                                 f"request of {len(payload)} bytes exceeds {limit} bytes"))
             return
         if len(payload) > self.spec.inline_bytes:  # decoded in the decoder process

@@ -97,3 +97,38 @@ def test_replies_carry_the_request_id_and_telemetry_flows(busless: Daemon) -> No
         assert msg is not None and msg[1]["loop"]["rate_hz"] == 500.0
         raw = c.send_raw(msgpack.packb({"op": "pose", "id": "abc", "pose": {"nose": 1.0}}))
         assert raw["id"] == "abc" and raw["error"]["code"] == "unknown_channel"
+
+
+def test_multipart_and_oversize_requests_are_refused_without_echo(busless: Daemon) -> None:
+    ctx = zmq.Context.instance()
+    sock = ctx.socket(zmq.DEALER)
+    sock.setsockopt(zmq.LINGER, 0)
+    sock.connect(busless.command_endpoint)
+    try:
+        junk = b"x" * 200_000
+        sock.send_multipart([msgpack.packb({"op": "status", "id": 5}), junk, junk])
+        assert sock.poll(5000)
+        frames = sock.recv_multipart()
+        assert len(frames) == 1 and len(frames[0]) < 1000  # one short reply, nothing echoed
+        reply = msgpack.unpackb(frames[0])
+        assert reply["error"]["code"] == "bad_request" and "frames" in reply["error"]["message"]
+        big = msgpack.packb({"id": "big-1", "op": "stream", "channels": ["jaw"],
+                             "frames": [[float(i), 1.0] for i in range(120_000)]})
+        assert len(big) > busless.cfg.api.max_message_bytes
+        sock.send(big)
+        assert sock.poll(5000)
+        reply = msgpack.unpackb(sock.recv())
+        assert reply["error"]["code"] == "too_large" and reply["id"] == "big-1"
+    finally:
+        sock.close()
+
+
+def test_remote_binding_needs_curve_or_an_explicit_insecure_flag() -> None:
+    from models.errors import SpecError
+    from runtime.config import daemon_config
+
+    head = load_head(SAMPLE)
+    remote = {"api.command": "tcp://0.0.0.0:5555", "api.allow_remote": True}
+    with pytest.raises(SpecError, match="insecure_remote"):
+        daemon_config(head, remote)
+    assert daemon_config(head, {**remote, "api.insecure_remote": True}).api.insecure_remote
