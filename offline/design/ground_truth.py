@@ -87,7 +87,7 @@ def _problem(warp: ThicknessWarp, settings: BlockSettings, motions, targets) -> 
     material = neo_hookean_from_E_nu(settings.youngs_modulus_pa, settings.poisson)
     region = np.asarray(mesh.node_sets["z1"])
     poses = tuple(Pose(rigid_transform_dirichlet(mesh, {"x1": T}, fixed_sets=("x0",)), q)
-                  for T, q in zip(motions, targets))
+                  for T, q in zip(motions, targets, strict=True))
     lz = settings.size_m[2]
     return ThicknessProblem(warp, material, poses, region, h_min=0.4 * lz, h_max=1.6 * lz)
 
@@ -162,7 +162,7 @@ def _initial_states(problem: ThicknessProblem, h0: np.ndarray) -> list[np.ndarra
 
 
 def _surface_errors(xs, targets, region) -> list[np.ndarray]:
-    return [np.linalg.norm(x[region] - q, axis=1) for x, q in zip(xs, targets)]
+    return [np.linalg.norm(x[region] - q, axis=1) for x, q in zip(xs, targets, strict=True)]
 
 
 def _hash_inputs(*arrays) -> str:
@@ -200,7 +200,7 @@ def write_outputs(report: dict, out_dir: Path) -> dict:
     vmin = min(v[1].min() for v in vals) * mm
     vmax = max(v[1].max() for v in vals) * mm
     fig, axes = plt.subplots(3, 1, figsize=(7, 6.5), constrained_layout=True)
-    for ax, (title, _), (uv, th) in zip(axes, maps, vals):
+    for ax, (title, _), (uv, th) in zip(axes, maps, vals, strict=True):
         tc = ax.tricontourf(uv[:, 0] * mm, uv[:, 1] * mm, th * mm, levels=np.linspace(vmin, vmax, 21),
                             cmap="viridis")
         ax.plot(warp.samples_uv[:, 0] * mm, warp.samples_uv[:, 1] * mm, "k.", ms=4)

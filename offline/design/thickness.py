@@ -1,7 +1,7 @@
 """Multi-pose skin thickness optimization: sample heights h such that the skin, posed by its attachments, matches
 target surfaces.
 
-Objective (dimensionless): E(h) = Σ_k ½ ‖x_k,R(h) − q_k‖² / (n_R ℓ²)  (the matching energy over the region R, per pose k)
+Objective (dimensionless): E(h) = Σ_k ½ ‖x_k,R(h) − q_k‖² / (n_R ℓ²) (matching over the region R, per pose k)
 + a log barrier keeping h inside [h_min, h_max] + a quadratic penalty once h comes within ``margin`` of a bound
 + a warp regularization W(X(h); X_ref) / (μ V): the elastic energy of the warped rest shape measured against the
 reference one, which grows without bound as a warped element flattens (keeps the warp well-conditioned).
@@ -123,7 +123,8 @@ def _match_scale(problem: ThicknessProblem) -> float:
 
 def _match_value(problem: ThicknessProblem, xs: Sequence[np.ndarray]) -> float:
     s = _match_scale(problem)
-    return float(sum(0.5 * s * np.sum((x[problem.region] - p.target) ** 2) for x, p in zip(xs, problem.poses)))
+    pairs = zip(xs, problem.poses, strict=True)
+    return float(sum(0.5 * s * np.sum((x[problem.region] - p.target) ** 2) for x, p in pairs))
 
 
 def _warp_norm(problem: ThicknessProblem) -> float:
@@ -293,7 +294,7 @@ def optimize_adjoint(problem: ThicknessProblem, h0: np.ndarray, *, method: str =
         if method == "gauss-newton":
             rs, Js = sensitivities(problem, state)
             g_reg, H_reg = _reg_derivatives(problem, state.h)
-            g = g_reg + sum(J.T @ r for J, r in zip(Js, rs))
+            g = g_reg + sum(J.T @ r for J, r in zip(Js, rs, strict=True))
             H = H_reg + sum(J.T @ J for J in Js)
             H = H + 1e-12 * np.trace(H) / len(h) * np.eye(len(h))
             step = np.linalg.solve(H, -g)
@@ -333,13 +334,13 @@ def optimize_adjoint(problem: ThicknessProblem, h0: np.ndarray, *, method: str =
 def _lbfgs_direction(g: np.ndarray, S: list[np.ndarray], Y: list[np.ndarray]) -> np.ndarray:
     q = -g.copy()
     alphas = []
-    for s, y in zip(reversed(S), reversed(Y)):
+    for s, y in zip(reversed(S), reversed(Y), strict=True):
         a = float(s @ q) / float(y @ s)
         alphas.append(a)
         q -= a * y
     if S:
         q *= float(S[-1] @ Y[-1]) / float(Y[-1] @ Y[-1])
-    for (s, y), a in zip(zip(S, Y), reversed(alphas)):
+    for (s, y), a in zip(zip(S, Y, strict=True), reversed(alphas), strict=True):
         b = float(y @ q) / float(y @ s)
         q += (a - b) * s
     return q
@@ -353,7 +354,8 @@ def optimize_joint(problem: ThicknessProblem, h0: np.ndarray, *, max_iterations:
     Residuals: the free internal forces of every pose (weighted by ``equilibrium_weight`` after scaling by a
     typical force μℓ²) and the matching residuals; the normal equations are one sparse system per iteration
     in augmented form [I −J; Jᵀ H_reg], factorized with SuperLU (on failure a growing identity shift is added to
-    the parameter block), followed by a backtracking line search on the merit ½‖r‖² + regularization. Starts from a forward simulation at h0.
+    the parameter block), followed by a backtracking line search on the merit ½‖r‖² + regularization. Starts
+    from a forward simulation at h0.
     """
     t0 = time.perf_counter()
     h = problem.check_heights(h0).copy()
@@ -400,12 +402,11 @@ def optimize_joint(problem: ThicknessProblem, h0: np.ndarray, *, max_iterations:
     it = 0
     for it in range(1, max_iterations + 1):
         mesh = problem.warp.rest_mesh(h)
-        blocks_J = []  # rows: per pose [eq; match], columns: [u_1 ... u_m, h]
         rhs = []
         nf = [f.size for f in frees]
         offs = np.concatenate([[0], np.cumsum(nf)])
         n_unk = offs[-1] + S
-        rows = []
+        rows = []  # per pose [equilibrium; matching], columns [u_1 ... u_m, h]
         for k in range(len(problem.poses)):
             K = _en.stiffness(mesh, problem.material, xs[k])
             B = mixed_stiffness(mesh, problem.material, xs[k])
