@@ -19,7 +19,7 @@ import numpy as np
 from offline.fem import box_mesh, neo_hookean_from_E_nu
 from offline.fem.solve import rigid_transform_dirichlet
 
-from .thickness import Pose, ThicknessProblem, optimize_adjoint, optimize_joint
+from .thickness import Pose, ThicknessProblem, optimize_adjoint, optimize_joint, solve_poses
 from .warp import ThicknessWarp, block_warp
 
 
@@ -27,9 +27,9 @@ from .warp import ThicknessWarp, block_warp
 class BlockSettings:
     """Size of the block test. ``default()`` is the documented run; ``quick()`` the test-size one."""
 
-    size_m: tuple[float, float, float] = (0.06, 0.02, 0.006)
-    divisions: tuple[int, int, int] = (24, 8, 3)
-    n_samples: int = 12
+    size_m: tuple[float, float, float] = (0.095, 0.025, 0.006)
+    divisions: tuple[int, int, int] = (38, 10, 3)
+    n_samples: int = 16
     n_poses: int = 4
     variation: float = 0.25  # true heights drawn in h0 · [1 − v, 1 + v]
     youngs_modulus_pa: float = 1.0e5
@@ -39,13 +39,13 @@ class BlockSettings:
 
     @staticmethod
     def default() -> BlockSettings:
-        """The documented run (about 3.5k tets, 12 samples, 4 poses)."""
+        """The documented run: a 95 × 25 × 6 mm bar (6,840 tets), 16 samples, 4 poses."""
         return BlockSettings()
 
     @staticmethod
     def quick() -> BlockSettings:
-        """Test size (about 0.6k tets, 6 samples, 3 poses)."""
-        return BlockSettings(divisions=(12, 4, 2), n_samples=6, n_poses=3)
+        """Test size: 60 × 25 × 6 mm (576 tets), 6 samples, 3 poses."""
+        return BlockSettings(size_m=(0.06, 0.025, 0.006), divisions=(12, 4, 2), n_samples=6, n_poses=3)
 
 
 def _rot_x(theta: float) -> np.ndarray:
@@ -92,9 +92,8 @@ def _problem(warp: ThicknessWarp, settings: BlockSettings, motions, targets) -> 
     return ThicknessProblem(warp, material, poses, region, h_min=0.4 * lz, h_max=1.6 * lz)
 
 
-def run_ground_truth(settings: BlockSettings, seed: int = 0, verbose: bool = False) -> dict:
-    """Make targets from a random thickness field and recover it from the uniform block; returns the report dict
-    plus private arrays (keys starting with ``_``) for the pictures."""
+def block_problem(settings: BlockSettings, seed: int = 0) -> tuple[ThicknessProblem, np.ndarray, list[np.ndarray]]:
+    """The recovery problem: (problem whose targets come from the true field, true heights, end-face motions)."""
     rng = np.random.default_rng(seed)
     mesh = box_mesh(settings.size_m, settings.divisions)
     warp = block_warp(mesh, n_samples=settings.n_samples)
@@ -102,16 +101,22 @@ def run_ground_truth(settings: BlockSettings, seed: int = 0, verbose: bool = Fal
     h_true = lz * (1.0 + settings.variation * rng.uniform(-1.0, 1.0, settings.n_samples))
     motions = imposed_motions(settings.size_m, settings.n_poses, rng)
     region = np.asarray(mesh.node_sets["z1"])
-    # targets: the true block simulated (no targets needed for that: the matching term is unused)
-    dummy = [np.zeros((region.size, 3))] * settings.n_poses
-    from .thickness import _forward  # the forward simulation of every pose
-
-    true_problem = _problem(warp, settings, motions, dummy)
-    true_state = _forward(true_problem, true_problem.check_heights(h_true), None)
+    placeholder = [np.zeros((region.size, 3))] * settings.n_poses  # the forward simulation needs no targets
+    true_problem = _problem(warp, settings, motions, placeholder)
+    true_state = solve_poses(true_problem, true_problem.check_heights(h_true))
     if true_state is None:
         raise RuntimeError("the ground-truth block did not solve; lower the variation or the motions")
     targets = [x[region] for x in true_state.xs]
-    problem = _problem(warp, settings, motions, targets)
+    return _problem(warp, settings, motions, targets), h_true, motions
+
+
+def run_ground_truth(settings: BlockSettings, seed: int = 0, verbose: bool = False) -> dict:
+    """Make targets from a random thickness field and recover it from the uniform block; returns the report dict
+    plus private arrays (keys starting with ``_``) for the pictures."""
+    problem, h_true, motions = block_problem(settings, seed)
+    warp, mesh, region = problem.warp, problem.warp.mesh, problem.region
+    targets = [p.target for p in problem.poses]
+    lz = settings.size_m[2]
     h0 = np.full(settings.n_samples, lz)
     t0 = time.perf_counter()
     if settings.method == "joint":
@@ -156,9 +161,7 @@ def run_ground_truth(settings: BlockSettings, seed: int = 0, verbose: bool = Fal
 
 
 def _initial_states(problem: ThicknessProblem, h0: np.ndarray) -> list[np.ndarray]:
-    from .thickness import _forward
-
-    return _forward(problem, h0, None).xs
+    return solve_poses(problem, h0).xs
 
 
 def _surface_errors(xs, targets, region) -> list[np.ndarray]:

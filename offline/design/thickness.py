@@ -96,7 +96,7 @@ class State:
     solves: int
 
 
-def _forward(problem: ThicknessProblem, h: np.ndarray, warm: Sequence[np.ndarray] | None) -> State | None:
+def solve_poses(problem: ThicknessProblem, h: np.ndarray, warm: Sequence[np.ndarray] | None = None) -> State | None:
     """Solve every pose at heights h (warm-started when possible); None if the rest shape or a solve fails."""
     X = problem.warp.rest_positions(h)
     if _en.min_jacobian(problem.warp.mesh, X) <= 0:  # warped rest mesh inverted
@@ -249,7 +249,7 @@ def _line_search(problem, state: State, step: np.ndarray, slope: float, counts: 
     if amax <= 1.0:
         alpha = 0.95 * amax
     for _ in range(30):
-        trial = _forward(problem, h + alpha * step, state.xs)
+        trial = solve_poses(problem, h + alpha * step, state.xs)
         counts["forward"] += len(problem.poses)
         if trial is not None and trial.value <= state.value + 1e-4 * alpha * slope:
             return trial, alpha
@@ -280,7 +280,7 @@ def optimize_adjoint(problem: ThicknessProblem, h0: np.ndarray, *, method: str =
     t0 = time.perf_counter()
     h = problem.check_heights(h0).copy()
     counts = {"forward": 0}
-    state = _forward(problem, h, None)
+    state = solve_poses(problem, h, None)
     counts["forward"] += len(problem.poses)
     if state is None:
         raise ValueError("the starting heights give an inverted rest shape or a pose that does not converge")
@@ -359,7 +359,7 @@ def optimize_joint(problem: ThicknessProblem, h0: np.ndarray, *, max_iterations:
     """
     t0 = time.perf_counter()
     h = problem.check_heights(h0).copy()
-    first = _forward(problem, h, None)
+    first = solve_poses(problem, h, None)
     if first is None:
         raise ValueError("the starting heights give an inverted rest shape or a pose that does not converge")
     counts = {"forward": len(problem.poses)}
@@ -477,7 +477,7 @@ def optimize_joint(problem: ThicknessProblem, h0: np.ndarray, *, max_iterations:
             converged = True
             break
     # report the states at exact equilibrium for the heights found
-    final = _forward(problem, h, xs)
+    final = solve_poses(problem, h, xs)
     counts["forward"] += len(problem.poses)
     xs_eq = final.xs if final is not None else xs
     return OptimizeResult(h, xs_eq, value, it, converged, log, counts["forward"], time.perf_counter() - t0,
