@@ -331,6 +331,15 @@ def optimize_adjoint(problem: ThicknessProblem, h0: np.ndarray, *, method: str =
                           time.perf_counter() - t0, f"adjoint-{method}")
 
 
+def _solve_general(A: sp.spmatrix, b: np.ndarray) -> np.ndarray:
+    """Solve a general (unsymmetric, indefinite) sparse system: PARDISO when installed, else SuperLU."""
+    try:
+        import pypardiso
+    except ImportError:
+        return spla.splu(sp.csc_matrix(A), permc_spec="MMD_AT_PLUS_A").solve(b)
+    return pypardiso.spsolve(sp.csr_matrix(A), b)
+
+
 def _lbfgs_direction(g: np.ndarray, S: list[np.ndarray], Y: list[np.ndarray]) -> np.ndarray:
     q = -g.copy()
     alphas = []
@@ -353,9 +362,9 @@ def optimize_joint(problem: ThicknessProblem, h0: np.ndarray, *, max_iterations:
 
     Residuals: the free internal forces of every pose (weighted by ``equilibrium_weight`` after scaling by a
     typical force μℓ²) and the matching residuals; the normal equations are one sparse system per iteration
-    in augmented form [I −J; Jᵀ H_reg], factorized with SuperLU (on failure a growing identity shift is added to
-    the parameter block), followed by a backtracking line search on the merit ½‖r‖² + regularization. Starts
-    from a forward simulation at h0.
+    in augmented form [I −J; Jᵀ H_reg], factorized with PARDISO or SuperLU (on failure a growing identity shift
+    is added to the unknowns' block), followed by a backtracking line search on the merit ½‖r‖² +
+    regularization. Starts from a forward simulation at h0.
     """
     t0 = time.perf_counter()
     h = problem.check_heights(h0).copy()
@@ -435,11 +444,11 @@ def optimize_joint(problem: ThicknessProblem, h0: np.ndarray, *, max_iterations:
             try:
                 Hs = Hr if shift == 0 else Hr + shift * sp.identity(n_unk, format="csr")
                 A = sp.bmat([[sp.identity(n_r, format="csr"), -J], [J.T, Hs]]).tocsc()
-                sol = spla.splu(A).solve(np.concatenate([r, -np.r_[np.zeros(offs[-1]), g_reg]]))
+                sol = _solve_general(A, np.concatenate([r, -np.r_[np.zeros(offs[-1]), g_reg]]))
                 step = sol[n_r:]
                 if np.all(np.isfinite(step)):
                     break
-            except RuntimeError:
+            except Exception:  # singular or failed factorization: shift and retry
                 pass
             shift = max(1e-12, 10 * shift)
             step = None
