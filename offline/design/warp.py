@@ -128,13 +128,39 @@ def build_warp(mesh: TetMesh, *, outer: np.ndarray, inner: np.ndarray, uv: np.nd
     return ThicknessWarp(mesh, samples_uv, float(width), h_ref, D, t, lk)
 
 
+def strain_density(mesh: TetMesh, poses: Sequence[np.ndarray], floor: float = 0.2) -> np.ndarray:
+    """A density map (N,) that is larger where the skin deforms most over ``poses`` (deformed positions (N, 3)).
+
+    Per tet the largest Green-strain norm ‖FᵀF − I‖/2 over the poses, averaged onto its nodes, scaled to [0, 1] and
+    shifted by ``floor`` (> 0) so that undeformed regions still receive samples.
+    """
+    from offline.fem.energy import deformation_gradients
+
+    if not poses:
+        raise ValueError("strain_density needs at least one deformed pose")
+    if not floor > 0:
+        raise ValueError(f"strain_density floor must be > 0, got {floor}")
+    worst = np.zeros(mesh.n_tets)
+    for x in poses:
+        F = deformation_gradients(mesh, x)  # (M, Q, 3, 3)
+        E = 0.5 * (np.swapaxes(F, -1, -2) @ F - np.eye(3))
+        worst = np.maximum(worst, np.linalg.norm(E, axis=(-2, -1)).max(axis=1))
+    tets = np.asarray(mesh.tets)
+    total = np.bincount(tets.ravel(), weights=np.repeat(worst, tets.shape[1]), minlength=mesh.n_nodes)
+    count = np.bincount(tets.ravel(), minlength=mesh.n_nodes)
+    per_node = total / np.maximum(count, 1)
+    top = per_node.max()
+    return floor + (per_node / top if top > 0 else per_node)
+
+
 def block_warp(mesh: TetMesh, *, n_samples: int, width: float | None = None,
-               density: Callable[[np.ndarray], np.ndarray] | None = None,
+               density: Callable[[np.ndarray], np.ndarray] | np.ndarray | None = None,
                locked_sets: Sequence[str] = ("x0", "x1")) -> ThicknessWarp:
     """Warp of a :func:`offline.fem.box_mesh` block: outer surface ``z1`` fixed, inner surface ``z0`` moves in −z.
 
     Heights are the local thickness (the block's height at rest). Samples are placed on the inner surface's free
-    nodes by ``density`` over (x, y) (uniform if None); the default kernel width is 1.2 × the mean sample spacing.
+    nodes by ``density``: a function of (x, y), or one value per mesh node (e.g. :func:`strain_density`), uniform
+    if None. The default kernel width is 1.2 × the mean sample spacing.
     """
     for name in ("z0", "z1", *locked_sets):
         if name not in mesh.node_sets:
@@ -145,7 +171,17 @@ def block_warp(mesh: TetMesh, *, n_samples: int, width: float | None = None,
     inner = np.asarray(mesh.node_sets["z0"])
     cand = np.setdiff1d(inner, locked)
     uv = X[:, :2]
-    idx = place_samples(uv[cand], density if density is not None else (lambda p: np.ones(len(p))), n_samples)
+    if density is None:
+        rho = np.ones(cand.size)
+    elif callable(density):
+        rho = density(uv[cand])
+    else:
+        rho = np.asarray(density, dtype=np.float64).reshape(-1)
+        if rho.shape[0] != mesh.n_nodes:
+            raise ValueError(f"density must be a function of (x, y) or one value per node ({mesh.n_nodes}), "
+                             f"got {rho.shape[0]} values")
+        rho = rho[cand]
+    idx = place_samples(uv[cand], rho, n_samples)
     samples_uv = uv[cand[idx]]
     if width is None:
         area = float(np.ptp(X[:, 0]) * np.ptp(X[:, 1]))

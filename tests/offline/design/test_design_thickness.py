@@ -52,7 +52,7 @@ def test_quick_ground_truth_is_recovered(method):
 
 
 def test_cli_ground_truth_writes_report_and_pictures(tmp_path: Path):
-    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]), NUMBA_NUM_THREADS="1")
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[3]), NUMBA_NUM_THREADS="1")
     out = tmp_path / "gt"
     proc = subprocess.run([sys.executable, "-m", "likeness", "offline", "optimize-thickness", "--ground-truth-test",
                            "--quick", "--seed", "2", "--quiet", "--out", str(out)],
@@ -67,7 +67,7 @@ def test_cli_ground_truth_writes_report_and_pictures(tmp_path: Path):
 
 
 def test_cli_without_ground_truth_says_what_is_missing(tmp_path: Path):
-    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]), NUMBA_NUM_THREADS="1")
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[3]), NUMBA_NUM_THREADS="1")
     proc = subprocess.run([sys.executable, "-m", "likeness", "offline", "optimize-thickness", "--out",
                            str(tmp_path)], capture_output=True, text=True, env=env, timeout=120)
     assert proc.returncode != 0

@@ -48,7 +48,7 @@ def test_mixed_stiffness_matches_finite_differences(material):
         assert np.linalg.norm(an - fd) <= 1e-6 * np.linalg.norm(fd)
 
 
-def test_rest_force_gradient_is_zero_at_rest():
+def test_rest_energy_gradient_is_zero_at_rest():
     """At x = X the energy is stationary in X too (Ψ = 0 and P = 0 at F = I)."""
     material = neo_hookean(3e4, 6e5)
     mesh, _ = _deformed(4)

@@ -77,3 +77,31 @@ def test_harmonic_depth_runs_from_outer_to_inner():
     z = np.asarray(mesh.nodes)[:, 2]
     mid = np.flatnonzero(np.isclose(z, 0.004))
     assert np.all((t[mid] > 0.3) & (t[mid] < 0.7))
+
+
+def test_strain_density_places_samples_where_the_block_deforms():
+    from offline.design.warp import strain_density
+    from offline.fem import neo_hookean, rigid_transform_dirichlet, solve_static
+
+    mesh = box_mesh((0.04, 0.01, 0.004), (16, 4, 2))
+    X = np.asarray(mesh.nodes)
+    # pull only a patch of the bottom at the x1 end sideways: strain concentrates near x1
+    patch = np.flatnonzero((X[:, 0] > 0.03) & (X[:, 2] < 1e-9))
+    mesh = mesh.with_node_sets(patch=patch)
+    T = np.eye(4)
+    T[0, 3] = 0.004
+    bc = rigid_transform_dirichlet(mesh, {"patch": T}, fixed_sets=("x0",))
+    x = solve_static(mesh, neo_hookean(3e4, 3e5), bc).x
+    rho = strain_density(mesh, [x])
+    assert rho.min() >= 0.2 and rho.max() == pytest.approx(1.2)
+    inner = np.asarray(mesh.node_sets["z0"])
+
+    def rho_at(warp):  # density at the inner-surface node under each sample
+        d = np.linalg.norm(X[inner, None, :2] - warp.samples_uv[None], axis=2)
+        return rho[inner[np.argmin(d, axis=0)]]
+
+    dense = block_warp(mesh, n_samples=12, density=rho, locked_sets=("x0",))
+    uniform = block_warp(mesh, n_samples=12, locked_sets=("x0",))
+    assert rho_at(dense).mean() > 1.05 * rho_at(uniform).mean()
+    with pytest.raises(ValueError, match="one value per node"):
+        block_warp(mesh, n_samples=4, density=np.ones(3))
