@@ -9,6 +9,7 @@ import importlib
 OFFLINE_COMMAND_MODULES: tuple[str, ...] = (
     "offline.mesh.cli",
     "offline.fem_cli",
+    "offline.design.cli",
     "offline.material.cli",
     "offline.dataset.cli",
     "offline.train.cli",

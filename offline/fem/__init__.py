@@ -5,6 +5,7 @@
 - :mod:`offline.fem.energy`: numba kernels for energy, internal forces and the CSR tangent stiffness.
 - :mod:`offline.fem.linsolve`: CHOLMOD / PARDISO / SuperLU factorizations reusable for adjoint solves.
 - :mod:`offline.fem.solve`: Dirichlet conditions and the load-stepped Newton solver :func:`solve_static`.
+- :mod:`offline.fem.rest_shape`: derivatives with respect to the rest positions (∂W/∂X, ∂f/∂X) for design.
 - :mod:`offline.fem.closed_form`: analytic reference answers (homogeneous uniaxial stretch).
 """
 
@@ -34,6 +35,7 @@ from .materials import (
     yeoh,
 )
 from .mesh import TetMesh, boundary_faces, box_mesh, cylinder_mesh, load_mesh, save_mesh, tet_quality, to_quadratic
+from .rest_shape import mixed_stiffness, rest_energy_gradient
 from .solve import (
     Dirichlet,
     NotConverged,
@@ -74,12 +76,14 @@ __all__ = [
     "load_mesh",
     "make_solver",
     "min_jacobian",
+    "mixed_stiffness",
     "mooney_rivlin",
     "mu_kappa_from_E_nu",
     "neo_hookean",
     "neo_hookean_from_E_nu",
     "nodal_masses",
     "prepare",
+    "rest_energy_gradient",
     "rigid_transform_dirichlet",
     "save_mesh",
     "solve_static",
