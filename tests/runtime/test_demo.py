@@ -19,7 +19,7 @@ def test_demo_plays_the_performance_and_writes_a_plot(tmp_path: Path) -> None:
     assert "100%" in out.stdout and "tracking error" in out.stdout and "missed deadlines" in out.stdout
     png = tmp_path / "expressive.png"
     assert png.read_bytes()[:4] == b"\x89PNG"
-    rec = load_recording(tmp_path / "expressive.npz")
+    rec = load_recording(tmp_path / "expressive.lrec")
     assert len(rec["names"]) == 13 and rec["t"][-1] > 8.5
     errors = tracking_errors(rec)
     # Every actuator printed, and each followed its command (stepped lids lag most).
@@ -28,7 +28,7 @@ def test_demo_plays_the_performance_and_writes_a_plot(tmp_path: Path) -> None:
         assert err["rms"] < 3.0, (name, err)
     # The blendshape performance is solved through the skin predictor and moves the motors too.
     assert "performance 'blendshapes'" in out.stdout
-    shapes = load_recording(tmp_path / "blendshapes.npz")
+    shapes = load_recording(tmp_path / "blendshapes.lrec")
     assert (tmp_path / "blendshapes.png").read_bytes()[:4] == b"\x89PNG"
     moved = abs(shapes["measured"]).max(axis=0)  # config units (degrees)
     assert (moved > 0.5).sum() >= 5, dict(zip(shapes["names"], moved, strict=True))

@@ -54,7 +54,7 @@ def test_example_client_drives_the_head(make_daemon) -> None:
     assert "protocol 1, head 'sample', 13 actuators" in out.stdout
     assert "streamed 50 frames" in out.stdout
     assert d.lifecycle == "inactive"  # the client disabled the head at the end
-    assert d.timeline.clips["nod"].duration == 1.0
+    assert d.state.timeline.clips["nod"].duration == 1.0
 
 
 def test_daemon_process_status_stream_estop_and_sigterm(tmp_path: Path) -> None:
