@@ -138,14 +138,20 @@ class RateScheduler:
         """Restart the schedule from now (after a deliberate pause, e.g. a lifecycle transition)."""
         self.next = self.clock() + self.period
 
-    def wait(self) -> tuple[float, int]:
-        """Block until the next deadline; returns (lateness in s, deadlines missed since the previous call)."""
+    def wait(self, idle: Callable[[float], None] | None = None) -> tuple[float, int]:
+        """Block until the next deadline; returns (lateness in s, deadlines missed since the previous call).
+
+        ``idle(until)``, when given, is called instead of sleeping and must return by the absolute time ``until``
+        (the runner takes commands that arrive in the meantime)."""
         clock = self.clock
         target = self.next
         now = clock()
         remaining = target - now - self.spin
         if remaining > 0:
-            time.sleep(remaining)
+            if idle is None:
+                time.sleep(remaining)
+            else:
+                idle(target - self.spin)
         while clock() < target:
             pass
         now = clock()

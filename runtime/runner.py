@@ -28,6 +28,8 @@ log = logging.getLogger(__name__)
 #: Commands taken from the link per cycle at most (the rest wait for the next cycle).
 MAX_COMMANDS_PER_CYCLE = 64
 STATS_EVERY_S = 0.5
+#: Commands arriving between cycles are taken at once unless the next cycle is closer than this.
+COMMAND_MARGIN_S = 300e-6
 
 
 class Runner:
@@ -44,6 +46,7 @@ class Runner:
         self.clock = clock
         self.stats = LoopStats(params.period)
         self.input_log = input_log
+        self.output_log: list[Any] | None = [] if input_log is not None else None  # writes, beside the inputs
         self.realtime_status = "not started"
         self.ready = threading.Event()
         self._stop = threading.Event()
@@ -80,7 +83,7 @@ class Runner:
         try:
             with SwitchInterval(rt.switch_interval_s):
                 while not self._stop.is_set():
-                    late, missed = sched.wait()
+                    late, missed = sched.wait(self._idle)
                     # The cycle's time is its deadline: the core's trajectory advances in exact periods whatever
                     # the wake-up jitter, and the drivers' rate guard sees the same spacing in the stamps.
                     t = sched.next - self.params.period
@@ -111,11 +114,42 @@ class Runner:
         finally:
             drop_realtime()
 
-    def _inputs(self, t: float) -> K.CycleInputs:
-        buses = []
-        for link in self.links:
-            fb = link.feedback()
-            buses.append(K.BusInput(link.name, fb.state.value, fb.connected, fb.positions, fb.stamp, fb.faults))
+    def _idle(self, until: float) -> None:
+        """Until ``until``: wait for commands from the server and take them at once (their replies and stream frames
+        then need not wait for the next cycle), as long as enough time is left before the cycle."""
+        while True:
+            left = until - self.clock()
+            if left <= 0:
+                return
+            if not self.sock.poll(max(0, int(left * 1000))):
+                left = until - self.clock()
+                if left > 0:
+                    time.sleep(left)
+                return
+            if until - self.clock() < COMMAND_MARGIN_S:
+                left = until - self.clock()
+                if left > 0:
+                    time.sleep(left)
+                return
+            t = self.clock()
+            cmds = self._drain()
+            estop = self._estop_now()
+            if not cmds and estop is None:
+                continue
+            inputs = K.CycleInputs(t, (), tuple(cmds), (), estop, between_cycles=True)
+            if self.input_log is not None:
+                self.input_log.append(inputs)
+            try:
+                out = K.step(self.state, self.params, inputs)
+            except Exception as exc:
+                log.exception("taking commands failed")
+                out = K.CycleOutputs()
+                K._fault(self.state, self.params, out, t, "control loop",
+                         f"taking commands failed: {type(exc).__name__}: {exc}")
+            self._write(out, t)
+            self._outbox(out)
+
+    def _drain(self) -> list[Any]:
         cmds = []
         for _ in range(MAX_COMMANDS_PER_CYCLE):
             try:
@@ -124,6 +158,22 @@ class Runner:
                 break
             if kind == "cmd":
                 cmds.append(cmd)
+        return cmds
+
+    def _estop_now(self) -> str | None:
+        estop = None
+        if self.estop.tripped():
+            estop = "api"
+        if self._signal_estop is not None:
+            estop, self._signal_estop = self._signal_estop, None
+        return estop
+
+    def _inputs(self, t: float) -> K.CycleInputs:
+        buses = []
+        for link in self.links:
+            fb = link.feedback()
+            buses.append(K.BusInput(link.name, fb.state.value, fb.connected, fb.positions, fb.stamp, fb.faults))
+        cmds = self._drain()
         results = []
         if self._tickets:
             for (i, ticket), op in list(self._tickets.items()):
@@ -131,12 +181,7 @@ class Runner:
                 if res is not None:
                     del self._tickets[i, ticket]
                     results.append((self.links[i].name, op, res[0], res[1]))
-        estop = None
-        if self.estop.tripped():
-            estop = "api"
-        if self._signal_estop is not None:
-            estop, self._signal_estop = self._signal_estop, None
-        inputs = K.CycleInputs(t, tuple(buses), tuple(cmds), tuple(results), estop)
+        inputs = K.CycleInputs(t, tuple(buses), tuple(cmds), tuple(results), self._estop_now())
         if self.input_log is not None:
             self.input_log.append(inputs)
         return inputs
@@ -144,6 +189,8 @@ class Runner:
     def _write(self, out: K.CycleOutputs, t: float) -> None:
         """Post the commands (stamped with the cycle's time, which the drivers' rate guard measures against) and
         the lifecycle requests."""
+        if self.output_log is not None:
+            self.output_log.append(None if out.write is None else out.write.copy())
         if out.write is not None:
             q = out.write
             for link, (_, idx) in zip(self.links, self.params.buses, strict=True):

@@ -78,6 +78,7 @@ class CycleInputs:
     commands: tuple[C.Command, ...] = ()
     results: tuple[tuple[str, str, bool, str], ...] = ()  # (bus, op, ok, message) of finished bus requests
     estop: str | None = None  # an out-of-band e-stop (shared flag, signal): its reason
+    between_cycles: bool = False  # commands taken between two cycles (no read, no write)
 
 
 @dataclass
@@ -201,23 +202,14 @@ class CoreError(Exception):
 
 # ====================================================================== the step
 def step(state: CoreState, params: CoreParams, inputs: CycleInputs) -> CycleOutputs:
-    """Advance the core by one cycle at time ``inputs.t``; the only function that changes ``state``."""
+    """Advance the core by one cycle at time ``inputs.t``; with ``inputs.between_cycles`` only take the commands
+    (and e-stop) that arrived between two cycles. The only functions that change ``state``."""
+    if inputs.between_cycles:
+        return take_commands(state, params, inputs)
     out = CycleOutputs()
     t = inputs.t
     _read(state, params, inputs)
-    if inputs.estop is not None:
-        _estop(state, params, out, t, inputs.estop)
-    cmds = inputs.commands
-    if any(isinstance(c, C.EStop) for c in cmds):  # e-stop preempts whatever else is queued with it
-        cmds = tuple(c for c in cmds if isinstance(c, C.EStop)) + tuple(c for c in cmds if not isinstance(c, C.EStop))
-    for cmd in cmds:
-        try:
-            body = _HANDLERS[type(cmd)](state, params, out, t, cmd)
-        except CoreError as exc:
-            out.replies.append((cmd.token, {"error": {"code": exc.code, "message": exc.message}}))
-        else:
-            if body is not None:
-                out.replies.append((cmd.token, body))
+    _commands(state, params, inputs, out)
     for result in inputs.results:
         _bus_result(state, params, out, t, *result)
     _check_transition(state, params, out, t)
@@ -239,6 +231,31 @@ def step(state: CoreState, params: CoreParams, inputs: CycleInputs) -> CycleOutp
     if state.cycle % params.telemetry_every == 0:
         out.telemetry = _telemetry(state, params, t)
     return out
+
+
+def take_commands(state: CoreState, params: CoreParams, inputs: CycleInputs) -> CycleOutputs:
+    """Commands that arrived between two cycles, taken at once so their replies (and stream frames) do not wait for
+    the next cycle; nothing is read, solved or written."""
+    out = CycleOutputs()
+    _commands(state, params, inputs, out)
+    return out
+
+
+def _commands(state: CoreState, params: CoreParams, inputs: CycleInputs, out: CycleOutputs) -> None:
+    t = inputs.t
+    if inputs.estop is not None:
+        _estop(state, params, out, t, inputs.estop)
+    cmds = inputs.commands
+    if any(isinstance(c, C.EStop) for c in cmds):  # e-stop preempts whatever else is queued with it
+        cmds = tuple(c for c in cmds if isinstance(c, C.EStop)) + tuple(c for c in cmds if not isinstance(c, C.EStop))
+    for cmd in cmds:
+        try:
+            body = _HANDLERS[type(cmd)](state, params, out, t, cmd)
+        except CoreError as exc:
+            out.replies.append((cmd.token, {"error": {"code": exc.code, "message": exc.message}}))
+        else:
+            if body is not None:
+                out.replies.append((cmd.token, body))
 
 
 # ---------------------------------------------------------------------- read
