@@ -28,8 +28,9 @@ def check_channels(channels: ChannelMap, names: list[str] | tuple[str, ...]) -> 
                             f"{', '.join(channels.names)}") from None
 
 
-def to_command(req: M.Request, token: int, channels: ChannelMap, safe_speed: float) -> C.Command:
-    """The core command for a decoded request (not a local op)."""
+def to_command(req: M.Request, token: int, channels: ChannelMap, safe_speed: float,
+               received: float | None = None) -> C.Command:
+    """The core command for a decoded request (not a local op); ``received``: when it reached the daemon."""
     simple = _SIMPLE.get(type(req))
     if simple is not None:
         return simple(token)
@@ -46,7 +47,7 @@ def to_command(req: M.Request, token: int, channels: ChannelMap, safe_speed: flo
     if isinstance(req, M.Stream):
         idx = check_channels(channels, req.channels)
         arr = req.array()
-        return C.Stream(token, np.ascontiguousarray(arr[:, 0]), idx, np.ascontiguousarray(arr[:, 1:]))
+        return C.Stream(token, np.ascontiguousarray(arr[:, 0]), idx, np.ascontiguousarray(arr[:, 1:]), received)
     if isinstance(req, M.Pose):
         names = list(req.pose)
         idx = check_channels(channels, names)

@@ -65,14 +65,15 @@ def decoder_main(spec: ServerSpec, endpoint_in: str, endpoint_out: str) -> None:
             if not pull.poll(200):
                 continue
             token, envelope, payload, received = ipc.recv(pull)
-            ipc.send(push, ("decoded", token, envelope, received, *_decode(payload, token, spec)))
+            ipc.send(push, ("decoded", token, envelope, received, *_decode(payload, token, spec, received)))
     finally:
         pull.close(0)
         push.close(0)
         ctx.term()
 
 
-def _decode(payload: bytes, token: int, spec: ServerSpec) -> tuple[Any, str, Any, dict[str, Any] | None]:
+def _decode(payload: bytes, token: int, spec: ServerSpec,
+            received: float) -> tuple[Any, str, Any, dict[str, Any] | None]:
     """(request id, op, command or None, error reply or None) for one raw request."""
     rid: Any = None
     try:
@@ -80,7 +81,7 @@ def _decode(payload: bytes, token: int, spec: ServerSpec) -> tuple[Any, str, Any
         rid, op = req.id, type(req).__struct_config__.tag
         if op in LOCAL_OPS:
             raise ProtocolError("too_large", f"a {op} request needs no more than {spec.inline_bytes} bytes")
-        return rid, op, to_command(req, token, spec.channels, _safe_speed(spec)), None
+        return rid, op, to_command(req, token, spec.channels, _safe_speed(spec), received), None
     except M.RequestError as exc:
         return exc.request_id, "", None, P.error_reply(exc.request_id, exc.code, exc.message)
     except ProtocolError as exc:
@@ -287,7 +288,7 @@ class Server:
                 self._reply(envelope, {"id": rid, "ok": True, **self._local(req, received)})
                 return
             token = next(self.tokens)
-            cmd = to_command(req, token, self.channels, self.cfg.safety.safe_speed)
+            cmd = to_command(req, token, self.channels, self.cfg.safety.safe_speed, received)
         except M.RequestError as exc:
             self._reply(envelope, P.error_reply(exc.request_id, exc.code, exc.message))
             return

@@ -88,6 +88,7 @@ class Stream(Command):
     times: np.ndarray = field(default_factory=lambda: np.empty(0))
     channels: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=np.intp))  # channel indices
     rows: np.ndarray = field(default_factory=lambda: np.empty((0, 0)))  # frames × channels, config units
+    received: float | None = None  # when the request reached the daemon: lateness is judged against it
 
 
 @dataclass(frozen=True)

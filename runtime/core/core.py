@@ -689,7 +689,10 @@ def _on_stream(state: CoreState, params: CoreParams, out: CycleOutputs, t: float
         state.timeline.stop()
         state.stream.clear()
         _set_mode(state, Mode.STREAM)
-    counts = state.stream.push(t, cmd.times, cmd.channels, cmd.rows)
+    # Late means behind the play-out point by the time the frames reached the daemon (what the jitter buffer's
+    # delay absorbs), not by the time this cycle took them; frames already played past stay late.
+    arrival = t if cmd.received is None else min(t, cmd.received)
+    counts = state.stream.push(arrival, cmd.times, cmd.channels, cmd.rows)
     if counts["late"]:
         _event(out, t, "dropped_frames", late=counts["late"], total=state.stream.late)
     return {"accepted": counts["ok"], "late": counts["late"], "ahead": counts["ahead"], "full": counts["full"],
