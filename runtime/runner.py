@@ -136,7 +136,7 @@ class Runner:
             estop = self._estop_now()
             if not cmds and estop is None:
                 continue
-            inputs = K.CycleInputs(t, (), tuple(cmds), (), estop, between_cycles=True)
+            inputs = K.CycleInputs(t, self._bus_inputs(), tuple(cmds), (), estop, between_cycles=True)
             if self.input_log is not None:
                 self.input_log.append(inputs)
             try:
@@ -148,6 +148,13 @@ class Runner:
                          f"taking commands failed: {type(exc).__name__}: {exc}")
             self._write(out, t)
             self._outbox(out)
+
+    def _bus_inputs(self) -> tuple[K.BusInput, ...]:
+        out = []
+        for link in self.links:
+            fb = link.feedback()
+            out.append(K.BusInput(link.name, fb.state.value, fb.connected, fb.positions, fb.stamp, fb.faults))
+        return tuple(out)
 
     def _drain(self) -> list[Any]:
         cmds = []
@@ -169,10 +176,7 @@ class Runner:
         return estop
 
     def _inputs(self, t: float) -> K.CycleInputs:
-        buses = []
-        for link in self.links:
-            fb = link.feedback()
-            buses.append(K.BusInput(link.name, fb.state.value, fb.connected, fb.positions, fb.stamp, fb.faults))
+        buses = self._bus_inputs()
         cmds = self._drain()
         results = []
         if self._tickets:
@@ -181,7 +185,7 @@ class Runner:
                 if res is not None:
                     del self._tickets[i, ticket]
                     results.append((self.links[i].name, op, res[0], res[1]))
-        inputs = K.CycleInputs(t, tuple(buses), tuple(cmds), tuple(results), self._estop_now())
+        inputs = K.CycleInputs(t, buses, tuple(cmds), tuple(results), self._estop_now())
         if self.input_log is not None:
             self.input_log.append(inputs)
         return inputs

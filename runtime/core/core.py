@@ -235,8 +235,10 @@ def step(state: CoreState, params: CoreParams, inputs: CycleInputs) -> CycleOutp
 
 def take_commands(state: CoreState, params: CoreParams, inputs: CycleInputs) -> CycleOutputs:
     """Commands that arrived between two cycles, taken at once so their replies (and stream frames) do not wait for
-    the next cycle; nothing is read, solved or written."""
+    the next cycle; the bus feedback is taken in, nothing is solved or written."""
     out = CycleOutputs()
+    if inputs.buses:
+        _read(state, params, inputs)  # bus states as the commands find them (enable checks them)
     _commands(state, params, inputs, out)
     return out
 
