@@ -327,3 +327,20 @@ def test_a_req_socket_client_is_served_too(shared_daemon) -> None:
         assert reply["id"] == "req-1" and reply["ok"] and reply["t_send"] >= reply["t_recv"]
     finally:
         sock.close()
+
+
+def test_a_lost_bus_faults_naming_it_while_the_loop_and_telemetry_live_on(make_daemon) -> None:
+    d = make_daemon()
+    with Client(d.command_endpoint, timeout=5) as c, Telemetry(d.telemetry_endpoint, topics=(b"state",)) as tel:
+        c.call("enable")
+        c.call("pose", pose={"brow_l": 5.0}, speed=1.0)
+        d.hw.emulator("can0").kill()  # the CAN side goes away (socketcand connection dropped)
+        st = wait_until(lambda: _status_if(c, lambda s: s["lifecycle"] == "fault"), 5.0)
+        assert st, "no fault after the CAN emulator died"
+        assert st["fault"]["bus"] == "can0" and "can0" in st["fault"]["message"]
+        assert st["connected"]["can0"] is False
+        cycles = st["loop"]["cycles"]
+        # the loop and telemetry keep going; the other bus is torqued off
+        assert tel.wait_for(lambda t, m: m["lifecycle"] == "fault", 2.0) is not None
+        assert wait_until(lambda: _status_if(c, lambda s: s["loop"]["cycles"] > cycles
+                                             and s["buses"]["dxl"] == "inactive"), 3.0)
