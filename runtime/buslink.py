@@ -99,6 +99,7 @@ class BusProcessConfig:
     realtime_priority: int | None = None
     open_attempts: int = 1
     nice: int = 0
+    log_level: int = logging.WARNING  # the daemon's: the drivers' libraries chatter at INFO
 
 
 class BusLink:
@@ -135,7 +136,7 @@ class BusLink:
             driver=driver, name=name, options=dict(options),
             motors=tuple(dataclasses.asdict(m) | {"options": dict(m.options)} for m in motors),
             idle_hz=float(idle_hz), realtime_priority=realtime_priority, open_attempts=max(1, int(open_attempts)),
-            nice=int(nice),
+            nice=int(nice), log_level=max(logging.getLogger().getEffectiveLevel(), logging.INFO),
         )
         n = len(self.actuators)
         self._layout = _Layout(n)
@@ -627,7 +628,7 @@ def _bus_main(cfg: BusProcessConfig, shm_name: str, ctrl: Connection, wake: Conn
         raise SystemExit(0)  # SIGTERM (e.g. multiprocessing's exit handler): leave through the torque-off below
 
     signal.signal(signal.SIGTERM, _terminate)
-    logging.basicConfig(level=logging.INFO, format=f"%(asctime)s bus {cfg.name} %(levelname)s %(message)s")
+    logging.basicConfig(level=cfg.log_level, format=f"%(asctime)s bus {cfg.name} %(levelname)s %(message)s")
     if cfg.nice:
         with contextlib.suppress(OSError):
             os.nice(cfg.nice)

@@ -90,6 +90,10 @@ def run(args: argparse.Namespace) -> int:
         png = plot_recording(rec, args.out / f"{clip.name}.png",
                              title=f"{head.name}: {clip.name} — commanded vs measured")
         print(f"recording: {rec_reply['path']} ({rec_reply['samples']} samples)\nplot: {png}")
+    guard = status.get("guard")
+    if guard and guard.get("refused"):
+        print(f"skin-strain guard: {guard['refused']} cycles' targets limited or held where the predicted skin strain "
+              "would leave the material's validated range (docs/skin_guard.md)")
     loop = status["loop"]
     print(f"loop: {loop['rate_hz']:g} Hz, {loop['cycles']} cycles, {loop['missed']} missed deadlines; jitter "
           f"p50 {loop.get('jitter_p50_us', 0):.1f} us, p99 {loop.get('jitter_p99_us', 0):.1f} us, max "
