@@ -130,6 +130,10 @@ class Transition:
     since: float
     pending: set[str]
     failed: list[str] = field(default_factory=list)
+    requested: set[str] = field(default_factory=set)
+
+    def __post_init__(self) -> None:
+        self.requested = set(self.pending)
 
 
 @dataclass
@@ -497,6 +501,15 @@ def _check_transition(state: CoreState, params: CoreParams, out: CycleOutputs, t
         tr.pending.clear()
     if tr.pending:
         return
+    if not tr.failed:
+        # a bus answers its request before its next feedback shows the new state: wait for the feedback to agree
+        want = "active" if tr.op == "enable" else "inactive"
+        lagging = [b for b, _ in params.buses if state.bus_states[b] != want
+                   and (tr.op != "disable" or b in tr.requested)]
+        if lagging:
+            if t - tr.since <= TRANSITION_TIMEOUT_S:
+                return
+            tr.failed.append(f"bus {', '.join(lagging)} not {want} {TRANSITION_TIMEOUT_S:g} s after {tr.op}")
     state.transition = None
     if tr.op == "enable":
         if tr.failed:
