@@ -232,6 +232,23 @@ def _cache_save(key: str, rows: np.ndarray, agreement: float, samples: int) -> N
         pass  # no writable cache: the selection is recomputed next time
 
 
+def skin_number(head: Any, key: str, default: float) -> float:
+    """A finite number from the head's ``[skin]`` table (SpecError naming the key otherwise)."""
+    value = head.section("skin").get(key, default)
+    if isinstance(value, bool) or not isinstance(value, int | float) or not np.isfinite(value):
+        raise SpecError(str(head.source), f"skin.{key}", "must be a finite number", value)
+    return float(value)
+
+
+def skin_strain_range(head: Any) -> tuple[float, float]:
+    """The validated principal-strain range of the head's skin, ``[skin] strain_min``/``strain_max``."""
+    lo = skin_number(head, "strain_min", DEFAULT_STRAIN_RANGE[0])
+    hi = skin_number(head, "strain_max", DEFAULT_STRAIN_RANGE[1])
+    if not -1.0 < lo < 0.0 < hi:
+        raise SpecError(str(head.source), "skin.strain_min", "need -1 < strain_min < 0 < strain_max", (lo, hi))
+    return lo, hi
+
+
 class StrainGuard:
     """Accept or refuse commanded actuator poses (SI, the head's actuator order) by the skin-strain measure.
 
@@ -295,14 +312,9 @@ class StrainGuard:
         cfg = head.section("skin")
 
         def number(key: str, default: float) -> float:
-            value = cfg.get(key, default)
-            if isinstance(value, bool) or not isinstance(value, int | float) or not np.isfinite(value):
-                raise SpecError(str(head.source), f"skin.{key}", "must be a finite number", value)
-            return float(value)
+            return skin_number(head, key, default)
 
-        lo, hi = number("strain_min", DEFAULT_STRAIN_RANGE[0]), number("strain_max", DEFAULT_STRAIN_RANGE[1])
-        if not -1.0 < lo < 0.0 < hi:
-            raise SpecError(str(head.source), "skin.strain_min", "need -1 < strain_min < 0 < strain_max", (lo, hi))
+        lo, hi = skin_strain_range(head)
         radius, band = number("radius_mm", DEFAULT_RADIUS * 1e3), number("band_mm", DEFAULT_BAND * 1e3)
         reference = cfg.get("reference", "rest")
         if reference not in REFERENCES:

@@ -23,7 +23,7 @@ from models.errors import SpecError
 from models.headspec import HeadSpec
 from models.ksnn_solve import KsnnInverse
 from models.predictor import DEFAULT_STRAIN_RANGE, SkinPredictor
-from models.strain_guard import StrainGuard
+from models.strain_guard import StrainGuard, skin_number, skin_strain_range
 from runtime.solve import SolveResult
 
 log = logging.getLogger(__name__)
@@ -99,16 +99,8 @@ class SkinTargetSolver:
             if key not in allowed:
                 raise SpecError(str(head.source), f"skin.{key}", f"unknown key; allowed: {', '.join(sorted(allowed))}")
 
-        def number(key: str, default: float) -> float:
-            value = cfg.get(key, default)
-            if isinstance(value, bool) or not isinstance(value, int | float) or not np.isfinite(value):
-                raise SpecError(str(head.source), f"skin.{key}", "must be a finite number", value)
-            return float(value)
-
-        lo, hi = number("strain_min", DEFAULT_STRAIN_RANGE[0]), number("strain_max", DEFAULT_STRAIN_RANGE[1])
-        if not -1.0 < lo < 0.0 < hi:
-            raise SpecError(str(head.source), "skin.strain_min", "need -1 < strain_min < 0 < strain_max", (lo, hi))
-        smooth = number("smoothness_mm", 0.1)
+        lo, hi = skin_strain_range(head)
+        smooth = skin_number(head, "smoothness_mm", 0.1)
         if smooth < 0:
             raise SpecError(str(head.source), "skin.smoothness_mm", "must not be negative", smooth)
         iters = cfg.get("iterations_per_frame", 3)
