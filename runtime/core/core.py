@@ -53,6 +53,8 @@ class Mode(enum.Enum):
 
 #: Bisections of the strain guard toward a refused target, per cycle.
 GUARD_BISECTIONS = 3
+#: After the buses answered a transition, how long their feedback may take to show the new state.
+FEEDBACK_LAG_S = 1.0
 #: A bus lifecycle transition that has not answered within this long fails.
 TRANSITION_TIMEOUT_S = 15.0
 
@@ -131,6 +133,7 @@ class Transition:
     pending: set[str]
     failed: list[str] = field(default_factory=list)
     requested: set[str] = field(default_factory=set)
+    answered: float | None = None  # when the last bus answered
 
     def __post_init__(self) -> None:
         self.requested = set(self.pending)
@@ -502,14 +505,16 @@ def _check_transition(state: CoreState, params: CoreParams, out: CycleOutputs, t
     if tr.pending:
         return
     if not tr.failed:
-        # a bus answers its request before its next feedback shows the new state: wait for the feedback to agree
+        # A bus answers its request before its next feedback shows the new state: wait (briefly) for the feedback
+        # of the buses asked to agree, so the lifecycle never runs ahead of what the buses report.
+        if tr.answered is None:
+            tr.answered = t
         want = "active" if tr.op == "enable" else "inactive"
-        lagging = [b for b, _ in params.buses if state.bus_states[b] != want
-                   and (tr.op != "disable" or b in tr.requested)]
-        if lagging:
-            if t - tr.since <= TRANSITION_TIMEOUT_S:
-                return
-            tr.failed.append(f"bus {', '.join(lagging)} not {want} {TRANSITION_TIMEOUT_S:g} s after {tr.op}")
+        lagging = [b for b in tr.requested if state.bus_states[b] != want]
+        if lagging and t - tr.answered <= FEEDBACK_LAG_S:
+            return
+        if lagging and tr.op == "enable":
+            tr.failed.append(f"bus {', '.join(lagging)} not active {FEEDBACK_LAG_S:g} s after enabling")
     state.transition = None
     if tr.op == "enable":
         if tr.failed:
