@@ -223,13 +223,17 @@ def step(state: CoreState, params: CoreParams, inputs: CycleInputs) -> CycleOutp
     if state.lifecycle is Lifecycle.ACTIVE and state.transition is None:
         _supervise(state, params, out, t)
     if state.lifecycle is Lifecycle.ACTIVE and state.transition is None:
-        targets, speed = _sources(state, params, out, t)
-        hold = np.isnan(targets)
-        if params.guard is not None:  # constrains, then keeps to what the skin takes
-            targets = _guard(state, params, targets)
-        else:
-            targets = state.safety.constrain(targets, state.shaper.q)
-        out.write = _shape(state, targets, speed, hold)
+        try:
+            targets, speed = _sources(state, params, out, t)
+            hold = np.isnan(targets)
+            if params.guard is not None:  # constrains, then keeps to what the skin takes
+                targets = _guard(state, params, targets)
+            else:
+                targets = state.safety.constrain(targets, state.shaper.q)
+            out.write = _shape(state, targets, speed, hold)
+        except Exception as exc:  # a failing solver or a bug: nothing is written, the head faults, replies stand
+            out.write = None
+            _fault(state, params, out, t, "control loop", f"control cycle failed: {type(exc).__name__}: {exc}")
         state.last_t = t
     else:
         state.last_t = None
@@ -262,6 +266,9 @@ def _commands(state: CoreState, params: CoreParams, inputs: CycleInputs, out: Cy
             body = _HANDLERS[type(cmd)](state, params, out, t, cmd)
         except CoreError as exc:
             out.replies.append((cmd.token, {"error": {"code": exc.code, "message": exc.message}}))
+        except Exception as exc:  # a bug in one command: it is answered, the others still run
+            out.replies.append((cmd.token, {"error": {"code": "internal",
+                                                      "message": f"{type(exc).__name__}: {exc}"}}))
         else:
             if body is not None:
                 out.replies.append((cmd.token, body))
