@@ -12,7 +12,7 @@ import numpy as np
 from runtime import messages as M
 from runtime.core import commands as C
 from runtime.core.channels import ChannelMap, UnknownChannel
-from runtime.core.clips import BoundClip
+from runtime.core.clips import bind_clip
 from runtime.protocol import ProtocolError
 
 LOCAL_OPS = ("hello", "clock")
@@ -59,13 +59,8 @@ def to_command(req: M.Request, token: int, channels: ChannelMap, safe_speed: flo
 
 
 def _load_clip(spec: M.ClipSpec, token: int, channels: ChannelMap) -> C.LoadClip:
-    from runtime.compiled import compile_clip
-
-    names = tuple(spec.channels)
-    idx = check_channels(channels, names)
-    compiled = compile_clip(spec, names)
-    bound = BoundClip(spec.name, spec.duration, names, idx, compiled, int(compiled.nbytes), spec.key_count(),
-                      np.empty(len(names)))
+    check_channels(channels, tuple(spec.channels))
+    bound = bind_clip(spec, channels)
     return C.LoadClip(token, bound, bound.key_count, bound.nbytes)
 
 

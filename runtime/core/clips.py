@@ -11,8 +11,10 @@ from typing import Any
 
 import numpy as np
 
+from runtime.compiled import compile_clip
 from runtime.core.channels import ChannelMap
 from runtime.curves import Clip
+from runtime.messages import ClipSpec
 
 
 @dataclass(frozen=True)
@@ -34,35 +36,11 @@ class BoundClip:
         values[self.channels] = self.scratch
 
 
-def bind_clip(clip: Clip, channels: ChannelMap) -> BoundClip:
-    """Compile ``clip`` to arrays and bind it to the head's channel vector (UnknownChannel for a foreign channel)."""
+def bind_clip(clip: Clip | ClipSpec, channels: ChannelMap) -> BoundClip:
+    """Compile ``clip`` (a :class:`~runtime.curves.Clip`, or a protocol :class:`~runtime.messages.ClipSpec`) to
+    arrays and bind it to the head's channel vector (UnknownChannel for a foreign channel)."""
     names = tuple(clip.channels)
     idx = channels.indices(names)
-    compiled = _compile(clip, names)
-    nbytes = int(getattr(compiled, "nbytes", 0)) or _nbytes(compiled)
-    return BoundClip(clip.name, clip.duration, names, idx, compiled, nbytes, clip.key_count(),
+    compiled = compile_clip(clip, names)
+    return BoundClip(clip.name, clip.duration, names, idx, compiled, int(compiled.nbytes), clip.key_count(),
                      np.empty(len(names)))
-
-
-class _CurveSampler:
-    """Samples a clip's curves one by one (used when no array compiler is available)."""
-
-    def __init__(self, clip: Clip, names: tuple[str, ...]) -> None:
-        self._curves = [clip.channels[n] for n in names]
-        self.nbytes = 64 * clip.key_count()
-
-    def sample(self, t: float, out: np.ndarray) -> None:
-        for k, curve in enumerate(self._curves):
-            out[k] = curve.value(t)
-
-
-def _compile(clip: Clip, names: tuple[str, ...]) -> Any:
-    try:
-        from runtime.compiled import compile_clip
-    except ImportError:
-        return _CurveSampler(clip, names)
-    return compile_clip(clip, names)
-
-
-def _nbytes(obj: Any) -> int:
-    return sum(v.nbytes for v in vars(obj).values() if isinstance(v, np.ndarray)) if hasattr(obj, "__dict__") else 0
