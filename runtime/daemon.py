@@ -128,7 +128,8 @@ class Daemon:
     def _start_server(self) -> None:
         assert self._sock is not None and self._estop is not None and self._tmp is not None
         spec = server_mod.ServerSpec(str(self.head.source), self.overrides, self.channels, f"ipc://{self._tmp}/link",
-                                     self._estop.name, "", logging.getLogger().getEffectiveLevel())
+                                     self._estop.name, self.cfg.safety.safe_speed,
+                                     logging.getLogger().getEffectiveLevel())
         # A fresh interpreter (not multiprocessing's spawn, which re-imports the caller's main script): the spec
         # travels pickled on its standard input.
         self._server = subprocess.Popen([sys.executable, "-m", "runtime.server"], stdin=subprocess.PIPE,

@@ -43,7 +43,7 @@ class ServerSpec:
     channels: ChannelMap
     link: str  # the loop's PAIR endpoint
     estop_flag: str  # shared-memory name of the e-stop counter
-    ready: str  # endpoint to report the bound endpoints on (PAIR, same socket as the link)
+    safe_speed: float  # [safety] safe_speed: the default speed of a pose
     log_level: int = logging.WARNING
     inline_bytes: int = 32 * 1024  # larger requests are decoded by the decoder process
 
@@ -81,7 +81,7 @@ def _decode(payload: bytes, token: int, spec: ServerSpec,
         rid, op = req.id, type(req).__struct_config__.tag
         if op in LOCAL_OPS:
             raise ProtocolError("too_large", f"a {op} request needs no more than {spec.inline_bytes} bytes")
-        return rid, op, to_command(req, token, spec.channels, _safe_speed(spec), received), None
+        return rid, op, to_command(req, token, spec.channels, spec.safe_speed, received), None
     except M.RequestError as exc:
         return exc.request_id, "", None, P.error_reply(exc.request_id, exc.code, exc.message)
     except ProtocolError as exc:
@@ -89,19 +89,6 @@ def _decode(payload: bytes, token: int, spec: ServerSpec,
     except Exception as exc:
         log.exception("internal error decoding a request")
         return rid, "", None, P.error_reply(rid, "internal", f"{type(exc).__name__}: {exc}")
-
-
-_SAFE_SPEED: dict[str, float] = {}
-
-
-def _safe_speed(spec: ServerSpec) -> float:
-    speed = _SAFE_SPEED.get(spec.head_path)
-    if speed is None:
-        from models.headspec import load_head
-        from runtime.config import daemon_config
-
-        speed = _SAFE_SPEED[spec.head_path] = daemon_config(load_head(spec.head_path), spec.overrides).safety.safe_speed
-    return speed
 
 
 def main(spec: ServerSpec) -> None:

@@ -162,7 +162,6 @@ class CoreState:
     fault_info: dict[str, Any] | None = None
     estop_reason: str | None = None
     enabled_at: float = 0.0
-    last_t: float | None = None
     watchdog_stage: str = ""
     clip_done_reported: bool = False
     cycle: int = 0
@@ -234,13 +233,11 @@ def step(state: CoreState, params: CoreParams, inputs: CycleInputs) -> CycleOutp
         except Exception as exc:  # a failing solver or a bug: nothing is written, the head faults, replies stand
             out.write = None
             _fault(state, params, out, t, "control loop", f"control cycle failed: {type(exc).__name__}: {exc}")
-        state.last_t = t
-    else:
-        state.last_t = None
+
     _record(state, params, out, t)
     state.cycle += 1
     if state.cycle % params.telemetry_every == 0:
-        out.telemetry = _telemetry(state, params, t)
+        out.telemetry = _snapshot(state, params, t)
     return out
 
 
@@ -534,7 +531,6 @@ def _check_transition(state: CoreState, params: CoreParams, out: CycleOutputs, t
         state.shaper.reset(np.clip(q, state.safety.lo, state.safety.hi))
         _reset_solvers(state)
         state.enabled_at = t
-        state.last_t = None
         _stop_motion(state)
         _set_lifecycle(state, out, t, Lifecycle.ACTIVE)
         if tr.token is not None:
@@ -817,6 +813,3 @@ def _snapshot(state: CoreState, params: CoreParams, t: float) -> dict[str, Any]:
         body["extra"] = dict(state.extra)
     return body
 
-
-def _telemetry(state: CoreState, params: CoreParams, t: float) -> dict[str, Any]:
-    return _snapshot(state, params, t)
