@@ -1,9 +1,12 @@
 """Frame-to-bus latency: a streamed frame's arrival at the daemon (the API server's receive time) to the bus write
 that carries it (the bus process's write time), p50/p99, at the head's loop rate; and sustained frames per second.
 
-Baselines measured in the same run: a bare ZeroMQ PUSH→PULL one-way hop of the same msgpack frame (latency), and
-bare DEALER→ROUTER request/reply round trips per second (throughput). The latency includes the wait for the next
-control cycle (up to one period) and the jitter buffer's delay (1 ms here). Run with nothing else on the machine:
+Two latencies: a producer streaming steadily at the loop rate (the goal's case: the loop's phase lock slides the
+cycles to just after the frames, ``runtime.phaselock``), measured on the frames where the value steps, and single
+frames sent at random phases of the cycle (which wait for the next cycle: up to one period). Baselines measured in
+the same run: a bare ZeroMQ PUSH→PULL one-way hop of the same msgpack frame (latency), the same steady stream with
+the phase lock off, and bare DEALER→ROUTER request/reply round trips per second (throughput). The jitter buffer's
+delay is 1 ms here. Run with nothing else on the machine:
 ``python benchmarks/stream_latency.py [--trials 200] [--rate 250] [--seconds 3]``.
 """
 
@@ -102,6 +105,54 @@ def stream_latency(daemon, trials: int) -> list[float]:
     return lat
 
 
+def steady_latency(daemon, rate: float, steps: int, rng: np.random.Generator) -> list[float]:
+    """A producer streaming one frame per request at ``rate`` Hz whose jaw value steps between 0° and 4° every
+    0.5–0.7 s; for each step frame, its arrival → the first bus write that moved the jaw (seconds)."""
+    from runtime.client import Client
+
+    link = next(lk for lk in daemon.links if "jaw" in lk.actuators)
+    j = link.actuators.index("jaw")
+    writes: list[tuple[float, float]] = []  # (bus write time, jaw target) as the bus process reports them
+    recv: list[float] = []  # arrival of each step frame
+    with Client(daemon.command_endpoint) as c:
+        offset, _ = c.clock_offset()
+        period = 1.0 / rate
+        value, k, next_step = 0.0, 0, int(rng.integers(125, 175))
+        t_next = time.monotonic() + period
+        while len(recv) < steps:
+            while (now := time.monotonic()) < t_next:  # between frames: watch the bus writes
+                fb = link.feedback()
+                if not writes or fb.write_stamp != writes[-1][0]:
+                    writes.append((fb.write_stamp, float(fb.written[j])))
+                time.sleep(min(100e-6, max(0.0, t_next - now)))
+            t_next += period
+            k += 1
+            stepped = k == next_step
+            if stepped:
+                value = 4.0 if value == 0.0 else 0.0
+                next_step = k + int(rng.integers(125, 175))
+            r = c.call("stream", channels=["jaw"], frames=[[time.monotonic() + offset, value]])
+            if stepped and r["accepted"]:
+                recv.append(r["t_recv"])
+        end = time.monotonic() + 0.05
+        while time.monotonic() < end:
+            fb = link.feedback()
+            if fb.write_stamp != writes[-1][0]:
+                writes.append((fb.write_stamp, float(fb.written[j])))
+            time.sleep(100e-6)
+    stamps = np.array([w[0] for w in writes])
+    values = np.array([w[1] for w in writes])
+    lat = []
+    for t_recv in recv:
+        i = int(np.searchsorted(stamps, t_recv))  # first write after the arrival
+        if i < 2 or i >= len(stamps) or values[i - 1] != values[i - 2]:
+            continue  # the jaw was still moving: this step cannot be timed
+        moved = np.nonzero(values[i:] != values[i - 1])[0]
+        if len(moved):
+            lat.append(stamps[i + moved[0]] - t_recv)
+    return lat
+
+
 def throughput(daemon, seconds: float, batch: int) -> tuple[float, float]:
     """Frames per second accepted (and late) with ``batch`` frames per request, as fast as replies allow."""
     from runtime.client import Client
@@ -133,6 +184,14 @@ def main(argv: list[str] | None = None) -> int:
     base = bare_push_pull(max(200, args.trials), frame)
     base_rate = bare_router_rate(args.seconds)
     # The jitter buffer's delay is part of the measured latency: 1 ms here (default 50 ms).
+    steady: dict[bool, list[float]] = {}
+    for lock in (False, True):
+        daemon = make_daemon(args.rate, True, **{"runtime.stream_delay_s": 0.001, "runtime.stream_phase_lock": lock})
+        try:
+            time.sleep(0.5)
+            steady[lock] = steady_latency(daemon, args.rate, max(20, args.trials // 4), np.random.default_rng(2))
+        finally:
+            daemon.stop()
     daemon = make_daemon(args.rate, True, **{"runtime.stream_delay_s": 0.001})
     try:
         lat = stream_latency(daemon, args.trials)
@@ -145,9 +204,15 @@ def main(argv: list[str] | None = None) -> int:
     l50, l99 = pct(lat, 50) * 1e6, pct(lat, 99) * 1e6
     period = 1e6 / args.rate
     print(f"baseline PUSH->PULL one way: p50 {b50:.0f} us, p99 {b99:.0f} us")
-    print(f"stream frame arrival -> bus write at {args.rate:g} Hz ({len(lat)}/{args.trials} trials): "
-          f"p50 {l50:.0f} us, p99 {l99:.0f} us  (x{l50 / b50:.1f} / x{l99 / b99:.1f} baseline; loop period "
-          f"{period:.0f} us: p99 = {l99 / period:.2f} periods; goal p99 <= 2000 us)")
+    s50, s99 = pct(steady[True], 50) * 1e6, pct(steady[True], 99) * 1e6
+    u50, u99 = pct(steady[False], 50) * 1e6, pct(steady[False], 99) * 1e6
+    print(f"steady {args.rate:g} Hz stream, frame arrival -> bus write, phase lock on ({len(steady[True])} steps): "
+          f"p50 {s50:.0f} us, p99 {s99:.0f} us  (goal p99 <= 2000 us)")
+    print(f"  same stream, phase lock off ({len(steady[False])} steps): p50 {u50:.0f} us, p99 {u99:.0f} us  "
+          f"(lock on / off: p99 x{s99 / u99:.2f})")
+    print(f"single frames at random phases, arrival -> bus write at {args.rate:g} Hz ({len(lat)}/{args.trials} "
+          f"trials): p50 {l50:.0f} us, p99 {l99:.0f} us  (x{l50 / b50:.1f} / x{l99 / b99:.1f} baseline; loop period "
+          f"{period:.0f} us: p99 = {l99 / period:.2f} periods)")
     print(f"baseline DEALER->ROUTER echo: {base_rate:.0f} requests/s")
     print(f"stream requests, 1 frame each: {tp1[0]:.0f} frames/s accepted ({tp1[0] / base_rate:.2f} x baseline "
           f"requests/s), {tp1[1]:.0f} late/s")

@@ -35,6 +35,9 @@ from drivers.base import LifecycleState, MotorBus, MotorConfig, MotorState
 from drivers.errors import BusInitError, BusTimeout, CommandRejected, ConfigError, DeviceFault
 
 log = logging.getLogger(__name__)
+
+#: Longest a serial read blocks before the SDK looks at its packet timeout again (s).
+READ_BLOCK_S = 0.002
 T = TypeVar("T")
 
 # X-series control table addresses (protocol 2.0)
@@ -324,6 +327,9 @@ class DynamixelBus(MotorBus):
                 raise BusInitError(f"bus {self.name!r}: cannot open port {self._port_name!r}")
             if not port.setBaudRate(self._baudrate):
                 raise BusInitError(f"bus {self.name!r}: port {self._port_name!r} refused baud rate {self._baudrate}")
+            # The SDK polls a non-blocking port in a loop while it waits for a reply (a core spun per transaction);
+            # a short blocking read lets the kernel wake us when the bytes are there, at the same packet timeouts.
+            port.ser.timeout = READ_BLOCK_S
         except (serial.SerialException, OSError) as exc:
             raise BusInitError(f"bus {self.name!r}: cannot open port {self._port_name!r}: {exc}") from exc
         self._port, self._ph = port, PacketHandler(2.0)

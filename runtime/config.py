@@ -29,13 +29,15 @@ class RuntimeSettings:
     telemetry_hz: float = 50.0
     realtime: bool = True  # try SCHED_FIFO for the control thread
     priority: int = 80  # SCHED_FIFO priority when permitted
-    # SCHED_RR priority of the daemon's other threads (0: leave them alone). Below ``priority`` for real buses; above
-    # it when emulators run in-process, since they stand in for devices that never wait for the host.
-    helper_priority: int = 70
+    # SCHED_FIFO priority of the bus processes (0: normal scheduling), below ``priority``: a bus process sleeps
+    # between transactions, and under load its driver's threads (heartbeat consumers, serial replies) must not queue
+    # behind ordinary processes. Emulated devices run above it (runtime.simhw.EMULATOR_RT_PRIORITY).
+    bus_priority: int = 10
     cpu: int = -1  # pin the control thread to this CPU (-1: no pinning)
     spin_us: float = 200.0  # sleep until this long before a deadline, then spin
     switch_interval_s: float = 0.0005  # sys.setswitchinterval while the loop runs (other threads yield sooner)
     stream_delay_s: float = 0.05  # jitter buffer: streamed frames play this long after their timestamp
+    stream_phase_lock: bool = True  # slide the loop's phase to just after a steady stream's frames (runtime.phaselock)
     stream_max_ahead_s: float = 30.0  # frames further in the future are refused
     stream_max_frames: int = 20000  # jitter buffer capacity
     record_dir: str = "recordings"  # where ``record`` writes (relative to the working directory)
@@ -140,7 +142,7 @@ def _check(cfg: DaemonConfig, source: str, head: HeadSpec) -> None:
     need(1.0 <= rt.rate_hz <= MAX_RATE_HZ, "runtime.rate_hz", f"must lie in [1, {MAX_RATE_HZ:g}]", rt.rate_hz)
     need(0 < rt.telemetry_hz <= rt.rate_hz, "runtime.telemetry_hz", "must lie in (0, rate_hz]", rt.telemetry_hz)
     need(1 <= rt.priority <= 99, "runtime.priority", "must lie in [1, 99]", rt.priority)
-    need(0 <= rt.helper_priority <= 99, "runtime.helper_priority", "must lie in [0, 99]", rt.helper_priority)
+    need(0 <= rt.bus_priority < rt.priority, "runtime.bus_priority", "must lie in [0, priority)", rt.bus_priority)
     need(0 <= rt.spin_us <= 1e6 / rt.rate_hz, "runtime.spin_us", "must lie in [0, one period]", rt.spin_us)
     need(1e-5 <= rt.switch_interval_s <= 0.1, "runtime.switch_interval_s", "must lie in [1e-5, 0.1]",
          rt.switch_interval_s)

@@ -112,7 +112,9 @@ class Daemon:
     def _start_buses(self) -> None:
         """Every bus in a process of its own (emulators first, as processes too, for simulated buses)."""
         if self.hw is None:
-            self.hw = LinkedHardware.from_head(self.head)
+            rt = self.cfg.runtime
+            self.hw = LinkedHardware.from_head(self.head, realtime_priority=(rt.bus_priority or None)
+                                               if rt.realtime else None)
         self.hw.start()
         self.links = list(self.hw.links.values())
 

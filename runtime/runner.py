@@ -21,7 +21,9 @@ import zmq
 
 from runtime import ipc
 from runtime.core import core as K
+from runtime.core.commands import Stream
 from runtime.loop import LoopStats, RateScheduler, SwitchInterval, drop_realtime, freeze_heap, try_realtime
+from runtime.phaselock import PhaseLock
 
 log = logging.getLogger(__name__)
 
@@ -53,6 +55,9 @@ class Runner:
         self._tickets: dict[tuple[int, int], str] = {}  # (link index, ticket) → op
         self._signal_estop: str | None = None
         self.native_id = 0
+        rt = params.cfg.runtime
+        self.phase_lock = PhaseLock(params.period) if rt.stream_phase_lock else None
+        self._deadline = 0.0  # the deadline the loop is waiting for (commands taken meanwhile are due then)
 
     def stop(self) -> None:
         self._stop.set()
@@ -83,6 +88,7 @@ class Runner:
         try:
             with SwitchInterval(rt.switch_interval_s):
                 while not self._stop.is_set():
+                    self._deadline = sched.next
                     late, missed = sched.wait(self._idle)
                     # The cycle's time is its deadline: the core's trajectory advances in exact periods whatever
                     # the wake-up jitter, and the drivers' rate guard sees the same spacing in the stamps.
@@ -109,6 +115,8 @@ class Runner:
                         next_stats = t + STATS_EVERY_S
                         self._send_stats()
                     self.stats.add(late, self.clock() - t, t)
+                    if self.phase_lock is not None:
+                        sched.next += self.phase_lock.correction()
         except Exception:
             log.exception("control loop crashed")
         finally:
@@ -132,7 +140,7 @@ class Runner:
                     time.sleep(left)
                 return
             t = self.clock()
-            cmds = self._drain()
+            cmds = self._drain(self._deadline)
             estop = self._estop_now()
             if not cmds and estop is None:
                 continue
@@ -156,7 +164,9 @@ class Runner:
             out.append(K.BusInput(link.name, fb.state.value, fb.connected, fb.positions, fb.stamp, fb.faults))
         return tuple(out)
 
-    def _drain(self) -> list[Any]:
+    def _drain(self, deadline: float) -> list[Any]:
+        """The commands waiting on the link; stream frames tell the phase lock when they arrived, for the cycle
+        due at ``deadline``."""
         cmds = []
         for _ in range(MAX_COMMANDS_PER_CYCLE):
             try:
@@ -165,6 +175,8 @@ class Runner:
                 break
             if kind == "cmd":
                 cmds.append(cmd)
+                if self.phase_lock is not None and isinstance(cmd, Stream) and cmd.received is not None:
+                    self.phase_lock.arrival(cmd.received, deadline)
         return cmds
 
     def _estop_now(self) -> str | None:
@@ -177,7 +189,7 @@ class Runner:
 
     def _inputs(self, t: float) -> K.CycleInputs:
         buses = self._bus_inputs()
-        cmds = self._drain()
+        cmds = self._drain(t)
         results = []
         if self._tickets:
             for (i, ticket), op in list(self._tickets.items()):
@@ -217,8 +229,12 @@ class Runner:
     def _send_stats(self) -> None:
         s = self.stats
         k = min(s.n, s.window)
+        lock = None
+        if self.phase_lock is not None:
+            err = self.phase_lock.last_error
+            lock = {"locked": self.phase_lock.locked, "error_us": None if err is None else err * 1e6}
         self._send(("stats", s.period, s.n, s.missed, s.skipped, s.lateness[:k].copy(), s.work[:k].copy(),
-                    s.periods[:k].copy()))
+                    s.periods[:k].copy(), lock))
 
     def _send(self, msg: Any) -> None:
         try:

@@ -500,8 +500,10 @@ def _plain(obj: Any) -> Any:
 
 
 def _summary(period: float, n: int, missed: int, skipped: int, lateness: np.ndarray, work: np.ndarray,
-             periods: np.ndarray) -> dict[str, Any]:
+             periods: np.ndarray, phase_lock: dict[str, Any] | None = None) -> dict[str, Any]:
     out: dict[str, Any] = {"rate_hz": 1.0 / period, "cycles": n, "missed": missed, "skipped": skipped}
+    if phase_lock is not None:
+        out["stream_phase_lock"] = phase_lock
     k = len(lateness)
     if k:
         lat = np.abs(lateness) * 1e6

@@ -1,0 +1,73 @@
+"""The phase lock slides a simulated loop's deadlines to just after a steady stream's arrivals, in bounded steps,
+and leaves the loop alone for arrivals without a steady phase."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from runtime.phaselock import PhaseLock
+
+P = 0.004
+
+
+def simulate(arrivals: np.ndarray, lock: PhaseLock, cycles: int) -> tuple[list[float], list[float]]:
+    """Run a loop of ``cycles`` deadlines against sorted arrival times; returns (per-arrival wait to its cycle,
+    per-cycle corrections)."""
+    deadline, i = P, 0
+    waits, steps = [], []
+    for _ in range(cycles):
+        while i < len(arrivals) and arrivals[i] <= deadline:
+            lock.arrival(arrivals[i], deadline)
+            waits.append(deadline - arrivals[i])
+            i += 1
+        step = lock.correction()
+        steps.append(step)
+        deadline += P + step
+    return waits, steps
+
+
+@pytest.mark.parametrize("phase", [0.1, 0.37, 0.5, 0.81, 0.99])
+def test_locks_onto_a_steady_stream_at_any_phase(phase: float) -> None:
+    rng = np.random.default_rng(3)
+    arrivals = (np.arange(2000) + phase) * P + rng.normal(0, 30e-6, 2000)  # 30 µs arrival jitter
+    lock = PhaseLock(P)
+    waits, steps = simulate(np.sort(arrivals), lock, 2000)
+    assert lock.locked
+    tail = np.array(waits[-500:])
+    assert abs(np.median(tail) - lock.lead) < 50e-6  # cycles now fall one lead after the frames
+    assert np.percentile(tail, 99) < lock.lead + 150e-6
+    assert max(abs(s) for s in steps) <= lock.max_step * P + 1e-15  # never more than a few % of a period
+
+
+def test_follows_a_producer_whose_clock_drifts() -> None:
+    drift = 1 + 200e-6  # 200 ppm slower producer
+    arrivals = (np.arange(3000) + 0.3) * P * drift
+    lock = PhaseLock(P)
+    waits, _ = simulate(arrivals, lock, 3000)
+    assert abs(np.median(waits[-500:]) - lock.lead) < 50e-6
+
+
+def test_incoherent_arrivals_leave_the_loop_alone() -> None:
+    rng = np.random.default_rng(4)
+    arrivals = np.sort(rng.uniform(0, 2000 * P, 2000))  # no steady phase
+    lock = PhaseLock(P)
+    _, steps = simulate(arrivals, lock, 2000)
+    assert not lock.locked
+    assert sum(abs(s) for s in steps) < 5 * P * lock.max_step  # at most a few stray steps early on
+
+
+def test_a_stream_at_a_rate_that_does_not_divide_the_loop_is_not_chased() -> None:
+    arrivals = (np.arange(800) + 0.2) * 2.5 * P  # 100 Hz against a 250 Hz loop: phases alternate half a period
+    lock = PhaseLock(P)
+    _, steps = simulate(arrivals, lock, 2000)
+    assert not lock.locked
+    assert all(s == 0.0 for s in steps)
+
+
+def test_half_rate_stream_locks_every_other_cycle() -> None:
+    arrivals = (np.arange(1000) + 0.6) * 2 * P  # 125 Hz: every other cycle takes a frame
+    lock = PhaseLock(P)
+    waits, _ = simulate(arrivals, lock, 2000)
+    assert lock.locked
+    assert abs(np.median(waits[-200:]) - lock.lead) < 50e-6
