@@ -75,13 +75,48 @@ def vertex_errors(x_outer: np.ndarray, target: np.ndarray) -> np.ndarray:
     return np.linalg.norm(np.asarray(x_outer) - np.asarray(target), axis=1)
 
 
-def surface_distances(x_outer: np.ndarray, target: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Per-vertex distance (m) from each simulated outer vertex to the closest point of the target surface."""
-    import trimesh
+def point_triangle_distance(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
+    """Distance (K,) from points p (K, 3) to triangles tri (K, 3, 3) (closest point by region, Ericson's method)."""
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    ab, ac, ap = b - a, c - a, p - a
+    d1, d2 = np.einsum("ij,ij->i", ab, ap), np.einsum("ij,ij->i", ac, ap)
+    bp = p - b
+    d3, d4 = np.einsum("ij,ij->i", ab, bp), np.einsum("ij,ij->i", ac, bp)
+    cp = p - c
+    d5, d6 = np.einsum("ij,ij->i", ab, cp), np.einsum("ij,ij->i", ac, cp)
+    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        denom = va + vb + vc
+        v_in, w_in = vb / denom, vc / denom
+        q = a + ab * v_in[:, None] + ac * w_in[:, None]  # interior
+        t_ab = np.clip(d1 / (d1 - d3), 0, 1)
+        t_ac = np.clip(d2 / (d2 - d6), 0, 1)
+        t_bc = np.clip((d4 - d3) / ((d4 - d3) + (d5 - d6)), 0, 1)
+    edge_ab = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
+    edge_ac = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
+    edge_bc = (va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0)
+    q = np.where(edge_bc[:, None], b + (c - b) * t_bc[:, None], q)
+    q = np.where(edge_ac[:, None], a + ac * t_ac[:, None], q)
+    q = np.where(edge_ab[:, None], a + ab * t_ab[:, None], q)
+    q = np.where(((d6 >= 0) & (d5 <= d6))[:, None], c, q)
+    q = np.where(((d3 >= 0) & (d4 <= d3))[:, None], b, q)
+    q = np.where(((d1 <= 0) & (d2 <= 0))[:, None], a, q)
+    return np.linalg.norm(p - q, axis=1)
 
-    tm = trimesh.Trimesh(np.asarray(target, dtype=np.float64), faces, process=False)
-    _, dist, _ = trimesh.proximity.closest_point(tm, np.asarray(x_outer, dtype=np.float64))
-    return np.asarray(dist)
+
+def surface_distances(x_outer: np.ndarray, target: np.ndarray, faces: np.ndarray, candidates: int = 24
+                      ) -> np.ndarray:
+    """Per-vertex distance (m) from each simulated outer vertex to the closest point of the target surface (the
+    exact point-triangle distance to the ``candidates`` triangles whose centroids lie nearest)."""
+    from scipy.spatial import cKDTree
+
+    x = np.asarray(x_outer, dtype=np.float64)
+    tri = np.asarray(target, dtype=np.float64)[faces]
+    k = min(candidates, len(faces))
+    _, idx = cKDTree(tri.mean(axis=1)).query(x, k=k)
+    idx = idx.reshape(len(x), k)
+    d = point_triangle_distance(np.repeat(x, k, axis=0), tri[idx.ravel()]).reshape(len(x), k)
+    return d.min(axis=1)
 
 
 def predictor_inverse(face: FaceSkin, names: tuple[str, ...], weights: list[np.ndarray]) -> list[np.ndarray] | None:
