@@ -5,7 +5,8 @@ actuation optimized — and after — thickness and actuation optimized —, the
 disagreement with the FEM-exact actuation, the strain range reached with the runtime guard's measure, reachability
 and proposed link-layout changes for targets not reached, input hashes and settings), ``error_maps/*.png`` (0–4 mm
 colour scale), ``thickness.png``, ``skin/`` (the optimized skin, usable by ``likeness offline simulate``,
-``dataset`` and ``train``) and ``checkpoint.npz`` (a killed run started again with the same arguments resumes).
+``dataset`` and ``train``), ``mold/`` (the STL set of ``likeness offline export-mold``, checked) and
+``checkpoint.npz`` (a killed run started again with the same arguments resumes).
 """
 
 from __future__ import annotations
@@ -31,8 +32,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--fresh", action="store_true", help="ignore an existing checkpoint")
     p.add_argument("--threads", type=int, default=1, help="numba kernel threads (default 1)")
     p.add_argument("--backend", default="auto", help="sparse solver: auto, cholmod, pardiso or superlu")
+    p.add_argument("--no-mold", action="store_true", help="skip the STL export of the optimized skin's mold")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.set_defaults(func=run)
+    register_mold(sub)
 
 
 def estimate_seconds(face, n_targets: int, settings) -> tuple[float, dict]:
@@ -133,4 +136,53 @@ def run(args: argparse.Namespace) -> int:
           + (f" (not reached: {', '.join(sm['unreached_targets'])}; see report.json reachability)"
              if sm["unreached_targets"] else ""))
     print(f"-> {Path(args.out) / 'report.json'}")
-    return 0
+    if args.no_mold:
+        return 0
+    from .mold import export_mold
+
+    say("[clone] exporting the mold of the optimized skin (STL, mm) and checking it")
+    return _print_mold(export_mold(Path(args.out) / "skin", Path(args.out) / "mold"), Path(args.out) / "mold")
+
+
+def register_mold(sub: argparse._SubParsersAction) -> None:
+    """Add the ``export-mold`` subcommand."""
+    from .mold import __doc__ as mold_doc
+
+    p = sub.add_parser("export-mold", help="STL files (mm) of a skin and its two-part casting mold, checked",
+                       description=mold_doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--skin", required=True, help="skin folder (skin.vtu + face_units.npz), e.g. CLONE_DIR/skin")
+    p.add_argument("--out", required=True, help="output folder for the STL files and mold_report.json")
+    p.add_argument("--margin-mm", type=float, default=12.0, help="mold wall around the skin (default 12)")
+    p.add_argument("--plate-mm", type=float, default=5.0, help="base plate thickness (default 5)")
+    p.set_defaults(func=run_mold)
+
+
+def run_mold(args: argparse.Namespace) -> int:
+    """Export and check the mold; exit 1 when a part fails the checks."""
+    from likeness.cli import CliError
+    from models.errors import SpecError
+
+    from .mold import MoldSettings, export_mold
+
+    if args.margin_mm <= 0 or args.plate_mm <= 0:
+        raise CliError("--margin-mm and --plate-mm must be positive")
+    try:
+        report = export_mold(args.skin, args.out, MoldSettings(margin_mm=args.margin_mm, plate_mm=args.plate_mm))
+    except (SpecError, ValueError) as exc:
+        raise CliError(str(exc)) from exc
+    return _print_mold(report, args.out)
+
+
+def _print_mold(report: dict, out) -> int:
+    from pathlib import Path
+
+    ok = True
+    for name, c in report["checks"].items():
+        ok &= c["ok"]
+        print(f"{name}.stl: {'ok' if c['ok'] else 'FAILED'} (watertight {c['watertight']}, oriented "
+              f"{c['consistently_oriented']}, self-intersections {c['self_intersections']}, "
+              f"{c['volume'] / 1e3:.2f} cm³, {c['components']} component(s))")
+    vb = report["volume_balance_from_files"]
+    print(f"shell cavity − core − flash = {vb['skin_from_mold_mm3'] / 1e3:.3f} cm³ vs skin {vb['skin_mm3'] / 1e3:.3f} "
+          f"cm³ (relative difference {vb['relative_difference']:.1e}) -> {Path(out) / 'mold_report.json'}")
+    return 0 if ok else 1
