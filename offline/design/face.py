@@ -137,4 +137,5 @@ def face_warp(face: FaceSkin, *, n_samples: int = 40, width_factor: float = 1.2,
 
 def _projected_area(uv: np.ndarray, faces: np.ndarray) -> float:
     t = uv[faces]
-    return float(0.5 * np.abs(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])).sum())
+    e1, e2 = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
+    return float(0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]).sum())
