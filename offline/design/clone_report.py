@@ -105,6 +105,15 @@ def reachability(run: CloneRun, k: int, x_outer: np.ndarray, err: np.ndarray) ->
     return out
 
 
+def front_view(run: CloneRun) -> np.ndarray:
+    """Outer-surface vertices (V, 2) in mm seen from the front: the casting frame's x (the head's left-right axis)
+    and y, with the face looking at the viewer."""
+    from .mold import casting_frame
+
+    R = casting_frame(run.rest_outer, run.face.faces)
+    return (run.rest_outer - run.rest_outer.mean(axis=0)) @ R[:2].T * MM
+
+
 def error_map(path: Path, run: CloneRun, name: str, panels: list[tuple[str, np.ndarray]]) -> None:
     """Front view of the face coloured by per-vertex surface error (0–4 mm), one panel per stage."""
     import matplotlib
@@ -112,12 +121,7 @@ def error_map(path: Path, run: CloneRun, name: str, panels: list[tuple[str, np.n
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .face import surface_frame
-
-    c, axes_ = surface_frame(run.rest_outer)
-    uv = (run.rest_outer - c) @ axes_[:2].T * MM
-    if np.mean(uv[:, 1][run.rest_outer[:, 1] > c[1]]) < 0:  # keep the forehead up
-        uv[:, 1] = -uv[:, 1]
+    uv = front_view(run)
     fig, axs = plt.subplots(1, len(panels), figsize=(3.6 * len(panels), 4.2), constrained_layout=True,
                             squeeze=False)
     for ax, (title, err) in zip(axs[0], panels, strict=True):
@@ -286,12 +290,7 @@ def thickness_picture(path: Path, run: CloneRun, warp, h0: np.ndarray, h: np.nda
     import matplotlib.pyplot as plt
     from scipy.spatial import cKDTree
 
-    from .face import surface_frame
-
-    c, axes_ = surface_frame(run.rest_outer)
-    uv = (run.rest_outer - c) @ axes_[:2].T * MM
-    if np.mean(uv[:, 1][run.rest_outer[:, 1] > c[1]]) < 0:
-        uv[:, 1] = -uv[:, 1]
+    uv = front_view(run)
     vals = []
     for hh in (h0, h):
         X = warp.rest_positions(hh)

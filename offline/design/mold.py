@@ -280,5 +280,31 @@ def export_mold(skin_dir: str | Path, out_dir: str | Path, settings: MoldSetting
                                                "skin_mm3": files_v["skin"],
                                                "relative_difference": abs(skin_files - files_v["skin"])
                                                / files_v["skin"]}
+    mold_picture(out / "mold.png", result)
+    report["picture"] = "mold.png"
     (out / "mold_report.json").write_text(json.dumps(report, indent=1, default=float))
     return report
+
+
+def mold_picture(path: Path, result: dict) -> None:
+    """The parts side by side (3-D views, mm): skin, core, the two shell halves pulled apart along x."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    parts = result["parts"]
+    fig = plt.figure(figsize=(13, 3.8))
+    for k, (name, colour) in enumerate((("skin", "tab:orange"), ("mold_core", "tab:blue"),
+                                        ("mold_shell_left", "tab:gray"), ("mold_shell_right", "tab:gray"))):
+        v, f = parts[name]
+        ax = fig.add_subplot(1, 4, k + 1, projection="3d")
+        ax.plot_trisurf(v[:, 0], v[:, 1], v[:, 2], triangles=f, color=colour, linewidth=0, antialiased=False,
+                        shade=True)
+        ax.view_init(elev=25, azim=-60 if "right" not in name else -120)
+        ax.set_title(name.replace("_", " "), fontsize=9)
+        ax.set_box_aspect(np.ptp(v, axis=0))
+        ax.set_axis_off()
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
