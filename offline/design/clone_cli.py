@@ -127,6 +127,11 @@ def run(args: argparse.Namespace) -> int:
           f"{sm['strain_after']['measure_min']:+.1%} .. {sm['strain_after']['measure_max']:+.1%} "
           f"(validated {sm['strain_after']['validated_range'][0]:+.0%} .. "
           f"{sm['strain_after']['validated_range'][1]:+.0%})")
+    back = sm["after_strain_limited"]["targets_pulled_back"]
+    if back:
+        print(f"poses pulled back into the validated strain range ({', '.join(back)}): "
+              f"mean {sm['after_strain_limited']['surface_mean_m'] * mm:.2f} mm, "
+              f"max {sm['after_strain_limited']['surface_max_m'] * mm:.2f} mm")
     if "predictor_inverse" in sm:
         print(f"runtime predictor inverse, simulated: mean {sm['predictor_inverse']['surface_mean_m'] * mm:.2f} mm, "
               f"max {sm['predictor_inverse']['surface_max_m'] * mm:.2f} mm")
