@@ -39,7 +39,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def estimate_seconds(face, n_targets: int, settings) -> tuple[float, dict]:
-    """A rough time estimate from one timed assembly + factorization of the rest stiffness (Newton iteration)."""
+    """A rough time estimate from one timed assembly + factorization and one timed warm-started pose solve (a 1 %
+    actuation step from neutral, what a line-search trial costs), scaled by the solves a run typically needs."""
     import time
 
     import numpy as np
@@ -47,24 +48,30 @@ def estimate_seconds(face, n_targets: int, settings) -> tuple[float, dict]:
     from offline.fem import energy as en
     from offline.fem.linsolve import make_solver
 
+    from .actuation import simulate
+
     x = np.asarray(face.mesh.nodes)
     bc = face.space.boundary(face.space.neutral)
-    en.stiffness(face.mesh, face.skin.material, x)  # compile / warm caches
     solver = make_solver(face.skin.spec.backend)
     times = []
-    for _ in range(2):  # the first call loads the solver library and analyses the pattern
+    for _ in range(2):  # the first call compiles kernels, loads the solver library and analyses the pattern
         t0 = time.perf_counter()
         K = en.stiffness(face.mesh, face.skin.material, x)
         free = np.setdiff1d(np.arange(K.shape[0]), bc.dofs)
         solver.factor(K[free][:, free].tocsr())
         times.append(time.perf_counter() - t0)
-    t_newton = times[-1]
-    newton_per_solve, solves_per_iteration = 6, 1.5
-    per_act = settings.actuation_iterations * 0.6 * (1 + solves_per_iteration * newton_per_solve) * t_newton
-    per_thick = settings.thickness_iterations * (1 + solves_per_iteration * newton_per_solve) * t_newton
-    total = n_targets * (2 * newton_per_solve * t_newton + per_act
-                         + settings.max_outer * (per_act + per_thick))
-    return total, {"newton_iteration_s": t_newton, "free_dofs": int(free.size)}
+    problem = face.actuation_problem()
+    space = face.space
+    x0 = simulate(problem, space.neutral)
+    step = space.expand(space.project(space.reduce(space.neutral + 0.01 * (space.hi - space.lo))))
+    t0 = time.perf_counter()
+    simulate(problem, step, x0)
+    t_solve = time.perf_counter() - t0
+    # per target: the predictor check (a solve from farther away, ~5 trials' worth), actuation (~3 iterations of
+    # ~2 solves), and per outer iteration thickness (~3 iterations of ~2 solves) plus actuation again
+    per_target = 5 + 6 + settings.max_outer * 12
+    return n_targets * per_target * t_solve, {"newton_iteration_s": times[-1], "pose_solve_s": t_solve,
+                                               "free_dofs": int(free.size)}
 
 
 def run(args: argparse.Namespace) -> int:
@@ -107,8 +114,9 @@ def run(args: argparse.Namespace) -> int:
             print(f"{len(targets)} targets: {', '.join(targets)}")
             print(f"{face.space.n_actuators} actuators ({face.space.n_free} independent after groups), "
                   f"{settings.n_samples} thickness samples, up to {settings.max_outer} outer iterations")
-            print(f"one Newton iteration (assembly + factorization) {info['newton_iteration_s']:.3f} s; estimated "
-                  f"time about {est / 60:.0f} min (rough: assumes ~6 Newton iterations per warm-started pose solve)")
+            print(f"one Newton iteration (assembly + factorization) {info['newton_iteration_s']:.3f} s, one "
+                  f"warm-started pose solve {info['pose_solve_s']:.2f} s; estimated time about {est / 60:.0f} min "
+                  f"(rough, and an upper bound: assumes all {settings.max_outer} outer iterations run)")
             return 0
         run_ = CloneRun(face, targets, args.out, settings, progress=say)
         state = run_.run(resume=not args.fresh)
