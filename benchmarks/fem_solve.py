@@ -141,7 +141,24 @@ def run_sfepy(size: str, depth_frac: float, n_steps: int, threshold: float) -> d
             "final_residual": status.get("err", float("nan"))}
 
 
-def run_felupe(size: str, depth_frac: float, threshold: float) -> dict:
+def _symmetric_pardiso():
+    """felupe's best solver here: symmetric positive definite PARDISO on the upper triangle, its symbolic analysis
+    kept across Newton iterations (offline.fem's own PARDISO wrapper, so both sides use the same linear solver)."""
+    from offline.fem.linsolve import make_solver
+
+    solver = make_solver("pardiso")
+
+    def solve(A, b):
+        return solver.factor(A).solve(np.asarray(b).ravel())
+
+    return solve
+
+
+def run_felupe_sym(size: str, depth_frac: float, threshold: float) -> dict:
+    return run_felupe(size, depth_frac, threshold, symmetric=True)
+
+
+def run_felupe(size: str, depth_frac: float, threshold: float, symmetric: bool = False) -> dict:
     import felupe as fem
     import pypardiso
 
@@ -165,10 +182,12 @@ def run_felupe(size: str, depth_frac: float, threshold: float) -> dict:
     solid = fem.SolidBody(fem.NeoHooke(mu=MU, bulk=KAPPA), field)
     rss0 = _rss_mb()
     t1 = time.perf_counter()
-    res = fem.newtonraphson(field, items=[solid], dof1=dof1, dof0=dof0, ext0=ext0, solver=pypardiso.spsolve,
+    solver = _symmetric_pardiso() if symmetric else pypardiso.spsolve
+    res = fem.newtonraphson(field, items=[solid], dof1=dof1, dof0=dof0, ext0=ext0, solver=solver,
                             tol=1e-6, verbose=0)
     t2 = time.perf_counter()
-    return {"name": "felupe (1 load step, pypardiso.spsolve)", "setup_s": t1 - t0, "solve_s": t2 - t1,
+    name = "felupe (1 step, symmetric PARDISO)" if symmetric else "felupe (1 load step, pypardiso.spsolve)"
+    return {"name": name, "setup_s": t1 - t0, "solve_s": t2 - t1,
             "u": np.asarray(field[0].values).reshape(-1, 3).copy(), "iterations": int(res.iterations),
             "load_steps": 1, "rss_before_mb": rss0, "rss_peak_mb": _rss_mb(), "converged": bool(res.success)}
 
@@ -202,7 +221,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--depth", type=float, default=0.10, help="indentation depth as a fraction of the thickness")
     ap.add_argument("--backend", default="auto", help="offline.fem linear solver backend")
     ap.add_argument("--sfepy-steps", type=int, default=4, help="SfePy load steps (it fails with 1 at 10 %%)")
-    ap.add_argument("--peers", default="sfepy,felupe", help="comma-separated peers to run (sfepy, felupe)")
+    ap.add_argument("--peers", default="sfepy,felupe,felupe-sym",
+                    help="comma-separated peers to run (sfepy, felupe, felupe-sym: felupe with symmetric PARDISO)")
     ap.add_argument("--tol", type=float, default=1e-6, help="offline.fem relative force tolerance")
     args = ap.parse_args(argv)
     peers = [p for p in args.peers.split(",") if p]
@@ -222,8 +242,10 @@ def main(argv: list[str] | None = None) -> int:
             results.append(_in_process("run_sfepy", args.size, args.depth, args.sfepy_steps, thr))
         elif peer == "felupe":
             results.append(_in_process("run_felupe", args.size, args.depth, thr))
+        elif peer == "felupe-sym":
+            results.append(_in_process("run_felupe_sym", args.size, args.depth, thr))
         else:
-            print(f"unknown peer {peer!r} (known: sfepy, felupe)")
+            print(f"unknown peer {peer!r} (known: sfepy, felupe, felupe-sym)")
             return 2
 
     umax = float(np.abs(ours["u"]).max())

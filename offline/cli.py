@@ -10,6 +10,7 @@ OFFLINE_COMMAND_MODULES: tuple[str, ...] = (
     "offline.mesh.cli",
     "offline.fem_cli",
     "offline.design.cli",
+    "offline.design.clone_cli",
     "offline.material.cli",
     "offline.dataset.cli",
     "offline.train.cli",

@@ -268,8 +268,11 @@ def _progress(method: str, it: int, state: State, step_norm: float, t0: float, v
 
 def optimize_adjoint(problem: ThicknessProblem, h0: np.ndarray, *, method: str = "gauss-newton",
                      max_iterations: int = 50, tol_step: float = 1e-9, tol_value: float = 1e-16,
-                     barrier_decay: float = 0.1, verbose: bool = False) -> OptimizeResult:
+                     barrier_decay: float = 0.1, verbose: bool = False,
+                     warm: Sequence[np.ndarray] | None = None) -> OptimizeResult:
     """Minimise E(h) with exact equilibrium per pose; ``method`` is ``gauss-newton`` or ``lbfgs``.
+
+    ``warm``: one state (N, 3) per pose to start the first equilibrium solves from (e.g. the previous design's).
 
     Stops when the largest height step is below ``tol_step`` (m) or E below ``tol_value``. The barrier weight is
     multiplied by ``barrier_decay`` after each iteration (interior-point continuation), so the bounds do not bias
@@ -280,7 +283,9 @@ def optimize_adjoint(problem: ThicknessProblem, h0: np.ndarray, *, method: str =
     t0 = time.perf_counter()
     h = problem.check_heights(h0).copy()
     counts = {"forward": 0}
-    state = solve_poses(problem, h, None)
+    state = solve_poses(problem, h, warm)
+    if state is None and warm is not None:
+        state = solve_poses(problem, h, None)
     counts["forward"] += len(problem.poses)
     if state is None:
         raise ValueError("the starting heights give an inverted rest shape or a pose that does not converge")

@@ -1,0 +1,99 @@
+"""Mold export on a small curved skin, and the solid checker against meshes that are not printable solids."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from offline.design.mesh_check import check_solid, check_stl
+from offline.design.mold import build_mold, export_mold, skin_surfaces, volume_balance
+from offline.fem import TetMesh, box_mesh, save_mesh
+
+ROOT = Path(__file__).resolve().parents[3]
+
+
+def _curved_skin() -> TetMesh:
+    """A 40 × 30 × 5 mm slab bent into a dome (outer = z1 up), like a piece of face skin."""
+    mesh = box_mesh((0.04, 0.03, 0.005), (6, 5, 1))
+    X = np.asarray(mesh.nodes).copy()
+    X[:, 2] += 0.012 * (1 - ((X[:, 0] - 0.02) / 0.025) ** 2 - ((X[:, 1] - 0.015) / 0.025) ** 2)
+    return TetMesh(X, mesh.tets, dict(mesh.node_sets))
+
+
+def _skin_folder(tmp: Path) -> Path:
+    mesh = _curved_skin()
+    folder = tmp / "skin"
+    folder.mkdir()
+    save_mesh(folder / "skin.vtu", mesh)
+    np.savez(folder / "face_units.npz", surface_nodes=np.asarray(mesh.node_sets["z1"]),
+             inner_nodes=np.asarray(mesh.node_sets["z0"]))
+    return folder
+
+
+def test_mold_parts_are_clean_solids_whose_cavity_less_core_is_the_skin(tmp_path):
+    folder = _skin_folder(tmp_path)
+    report = export_mold(folder, tmp_path / "mold")
+    for name in ("skin", "mold_core", "mold_shell_left", "mold_shell_right"):
+        c = check_stl(tmp_path / "mold" / f"{name}.stl")
+        assert c.ok, (name, c)
+        assert report["checks"][name]["ok"]
+    skin_mm3 = report["checks"]["skin"]["volume"]
+    assert skin_mm3 == pytest.approx(40 * 30 * 5, rel=0.02)  # millimetres; the dome bends, barely stretches
+    vb = report["volume_balance_from_files"]
+    assert vb["relative_difference"] < 1e-4
+    assert report["volume_balance"]["flash_mm3"] < 1e-3 * skin_mm3
+    # the two halves lie on either side of the parting plane
+    xm = report["frame"]["parting_plane_x_mm"]
+    import trimesh
+
+    left = trimesh.load_mesh(str(tmp_path / "mold" / "mold_shell_left.stl"))
+    right = trimesh.load_mesh(str(tmp_path / "mold" / "mold_shell_right.stl"))
+    assert left.vertices[:, 0].max() <= xm + 1e-3 and right.vertices[:, 0].min() >= xm - 1e-3
+    assert json.loads((tmp_path / "mold" / "mold_report.json").read_text())["units"] == "mm"
+
+
+def test_volume_identity_holds_before_writing():
+    mesh = _curved_skin()
+    sf, of, inf = skin_surfaces(mesh, np.asarray(mesh.node_sets["z1"]), np.asarray(mesh.node_sets["z0"]))
+    result = build_mold(np.asarray(mesh.nodes), sf, of, inf)
+    flash = sum(result["notched_mm3"].values())
+    assert volume_balance(result["volumes"], flash)["relative_difference"] < 1e-9
+    for name, (v, f) in result["parts"].items():
+        assert check_solid(v, f).ok, name
+
+
+def _tet(offset) -> tuple[np.ndarray, np.ndarray]:
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=float) + offset
+    f = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    return v, f
+
+
+def test_checker_refuses_what_is_not_a_printable_solid():
+    v, f = _tet(0.0)
+    good = check_solid(v, f)
+    assert good.ok and good.volume == pytest.approx(1 / 6)
+    assert not check_solid(v, f[:3]).watertight  # a face missing
+    flipped = check_solid(v, f[:, ::-1])
+    assert flipped.consistently_oriented and not flipped.outward
+    mixed = f.copy()
+    mixed[0] = mixed[0, ::-1]
+    assert not check_solid(v, mixed).consistently_oriented
+    v2, f2 = _tet(np.array([0.2, 0.2, 0.2]))  # a second tetrahedron poking through the first
+    both = check_solid(np.vstack([v, v2]), np.vstack([f, f2 + 4]))
+    assert both.watertight and both.self_intersections > 0 and not both.ok
+    apart = check_solid(np.vstack([v, v2 + 5]), np.vstack([f, f2 + 4]))
+    assert apart.ok and apart.components == 2
+
+
+def test_export_mold_cli_names_a_bad_skin_folder(tmp_path):
+    env = {"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"}
+    r = subprocess.run([sys.executable, "-m", "likeness.cli", "offline", "export-mold", "--skin",
+                        str(tmp_path / "nothing"), "--out", str(tmp_path / "m")], capture_output=True, text=True,
+                       env=env, cwd=ROOT)
+    assert r.returncode != 0
+    assert "skin.vtu" in r.stderr
