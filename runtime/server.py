@@ -441,7 +441,8 @@ class Server:
     def _common(self, snap: dict[str, Any]) -> dict[str, Any]:
         return {"t": snap["t"], "lifecycle": snap["lifecycle"], "mode": snap["mode"],
                 "commanded": self._units(snap["commanded_si"]), "measured": self._units(snap["measured_si"]),
-                "buses": snap["buses"], "connected": snap["connected"], "feedback_age_s": snap["feedback_age"]}
+                "buses": snap["buses"], "connected": snap["connected"], "connection": snap.get("connection", {}),
+                "feedback_age_s": snap["feedback_age"]}
 
     def _state_message(self, snap: dict[str, Any]) -> dict[str, Any]:
         msg = self._common(snap)

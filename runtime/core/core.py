@@ -69,6 +69,9 @@ class BusInput:
     positions: np.ndarray
     stamp: float  # when the sample was taken (monotonic)
     faults: dict[str, tuple[int, str]] = field(default_factory=dict)
+    link: str = ""  # runtime.buslink.LINK_STATES ("" when the source does not say: taken from ``connected``)
+    attempts: int = 0  # reconnect attempts since the connection was lost
+    retry_at: float = float("inf")  # when the bus process tries to reconnect next (monotonic)
 
 
 @dataclass(frozen=True)
@@ -156,6 +159,8 @@ class CoreState:
     bus_connected: dict[str, bool]
     bus_faults: dict[str, dict[str, tuple[int, str]]]
     channel_values: np.ndarray  # scratch: this cycle's channel vector
+    bus_links: dict[str, dict[str, Any]] = field(default_factory=dict)  # connection state per bus, for telemetry
+    links_reported: dict[str, str] = field(default_factory=dict)  # the connection states already announced
     pose_target: np.ndarray | None = None
     pose_speed: float = 0.25
     transition: Transition | None = None
@@ -215,11 +220,12 @@ def step(state: CoreState, params: CoreParams, inputs: CycleInputs) -> CycleOutp
     out = CycleOutputs()
     t = inputs.t
     _read(state, params, inputs)
+    _link_events(state, params, out, t)
     _commands(state, params, inputs, out)
     for result in inputs.results:
         _bus_result(state, params, out, t, *result)
     _check_transition(state, params, out, t)
-    if state.lifecycle is Lifecycle.ACTIVE and state.transition is None:
+    if state.lifecycle in (Lifecycle.ACTIVE, Lifecycle.INACTIVE) and state.transition is None:
         _supervise(state, params, out, t)
     if state.lifecycle is Lifecycle.ACTIVE and state.transition is None:
         try:
@@ -279,14 +285,35 @@ def _read(state: CoreState, params: CoreParams, inputs: CycleInputs) -> None:
         state.bus_states[name] = bus.state
         state.bus_connected[name] = bus.connected
         state.bus_faults[name] = bus.faults
+        link = bus.link or ("connected" if bus.connected else "closed")
+        state.bus_links[name] = {"state": link, "attempts": bus.attempts,
+                                 "retry_in_s": max(0.0, bus.retry_at - inputs.t) if bus.retry_at < 1e300 else None}
+
+
+def _link_events(state: CoreState, params: CoreParams, out: CycleOutputs, t: float) -> None:
+    """A ``bus_link`` event whenever a bus's connection state changes (lost, reconnecting, connected)."""
+    for name, info in state.bus_links.items():
+        previous = state.links_reported.get(name)
+        if info["state"] != previous:
+            state.links_reported[name] = info["state"]
+            if previous is not None and previous != "closed":
+                _event(out, t, "bus_link", bus=name, state=info["state"], previous=previous,
+                       attempts=info["attempts"], retry_in_s=info["retry_in_s"])
 
 
 def _supervise(state: CoreState, params: CoreParams, out: CycleOutputs, t: float) -> None:
-    """Active only: every bus active and connected, feedback fresh."""
+    """Every bus connected (active and inactive heads: a lost bus faults, naming it); when active also every bus
+    active and feedback fresh."""
     for name, _ in params.buses:
-        if not state.bus_connected[name]:
-            _fault(state, params, out, t, "bus", f"bus {name}: connection lost", bus=name)
+        lost = state.bus_links.get(name, {}).get("state") in ("lost", "reconnecting")
+        if not state.bus_connected[name] and (lost or state.lifecycle is Lifecycle.ACTIVE):
+            why = "; ".join(m for _, m in state.bus_faults[name].values())
+            _fault(state, params, out, t, "bus", f"bus {name}: connection lost" + (f" ({why})" if why else ""),
+                   bus=name)
             return
+    if state.lifecycle is not Lifecycle.ACTIVE:
+        return
+    for name, _ in params.buses:
         if state.bus_states[name] != "active":
             faults = state.bus_faults[name]
             detail = "; ".join(f"{d}: 0x{c:04X} {m}" for d, (c, m) in faults.items()) or \
@@ -800,6 +827,7 @@ def _snapshot(state: CoreState, params: CoreParams, t: float) -> dict[str, Any]:
         "t": t, "lifecycle": state.lifecycle.value, "mode": state.mode.value,
         "commanded_si": state.shaper.q.copy(), "measured_si": state.measured.copy(),
         "buses": dict(state.bus_states), "connected": dict(state.bus_connected),
+        "connection": {name: dict(info) for name, info in state.bus_links.items()},
         "guard": {"verdict": state.guard_verdict, "refused": state.guard_refused},
         "feedback_age": {name: float(t - state.stamps[idx].max()) if idx.size else 0.0
                          for name, idx in params.buses},

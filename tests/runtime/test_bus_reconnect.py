@@ -1,0 +1,74 @@
+"""A bus whose transport goes away (emulator process killed: the socketcand server, the Dynamixel pseudo-terminal)
+faults naming it while the loop and telemetry keep running; the bus process reconnects in the background with
+backoff, and once the emulator is back the first ``reset`` succeeds and ``enable`` resumes motion, with no daemon
+restart. Waits are generous: the host may be a loaded two-core machine."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from runtime.client import Client, DaemonError, Telemetry
+from tests.runtime.conftest import wait_until
+
+
+def _status(c: Client) -> dict:
+    return c.call("status")
+
+
+def _truth_deg(daemon, name: str) -> float:
+    return math.degrees(daemon.hw.simulated_positions()[name])
+
+
+def _arrives(daemon, c: Client, name: str, want: float, tol: float = 0.5, timeout: float = 6.0) -> bool:
+    def there() -> bool:
+        measured = _status(c)["measured"][name]
+        return measured is not None and abs(measured - want) < tol and abs(_truth_deg(daemon, name) - want) < tol
+
+    return bool(wait_until(there, timeout))
+
+
+@pytest.mark.parametrize(("bus", "other", "actuator"), [("can0", "dxl", "jaw"), ("dxl", "can0", "brow_l")])
+def test_a_lost_bus_reconnects_after_its_emulator_restarts(make_daemon, bus: str, other: str, actuator: str) -> None:
+    d = make_daemon()
+    with Client(d.command_endpoint, timeout=10) as c, Telemetry(d.telemetry_endpoint) as tel, \
+            Telemetry(d.telemetry_endpoint, topics=(b"event",)) as events:
+        c.call("enable")
+        c.call("pose", pose={actuator: 5.0}, speed=1.0)
+        assert _arrives(d, c, actuator, 5.0)
+        sim = d.hw.emulator(bus)
+        sim.kill()  # the device server goes away: socketcand connection dropped / pseudo-terminal gone
+
+        # fault naming the bus; the other bus is torqued off; telemetry keeps coming
+        ev = tel.wait_for(lambda topic, m: topic == "event" and m["event"] == "fault", 10.0)
+        assert ev is not None, "no fault event after the emulator died"
+        assert ev[1]["bus"] == bus and f"bus {bus}" in ev[1]["message"]
+        st = wait_until(lambda: (s := _status(c))["buses"][other] == "inactive" and s, 5.0)
+        assert st and st["lifecycle"] == "fault" and st["fault"]["bus"] == bus and st["fault"]["source"] == "bus"
+        assert st["connected"][bus] is False and st["connected"][other] is True
+        assert st["connection"][bus]["state"] in ("lost", "reconnecting")
+        # the bus process keeps trying, with growing waits: attempts and the connection state show in telemetry
+        states = [m for topic, m in tel.iter(2.5) if topic == "state"]
+        assert len(states) >= 5, "telemetry went silent"
+        assert {m["connection"][bus]["state"] for m in states} <= {"lost", "reconnecting"}
+        assert max(m["connection"][bus]["attempts"] for m in states) >= 2
+        assert all(m["lifecycle"] == "fault" for m in states)
+        # reset cannot succeed while the bus is unreachable
+        with pytest.raises(DaemonError) as info:
+            c.call("reset", timeout=30)
+        assert info.value.code == "hardware" and bus in str(info.value)
+
+        sim.restart()  # the device server is back, where it was
+        assert c.call("reset", timeout=30)["lifecycle"] == "inactive"  # the first reset after it is reachable
+        st = _status(c)
+        assert st["connected"][bus] is True and st["connection"][bus]["state"] == "connected"
+        assert st["fault"] is None
+        c.call("enable", timeout=30)
+        # the restarted emulator's devices booted at neutral: a real move to a new target
+        c.call("pose", pose={actuator: 3.0}, speed=1.0)
+        assert _arrives(d, c, actuator, 3.0), "motion did not resume after reconnecting"
+        # each change of the connection state was announced
+        links = [(m["bus"], m["state"]) for _, m in events.iter(0.5) if m["event"] == "bus_link"]
+        assert links[0] == (bus, "lost") and links[-1] == (bus, "connected") and (bus, "reconnecting") in links
+        c.call("disable")
