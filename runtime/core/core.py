@@ -312,13 +312,14 @@ def _supervise(state: CoreState, params: CoreParams, out: CycleOutputs, t: float
                    bus=name)
             return
     if state.lifecycle is not Lifecycle.ACTIVE:
+        for name, _ in params.buses:  # a device fault on a bus with torque off (a lost heartbeat) faults the head too
+            if state.bus_states[name] == "fault":
+                _fault(state, params, out, t, "driver", f"bus {name}: {_fault_detail(state, name)}", bus=name)
+                return
         return
     for name, _ in params.buses:
         if state.bus_states[name] != "active":
-            faults = state.bus_faults[name]
-            detail = "; ".join(f"{d}: 0x{c:04X} {m}" for d, (c, m) in faults.items()) or \
-                f"bus state {state.bus_states[name]}"
-            _fault(state, params, out, t, "driver", f"bus {name}: {detail}", bus=name)
+            _fault(state, params, out, t, "driver", f"bus {name}: {_fault_detail(state, name)}", bus=name)
             return
     timeout = params.cfg.safety.feedback_timeout_s
     if t - state.enabled_at > timeout:
@@ -327,6 +328,11 @@ def _supervise(state: CoreState, params: CoreParams, out: CycleOutputs, t: float
         if stale.size:
             names = ", ".join(params.names[i] for i in stale[:6])
             _fault(state, params, out, t, "timeout", f"no fresh feedback for {timeout:g} s from {names}")
+
+
+def _fault_detail(state: CoreState, bus: str) -> str:
+    faults = state.bus_faults[bus]
+    return "; ".join(f"{d}: 0x{c:04X} {m}" for d, (c, m) in faults.items()) or f"bus state {state.bus_states[bus]}"
 
 
 def _shape(state: CoreState, x: np.ndarray, speed: float, hold: np.ndarray) -> np.ndarray:
