@@ -95,7 +95,8 @@ def test_heartbeat_loss_faults_within_three_producer_periods(tmp_path, make_daem
             last = observer.stamps[-1]
             delay = fault["t"] + offset - last
             print(f"\nlast heartbeat on the bus → fault: {delay * 1e3:.0f} ms "
-                  f"(period {PERIOD_S * 1e3:.0f} ms, timeout {2 * PERIOD_S * 1e3:.0f} ms, bound {3 * PERIOD_S * 1e3:.0f} ms)")
+                  f"(period {PERIOD_S * 1e3:.0f} ms, timeout {2 * PERIOD_S * 1e3:.0f} ms, "
+                  f"bound {3 * PERIOD_S * 1e3:.0f} ms)")
             assert fault["bus"] == "can0" and "heartbeat" in fault["faults"]["can0/lip_corner_l_back"][1], fault
             assert PERIOD_S < delay <= 3 * PERIOD_S, f"heartbeat loss took {delay * 1e3:.0f} ms to fault"
             assert c.call("status")["lifecycle"] == "fault"
