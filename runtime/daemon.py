@@ -35,6 +35,7 @@ from runtime.config import DaemonConfig, daemon_config
 from runtime.core import core as K
 from runtime.core.channels import ChannelMap
 from runtime.core.solvers import as_array_solvers, channel_sets
+from runtime.errors import StartError
 from runtime.hardware import LinkedHardware
 from runtime.runner import Runner
 
@@ -46,7 +47,7 @@ SERVER_START_TIMEOUT_S = 60.0
 SERVER_NICE = -10
 
 
-class DaemonStartError(RuntimeError):
+class DaemonStartError(StartError, RuntimeError):
     """The daemon could not start (a bus, the API server or the loop); the message says which and why."""
 
 
