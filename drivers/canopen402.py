@@ -4,8 +4,8 @@ Works on any python-can interface. Options (bus ``options`` in the head config):
 
 ``interface`` (required), ``channel`` (default ``can0``), ``bitrate`` (default 1000000),
 ``host``/``port`` (socketcand only; port required there), ``bus_options`` (extra ``can.Bus`` keyword
-arguments), ``heartbeat_period_s`` (the drives' producer time, written to 0x1017; default 0.05, or half the
-timeout when only that is given), ``heartbeat_timeout_s`` (default two periods; a lost heartbeat faults the bus
+arguments), ``heartbeat_period_s`` (the drives' producer time, written to 0x1017; default 0.05, or a quarter of
+the timeout when only that is given), ``heartbeat_timeout_s`` (default two periods; a lost heartbeat faults the bus
 at most one monitor tick, ≤ 20 ms, after it),
 ``node_timeout_s`` (1.0, how long open waits for each node), ``sdo_timeout_s`` (0.3),
 ``state_timeout_s`` (0.5, per CiA 402 transition), ``feedback_timeout_s`` (0.1) and ``stale_cycles`` (3)
@@ -179,7 +179,7 @@ def _parse_options(bus: str, options: Mapping[str, Any]) -> _Options:
     if not isinstance(bus_options, Mapping):
         raise err("bus_options", f"must be a table of can.Bus keyword arguments, got {bus_options!r}")
     given_timeout = number("heartbeat_timeout_s", None)
-    hb_period = number("heartbeat_period_s", DEFAULT_HEARTBEAT_PERIOD_S if given_timeout is None else given_timeout / 2)
+    hb_period = number("heartbeat_period_s", DEFAULT_HEARTBEAT_PERIOD_S if given_timeout is None else given_timeout / 4)
     hb_timeout = given_timeout if given_timeout is not None else HEARTBEAT_TIMEOUT_PERIODS * hb_period
     if hb_period >= hb_timeout:
         raise err("heartbeat_period_s", f"must be below heartbeat_timeout_s ({hb_period} >= {hb_timeout})")
