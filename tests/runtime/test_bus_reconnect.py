@@ -72,3 +72,44 @@ def test_a_lost_bus_reconnects_after_its_emulator_restarts(make_daemon, bus: str
         links = [(m["bus"], m["state"]) for _, m in events.iter(0.5) if m["event"] == "bus_link"]
         assert links[0] == (bus, "lost") and links[-1] == (bus, "connected") and (bus, "reconnecting") in links
         c.call("disable")
+
+
+def test_the_core_faults_on_a_lost_bus_even_inactive_and_reports_each_connection_change() -> None:
+    """The core alone, stepped with bus feedback as the bus processes publish it."""
+    from runtime.core import commands as C
+    from runtime.core import core as K
+    from tests.runtime.test_core import Rig
+
+    rig = Rig()
+    rig.cycle()
+    link = {"can0": ("connected", 0, math.inf)}
+
+    def inputs() -> tuple[K.BusInput, ...]:
+        out = []
+        for b, idx in rig.params.buses:
+            state, attempts, retry_at = link.get(b, ("connected", 0, math.inf))
+            out.append(K.BusInput(b, "fault" if state != "connected" else rig.bus_state[b], state == "connected",
+                                  rig.q[idx].copy(), rig.t, {}, state, attempts, retry_at))
+        return tuple(out)
+
+    rig.bus_inputs = inputs  # type: ignore[method-assign]
+    rig.cycle()
+    assert rig.state.lifecycle is K.Lifecycle.INACTIVE
+    link["can0"] = ("lost", 0, rig.t + 0.25)
+    out = rig.cycle()
+    assert rig.state.lifecycle is K.Lifecycle.FAULT
+    fault = next(e for e in out.events if e["event"] == "fault")
+    assert fault["source"] == "bus" and fault["bus"] == "can0"
+    assert fault["message"].startswith("bus can0: connection lost")
+    assert ("can0", "lost") in [(e["bus"], e["state"]) for e in out.events if e["event"] == "bus_link"]
+    status = rig.call(C.Status)
+    assert status["connection"]["can0"]["state"] == "lost" and status["connection"]["can0"]["retry_in_s"] <= 0.25
+    link["can0"] = ("reconnecting", 1, math.inf)
+    events = rig.cycle().events
+    assert [(e["state"], e["attempts"]) for e in events if e["event"] == "bus_link"] == [("reconnecting", 1)]
+    link["can0"] = ("connected", 1, math.inf)
+    events = rig.cycle().events
+    assert [e["state"] for e in events if e["event"] == "bus_link"] == ["connected"]
+    assert rig.call(C.Reset)["lifecycle"] == "inactive"
+    assert rig.call(C.Enable)["lifecycle"] == "active"
+
