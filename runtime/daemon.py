@@ -45,6 +45,9 @@ SERVER_START_TIMEOUT_S = 60.0
 #: Niceness added to the API server process: requests and telemetry stay timely on a busy host (the control loop
 #: itself runs SCHED_FIFO and preempts it). Needs CAP_SYS_NICE; without it the server keeps the daemon's niceness.
 SERVER_NICE = -10
+#: Niceness added to the bus processes: a device fault or a lost heartbeat reaches the loop within a few ms on a busy
+#: host, as the drives' own timing assumes. Needs CAP_SYS_NICE; without it they keep the daemon's niceness.
+BUS_NICE = -10
 
 
 class DaemonStartError(StartError, RuntimeError):
@@ -113,7 +116,7 @@ class Daemon:
     def _start_buses(self) -> None:
         """Every bus in a process of its own (emulators first, as processes too, for simulated buses)."""
         if self.hw is None:
-            self.hw = LinkedHardware.from_head(self.head)
+            self.hw = LinkedHardware.from_head(self.head, bus_nice=BUS_NICE)
         self.hw.start()
         self.links = list(self.hw.links.values())
 

@@ -10,7 +10,7 @@ import math
 import pytest
 
 from runtime.client import Client, DaemonError, Telemetry
-from tests.runtime.conftest import wait_until
+from tests.runtime.conftest import enable_retrying, wait_until
 
 
 def _status(c: Client) -> dict:
@@ -34,7 +34,7 @@ def test_a_lost_bus_reconnects_after_its_emulator_restarts(make_daemon, bus: str
     d = make_daemon()
     with Client(d.command_endpoint, timeout=10) as c, Telemetry(d.telemetry_endpoint) as tel, \
             Telemetry(d.telemetry_endpoint, topics=(b"event",)) as events:
-        c.call("enable")
+        enable_retrying(c)
         c.call("pose", pose={actuator: 5.0}, speed=1.0)
         assert _arrives(d, c, actuator, 5.0)
         sim = d.hw.emulator(bus)

@@ -17,8 +17,8 @@ from pathlib import Path
 
 import can
 
-from runtime.client import Client, DaemonError, Telemetry
-from tests.runtime.conftest import SAMPLE
+from runtime.client import Client, Telemetry
+from tests.runtime.conftest import SAMPLE, enable_retrying
 
 PERIOD_S = 0.2
 NODE = 3  # lip_corner_l_back
@@ -60,19 +60,6 @@ class _Observer:
         self.bus.shutdown()
 
 
-def _enable(c: Client, tries: int = 3) -> None:
-    """Enable; an emulator starved of CPU on a loaded host can miss a heartbeat on the way, so reset and retry."""
-    for attempt in range(tries):
-        try:
-            c.call("enable", timeout=30)
-            return
-        except DaemonError:
-            if attempt == tries - 1:
-                raise
-            time.sleep(1.0)
-            c.request("reset", timeout=30)
-
-
 def test_heartbeat_loss_faults_within_three_producer_periods(tmp_path, make_daemon) -> None:
     d = make_daemon(head_path=_head_with_heartbeat(tmp_path, PERIOD_S))
     assert d.head.buses["can0"].heartbeat.timeout_s == 2 * PERIOD_S
@@ -81,23 +68,34 @@ def test_heartbeat_loss_faults_within_three_producer_periods(tmp_path, make_daem
     try:
         with Client(d.command_endpoint, timeout=10) as c, \
                 Telemetry(d.telemetry_endpoint, topics=(b"event",)) as tel:
-            _enable(c)
+            enable_retrying(c)
             time.sleep(1.2)
             # the driver set the drives' producer time from the config
             gaps = [b - a for a, b in zip(observer.stamps, observer.stamps[1:], strict=False)]
             assert len(gaps) >= 3 and abs(statistics.median(gaps) - PERIOD_S) < 0.02, gaps
-            offset = time.time() - time.monotonic()
-            sim.inject("stop_heartbeat", device=NODE)
-            ev = tel.wait_for(lambda topic, m: m["event"] == "fault", 5.0)
-            assert ev is not None, "no fault after the heartbeat stopped"
-            fault = ev[1]
+            for attempt in range(3):
+                offset = time.time() - time.monotonic()
+                sim.inject("stop_heartbeat", device=NODE)
+                ev = tel.wait_for(lambda topic, m: m["event"] == "fault", 5.0)
+                assert ev is not None, "no fault after the heartbeat stopped"
+                fault = ev[1]
+                if f"no heartbeat from node {NODE} " in fault["message"] or attempt == 2:
+                    break
+                # another drive's heartbeat came late first (an emulator starved of CPU): measure again
+                sim.inject("resume_heartbeat", device=NODE)
+                time.sleep(3 * PERIOD_S)
+                c.request("reset", timeout=30)
+                enable_retrying(c)
+                time.sleep(1.0)
+                while tel.recv(0.05) is not None:  # events of the attempt before
+                    pass
             time.sleep(0.3)  # frames in flight to the observer
             last = observer.stamps[-1]
             delay = fault["t"] + offset - last
             print(f"\nlast heartbeat on the bus → fault: {delay * 1e3:.0f} ms "
                   f"(period {PERIOD_S * 1e3:.0f} ms, timeout {2 * PERIOD_S * 1e3:.0f} ms, "
                   f"bound {3 * PERIOD_S * 1e3:.0f} ms)")
-            assert fault["bus"] == "can0" and "heartbeat" in fault["faults"]["can0/lip_corner_l_back"][1], fault
+            assert fault["bus"] == "can0" and f"no heartbeat from node {NODE} " in fault["message"], fault
             assert PERIOD_S < delay <= 3 * PERIOD_S, f"heartbeat loss took {delay * 1e3:.0f} ms to fault"
             assert c.call("status")["lifecycle"] == "fault"
     finally:
