@@ -319,7 +319,10 @@ def _supervise(state: CoreState, params: CoreParams, out: CycleOutputs, t: float
         stale = np.flatnonzero(age > timeout)
         if stale.size:
             names = ", ".join(params.names[i] for i in stale[:6])
-            _fault(state, params, out, t, "timeout", f"no fresh feedback for {timeout:g} s from {names}")
+            buses = [b for b, idx in params.buses if np.isin(idx, stale).any()]
+            where = f"bus {buses[0]}: " if len(buses) == 1 else ""
+            _fault(state, params, out, t, "timeout", f"{where}no fresh feedback for {timeout:g} s from {names}",
+                   bus=buses[0] if len(buses) == 1 else None)
 
 
 def _fault_detail(state: CoreState, bus: str) -> str:

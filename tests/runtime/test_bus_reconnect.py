@@ -45,7 +45,9 @@ def test_a_lost_bus_reconnects_after_its_emulator_restarts(make_daemon, bus: str
         assert ev is not None, "no fault event after the emulator died"
         assert ev[1]["bus"] == bus and f"bus {bus}" in ev[1]["message"]
         st = wait_until(lambda: (s := _status(c))["buses"][other] == "inactive" and s, 5.0)
-        assert st and st["lifecycle"] == "fault" and st["fault"]["bus"] == bus and st["fault"]["source"] == "bus"
+        # (on a loaded host, stale feedback or the driver's missed replies may be noticed before the lost port)
+        assert st and st["lifecycle"] == "fault" and st["fault"]["bus"] == bus
+        assert st["fault"]["source"] in ("bus", "driver", "timeout")
         assert st["connected"][bus] is False and st["connected"][other] is True
         assert st["connection"][bus]["state"] in ("lost", "reconnecting")
         # the bus process keeps trying, with growing waits: attempts and the connection state show in telemetry
