@@ -34,16 +34,24 @@ def test_a_lost_bus_reconnects_after_its_emulator_restarts(make_daemon, bus: str
     d = make_daemon()
     with Client(d.command_endpoint, timeout=10) as c, Telemetry(d.telemetry_endpoint) as tel, \
             Telemetry(d.telemetry_endpoint, topics=(b"event",)) as events:
-        enable_retrying(c)
-        c.call("pose", pose={actuator: 5.0}, speed=1.0)
-        assert _arrives(d, c, actuator, 5.0)
         sim = d.hw.emulator(bus)
-        sim.kill()  # the device server goes away: socketcand connection dropped / pseudo-terminal gone
+        for attempt in range(2):
+            enable_retrying(c)
+            c.call("pose", pose={actuator: 5.0}, speed=1.0)
+            assert _arrives(d, c, actuator, 5.0)
+            sim.kill()  # the device server goes away: socketcand connection dropped / pseudo-terminal gone
+            ev = tel.wait_for(lambda topic, m: topic == "event" and m["event"] == "fault", 10.0)
+            assert ev is not None, "no fault event after the emulator died"
+            if ev[1]["bus"] == bus or attempt == 1:
+                break
+            # the other bus faulted first (its emulator starved of CPU on a loaded host): start over
+            sim.restart()
+            wait_until(lambda: c.request("reset", timeout=30)["ok"], 15.0, interval=0.5)
+            while events.recv(0.05) is not None:
+                pass
 
         # fault naming the bus; the other bus is torqued off; telemetry keeps coming
-        ev = tel.wait_for(lambda topic, m: topic == "event" and m["event"] == "fault", 10.0)
-        assert ev is not None, "no fault event after the emulator died"
-        assert ev[1]["bus"] == bus and f"bus {bus}" in ev[1]["message"]
+        assert ev[1]["bus"] == bus and f"bus {bus}" in ev[1]["message"], ev[1]
         st = wait_until(lambda: (s := _status(c))["buses"][other] == "inactive" and s, 5.0)
         # (on a loaded host, stale feedback or the driver's missed replies may be noticed before the lost port)
         assert st and st["lifecycle"] == "fault" and st["fault"]["bus"] == bus
