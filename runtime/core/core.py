@@ -260,10 +260,8 @@ def _commands(state: CoreState, params: CoreParams, inputs: CycleInputs, out: Cy
     for cmd in cmds:
         try:
             body = _HANDLERS[type(cmd)](state, params, out, t, cmd)
-        except E.LikenessError as exc:  # a command refused: the reply names why, with the error's protocol code
-            out.replies.append((cmd.token, {"error": error_body(exc)}))
-        except Exception as exc:  # a bug in one command: it is answered (internal), the others still run
-            out.replies.append((cmd.token, {"error": error_body(exc)}))
+        except Exception as exc:  # refused (a runtime.errors kind: its protocol code) or a bug (internal): answered,
+            out.replies.append((cmd.token, {"error": error_body(exc)}))  # and the other commands still run
         else:
             if body is not None:
                 out.replies.append((cmd.token, body))
