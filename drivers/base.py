@@ -193,6 +193,7 @@ class MotorBus(abc.ABC):
         with self._lock:
             self._require(LifecycleState.UNCONFIGURED, "open")
             self._open()
+            self._faults.clear()  # a freshly opened bus starts without the faults of an earlier connection
             self._state = LifecycleState.INACTIVE
             log.info("bus %s (%s) open with %d motors", self.name, self.driver_name, len(self._motors))
 

@@ -4,7 +4,9 @@ Works on any python-can interface. Options (bus ``options`` in the head config):
 
 ``interface`` (required), ``channel`` (default ``can0``), ``bitrate`` (default 1000000),
 ``host``/``port`` (socketcand only; port required there), ``bus_options`` (extra ``can.Bus`` keyword
-arguments), ``heartbeat_timeout_s`` (0.1), ``heartbeat_period_s`` (timeout/4, written to 0x1017),
+arguments), ``heartbeat_period_s`` (the drives' producer time, written to 0x1017; default 0.05, or a quarter of
+the timeout when only that is given), ``heartbeat_timeout_s`` (default two periods; a lost heartbeat faults the bus
+at most one monitor tick, ≤ 20 ms, after it),
 ``node_timeout_s`` (1.0, how long open waits for each node), ``sdo_timeout_s`` (0.3),
 ``state_timeout_s`` (0.5, per CiA 402 transition), ``feedback_timeout_s`` (0.1) and ``stale_cycles`` (3)
 (feedback is stale when a drive missed that many SYNCs *and* that much time), ``cycle_period_s``
@@ -62,6 +64,8 @@ log = logging.getLogger(__name__)
 
 #: Driver-side fault codes (CiA 301 communication class, 0x813x reserved here for this driver).
 FAULT_HEARTBEAT_LOST = 0x8130  # CiA 301: life guard / heartbeat error
+DEFAULT_HEARTBEAT_PERIOD_S = 0.05
+HEARTBEAT_TIMEOUT_PERIODS = 2.0  # default consumer timeout, in producer periods
 FAULT_NODE_STATE = 0x8131  # node rebooted or left NMT OPERATIONAL
 FAULT_FEEDBACK_STALE = 0x8132  # no TPDO feedback for stale_cycles SYNCs and feedback_timeout_s
 FAULT_LEFT_ENABLED = 0x8133  # drive left OPERATION ENABLED without reporting a fault
@@ -174,8 +178,9 @@ def _parse_options(bus: str, options: Mapping[str, Any]) -> _Options:
     bus_options = options.get("bus_options", {})
     if not isinstance(bus_options, Mapping):
         raise err("bus_options", f"must be a table of can.Bus keyword arguments, got {bus_options!r}")
-    hb_timeout = number("heartbeat_timeout_s", 0.1)
-    hb_period = number("heartbeat_period_s", hb_timeout / 4)
+    given_timeout = number("heartbeat_timeout_s", None)
+    hb_period = number("heartbeat_period_s", DEFAULT_HEARTBEAT_PERIOD_S if given_timeout is None else given_timeout / 4)
+    hb_timeout = given_timeout if given_timeout is not None else HEARTBEAT_TIMEOUT_PERIODS * hb_period
     if hb_period >= hb_timeout:
         raise err("heartbeat_period_s", f"must be below heartbeat_timeout_s ({hb_period} >= {hb_timeout})")
     if not 0.001 <= hb_period <= 65.535:

@@ -29,10 +29,10 @@ import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, TypeVar
+from typing import Any, NoReturn, TypeVar
 
 from drivers.base import LifecycleState, MotorBus, MotorConfig, MotorState
-from drivers.errors import BusInitError, BusTimeout, CommandRejected, ConfigError, DeviceFault
+from drivers.errors import BusConnectionLost, BusInitError, BusTimeout, CommandRejected, ConfigError, DeviceFault
 
 log = logging.getLogger(__name__)
 
@@ -458,7 +458,9 @@ class DynamixelBus(MotorBus):
             return
         try:
             result = self._call(group.txPacket)
-        except (OSError, ValueError) as exc:
+        except OSError as exc:
+            self._port_lost("sync write", exc)
+        except ValueError as exc:
             result = None
             log.warning("bus %s: sync write failed: %s", self.name, exc)
         if result != COMM_SUCCESS:
@@ -473,7 +475,9 @@ class DynamixelBus(MotorBus):
             group.data_dict[device_id] = []
         try:
             result = self._call(group.fastSyncRead if self._fast else group.txRxPacket)
-        except (OSError, ValueError, IndexError) as exc:
+        except OSError as exc:
+            self._port_lost("sync read", exc)
+        except (ValueError, IndexError) as exc:
             log.debug("bus %s: sync read raised %s", self.name, exc)
             result = None
         now = time.monotonic()
@@ -517,6 +521,13 @@ class DynamixelBus(MotorBus):
             device, (code, message) = next(iter(self._faults.items()))
             raise DeviceFault(device, code, f"fault while enabling: {message}")
         return dict(states)
+
+    def _port_lost(self, what: str, exc: OSError) -> NoReturn:
+        """The serial port itself failed (unplugged adapter, emulator's pseudo-terminal gone): FAULT and
+        :class:`BusConnectionLost`, so the owner reopens the port once it is back."""
+        message = f"{what}: port {self._port_name!r} failed: {exc}"
+        self.mark_fault(self.name, FAULT_COMMUNICATION, f"connection lost ({message})")
+        raise BusConnectionLost(f"bus {self.name!r}: connection lost: {message}") from exc
 
     def _communication_failure(self, device: str, message: str) -> None:
         """Count a failed transaction; after ``max_consecutive_failures`` in a row, FAULT and BusTimeout."""

@@ -36,6 +36,11 @@ class DeviceFault(BusError):
         self.code = code
 
 
+class BusConnectionLost(BusError):
+    """The bus's transport is gone (socketcand connection dropped, serial port or pseudo-terminal vanished): the bus
+    must be closed and opened again once it is reachable."""
+
+
 class LifecycleError(BusError):
     """The operation is not allowed in the bus's current lifecycle state."""
 

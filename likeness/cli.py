@@ -25,7 +25,13 @@ COMMAND_MODULES: tuple[str, ...] = (
 
 
 class CliError(Exception):
-    """A user-facing error: printed without a traceback, exit status 2."""
+    """A user-facing error: printed as one line without a traceback; the process exits with ``status`` (default 2,
+    a usage or configuration error; the runtime's commands choose it from the kind of error, see
+    ``runtime.commands._common.EXIT_STATUS``)."""
+
+    def __init__(self, message: str, status: int = 2) -> None:
+        super().__init__(message)
+        self.status = status
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -59,7 +65,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(func(args) or 0)
     except CliError as exc:
         print(f"likeness {args.likeness_command}: error: {exc}", file=sys.stderr)
-        return 2
+        return exc.status
     except KeyboardInterrupt:
         return 130
 

@@ -26,10 +26,19 @@ class HeadTable(_Table, kw_only=True):
     description: str = ""
 
 
+class HeartbeatTable(_Table, kw_only=True):
+    """``[buses.NAME.heartbeat]``: how often each device sends its heartbeat (CANopen: the producer time 0x1017, which
+    the driver writes) and how long the driver waits for one before it faults the bus (default two periods)."""
+
+    period_s: float
+    timeout_s: float | None = None
+
+
 class BusTable(_Table, kw_only=True):
     driver: str
     options: dict[str, Any] = {}
     simulated: bool = False
+    heartbeat: HeartbeatTable | None = None
 
 
 class ActuatorTable(_Table, kw_only=True):

@@ -69,6 +69,27 @@ class BusSpec:
     driver: str
     options: Mapping[str, Any]
     simulated: bool = False
+    heartbeat: HeartbeatSpec | None = None
+
+    def driver_options(self) -> dict[str, Any]:
+        """The options handed to the driver: ``options``, with the heartbeat as ``heartbeat_period_s`` and
+        ``heartbeat_timeout_s`` when ``[buses.NAME.heartbeat]`` sets it."""
+        out = dict(self.options)
+        if self.heartbeat is not None:
+            out.update(heartbeat_period_s=self.heartbeat.period_s, heartbeat_timeout_s=self.heartbeat.timeout_s)
+        return out
+
+
+#: Consumer heartbeat timeout when the config names only the producer period, in periods.
+HEARTBEAT_TIMEOUT_PERIODS = 2.0
+
+
+@dataclass(frozen=True)
+class HeartbeatSpec:
+    """A bus's device heartbeat: producer period and consumer timeout (s); loss is seen within ``timeout_s``."""
+
+    period_s: float
+    timeout_s: float
 
 
 @dataclass(frozen=True)
@@ -168,8 +189,9 @@ def head_from_dict(data: Mapping[str, Any], source: str | Path = "<head>") -> He
         driver = v.string(raw, f"{key}.driver")
         options = v.as_table(raw.get("options", {}), f"{key}.options")
         simulated = v.boolean(raw, f"{key}.simulated", default=False)
-        v.no_extra(raw, key, {"driver", "options", "simulated"})
-        buses[bus_name] = BusSpec(bus_name, driver, dict(options), simulated)
+        v.no_extra(raw, key, {"driver", "options", "simulated", "heartbeat"})
+        heartbeat = _heartbeat(v, raw, key, options)
+        buses[bus_name] = BusSpec(bus_name, driver, dict(options), simulated, heartbeat)
     if not buses:
         raise SpecError(v.source, "buses", "a head needs at least one bus")
 
@@ -389,3 +411,22 @@ class _Validator:
 
 
 _REQUIRED = object()
+
+
+def _heartbeat(v: _Validator, raw: Mapping[str, Any], key: str, options: Mapping[str, Any]) -> HeartbeatSpec | None:
+    """``[buses.NAME.heartbeat]``: a positive period, and a timeout above it (default two periods)."""
+    if "heartbeat" not in raw:
+        return None
+    table = v.as_table(raw["heartbeat"], f"{key}.heartbeat")
+    for old in ("heartbeat_period_s", "heartbeat_timeout_s"):
+        if old in options:
+            raise SpecError(v.source, f"{key}.options.{old}", f"set the heartbeat in [{key}.heartbeat] only")
+    period = v.number(table, f"{key}.heartbeat.period_s", "period_s", positive=True)
+    if not 0.001 <= period <= 65.535:
+        raise SpecError(v.source, f"{key}.heartbeat.period_s", "must be 0.001..65.535 s", period)
+    timeout = v.number(table, f"{key}.heartbeat.timeout_s", "timeout_s", positive=True,
+                       default=HEARTBEAT_TIMEOUT_PERIODS * period)
+    if timeout <= period:
+        raise SpecError(v.source, f"{key}.heartbeat.timeout_s", f"must be longer than period_s ({period:g} s)",
+                        timeout)
+    return HeartbeatSpec(period, timeout)

@@ -8,6 +8,12 @@ copies the buffer of ``done``'s parity and keeps the copy if ``begun`` has not m
 per cycle and no lock is shared with the loop: :meth:`BusLink.post` and :meth:`BusLink.feedback` take microseconds
 whatever the bus does. A byte on a pipe wakes the bus process for new targets; without them it still reads at
 ``idle_hz``. Lifecycle requests (enable, disable, reset) travel over a pipe and run between transactions.
+
+Connection loss: an I/O error that means the transport is gone (``BrokenPipeError`` on a socketcand connection, a
+serial port or pseudo-terminal that vanished: :class:`drivers.errors.BusConnectionLost`) puts the bus in FAULT and
+its link state to ``lost``; the bus process then tries to open the bus again in the background, with exponential
+backoff (``reconnect_base_s`` doubling up to ``reconnect_max_s``), publishing ``reconnecting`` during an attempt and
+the attempt count. A ``reset`` while the bus is unreachable makes one attempt at once and fails if it fails.
 """
 
 from __future__ import annotations
@@ -33,20 +39,24 @@ import numpy as np
 
 from drivers import errors as bus_errors
 from drivers.base import LifecycleState, MotorConfig
-from drivers.errors import BusInitError
+from drivers.errors import BusConnectionLost, BusInitError
 
 log = logging.getLogger(__name__)
 
 _STATES: tuple[LifecycleState, ...] = tuple(LifecycleState)
 _STATE_CODE = {s: i for i, s in enumerate(_STATES)}
 OPS = ("enable", "disable", "reset")
+#: Connection states of a bus as its process reports them: not opened yet or stopped, open and reachable, lost (waiting
+#: for the next reconnect attempt), an attempt in progress.
+LINK_STATES = ("closed", "connected", "lost", "reconnecting")
+_LINK_CODE = {s: i for i, s in enumerate(LINK_STATES)}
 
 # counters (int64): feedback begun/done, targets begun/done, faults begun/done
 _C_FB_BEGUN, _C_FB_DONE, _C_TG_BEGUN, _C_TG_DONE, _C_FA_BEGUN, _C_FA_DONE = range(6)
 _N_COUNTERS = 8
 # feedback header (float64), then positions, velocities, written (n each)
-_H_SEQ, _H_STAMP, _H_WSTAMP, _H_IO_US, _H_STATE, _H_CONNECTED, _H_FAULTS = range(7)
-_N_HEADER = 8
+_H_SEQ, _H_STAMP, _H_WSTAMP, _H_IO_US, _H_STATE, _H_CONNECTED, _H_FAULTS, _H_LINK, _H_ATTEMPTS, _H_RETRY_AT = range(10)
+_N_HEADER = 10
 _FAULT_BYTES = 8192
 
 
@@ -64,6 +74,9 @@ class BusFeedback:
     written: np.ndarray  # last targets written to the bus (NaN before the first write)
     write_stamp: float  # time.monotonic() of that write (0.0 before)
     io_us: float  # duration of the last write + read transaction in the bus process
+    link: str = "closed"  # one of LINK_STATES
+    attempts: int = 0  # reconnect attempts since the connection was last lost
+    retry_at: float = math.inf  # time.monotonic() of the next reconnect attempt (inf: none planned)
 
 
 class _Layout:
@@ -100,6 +113,8 @@ class BusProcessConfig:
     open_attempts: int = 1
     nice: int = 0
     log_level: int = logging.WARNING  # the daemon's: the drivers' libraries chatter at INFO
+    reconnect_base_s: float = 0.25  # first reconnect attempt this long after a loss, then doubling
+    reconnect_max_s: float = 4.0  # longest wait between two reconnect attempts
 
 
 class BusLink:
@@ -177,6 +192,9 @@ class BusLink:
             buf[_H_STATE] = _STATE_CODE[LifecycleState.UNCONFIGURED]
             buf[_H_CONNECTED] = 0
             buf[_H_FAULTS] = 0
+            buf[_H_LINK] = _LINK_CODE["closed"]
+            buf[_H_ATTEMPTS] = 0
+            buf[_H_RETRY_AT] = math.inf
         for buf in tg:
             buf[:] = np.nan
         self._c, self._fb, self._tg = c, fb, tg
@@ -241,7 +259,7 @@ class BusLink:
         self._ctrl = self._wake = None
         self._wake_fd = -1
         self._last = dataclasses.replace(self._dead or self._last, connected=False,
-                                         state=LifecycleState.UNCONFIGURED)
+                                         state=LifecycleState.UNCONFIGURED, link="closed", retry_at=math.inf)
         if self._shm is not None:
             self._c = self._fb = self._tg = None  # type: ignore[assignment]
             shm, self._shm = self._shm, None
@@ -304,7 +322,8 @@ class BusLink:
             last = self._last
             faults = dict(last.faults)
             faults.setdefault(self.name, (0, f"bus process exited (code {proc.exitcode})"))
-            self._dead = dataclasses.replace(last, state=LifecycleState.FAULT, connected=False, faults=faults)
+            self._dead = dataclasses.replace(last, state=LifecycleState.FAULT, connected=False, faults=faults,
+                                             link="lost", retry_at=math.inf)
             log.error("bus %s: bus process died (exit code %s)", self.name, proc.exitcode)
             return self._dead
         return self._last
@@ -321,6 +340,9 @@ class BusLink:
             connected=bool(snap[_H_CONNECTED]), written=snap[h + 2 * n:h + 3 * n],
             write_stamp=float(snap[_H_WSTAMP]) if math.isfinite(snap[_H_WSTAMP]) else 0.0,
             io_us=float(snap[_H_IO_US]) if math.isfinite(snap[_H_IO_US]) else 0.0,
+            link=LINK_STATES[int(snap[_H_LINK])] if math.isfinite(snap[_H_LINK]) else "closed",
+            attempts=int(snap[_H_ATTEMPTS]) if math.isfinite(snap[_H_ATTEMPTS]) else 0,
+            retry_at=float(snap[_H_RETRY_AT]) if not math.isnan(snap[_H_RETRY_AT]) else math.inf,
         )
 
     def _read_faults(self, version: float) -> None:
@@ -439,6 +461,10 @@ class _BusServer:
         self.faults_seen: dict[str, tuple[int, str]] = {}
         self.faults_version = 0
         self.last_error = ""
+        self.link = "closed"
+        self.attempts = 0
+        self.retry_at = math.inf
+        self.reconnect_error = ""
         self.parent = os.getppid()
 
     # -------------------------------------------------------------- publication
@@ -468,6 +494,9 @@ class _BusServer:
         buf[_H_STATE] = _STATE_CODE[self.bus.state]
         buf[_H_CONNECTED] = 1.0 if self.connected and self.bus.state is not LifecycleState.UNCONFIGURED else 0.0
         buf[_H_FAULTS] = self.faults_version
+        buf[_H_LINK] = _LINK_CODE[self.link]
+        buf[_H_ATTEMPTS] = self.attempts
+        buf[_H_RETRY_AT] = self.retry_at
         c[_C_FB_DONE] = k
 
     def publish_faults(self, faults: dict[str, tuple[int, str]]) -> None:
@@ -500,6 +529,9 @@ class _BusServer:
     def transaction(self) -> None:
         t0 = time.monotonic()
         states = None
+        if not self.connected:  # nothing to talk to until a reconnect attempt succeeds
+            self.publish(None)
+            return
         try:
             k = int(self.c[_C_TG_DONE])
             if k != self.written_k and k > self.enabled_k and self.bus.state is LifecycleState.ACTIVE:
@@ -519,10 +551,11 @@ class _BusServer:
         self.publish(states)
 
     def fail(self, exc: BaseException) -> None:
-        """A driver error during I/O: the bus goes to FAULT with the message; a lost connection clears ``connected``."""
+        """A driver error during I/O: the bus goes to FAULT with the message; a lost connection clears ``connected``
+        and starts the reconnect attempts."""
         message = f"{type(exc).__name__}: {exc}"
-        if isinstance(exc, OSError) or type(exc).__module__.startswith(("serial", "can")):
-            self.connected = False
+        if self.connected and _connection_lost(exc):
+            self.lose(message)
         device = getattr(exc, "device", None) or self.bus.name
         code = getattr(exc, "code", 0) if isinstance(getattr(exc, "code", 0), int) else 0
         if message != self.last_error:
@@ -532,12 +565,53 @@ class _BusServer:
             if self.bus.state is not LifecycleState.FAULT or str(device) not in self.bus.faults():
                 self.bus.mark_fault(str(device), int(code), message)
 
+    def lose(self, why: str) -> None:
+        """The transport is gone: stop all I/O and plan the first reconnect attempt."""
+        self.connected = False
+        self.link = "lost"
+        self.attempts = 0
+        self.retry_at = time.monotonic() + self.cfg.reconnect_base_s
+        log.error("bus %s: connection lost (%s); reopening in the background", self.bus.name, why)
+
+    def reconnect(self) -> bool:
+        """One attempt to open the bus again (closing what is left of it first); on failure the next attempt is
+        planned after an exponentially growing wait. True once the bus is open (inactive, torque off)."""
+        self.attempts += 1
+        self.link = "reconnecting"
+        self.retry_at = math.inf
+        self.publish(None)
+        with contextlib.suppress(Exception):
+            self.bus.close()
+        try:
+            self.bus.open()
+        except Exception as exc:
+            delay = min(self.cfg.reconnect_max_s, self.cfg.reconnect_base_s * 2.0 ** self.attempts)
+            self.retry_at = time.monotonic() + delay
+            self.link = "lost"
+            self.reconnect_error = f"{type(exc).__name__}: {exc}"
+            log.warning("bus %s: reconnect attempt %d failed (%s); next in %.2g s", self.bus.name, self.attempts,
+                        self.reconnect_error, delay)
+            with contextlib.suppress(Exception):
+                self.bus.close()
+            self.publish(None)
+            return False
+        self.connected = True
+        self.link = "connected"
+        self.retry_at = math.inf
+        self.last_error = self.reconnect_error = ""
+        self.written_k = self.enabled_k = 1 << 62  # nothing is written before the next enable
+        log.warning("bus %s: reopened after %d reconnect attempt(s); send reset, then enable", self.bus.name,
+                    self.attempts)
+        self.publish(None)
+        return True
+
     def open(self) -> None:
         attempts = self.cfg.open_attempts
         for attempt in range(1, attempts + 1):
             try:
                 self.bus.open()
                 self.connected = True
+                self.link = "connected"
                 return
             except bus_errors.ConfigError:
                 raise
@@ -560,10 +634,10 @@ class _BusServer:
                 bus.disable()
         elif op == "reset":
             if not self.connected or bus.state is LifecycleState.UNCONFIGURED:
-                with contextlib.suppress(Exception):
-                    bus.close()
-                self.open()
-                self.last_error = ""
+                if not self.reconnect():
+                    raise BusConnectionLost(
+                        f"bus {bus.name!r} is still unreachable ({self.reconnect_error}); reconnect attempt "
+                        f"{self.attempts}, next in {max(0.0, self.retry_at - time.monotonic()):.2g} s")
             elif bus.state is LifecycleState.FAULT:
                 bus.reset_fault()
                 self.last_error = ""
@@ -583,7 +657,7 @@ class _BusServer:
                 self.lifecycle(op)
                 reply = ("result", ticket, True, "")
             except Exception as exc:
-                if not isinstance(exc, bus_errors.LifecycleError):
+                if not isinstance(exc, bus_errors.LifecycleError) and self.connected:
                     self.fail(exc)
                 reply = ("result", ticket, False, f"{type(exc).__name__}: {exc}")
             self.publish(None)
@@ -600,7 +674,7 @@ class _BusServer:
         poller.register(self.ctrl.fileno(), select.POLLIN)
         next_idle = time.monotonic()
         while True:
-            wait_ms = max(0.0, (next_idle - time.monotonic()) * 1e3)
+            wait_ms = max(0.0, (min(next_idle, self.retry_at) - time.monotonic()) * 1e3)
             events = poller.poll(math.ceil(wait_ms)) if wait_ms > 0 else []
             woken = False
             for fd, _ in events:
@@ -613,11 +687,18 @@ class _BusServer:
             if os.getppid() != self.parent:
                 log.error("bus %s: parent process gone; closing the bus", self.bus.name)
                 return
+            if not self.connected and time.monotonic() >= self.retry_at:
+                self.reconnect()
             now = time.monotonic()
             fresh = self.bus.state is LifecycleState.ACTIVE and int(self.c[_C_TG_DONE]) != self.written_k
             if (woken and fresh) or now >= next_idle:
                 self.transaction()
                 next_idle = max(next_idle + period, time.monotonic()) if now >= next_idle else next_idle
+
+
+def _connection_lost(exc: BaseException) -> bool:
+    """Whether a driver error means the transport is gone (rather than a device fault or a missed answer)."""
+    return isinstance(exc, (OSError, BusConnectionLost)) or type(exc).__module__.startswith(("serial", "can."))
 
 
 def _bus_main(cfg: BusProcessConfig, shm_name: str, ctrl: Connection, wake: Connection) -> None:

@@ -16,13 +16,17 @@ import zmq
 
 
 class DaemonError(Exception):
-    """The daemon answered ``ok: false``; ``code`` is the protocol error code."""
+    """The daemon answered ``ok: false``; ``code`` is the protocol error code, ``error`` the typed error it stands
+    for (:mod:`runtime.errors`)."""
 
     def __init__(self, op: str, code: str, message: str) -> None:
+        from runtime.protocol import error_for
+
         super().__init__(f"{op}: {code}: {message}")
         self.op = op
         self.code = code
         self.message = message
+        self.error = error_for(code, f"{op}: {message}")
 
 
 class DaemonTimeout(TimeoutError):

@@ -35,6 +35,7 @@ from runtime.config import DaemonConfig, daemon_config
 from runtime.core import core as K
 from runtime.core.channels import ChannelMap
 from runtime.core.solvers import as_array_solvers, channel_sets
+from runtime.errors import StartError
 from runtime.hardware import LinkedHardware
 from runtime.runner import Runner
 
@@ -44,9 +45,12 @@ SERVER_START_TIMEOUT_S = 60.0
 #: Niceness added to the API server process: requests and telemetry stay timely on a busy host (the control loop
 #: itself runs SCHED_FIFO and preempts it). Needs CAP_SYS_NICE; without it the server keeps the daemon's niceness.
 SERVER_NICE = -10
+#: Niceness added to the bus processes: a device fault or a lost heartbeat reaches the loop within a few ms on a busy
+#: host, as the drives' own timing assumes. Needs CAP_SYS_NICE; without it they keep the daemon's niceness.
+BUS_NICE = -10
 
 
-class DaemonStartError(RuntimeError):
+class DaemonStartError(StartError, RuntimeError):
     """The daemon could not start (a bus, the API server or the loop); the message says which and why."""
 
 
@@ -113,8 +117,8 @@ class Daemon:
         """Every bus in a process of its own (emulators first, as processes too, for simulated buses)."""
         if self.hw is None:
             rt = self.cfg.runtime
-            self.hw = LinkedHardware.from_head(self.head, realtime_priority=(rt.bus_priority or None)
-                                               if rt.realtime else None)
+            self.hw = LinkedHardware.from_head(self.head, bus_nice=BUS_NICE,
+                                               realtime_priority=(rt.bus_priority or None) if rt.realtime else None)
         self.hw.start()
         self.links = list(self.hw.links.values())
 

@@ -68,7 +68,7 @@ def start_emulators(
                 log.warning("bus %s has no actuators; skipped", bus_name)
                 continue
             motors[bus_name] = [motor_config(a) for a in acts]
-            options[bus_name] = dict(spec.options)
+            options[bus_name] = spec.driver_options()
             if spec.simulated:
                 from runtime import simhw
 

@@ -21,7 +21,8 @@ import msgspec
 import numpy as np
 from msgspec import Meta, Struct, field
 
-from runtime.protocol import ProtocolError
+from runtime import errors as E
+from runtime.protocol import ProtocolError, code_of, error_for
 
 MAX_NAME = 128  # clip, channel and string-id length
 MAX_CHANNELS = 256  # per clip, per stream request, per pose
@@ -54,7 +55,7 @@ class Hello(_Request, tag="hello"):
 
     def __post_init__(self) -> None:
         if self.client is not None and _too_deep(self.client, MAX_DEPTH - 1):
-            raise ProtocolError("bad_request", f"field 'client': nested deeper than {MAX_DEPTH} levels")
+            raise E.BadRequest(f"field 'client': nested deeper than {MAX_DEPTH} levels")
 
 
 class Status(_Request, tag="status"):
@@ -106,9 +107,9 @@ class ClipSpec(Struct, forbid_unknown_fields=True, dict=True):
     def __post_init__(self) -> None:
         total = sum(_array_header(c.keys)[0] for c in self.channels.values())
         if total > MAX_CLIP_KEYS:
-            raise ProtocolError("too_large", f"clip {self.name!r} has {total} keys; at most {MAX_CLIP_KEYS}")
+            raise E.TooLarge(f"clip {self.name!r} has {total} keys; at most {MAX_CLIP_KEYS}")
         if self.meta is not None and _too_deep(self.meta, MAX_DEPTH - 2):
-            raise ProtocolError("bad_request", f"clip {self.name!r}.meta: nested deeper than {MAX_DEPTH} levels")
+            raise E.BadRequest(f"clip {self.name!r}.meta: nested deeper than {MAX_DEPTH} levels")
         self._arrays = {ch: _check_keys(spec, f"clip {self.name!r}.channels.{ch}")
                         for ch, spec in self.channels.items()}
 
@@ -188,7 +189,7 @@ class Stream(_Request, tag="stream"):
 
     def __post_init__(self) -> None:
         if len(set(self.channels)) != len(self.channels):
-            raise ProtocolError("bad_request", "field 'channels' lists a channel twice")
+            raise E.BadRequest("field 'channels' lists a channel twice")
         width = len(self.channels) + 1
         arr = _float_rows(self.frames, width, MAX_STREAM_FRAMES, "frames", f"[t, {width - 1} values]", "bad_request")
         _all_finite(arr, "frames")
@@ -210,7 +211,7 @@ class Pose(_Request, tag="pose"):
     def __post_init__(self) -> None:
         for ch, v in self.pose.items():
             if not np.isfinite(v):
-                raise ProtocolError("bad_value", f"pose[{ch[:64]!r}] must be finite (got {v!r})")
+                raise E.BadValue(f"pose[{ch[:64]!r}] must be finite (got {v!r})")
 
 
 class Record(_Request, tag="record"):
@@ -221,7 +222,7 @@ class Record(_Request, tag="record"):
         if self.name is None:
             self.name = "recording"
         elif not _RECORD_NAME.match(self.name):
-            raise ProtocolError("bad_value", "record name: letters, digits, _ . - only (max 64)")
+            raise E.BadValue("record name: letters, digits, _ . - only (max 64)")
 
 
 Request = (Hello | Status | Enable | Disable | Estop | Reset | Clock | LoadClip | UnloadClip | Play | Pause | Resume
@@ -251,8 +252,8 @@ def decode_request(raw: bytes) -> Request:
         return _decoder.decode(raw)
     except RequestError:
         raise
-    except ProtocolError as exc:  # raised by a __post_init__ check
-        raise RequestError(exc.code, exc.message, _lenient_id(raw)) from None
+    except E.LikenessError as exc:  # raised by a __post_init__ check
+        raise RequestError(code_of(exc), exc.message, _lenient_id(raw)) from None
     except msgspec.ValidationError as exc:
         code, message = _translate(str(exc), raw)
         raise RequestError(code, message, _lenient_id(raw)) from None
@@ -481,14 +482,14 @@ def _resolve_wildcards(path: str, raw: bytes) -> str:
 
 def _finite(value: float, where: str) -> None:
     if not np.isfinite(value):
-        raise ProtocolError("bad_value", f"{where} must be finite (got {value!r})")
+        raise E.BadValue(f"{where} must be finite (got {value!r})")
 
 
 def _all_finite(arr: np.ndarray, where: str) -> None:
-    """ProtocolError(bad_value) naming the first NaN or infinity of a 2-D array as ``where[row][col]``."""
+    """BadValue naming the first NaN or infinity of a 2-D array as ``where[row][col]``."""
     if arr.size and not np.isfinite(arr).all():
         j, k = map(int, np.argwhere(~np.isfinite(arr))[0])
-        raise ProtocolError("bad_value", f"{where}[{j}][{k}] must be finite (got {float(arr[j, k])!r})")
+        raise E.BadValue(f"{where}[{j}][{k}] must be finite (got {float(arr[j, k])!r})")
 
 
 def _check_keys(spec: ChannelSpec, where: str) -> np.ndarray:
@@ -497,19 +498,19 @@ def _check_keys(spec: ChannelSpec, where: str) -> np.ndarray:
     arr = _float_rows(spec.keys, width, MAX_CLIP_KEYS, f"{where}.keys", f"a list of {width} numbers for {spec.interp}",
                       "bad_value")
     if not len(arr):
-        raise ProtocolError("bad_value", f"{where}.keys: must be a non-empty list of keys")
+        raise E.BadValue(f"{where}.keys: must be a non-empty list of keys")
     _all_finite(arr, f"{where}.keys")
     if len(arr) > 1:
         bad = np.flatnonzero(np.diff(arr[:, 0]) <= 0)
         if bad.size:
             j = int(bad[0]) + 1
-            raise ProtocolError("bad_value", f"{where}.keys[{j}]: times must increase strictly "
+            raise E.BadValue(f"{where}.keys[{j}]: times must increase strictly "
                                 f"({float(arr[j, 0])!r} after {float(arr[j - 1, 0])!r})")
     if width == 6:
         bad = np.flatnonzero((arr[:, 2] > 0) | (arr[:, 4] < 0))
         if bad.size:
             j = int(bad[0])
-            raise ProtocolError("bad_value", f"{where}.keys[{j}]: need in_dt <= 0 <= out_dt (got in_dt="
+            raise E.BadValue(f"{where}.keys[{j}]: need in_dt <= 0 <= out_dt (got in_dt="
                                 f"{float(arr[j, 2])!r}, out_dt={float(arr[j, 4])!r})")
     return arr
 
@@ -543,7 +544,7 @@ def _float_rows(raw: msgspec.Raw, width: int, max_rows: int, where: str, row_hin
     """
     rows, head = _array_header(raw)
     if rows > max_rows:
-        raise ProtocolError("too_large", f"field {where!r} has {rows} items; at most {max_rows}")
+        raise E.TooLarge(f"field {where!r} has {rows} items; at most {max_rows}")
     arr = _float64_rows(memoryview(raw), rows, head, width) if head else None
     if arr is None:
         try:
@@ -555,14 +556,14 @@ def _float_rows(raw: msgspec.Raw, width: int, max_rows: int, where: str, row_hin
             j, k = (pm[1], pm[2]) if pm else (None, None)
             if k is not None:
                 got = re.search(r"got `([^`]*)`", m["what"])
-                raise ProtocolError("bad_value", f"{where}[{j}][{k}] must be a number (got {got[1] if got else '?'})"
+                raise E.BadValue(f"{where}[{j}][{k}] must be a number (got {got[1] if got else '?'})"
                                     ) from None
             if j is not None:
-                raise ProtocolError(container_code, f"{where}[{j}] must be {row_hint}") from None
-            raise ProtocolError(container_code, f"field {where!r} must be an array of {row_hint}") from None
+                raise error_for(container_code, f"{where}[{j}] must be {row_hint}") from None
+            raise error_for(container_code, f"field {where!r} must be an array of {row_hint}") from None
         if any(len(r) != width for r in lists):
             j = next(j for j, r in enumerate(lists) if len(r) != width)
-            raise ProtocolError(container_code, f"{where}[{j}] must be {row_hint} (got {len(lists[j])} numbers)")
+            raise error_for(container_code, f"{where}[{j}] must be {row_hint} (got {len(lists[j])} numbers)")
         arr = np.fromiter(itertools.chain.from_iterable(lists), np.float64, len(lists) * width)
         arr = arr.reshape(len(lists), width)
     arr.flags.writeable = False

@@ -13,11 +13,13 @@ from typing import Any
 
 import msgpack
 
+from runtime import errors as E
+
 PROTOCOL_VERSION = 1
 TOPIC_STATE = b"state"
 TOPIC_EVENT = b"event"
 
-#: Error codes a reply may carry.
+#: Error codes a reply may carry (docs/protocol.md), one per kind of :mod:`runtime.errors` error.
 ERROR_CODES = (
     "bad_request",  # not a map, missing/mistyped fields, unknown fields
     "unknown_op",
@@ -32,14 +34,57 @@ ERROR_CODES = (
     "internal",
 )
 
+#: The one table from typed errors to protocol codes; a subclass not listed takes its nearest listed base's code.
+ERROR_CODE_OF: dict[type[E.LikenessError], str] = {
+    E.BadRequest: "bad_request",
+    E.UnknownOp: "unknown_op",
+    E.BadValue: "bad_value",
+    E.UnknownChannel: "unknown_channel",
+    E.NotFound: "not_found",
+    E.BadState: "bad_state",
+    E.EStopLatched: "estop",
+    E.Faulted: "fault",
+    E.TooLarge: "too_large",
+    E.HardwareError: "hardware",
+    E.InternalError: "internal",
+}
+_ERROR_OF_CODE = {code: cls for cls, code in ERROR_CODE_OF.items()}
 
-class ProtocolError(Exception):
-    """Turned into an error reply ``{"code": code, "message": message}``."""
+
+class ProtocolError(E.LikenessError):
+    """An error whose protocol code was decided where it was found (the request schema's checks); prefer raising
+    the typed errors of :mod:`runtime.errors`."""
 
     def __init__(self, code: str, message: str) -> None:
         super().__init__(message)
         self.code = code
-        self.message = message
+
+
+def code_of(exc: BaseException) -> str:
+    """The protocol error code of ``exc``: from :data:`ERROR_CODE_OF` (nearest listed base), ``internal`` else."""
+    if isinstance(exc, ProtocolError):
+        return exc.code
+    for cls in type(exc).__mro__:
+        code = ERROR_CODE_OF.get(cls)  # type: ignore[call-overload]
+        if code is not None:
+            return code
+    return "internal"
+
+
+def error_for(code: str, message: str) -> E.LikenessError:
+    """The typed error a protocol code stands for (a client turning an error reply back into an exception)."""
+    return _ERROR_OF_CODE.get(code, E.InternalError)(message)
+
+
+def error_body(exc: BaseException) -> dict[str, str]:
+    """``{"code", "message"}`` of an error reply for ``exc``."""
+    message = exc.message if isinstance(exc, E.LikenessError) else f"{type(exc).__name__}: {exc}"
+    return {"code": code_of(exc), "message": message[:1000]}
+
+
+def reply_for(rid: Any, exc: BaseException) -> dict[str, Any]:
+    """The error reply to request ``rid`` for ``exc``."""
+    return {"id": rid, "ok": False, "error": error_body(exc)}
 
 
 def pack(obj: Any) -> bytes:

@@ -9,11 +9,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from runtime import errors as E
 from runtime import messages as M
 from runtime.core import commands as C
 from runtime.core.channels import ChannelMap, UnknownChannel
 from runtime.core.clips import bind_clip
-from runtime.protocol import ProtocolError
 
 LOCAL_OPS = ("hello", "clock")
 OPS = M.OPS
@@ -24,7 +24,7 @@ def check_channels(channels: ChannelMap, names: list[str] | tuple[str, ...]) -> 
     try:
         return channels.indices(names)
     except UnknownChannel as exc:
-        raise ProtocolError("unknown_channel", f"unknown channel {str(exc.args[0])[:128]!r}; known: "
+        raise E.UnknownChannel(f"unknown channel {str(exc.args[0])[:128]!r}; known: "
                             f"{', '.join(channels.names)}") from None
 
 
@@ -55,7 +55,7 @@ def to_command(req: M.Request, token: int, channels: ChannelMap, safe_speed: flo
         return C.Pose(token, idx, np.array([req.pose[n] for n in names], dtype=float), speed)
     if isinstance(req, M.Record):
         return C.Record(token, req.action, req.name or "recording")
-    raise ProtocolError("unknown_op", f"op {type(req).__name__} is not served by the core")
+    raise E.UnknownOp(f"op {type(req).__name__} is not served by the core")
 
 
 def _load_clip(spec: M.ClipSpec, token: int, channels: ChannelMap) -> C.LoadClip:

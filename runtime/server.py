@@ -23,12 +23,12 @@ from typing import Any
 import numpy as np
 import zmq
 
+from runtime import errors as E
 from runtime import ipc
 from runtime import messages as M
 from runtime import protocol as P
 from runtime.config import DaemonConfig, resolve
 from runtime.core.channels import ChannelMap
-from runtime.protocol import ProtocolError
 from runtime.requests import LOCAL_OPS, OPS, to_command
 
 log = logging.getLogger(__name__)
@@ -80,15 +80,15 @@ def _decode(payload: bytes, token: int, spec: ServerSpec,
         req = M.decode_request(payload)
         rid, op = req.id, type(req).__struct_config__.tag
         if op in LOCAL_OPS:
-            raise ProtocolError("too_large", f"a {op} request needs no more than {spec.inline_bytes} bytes")
+            raise E.TooLarge(f"a {op} request needs no more than {spec.inline_bytes} bytes")
         return rid, op, to_command(req, token, spec.channels, spec.safe_speed, received), None
     except M.RequestError as exc:
-        return exc.request_id, "", None, P.error_reply(exc.request_id, exc.code, exc.message)
-    except ProtocolError as exc:
-        return rid, "", None, P.error_reply(rid, exc.code, exc.message)
+        return exc.request_id, "", None, P.reply_for(exc.request_id, exc)
+    except E.LikenessError as exc:
+        return rid, "", None, P.reply_for(rid, exc)
     except Exception as exc:
         log.exception("internal error decoding a request")
-        return rid, "", None, P.error_reply(rid, "internal", f"{type(exc).__name__}: {exc}")
+        return rid, "", None, P.reply_for(rid, exc)
 
 
 def main(spec: ServerSpec) -> None:
@@ -252,15 +252,15 @@ class Server:
         # refused, answered to the identity alone, never echoed.
         if not (len(frames) == 2 or (len(frames) == 3 and frames[1] == b"")):
             size = sum(len(f) for f in frames[1:])
-            self._reply(frames[:1], P.error_reply(None, "bad_request", f"a request is one frame; got "
-                                                  f"{len(frames) - 1} frames ({size} bytes)"))
+            self._reply(frames[:1], P.reply_for(None, E.BadRequest(f"a request is one frame; got "
+                                                                   f"{len(frames) - 1} frames ({size} bytes)")))
             return
         envelope, payload = frames[:-1], frames[-1]
         limit = self.cfg.api.max_message_bytes
         if len(payload) > limit:
             rid = M.request_id_of(payload)  # when it can be read cheaply
-            self._reply(envelope, P.error_reply(rid, "too_large",
-                                                f"request of {len(payload)} bytes exceeds {limit} bytes"))
+            too_large = E.TooLarge(f"request of {len(payload)} bytes exceeds {limit} bytes")
+            self._reply(envelope, P.reply_for(rid, too_large))
             return
         if len(payload) > self.spec.inline_bytes:  # decoded in the decoder process
             ipc.send(self.to_decoder, (next(self.tokens), envelope, payload, received))
@@ -277,14 +277,14 @@ class Server:
             token = next(self.tokens)
             cmd = to_command(req, token, self.channels, self.cfg.safety.safe_speed, received)
         except M.RequestError as exc:
-            self._reply(envelope, P.error_reply(exc.request_id, exc.code, exc.message))
+            self._reply(envelope, P.reply_for(exc.request_id, exc))
             return
-        except ProtocolError as exc:
-            self._reply(envelope, P.error_reply(rid, exc.code, exc.message))
+        except E.LikenessError as exc:
+            self._reply(envelope, P.reply_for(rid, exc))
             return
         except Exception as exc:  # a bug must never take the server down
             log.exception("internal error handling a request")
-            self._reply(envelope, P.error_reply(rid, "internal", f"{type(exc).__name__}: {exc}"))
+            self._reply(envelope, P.reply_for(rid, exc))
             return
         self.pending[token] = (envelope, rid, op, received)
         ipc.send(self.link, ("cmd", cmd))
@@ -373,8 +373,8 @@ class Server:
             body["t_recv"] = received  # when the request reached the daemon (its clock), for latency accounting
         try:
             body = self._format(op, body)
-        except ProtocolError as exc:
-            self._reply(envelope, P.error_reply(rid, exc.code, exc.message))
+        except E.LikenessError as exc:
+            self._reply(envelope, P.reply_for(rid, exc))
             return
         self._reply(envelope, {"id": rid, "ok": True, **body})
 
@@ -441,7 +441,8 @@ class Server:
     def _common(self, snap: dict[str, Any]) -> dict[str, Any]:
         return {"t": snap["t"], "lifecycle": snap["lifecycle"], "mode": snap["mode"],
                 "commanded": self._units(snap["commanded_si"]), "measured": self._units(snap["measured_si"]),
-                "buses": snap["buses"], "connected": snap["connected"], "feedback_age_s": snap["feedback_age"]}
+                "buses": snap["buses"], "connected": snap["connected"], "connection": snap.get("connection", {}),
+                "feedback_age_s": snap["feedback_age"]}
 
     def _state_message(self, snap: dict[str, Any]) -> dict[str, Any]:
         msg = self._common(snap)

@@ -4,7 +4,9 @@
 dynamixel`` (a pseudo-terminal) with ``sys.executable -m likeness.cli``, waits for its ``ready:`` line, and returns a
 :class:`SimProcess`: the bus options the real driver must use to reach it, ground truth in encoder counts by device
 id and fault injection, both over the emulator's ZeroMQ control endpoint. The emulator exits with this process
-(``--watch-parent``); a supervising thread logs its output and notices when it dies.
+(``--watch-parent``); a supervising thread logs its output and notices when it dies. :meth:`SimProcess.restart`
+brings a dead emulator back on the same socketcand port or pseudo-terminal link path, as a device server or a
+replugged adapter comes back, so the daemon's bus can reconnect to it.
 """
 
 from __future__ import annotations
@@ -67,6 +69,8 @@ class SimProcess:
         proc: subprocess.Popen[str],
         control: str,
         cleanup: Callable[[], None] | None = None,
+        command: Sequence[str] = (),
+        nice: int = 0,
     ) -> None:
         self.driver = driver
         self.bus_name = bus_name
@@ -74,6 +78,8 @@ class SimProcess:
         self.control = control
         self.ready_line: str | None = None
         self._proc = proc
+        self._command = list(command)
+        self._nice = nice
         self._cleanup = cleanup
         self._closing = False
         self._early: queue.SimpleQueue[str | None] = queue.SimpleQueue()
@@ -132,6 +138,25 @@ class SimProcess:
         with contextlib.suppress(ProcessLookupError):
             self._proc.kill()
         self._proc.wait()
+
+    def restart(self, timeout_s: float = READY_TIMEOUT_S) -> str:
+        """Start the emulator again after it died or was killed, reachable where it was before (same socketcand port,
+        same pseudo-terminal link path); its devices boot afresh at their initial positions. Returns the ready line;
+        RuntimeError while it still runs, BusInitError if it does not come up."""
+        if self.alive:
+            raise RuntimeError(f"emulator of bus {self.bus_name} is still running (pid {self.pid})")
+        if self._closing or not self._command:
+            raise RuntimeError(f"emulator of bus {self.bus_name} was closed; start a new one")
+        self._watch.join(timeout=1.0)
+        self._proc = _spawn(self._command, self.bus_name, self._nice)
+        self._early = queue.SimpleQueue()
+        self._watch = threading.Thread(target=self._supervise, name=f"sim-{self.bus_name}-watch", daemon=True)
+        self._watch.start()
+        line = self.wait_ready(timeout_s)
+        if self._nice:
+            _realtime(self._proc.pid, self.bus_name)
+        log.warning("emulator of bus %s restarted (pid %d): %s", self.bus_name, self.pid, line)
+        return line
 
     def close(self, timeout_s: float = 3.0) -> None:
         """Terminate the emulator (kill after ``timeout_s``) and remove what it left; idempotent, never raises."""
@@ -220,11 +245,29 @@ def start(
     link = os.path.join(tempfile.gettempdir(), f"likeness-{bus_name}-{os.getpid()}-{secrets.token_hex(6)}")
     args = _ARGS[driver](ids, start_at, control, link, dict(options))
     cmd = [sys.executable, "-m", "likeness.cli", "sim", *args, "--watch-parent"]
+    proc = _spawn(cmd, bus_name, nice)
+    sim = SimProcess(driver, bus_name, proc, control, lambda: _remove_link(link), cmd, nice)
+    try:
+        line = sim.wait_ready(ready_timeout_s)
+        if nice:
+            _realtime(proc.pid, bus_name)  # threads started before the first call
+        sim.options = _OPTIONS[driver](line, dict(options), link)
+        if "--port" in cmd:  # a restart listens where the driver already connects
+            sim._command[cmd.index("--port") + 1] = str(sim.options["port"])
+    except BaseException:
+        sim.close()
+        raise
+    log.info("emulator of bus %s running (pid %d): %s", bus_name, proc.pid, line)
+    return sim
+
+
+def _spawn(cmd: Sequence[str], bus_name: str, nice: int) -> subprocess.Popen[str]:
+    """Start one emulator process (output piped, unbuffered) and add ``nice`` to its niceness (best effort)."""
     env = dict(os.environ)
     env["PYTHONUNBUFFERED"] = "1"
     try:
         proc = subprocess.Popen(
-            cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, text=True, env=env,
+            list(cmd), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, text=True, env=env,
         )
     except OSError as exc:
         raise BusInitError(f"bus {bus_name}: cannot start emulator ({exc})") from exc
@@ -234,17 +277,7 @@ def start(
         except OSError as exc:
             log.debug("emulator of bus %s keeps its niceness (%s)", bus_name, exc)
         _realtime(proc.pid, bus_name)
-    sim = SimProcess(driver, bus_name, proc, control, lambda: _remove_link(link))
-    try:
-        line = sim.wait_ready(ready_timeout_s)
-        if nice:
-            _realtime(proc.pid, bus_name)  # threads started before the first call
-        sim.options = _OPTIONS[driver](line, dict(options), link)
-    except BaseException:
-        sim.close()
-        raise
-    log.info("emulator of bus %s running (pid %d): %s", bus_name, proc.pid, line)
-    return sim
+    return proc
 
 
 def _realtime(pid: int, bus_name: str) -> None:

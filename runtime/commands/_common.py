@@ -35,12 +35,51 @@ def connect(args: argparse.Namespace) -> Any:
         raise CliError(str(exc)) from exc
 
 
-def call(client: Any, op: str, **fields: Any) -> dict[str, Any]:
-    """One request; daemon errors and timeouts become CliError."""
+#: Exit status of a ``likeness`` command by kind of error, the one table from errors to exit codes (names resolved
+#: lazily so that ``likeness --help`` imports nothing). A kind not listed takes its nearest listed base's status.
+#: 2: the request, config or an asset is wrong; 3: hardware (a bus failed or the daemon could not start);
+#: 4: no daemon answered; 5: refused in the head's present state (inactive, fault, e-stop); 70: a bug.
+EXIT_STATUS: dict[str, int] = {
+    "models.errors.SpecError": 2,
+    "drivers.errors.ConfigError": 2,
+    "runtime.errors.ConfigError": 2,
+    "runtime.errors.BadRequest": 2,
+    "runtime.errors.BadValue": 2,
+    "runtime.errors.NotFound": 2,
+    "runtime.errors.TooLarge": 2,
+    "runtime.errors.HardwareError": 3,
+    "runtime.errors.StartError": 3,
+    "drivers.errors.BusError": 3,
+    "runtime.client.DaemonTimeout": 4,
+    "runtime.errors.BadState": 5,
+    "runtime.errors.InternalError": 70,
+}
+
+
+def exit_status(exc: BaseException) -> int:
+    """The exit status for ``exc`` from :data:`EXIT_STATUS` (2 for anything not listed)."""
+    for cls in type(exc).__mro__:
+        status = EXIT_STATUS.get(f"{cls.__module__}.{cls.__qualname__}")
+        if status is not None:
+            return status
+    return 2
+
+
+def cli_error(exc: BaseException, prefix: str = "") -> Exception:
+    """The :class:`likeness.cli.CliError` to raise for ``exc``: its one-line message and exit status. A daemon's
+    error reply counts as the typed error its code stands for."""
     from likeness.cli import CliError
+    from runtime.client import DaemonError
+
+    kind = exc.error if isinstance(exc, DaemonError) else exc
+    return CliError(f"{prefix}{exc}", exit_status(kind))
+
+
+def call(client: Any, op: str, **fields: Any) -> dict[str, Any]:
+    """One request; daemon errors and timeouts become CliError with the exit status of their kind."""
     from runtime.client import DaemonError, DaemonTimeout
 
     try:
         return client.call(op, **fields)
     except (DaemonError, DaemonTimeout) as exc:
-        raise CliError(str(exc)) from exc
+        raise cli_error(exc) from exc

@@ -54,16 +54,17 @@ def run(args: argparse.Namespace) -> int:
     import threading
 
     from drivers.errors import BusError
-    from likeness.cli import CliError
     from models.errors import SpecError
     from models.headspec import load_head
+    from runtime.commands._common import cli_error
     from runtime.daemon import Daemon, DaemonStartError
+    from runtime.errors import LikenessError
 
     try:
         head = load_head(args.config)
         daemon = Daemon(head, overrides_from_args(args))
-    except (SpecError, BusError) as exc:
-        raise CliError(str(exc)) from exc
+    except (SpecError, BusError, LikenessError) as exc:  # a config or asset error: one line, non-zero exit
+        raise cli_error(exc) from exc
     stop = threading.Event()
 
     def on_stop(signum: int, frame: object) -> None:
@@ -75,7 +76,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         daemon.start()
     except (BusError, DaemonStartError, OSError) as exc:
-        raise CliError(f"cannot start: {exc}") from exc
+        raise cli_error(exc if not isinstance(exc, OSError) else DaemonStartError(str(exc)), "cannot start: ") \
+            from exc
     old = {s: signal.signal(s, on_stop) for s in (signal.SIGINT, signal.SIGTERM)}
     old[signal.SIGUSR1] = signal.signal(signal.SIGUSR1, on_estop)
     try:

@@ -60,7 +60,10 @@ def run(args: argparse.Namespace) -> int:
         daemon = Daemon(head, overrides)
         daemon.start()
     except (SpecError, BusError, DaemonStartError, OSError) as exc:
-        raise CliError(f"cannot start the daemon: {exc}") from exc
+        from runtime.commands._common import cli_error
+
+        raise cli_error(exc if not isinstance(exc, OSError) else DaemonStartError(str(exc)),
+                        "cannot start the daemon: ") from exc
     recordings = []
     fault = None
     try:

@@ -26,10 +26,12 @@ from typing import Any
 import numpy as np
 
 from models.headspec import HeadSpec
+from runtime import errors as E
 from runtime.config import DaemonConfig
 from runtime.core import commands as C
 from runtime.core.channels import ChannelMap
 from runtime.core.stream import StreamBuffer
+from runtime.protocol import error_body
 from runtime.safety import VELOCITY_MARGIN, SafetyFilter
 from runtime.shaper import Shaper
 from runtime.timeline import Timeline
@@ -69,6 +71,9 @@ class BusInput:
     positions: np.ndarray
     stamp: float  # when the sample was taken (monotonic)
     faults: dict[str, tuple[int, str]] = field(default_factory=dict)
+    link: str = ""  # runtime.buslink.LINK_STATES ("" when the source does not say: taken from ``connected``)
+    attempts: int = 0  # reconnect attempts since the connection was lost
+    retry_at: float = float("inf")  # when the bus process tries to reconnect next (monotonic)
 
 
 @dataclass(frozen=True)
@@ -156,6 +161,8 @@ class CoreState:
     bus_connected: dict[str, bool]
     bus_faults: dict[str, dict[str, tuple[int, str]]]
     channel_values: np.ndarray  # scratch: this cycle's channel vector
+    bus_links: dict[str, dict[str, Any]] = field(default_factory=dict)  # connection state per bus, for telemetry
+    links_reported: dict[str, str] = field(default_factory=dict)  # the connection states already announced
     pose_target: np.ndarray | None = None
     pose_speed: float = 0.25
     transition: Transition | None = None
@@ -197,15 +204,6 @@ def _make_shaper(head: HeadSpec, period: float) -> Shaper:
     return shaper
 
 
-class CoreError(Exception):
-    """A command refused: becomes an error reply with a protocol code."""
-
-    def __init__(self, code: str, message: str) -> None:
-        super().__init__(message)
-        self.code = code
-        self.message = message
-
-
 # ====================================================================== the step
 def step(state: CoreState, params: CoreParams, inputs: CycleInputs) -> CycleOutputs:
     """Advance the core by one cycle at time ``inputs.t``; with ``inputs.between_cycles`` only take the commands
@@ -215,11 +213,12 @@ def step(state: CoreState, params: CoreParams, inputs: CycleInputs) -> CycleOutp
     out = CycleOutputs()
     t = inputs.t
     _read(state, params, inputs)
+    _link_events(state, params, out, t)
     _commands(state, params, inputs, out)
     for result in inputs.results:
         _bus_result(state, params, out, t, *result)
     _check_transition(state, params, out, t)
-    if state.lifecycle is Lifecycle.ACTIVE and state.transition is None:
+    if state.lifecycle in (Lifecycle.ACTIVE, Lifecycle.INACTIVE) and state.transition is None:
         _supervise(state, params, out, t)
     if state.lifecycle is Lifecycle.ACTIVE and state.transition is None:
         try:
@@ -261,11 +260,8 @@ def _commands(state: CoreState, params: CoreParams, inputs: CycleInputs, out: Cy
     for cmd in cmds:
         try:
             body = _HANDLERS[type(cmd)](state, params, out, t, cmd)
-        except CoreError as exc:
-            out.replies.append((cmd.token, {"error": {"code": exc.code, "message": exc.message}}))
-        except Exception as exc:  # a bug in one command: it is answered, the others still run
-            out.replies.append((cmd.token, {"error": {"code": "internal",
-                                                      "message": f"{type(exc).__name__}: {exc}"}}))
+        except Exception as exc:  # refused (a runtime.errors kind: its protocol code) or a bug (internal): answered,
+            out.replies.append((cmd.token, {"error": error_body(exc)}))  # and the other commands still run
         else:
             if body is not None:
                 out.replies.append((cmd.token, body))
@@ -279,19 +275,41 @@ def _read(state: CoreState, params: CoreParams, inputs: CycleInputs) -> None:
         state.bus_states[name] = bus.state
         state.bus_connected[name] = bus.connected
         state.bus_faults[name] = bus.faults
+        link = bus.link or ("connected" if bus.connected else "closed")
+        state.bus_links[name] = {"state": link, "attempts": bus.attempts,
+                                 "retry_in_s": max(0.0, bus.retry_at - inputs.t) if bus.retry_at < 1e300 else None}
+
+
+def _link_events(state: CoreState, params: CoreParams, out: CycleOutputs, t: float) -> None:
+    """A ``bus_link`` event whenever a bus's connection state changes (lost, reconnecting, connected)."""
+    for name, info in state.bus_links.items():
+        previous = state.links_reported.get(name)
+        if info["state"] != previous:
+            state.links_reported[name] = info["state"]
+            if previous is not None and previous != "closed":
+                _event(out, t, "bus_link", bus=name, state=info["state"], previous=previous,
+                       attempts=info["attempts"], retry_in_s=info["retry_in_s"])
 
 
 def _supervise(state: CoreState, params: CoreParams, out: CycleOutputs, t: float) -> None:
-    """Active only: every bus active and connected, feedback fresh."""
+    """Every bus connected (active and inactive heads: a lost bus faults, naming it); when active also every bus
+    active and feedback fresh."""
     for name, _ in params.buses:
-        if not state.bus_connected[name]:
-            _fault(state, params, out, t, "bus", f"bus {name}: connection lost", bus=name)
+        lost = state.bus_links.get(name, {}).get("state") in ("lost", "reconnecting")
+        if not state.bus_connected[name] and (lost or state.lifecycle is Lifecycle.ACTIVE):
+            why = "; ".join(m for _, m in state.bus_faults[name].values())
+            _fault(state, params, out, t, "bus", f"bus {name}: connection lost" + (f" ({why})" if why else ""),
+                   bus=name)
             return
+    if state.lifecycle is not Lifecycle.ACTIVE:
+        for name, _ in params.buses:  # a device fault on a bus with torque off (a lost heartbeat) faults the head too
+            if state.bus_states[name] == "fault":
+                _fault(state, params, out, t, "driver", f"bus {name}: {_fault_detail(state, name)}", bus=name)
+                return
+        return
+    for name, _ in params.buses:
         if state.bus_states[name] != "active":
-            faults = state.bus_faults[name]
-            detail = "; ".join(f"{d}: 0x{c:04X} {m}" for d, (c, m) in faults.items()) or \
-                f"bus state {state.bus_states[name]}"
-            _fault(state, params, out, t, "driver", f"bus {name}: {detail}", bus=name)
+            _fault(state, params, out, t, "driver", f"bus {name}: {_fault_detail(state, name)}", bus=name)
             return
     timeout = params.cfg.safety.feedback_timeout_s
     if t - state.enabled_at > timeout:
@@ -299,7 +317,15 @@ def _supervise(state: CoreState, params: CoreParams, out: CycleOutputs, t: float
         stale = np.flatnonzero(age > timeout)
         if stale.size:
             names = ", ".join(params.names[i] for i in stale[:6])
-            _fault(state, params, out, t, "timeout", f"no fresh feedback for {timeout:g} s from {names}")
+            buses = [b for b, idx in params.buses if np.isin(idx, stale).any()]
+            where = f"bus {buses[0]}: " if len(buses) == 1 else ""
+            _fault(state, params, out, t, "timeout", f"{where}no fresh feedback for {timeout:g} s from {names}",
+                   bus=buses[0] if len(buses) == 1 else None)
+
+
+def _fault_detail(state: CoreState, bus: str) -> str:
+    faults = state.bus_faults[bus]
+    return "; ".join(f"{d}: 0x{c:04X} {m}" for d, (c, m) in faults.items()) or f"bus state {state.bus_states[bus]}"
 
 
 def _shape(state: CoreState, x: np.ndarray, speed: float, hold: np.ndarray) -> np.ndarray:
@@ -434,11 +460,11 @@ def _torque_off(params: CoreParams, out: CycleOutputs, state: CoreState) -> None
             out.bus_requests.append((name, "disable"))
 
 
-def _fail_transition(state: CoreState, out: CycleOutputs, code: str, message: str) -> None:
+def _fail_transition(state: CoreState, out: CycleOutputs, exc: E.LikenessError) -> None:
     tr = state.transition
     state.transition = None
     if tr is not None and tr.token is not None:
-        out.replies.append((tr.token, {"error": {"code": code, "message": message}}))
+        out.replies.append((tr.token, {"error": error_body(exc)}))
 
 
 def _fault(state: CoreState, params: CoreParams, out: CycleOutputs, t: float, source: str, message: str,
@@ -448,7 +474,7 @@ def _fault(state: CoreState, params: CoreParams, out: CycleOutputs, t: float, so
         return
     faults = {f"{b}/{d}": [c, m] for b, fs in state.bus_faults.items() for d, (c, m) in fs.items()}
     state.fault_info = {"source": source, "message": message, "t": t, "bus": bus, "faults": faults}
-    _fail_transition(state, out, "fault", f"fault: {message}")
+    _fail_transition(state, out, E.Faulted(f"fault: {message}"))
     _stop_motion(state)
     _reset_solvers(state)
     _set_lifecycle(state, out, t, Lifecycle.FAULT)
@@ -461,7 +487,7 @@ def _estop(state: CoreState, params: CoreParams, out: CycleOutputs, t: float, re
     if state.lifecycle is Lifecycle.UNCONFIGURED:
         return
     state.estop_reason = reason
-    _fail_transition(state, out, "estop", f"e-stop: {reason}")
+    _fail_transition(state, out, E.EStopLatched(f"e-stop: {reason}"))
     _stop_motion(state)
     _reset_solvers(state)
     if state.lifecycle is not Lifecycle.ESTOP:
@@ -473,18 +499,18 @@ def _estop(state: CoreState, params: CoreParams, out: CycleOutputs, t: float, re
 
 def _require_ready(state: CoreState) -> None:
     if state.lifecycle is Lifecycle.ESTOP:
-        raise CoreError("estop", f"e-stop is latched ({state.estop_reason}); send reset")
+        raise E.EStopLatched(f"e-stop is latched ({state.estop_reason}); send reset")
     if state.lifecycle is Lifecycle.FAULT:
         msg = (state.fault_info or {}).get("message", "")
-        raise CoreError("fault", f"head is in FAULT ({msg}); send reset")
+        raise E.Faulted(f"head is in FAULT ({msg}); send reset")
     if state.transition is not None:
-        raise CoreError("bad_state", f"a {state.transition.op} is in progress")
+        raise E.BadState(f"a {state.transition.op} is in progress")
 
 
 def _require_active(state: CoreState, op: str) -> None:
     _require_ready(state)
     if state.lifecycle is not Lifecycle.ACTIVE:
-        raise CoreError("bad_state", f"{op} needs lifecycle active (is {state.lifecycle.value}); send enable")
+        raise E.BadState(f"{op} needs lifecycle active (is {state.lifecycle.value}); send enable")
 
 
 def _bus_result(state: CoreState, params: CoreParams, out: CycleOutputs, t: float, bus: str, op: str, ok: bool,
@@ -524,8 +550,8 @@ def _check_transition(state: CoreState, params: CoreParams, out: CycleOutputs, t
         if tr.failed:
             _torque_off(params, out, state)
             if tr.token is not None:
-                out.replies.append((tr.token, {"error": {"code": "hardware",
-                                                         "message": "enable failed: " + "; ".join(tr.failed)}}))
+                out.replies.append((tr.token, {"error": error_body(
+                    E.HardwareError("enable failed: " + "; ".join(tr.failed)))}))
             return
         q = np.where(np.isfinite(state.measured), state.measured, state.shaper.q)
         state.shaper.reset(np.clip(q, state.safety.lo, state.safety.hi))
@@ -538,8 +564,8 @@ def _check_transition(state: CoreState, params: CoreParams, out: CycleOutputs, t
     elif tr.op == "disable":
         if tr.token is not None:
             if tr.failed:
-                out.replies.append((tr.token, {"error": {"code": "hardware",
-                                                         "message": "disable failed: " + "; ".join(tr.failed)}}))
+                out.replies.append((tr.token, {"error": error_body(
+                    E.HardwareError("disable failed: " + "; ".join(tr.failed)))}))
             else:
                 out.replies.append((tr.token, {"lifecycle": state.lifecycle.value}))
     elif tr.op == "reset":
@@ -547,8 +573,8 @@ def _check_transition(state: CoreState, params: CoreParams, out: CycleOutputs, t
         if tr.failed or still:
             detail = "; ".join(tr.failed) or f"bus {', '.join(still)} still in FAULT"
             if tr.token is not None:
-                out.replies.append((tr.token, {"error": {"code": "hardware" if tr.failed else "fault",
-                                                         "message": f"reset failed: {detail}"}}))
+                kind = E.HardwareError if tr.failed else E.Faulted
+                out.replies.append((tr.token, {"error": error_body(kind(f"reset failed: {detail}"))}))
             return
         state.fault_info = None
         state.estop_reason = None
@@ -563,13 +589,13 @@ def _on_enable(state: CoreState, params: CoreParams, out: CycleOutputs, t: float
         return {"lifecycle": state.lifecycle.value}
     _require_ready(state)
     if state.lifecycle is not Lifecycle.INACTIVE:
-        raise CoreError("bad_state", f"enable needs lifecycle inactive (is {state.lifecycle.value})")
+        raise E.BadState(f"enable needs lifecycle inactive (is {state.lifecycle.value})")
     pending = set()
     for name, _ in params.buses:
         if not state.bus_connected[name]:
-            raise CoreError("hardware", f"enable failed: bus {name} is not connected")
+            raise E.HardwareError(f"enable failed: bus {name} is not connected")
         if state.bus_states[name] == "fault":
-            raise CoreError("fault", f"bus {name} is in FAULT; send reset")
+            raise E.Faulted(f"bus {name} is in FAULT; send reset")
         if state.bus_states[name] != "active":
             out.bus_requests.append((name, "enable"))
             pending.add(name)
@@ -580,7 +606,7 @@ def _on_enable(state: CoreState, params: CoreParams, out: CycleOutputs, t: float
 def _on_disable(state: CoreState, params: CoreParams, out: CycleOutputs, t: float, cmd: C.Disable) -> dict | None:
     _stop_motion(state)
     if state.transition is not None and state.transition.op == "enable":
-        _fail_transition(state, out, "bad_state", "enable cancelled by disable")
+        _fail_transition(state, out, E.BadState("enable cancelled by disable"))
     if state.lifecycle is Lifecycle.ACTIVE or any(s == "active" for s in state.bus_states.values()):
         pending = set()
         for name, _ in params.buses:
@@ -602,7 +628,7 @@ def _on_estop(state: CoreState, params: CoreParams, out: CycleOutputs, t: float,
 
 def _on_reset(state: CoreState, params: CoreParams, out: CycleOutputs, t: float, cmd: C.Reset) -> dict | None:
     if state.transition is not None:
-        _fail_transition(state, out, "bad_state", "cancelled by reset")
+        _fail_transition(state, out, E.BadState("cancelled by reset"))
     _stop_motion(state)
     _reset_solvers(state)
     pending = set()
@@ -641,12 +667,12 @@ def _on_load_clip(state: CoreState, params: CoreParams, out: CycleOutputs, t: fl
     budget = params.cfg.runtime.clip_memory_bytes
     used = state.clip_bytes - (old.nbytes if old is not None else 0)
     if used + clip.nbytes > budget:
-        raise CoreError("too_large", f"clip {clip.name!r} needs {clip.nbytes} bytes; {budget - used} of the "
+        raise E.TooLarge(f"clip {clip.name!r} needs {clip.nbytes} bytes; {budget - used} of the "
                         f"{budget}-byte clip budget left (unload_clip first)")
     try:
         state.timeline.load(clip)
     except ValueError as exc:
-        raise CoreError("too_large", str(exc)) from None
+        raise E.TooLarge(str(exc)) from None
     state.clip_bytes = used + clip.nbytes
     return {"clip": clip.name, "duration": clip.duration, "channels": list(clip.channel_names),
             "keys": cmd.key_count}
@@ -656,7 +682,7 @@ def _on_unload_clip(state: CoreState, params: CoreParams, out: CycleOutputs, t: 
     tl = state.timeline
     clip = tl.clips.get(cmd.name)
     if clip is None:
-        raise CoreError("not_found", f"no clip {cmd.name!r} loaded; loaded: {sorted(tl.clips)}")
+        raise E.NotFound(f"no clip {cmd.name!r} loaded; loaded: {sorted(tl.clips)}")
     if tl.playback is not None and tl.playback.clip is clip:
         _stop_motion(state)
     tl.unload(cmd.name)
@@ -667,9 +693,9 @@ def _on_unload_clip(state: CoreState, params: CoreParams, out: CycleOutputs, t: 
 def _on_play(state: CoreState, params: CoreParams, out: CycleOutputs, t: float, cmd: C.Play) -> dict:
     _require_active(state, "play")
     if cmd.name not in state.timeline.clips:
-        raise CoreError("not_found", f"no clip {cmd.name!r} loaded; loaded: {sorted(state.timeline.clips)}")
+        raise E.NotFound(f"no clip {cmd.name!r} loaded; loaded: {sorted(state.timeline.clips)}")
     if cmd.at is not None and not t - 3600 <= cmd.at <= t + 3600:
-        raise CoreError("bad_value", f"field 'at' must lie within an hour of the daemon clock ({t:.3f})")
+        raise E.BadValue(f"field 'at' must lie within an hour of the daemon clock ({t:.3f})")
     state.stream.clear()
     start = state.timeline.play(cmd.name, t, cmd.at, cmd.offset, cmd.speed, cmd.loop)
     state.clip_done_reported = False
@@ -687,7 +713,7 @@ def _on_pause(state: CoreState, params: CoreParams, out: CycleOutputs, t: float,
 def _on_resume(state: CoreState, params: CoreParams, out: CycleOutputs, t: float, cmd: C.Resume) -> dict:
     _require_active(state, "resume")
     if state.timeline.playback is None:
-        raise CoreError("bad_state", "nothing to resume: no clip is playing")
+        raise E.BadState("nothing to resume: no clip is playing")
     state.timeline.resume(t)
     _set_mode(state, Mode.CLIP)
     return {"timeline": state.timeline.describe(t)}
@@ -701,7 +727,7 @@ def _on_stop(state: CoreState, params: CoreParams, out: CycleOutputs, t: float, 
 def _on_seek(state: CoreState, params: CoreParams, out: CycleOutputs, t: float, cmd: C.Seek) -> dict:
     _require_active(state, "seek")
     if state.timeline.playback is None:
-        raise CoreError("bad_state", "nothing to seek: no clip is playing")
+        raise E.BadState("nothing to seek: no clip is playing")
     state.timeline.seek(t, cmd.time)
     return {"timeline": state.timeline.describe(t)}
 
@@ -740,7 +766,7 @@ def _on_pose(state: CoreState, params: CoreParams, out: CycleOutputs, t: float, 
 def _on_record(state: CoreState, params: CoreParams, out: CycleOutputs, t: float, cmd: C.Record) -> dict:
     if cmd.action == "start":
         if state.recording is not None:
-            raise CoreError("bad_state", f"already recording {state.recording!r}")
+            raise E.BadState(f"already recording {state.recording!r}")
         n = len(params.names)
         if state.record_rows is None:
             # rows are handed out every telemetry period, so a few periods of rows is all the core ever holds
@@ -751,7 +777,7 @@ def _on_record(state: CoreState, params: CoreParams, out: CycleOutputs, t: float
         _event(out, t, "record", state="started", name=cmd.name)
         return {"recording": cmd.name}
     if state.recording is None:
-        raise CoreError("bad_state", "not recording")
+        raise E.BadState("not recording")
     name, state.recording = state.recording, None
     _flush_record(state, out)
     _event(out, t, "record", state="stopped", name=name, samples=state.record_total)
@@ -800,6 +826,7 @@ def _snapshot(state: CoreState, params: CoreParams, t: float) -> dict[str, Any]:
         "t": t, "lifecycle": state.lifecycle.value, "mode": state.mode.value,
         "commanded_si": state.shaper.q.copy(), "measured_si": state.measured.copy(),
         "buses": dict(state.bus_states), "connected": dict(state.bus_connected),
+        "connection": {name: dict(info) for name, info in state.bus_links.items()},
         "guard": {"verdict": state.guard_verdict, "refused": state.guard_refused},
         "feedback_age": {name: float(t - state.stamps[idx].max()) if idx.size else 0.0
                          for name, idx in params.buses},

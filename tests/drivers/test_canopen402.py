@@ -349,7 +349,7 @@ def test_sample_head_can_bus_in_process():
                            max_velocity=a.max_velocity)
         for a in actuators
     ]
-    options = {**spec.options, "channel": f"test-sample-{uuid.uuid4().hex[:8]}"}
+    options = {**spec.driver_options(), "channel": f"test-sample-{uuid.uuid4().hex[:8]}"}
     with DriveSet([a.device_id for a in actuators], channel=options["channel"]) as ds:
         bus = create_bus(spec.driver, "can0", options, motors)
         try:

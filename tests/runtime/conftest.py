@@ -61,3 +61,19 @@ def wait_until(predicate: Callable[[], Any], timeout: float, interval: float = 0
         if value or time.monotonic() > end:
             return value
         time.sleep(interval)
+
+
+def enable_retrying(client: Any, tries: int = 3) -> None:
+    """Enable the head; an emulator starved of CPU on a loaded host can miss a heartbeat or a reply window on the
+    way up (a fault), so reset and try again. For tests whose subject comes after the enable."""
+    from runtime.client import DaemonError
+
+    for attempt in range(tries):
+        try:
+            client.call("enable", timeout=30)
+            return
+        except DaemonError:
+            if attempt == tries - 1:
+                raise
+            time.sleep(1.0)
+            client.request("reset", timeout=30)

@@ -190,7 +190,8 @@ def _single_link(head: HeadSpec, bus: str) -> tuple[BusLink, object]:
 
     acts = head.actuators_on(bus)
     motors = [motor_config(a) for a in acts]
-    sim = simhw.start(head.buses[bus].driver, bus, head.buses[bus].options, motors, {a.name: a.neutral for a in acts})
+    sim = simhw.start(head.buses[bus].driver, bus, head.buses[bus].driver_options(), motors,
+                      {a.name: a.neutral for a in acts})
     link = BusLink(head.buses[bus].driver, bus, sim.options, motors, open_attempts=3)
     try:
         link.start(60)
@@ -294,7 +295,7 @@ def test_emulator_processes_start_at_the_given_pose_and_report_ground_truth(head
     acts = head.actuators_on(bus)
     motors = [motor_config(a) for a in acts]
     initial = {a.name: (3 + i) * DEG for i, a in enumerate(acts)}
-    sim = simhw.start(head.buses[bus].driver, bus, head.buses[bus].options, motors, initial)
+    sim = simhw.start(head.buses[bus].driver, bus, head.buses[bus].driver_options(), motors, initial)
     try:
         assert sim.alive
         counts = sim.positions_counts()

@@ -172,6 +172,7 @@ def test_stale_feedback_faults() -> None:
                                               stale if b == "can0" else rig.t) for b, idx in rig.params.buses)
     rig.run(rig.cfg.safety.feedback_timeout_s + 0.05)
     assert rig.state.lifecycle is K.Lifecycle.FAULT and rig.state.fault_info["source"] == "timeout"
+    assert rig.state.fault_info["bus"] == "can0" and rig.state.fault_info["message"].startswith("bus can0: ")
 
 
 def test_stream_watchdog_holds_then_eases_to_neutral() -> None:

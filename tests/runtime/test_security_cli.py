@@ -105,7 +105,7 @@ def test_daemon_process_status_stream_estop_and_sigterm(tmp_path: Path) -> None:
 def test_status_against_no_daemon_is_a_clear_error() -> None:
     out = subprocess.run([PY, "-m", "likeness", "status", "--endpoint", "tcp://127.0.0.1:9", "--timeout", "0.3"],
                          capture_output=True, text=True, timeout=60, env=_env())
-    assert out.returncode == 2 and "no reply from tcp://127.0.0.1:9" in out.stderr
+    assert out.returncode == 4 and "no reply from tcp://127.0.0.1:9" in out.stderr  # 4: no daemon answered
 
 
 def test_plot_command(tmp_path: Path, capsys) -> None:
