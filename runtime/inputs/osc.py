@@ -120,11 +120,7 @@ class OscInput:
         for msg in messages:
             self.messages += 1
             address = msg.address
-            try:
-                idx, control = self.map.resolve(address)
-            except KeyError as exc:
-                self.refusals.refuse("unknown channel", f"{address} → {exc.args[0]!r} (from {client[0]})")
-                return
+            idx, control = self.map.resolve(address)
             if control is not None:
                 self._control(control, msg.params, client, received)
                 continue

@@ -1,18 +1,18 @@
 """OSC addresses → channels (``[inputs.osc.map]``) and control addresses, matched by python-osc's dispatcher.
 
 ``"/face/jaw" = "jaw"`` maps one address; ``"/face/arkit/*" = "arkit.*"`` maps every address under ``/face/arkit/``
-to the channel named by what the ``*`` matched (``/face/arkit/jawOpen`` → ``arkit.jawOpen``). Incoming address
-patterns (``/face/{jaw,brow_l}``) reach every mapped address they match, as OSC specifies.
+to the channel named by what the ``*`` stands for (``/face/arkit/jawOpen`` → ``arkit.jawOpen``): such an entry is
+expanded once into one address per channel of the head it can name. Incoming address patterns
+(``/face/brow/{l,r}``, ``/face/*``) then reach every mapped address they match, as OSC specifies.
 """
 
 from __future__ import annotations
 
-import re
 from collections.abc import Sequence
 
 from pythonosc.dispatcher import Dispatcher
 
-from runtime.core.channels import ChannelMap, UnknownChannel
+from runtime.core.channels import ChannelMap
 
 CONTROL_OPS = ("enable", "disable", "play", "stop", "estop")
 
@@ -21,39 +21,40 @@ def _noop(*_: object) -> None:
     """Handlers are looked up, never invoked: the input applies a packet's messages together."""
 
 
+def expand(pairs: Sequence[tuple[str, str]], names: Sequence[str]) -> list[tuple[str, str]]:
+    """Concrete (address, channel) pairs: an entry with a ``*`` gives one pair per channel its pattern names."""
+    out = []
+    for address, channel in pairs:
+        if "*" not in channel:
+            out.append((address, channel))
+            continue
+        prefix, _, suffix = channel.partition("*")
+        for name in names:
+            if name.startswith(prefix) and name.endswith(suffix) and len(name) > len(prefix) + len(suffix):
+                part = name[len(prefix):len(name) - len(suffix)]
+                if "/" not in part:
+                    out.append((address.replace("*", part, 1), name))
+    return out
+
+
 class OscMap:
-    """Resolves an incoming address to channel indices or a control operation."""
+    """Resolves an incoming address (or address pattern) to channel indices or a control operation."""
 
     def __init__(self, pairs: Sequence[tuple[str, str]], channels: ChannelMap, control_prefix: str) -> None:
-        self.channels = channels
         self.dispatcher = Dispatcher(strict_timing=False)
-        for pattern, template in pairs:
-            capture = None
-            if "*" in pattern:
-                capture = re.compile("^" + "([^/]*)".join(re.escape(p) for p in pattern.split("*", 1)).replace(
-                    re.escape("*"), "[^/]*") + "$")
-            self.dispatcher.map(pattern, _noop, "channel", template, capture)
+        for address, channel in expand(pairs, channels.names):
+            self.dispatcher.map(address, _noop, "channel", channels.index_of(channel))
         for op in CONTROL_OPS:
-            self.dispatcher.map(f"{control_prefix}/{op}", _noop, "control", op, None)
+            self.dispatcher.map(f"{control_prefix}/{op}", _noop, "control", op)
 
     def resolve(self, address: str) -> tuple[list[int], str | None]:
-        """(channel indices, control op or None) the address reaches; ([], None) when it reaches nothing.
-        :class:`KeyError` naming the channel when a wildcard maps to a channel the head does not have."""
+        """(channel indices, control op or None) the address reaches; ([], None) when it reaches nothing."""
         indices: list[int] = []
         control = None
         for handler in self.dispatcher.handlers_for_address(address):
-            kind, value, capture = handler.args
+            kind, value = handler.args
             if kind == "control":
                 control = value
-                continue
-            name = value
-            if capture is not None:
-                m = capture.match(address)
-                if m is None:
-                    continue
-                name = value.replace("*", m.group(1), 1)
-            try:
-                indices.append(self.channels.index_of(name))
-            except UnknownChannel:
-                raise KeyError(name) from None
+            else:
+                indices.append(value)
         return indices, control
