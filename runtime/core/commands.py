@@ -116,6 +116,7 @@ class Live(Command):
     at: float | None = None
     received: float | None = None
     takeover: bool = True  # False: keeps an active live source alive without taking over (sACN repeats)
+    watchdog_s: float | None = None  # silence before the watchdog holds (None: [safety] watchdog_hold_s)
 
 
 @dataclass(frozen=True)

@@ -364,12 +364,15 @@ def _sources(state: CoreState, params: CoreParams, out: CycleOutputs, t: float) 
         live = mode is Mode.LIVE
         buffer: Any = state.live if live else state.stream
         age = buffer.starved_for(t)
-        if age > sf.watchdog_neutral_s:
+        hold_s = sf.watchdog_hold_s
+        if live and state.live is not None and state.live.watchdog_s is not None:
+            hold_s = state.live.watchdog_s  # the input's own loss time (sACN: E1.31 data loss)
+        if age > hold_s + (sf.watchdog_neutral_s - sf.watchdog_hold_s):
             out.events.append({"event": "watchdog", "t": t, "stage": "neutral", "age": age, "source": state.source})
             _set_mode(state, Mode.NEUTRAL)
             buffer.clear()
             return state.safety.neutral.copy(), sf.safe_speed
-        if age > sf.watchdog_hold_s:
+        if age > hold_s:
             if state.watchdog_stage != "hold":
                 state.watchdog_stage = "hold"
                 out.events.append({"event": "watchdog", "t": t, "stage": "hold", "age": age, "source": state.source})
@@ -777,7 +780,7 @@ def _on_live(state: CoreState, params: CoreParams, out: CycleOutputs, t: float, 
     if cmd.at is not None and cmd.at > arrival + params.cfg.runtime.stream_max_ahead_s:
         raise CoreError("bad_value", f"time tag {cmd.at - arrival:.3f} s ahead; at most "
                         f"{params.cfg.runtime.stream_max_ahead_s:g} s")
-    if not live.push(arrival, cmd.channels, cmd.values, cmd.at):
+    if not live.push(arrival, cmd.channels, cmd.values, cmd.at, cmd.watchdog_s):
         raise CoreError("too_large", "too many timed updates waiting")
     return {"t": t}
 

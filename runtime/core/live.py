@@ -22,6 +22,7 @@ class LiveValues:
         self.pending: list[tuple[float, int, np.ndarray, np.ndarray]] = []  # (at, seq, channels, values), by time
         self.last_arrival: float | None = None
         self.source: str | None = None
+        self.watchdog_s: float | None = None  # the source's own silence before the watchdog holds
         self.updates = 0
         self.refused = 0
         self._seq = 0
@@ -32,11 +33,14 @@ class LiveValues:
         self.pending.clear()
         self.last_arrival = None
         self.source = source
+        self.watchdog_s = None
 
-    def push(self, now: float, channels: np.ndarray, values: np.ndarray, at: float | None = None) -> bool:
+    def push(self, now: float, channels: np.ndarray, values: np.ndarray, at: float | None = None,
+             watchdog_s: float | None = None) -> bool:
         """Set ``channels`` to ``values`` now, or at daemon time ``at`` when that is later; False when too many
         timed updates are already waiting (the update is refused)."""
         self.last_arrival = now
+        self.watchdog_s = watchdog_s
         if at is None or at <= now:
             self.values[channels] = values
             self.updates += 1

@@ -140,7 +140,8 @@ class OscInput:
         if not indices:
             return
         at = None if when <= wall else received + (when - wall)  # the timetag on the daemon clock
-        self.emit(C.Live(0, "osc", np.array(indices, dtype=np.intp), np.array(values), at, received))
+        self.emit(C.Live(0, "osc", np.array(indices, dtype=np.intp), np.array(values), at, received,
+                         watchdog_s=None if self.cfg.watchdog else math.inf))
 
     def _control(self, op: str, params: list[Any], client: tuple[str, int], received: float) -> None:
         if client[0] not in self.cfg.control_allow:

@@ -6,8 +6,10 @@ receiver socket plugged into its socket interface, bound exactly where the confi
 priority and one sequence per universe, not per source, so the merge of several sources is
 :class:`runtime.inputs.dmx.Merger` (highest priority, then HTP or LTP). Every packet that changes the merged values
 becomes a live command; one that repeats them keeps the input alive (the watchdog) without taking the head over
-from another source; a new source takes over. A silent source leaves the merge after ``source_timeout_s``; when all
-are silent the stream watchdog holds, then eases to neutral.
+from another source; a new source takes over. A silent source leaves the merge after ``source_timeout_s`` (E1.31's
+network data loss, 2.5 s: a source may repeat unchanged data only once a second); when all are silent that long, the
+stream watchdog holds, and eases to neutral as it would for a lost stream (``[safety] watchdog_neutral_s -
+watchdog_hold_s`` later).
 """
 
 from __future__ import annotations
@@ -166,4 +168,5 @@ class SacnInput(ReceiverSocketListener):
         values = self.decoder.decode(merged)
         changed = self.last is None or not np.array_equal(values, self.last)
         self.last = values
-        self.emit(C.Live(0, "sacn", self.indices, values, None, received, takeover=takeover or changed or force))
+        self.emit(C.Live(0, "sacn", self.indices, values, None, received, takeover=takeover or changed or force,
+                         watchdog_s=self.cfg.source_timeout_s))

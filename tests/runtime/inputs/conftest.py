@@ -1,0 +1,69 @@
+"""A daemon on the sample head's emulated buses with show-control inputs from an ``[inputs]`` fragment."""
+
+from __future__ import annotations
+
+import random
+import threading
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from tests.runtime.conftest import SAMPLE, daemon_overrides
+
+
+def loopback_address() -> str:
+    """A random loopback address other than 127.0.0.1 (sACN's port is fixed: each receiver gets its own address)."""
+    return f"127.{random.randint(1, 254)}.{random.randint(1, 254)}.{random.randint(1, 254)}"
+
+
+@pytest.fixture
+def inputs_daemon(tmp_path: Path) -> Iterator[Callable[..., Any]]:
+    """Start a daemon whose head has the ``[inputs]`` of ``fragment`` (TOML text); stopped afterwards."""
+    from models.headspec import load_head
+    from runtime.daemon import Daemon
+    from runtime.inputs.headfile import head_with_inputs
+
+    made: list[Daemon] = []
+
+    def make(fragment: str, target_solvers: tuple | None = (), **extra: Any) -> Daemon:
+        frag = tmp_path / "inputs.toml"
+        frag.write_text(fragment)
+        head = head_with_inputs(SAMPLE, frag, tmp_path / "head" / "head.toml")
+        overrides = daemon_overrides(tmp_path, **{k.replace("__", "."): v for k, v in extra.items()})
+        daemon = Daemon(load_head(head), overrides, target_solvers=target_solvers)
+        made.append(daemon)
+        daemon.start()
+        return daemon
+
+    yield make
+    for daemon in made:
+        daemon.stop()
+
+
+class Events:
+    """Telemetry events collected on a thread while a test runs."""
+
+    def __init__(self, endpoint: str) -> None:
+        from runtime.client import Telemetry
+
+        self.items: list[dict[str, Any]] = []
+        self._tel = Telemetry(endpoint, topics=(b"event",))
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            got = self._tel.recv(0.2)
+            if got is not None:
+                self.items.append(got[1])
+
+    def of(self, kind: str, **match: Any) -> list[dict[str, Any]]:
+        return [e for e in list(self.items) if e["event"] == kind and all(e.get(k) == v for k, v in match.items())]
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(2.0)
+        self._tel.close()
