@@ -57,17 +57,23 @@ class BoundReceiverSocket(ReceiverSocketBase):
         self._thread.start()
 
     def _loop(self) -> None:
+        import select
+
         while self._run:
-            self._listener.on_periodic_callback(time.monotonic())
             try:
                 data = self._socket.recv(2048)
             except TimeoutError:
-                continue
+                data = None
             except OSError:
                 if self._run:
                     log.exception("sACN receive failed")
                 return
-            self._listener.on_data(data, time.monotonic())
+            if data is not None:
+                self._listener.on_data(data, time.monotonic())
+            # Timeouts are judged only with nothing left to read: a thread that was kept waiting must not find its
+            # sources silent while their packets queue in the socket.
+            if not select.select([self._socket], [], [], 0)[0]:
+                self._listener.on_periodic_callback(time.monotonic())
 
     def stop(self) -> None:
         self._run = False
