@@ -163,10 +163,12 @@ class SacnInput(ReceiverSocketListener):
             if gone:
                 log.warning("sACN source %s silent for %g s: left the merge", ", ".join(map(repr, gone)),
                             self.cfg.source_timeout_s)
-                if self.merger.sources:
-                    self._send(current_time, takeover=False, force=True)
+                if self.merger.sources:  # the merge falls back to the sources left; no new activity: no takeover
+                    self._send(current_time, takeover=False, follow=False)
 
-    def _send(self, received: float, takeover: bool, force: bool = False) -> None:
+    def _send(self, received: float, takeover: bool, follow: bool = True) -> None:
+        """Emit the merged values; they take the head over when a source is new (``takeover``) or, with ``follow``,
+        when they changed."""
         merged = self.merger.merged()
         if merged is None:
             self.last = None
@@ -174,5 +176,5 @@ class SacnInput(ReceiverSocketListener):
         values = self.decoder.decode(merged)
         changed = self.last is None or not np.array_equal(values, self.last)
         self.last = values
-        self.emit(C.Live(0, "sacn", self.indices, values, None, received, takeover=takeover or changed or force,
+        self.emit(C.Live(0, "sacn", self.indices, values, None, received, takeover=takeover or (follow and changed),
                          watchdog_s=self.cfg.source_timeout_s))

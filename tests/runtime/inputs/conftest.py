@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import random
 import threading
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -11,6 +12,43 @@ from typing import Any
 import pytest
 
 from tests.runtime.conftest import SAMPLE, daemon_overrides
+
+#: The emulated buses' patience, raised: these tests are about the inputs, and a loaded host stalls the emulators'
+#: processes for seconds at a time (a lost heartbeat or a missed read would fault the head mid-test).
+PATIENT = (("heartbeat_timeout_s = 1.0", "heartbeat_timeout_s = 5.0"), ("sdo_timeout_s = 1.0", "sdo_timeout_s = 5.0"),
+           ("max_consecutive_failures = 20", "max_consecutive_failures = 500"),
+           ("feedback_timeout_s = 1.0", "feedback_timeout_s = 5.0"), ("retries = 8", "retries = 10"))
+
+
+def enable(c: Any, tries: int = 3) -> None:
+    """Enable the head, resetting a bus fault an emulator stalled by a loaded host caused (a few tries)."""
+    from runtime.client import DaemonError
+
+    for k in range(tries):
+        s = c.call("status")
+        if s["lifecycle"] in ("fault", "estop") or "fault" in s["buses"].values():
+            c.call("reset")
+        try:
+            c.call("enable")
+            return
+        except DaemonError:
+            if k == tries - 1:
+                raise
+            time.sleep(1.0)
+
+
+def show_head(tmp: Path, fragment: str) -> Path:
+    """The sample head with the ``[inputs]`` of ``fragment`` (TOML text) and patient emulated buses, under ``tmp``."""
+    from runtime.inputs.headfile import head_with_inputs
+
+    frag = tmp / "inputs.toml"
+    frag.write_text(fragment)
+    head = head_with_inputs(SAMPLE, frag, tmp / "head" / "head.toml")
+    text = head.read_text()
+    for old, new in PATIENT:
+        text = text.replace(old, new)
+    head.write_text(text)
+    return head
 
 
 def loopback_address() -> str:
@@ -23,14 +61,11 @@ def inputs_daemon(tmp_path: Path) -> Iterator[Callable[..., Any]]:
     """Start a daemon whose head has the ``[inputs]`` of ``fragment`` (TOML text); stopped afterwards."""
     from models.headspec import load_head
     from runtime.daemon import Daemon
-    from runtime.inputs.headfile import head_with_inputs
 
     made: list[Daemon] = []
 
     def make(fragment: str, target_solvers: tuple | None = (), **extra: Any) -> Daemon:
-        frag = tmp_path / "inputs.toml"
-        frag.write_text(fragment)
-        head = head_with_inputs(SAMPLE, frag, tmp_path / "head" / "head.toml")
+        head = show_head(tmp_path, fragment)
         overrides = daemon_overrides(tmp_path, **{k.replace("__", "."): v for k, v in extra.items()})
         daemon = Daemon(load_head(head), overrides, target_solvers=target_solvers)
         made.append(daemon)

@@ -14,8 +14,8 @@ from typing import Any
 import pytest
 
 from runtime.client import Client, Telemetry
-from tests.runtime.conftest import ROOT, SAMPLE, daemon_overrides, wait_until
-from tests.runtime.inputs.conftest import Events, loopback_address
+from tests.runtime.conftest import ROOT, daemon_overrides, wait_until
+from tests.runtime.inputs.conftest import Events, enable, loopback_address, show_head
 
 EXAMPLES = ROOT / "examples" / "show_control"
 
@@ -32,13 +32,11 @@ def _fragment(sacn_ip: str) -> str:
 def example_daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
     from models.headspec import load_head
     from runtime.daemon import Daemon
-    from runtime.inputs.headfile import head_with_inputs
 
     tmp = tmp_path_factory.mktemp("examples")
-    frag = tmp / "inputs.toml"
-    frag.write_text(_fragment(loopback_address()))
-    head = head_with_inputs(SAMPLE, frag, tmp / "head" / "head.toml")
-    overrides = daemon_overrides(tmp, **{"safety.watchdog_hold_s": 1.0, "safety.watchdog_neutral_s": 3.0})
+    head = show_head(tmp, _fragment(loopback_address()))
+    overrides = daemon_overrides(tmp, **{"safety.watchdog_hold_s": 1.0, "safety.watchdog_neutral_s": 3.0,
+                                             "safety.feedback_timeout_s": 5.0})
     daemon = Daemon(load_head(head), overrides, target_solvers=None)  # the head's skin solver: arkit.* channels
     daemon.start()
     try:
@@ -86,7 +84,7 @@ def test_sacn_console_example_moves_the_head_then_the_watchdog_takes_over(exampl
     d = example_daemon
     with Client(d.command_endpoint, timeout=10) as c, Telemetry(d.telemetry_endpoint, topics=(b"state",)) as tel:
         dest = c.call("hello")["inputs"]["sacn"]["bind"].rsplit(":", 1)[0]
-        c.call("enable")
+        enable(c)
         events = Events(d.telemetry_endpoint)
         try:
             th = threading.Thread(target=_run, args=("sacn_console.py", "--dest", dest, "--seconds", "4"))

@@ -3,6 +3,7 @@ sample head's emulated buses. Waits are generous (the host may be a loaded two-c
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 from collections.abc import Iterator
@@ -12,7 +13,7 @@ import pytest
 
 from runtime.client import Client
 from tests.runtime.conftest import wait_until
-from tests.runtime.inputs.conftest import Events, loopback_address
+from tests.runtime.inputs.conftest import Events, enable, loopback_address, show_head
 
 FRAGMENT = """
 [inputs.osc]
@@ -51,15 +52,13 @@ def show(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
     """One daemon with all three inputs (tests leave it inactive)."""
     from models.headspec import load_head
     from runtime.daemon import Daemon
-    from runtime.inputs.headfile import head_with_inputs
-    from tests.runtime.conftest import SAMPLE, daemon_overrides
+    from tests.runtime.conftest import daemon_overrides
 
     tmp = tmp_path_factory.mktemp("show")
-    frag = tmp / "inputs.toml"
-    frag.write_text(FRAGMENT.replace("{sacn}", loopback_address()))
-    head = head_with_inputs(SAMPLE, frag, tmp / "head" / "head.toml")
+    head = show_head(tmp, FRAGMENT.replace("{sacn}", loopback_address()))
     # The OSC input uses the stream watchdog's times: generous here, so a stalled loaded host never trips it.
-    overrides = daemon_overrides(tmp, **{"safety.watchdog_hold_s": 1.0, "safety.watchdog_neutral_s": 3.0})
+    overrides = daemon_overrides(tmp, **{"safety.watchdog_hold_s": 1.0, "safety.watchdog_neutral_s": 3.0,
+                                             "safety.feedback_timeout_s": 5.0})
     daemon = Daemon(load_head(head), overrides, target_solvers=())
     daemon.start()
     try:
@@ -76,6 +75,25 @@ def _near(c: Client, **want: float) -> dict | None:
     s = _status(c)
     ok = all(abs(s["commanded"][k] - v) < 0.05 for k, v in want.items())
     return s if ok else None
+
+
+def _brief(c: Client) -> str:
+    """The parts of ``status`` an assertion message needs."""
+    s = _status(c)
+    keys = ("lifecycle", "mode", "source", "fault", "guard", "live", "clock", "timeline", "inputs")
+    commanded = {k: round(v, 3) for k, v in s["commanded"].items() if k in ("jaw", "brow_l", "brow_r")}
+    return repr({k: s.get(k) for k in keys} | {"commanded": commanded})
+
+
+def _settled_updates(c: Client) -> int:
+    """The live input's update count once it has stopped changing (packets still in flight have landed)."""
+    last = -1
+    while True:
+        time.sleep(0.3)
+        n = _status(c)["live"]["updates"]
+        if n == last:
+            return n
+        last = n
 
 
 def _inactive(c: Client) -> None:
@@ -97,7 +115,8 @@ class Repeat:
 
     def _run(self, period: float) -> None:
         while not self._stop.wait(period):
-            self.send()
+            with contextlib.suppress(OSError):  # a full socket buffer on a loaded host: the next one goes
+                self.send()
 
     def close(self) -> None:
         self._stop.set()
@@ -114,6 +133,7 @@ def test_osc_messages_and_bundles_move_the_head(show) -> None:
         hello = c.call("hello")
         host, port = hello["inputs"]["osc"]["udp"].rsplit(":", 1)
         osc = SimpleUDPClient(host, int(port))
+        _inactive(c)
         osc.send_message("/likeness/enable", [])  # a control address, allowed for 127.0.0.1
         assert wait_until(lambda: _status(c)["lifecycle"] == "active", 30.0)
         rep = Repeat(lambda: osc.send_message("/face/jaw", 6.0))
@@ -131,10 +151,10 @@ def test_osc_messages_and_bundles_move_the_head(show) -> None:
                 b.add_content(m.build())
             return b.build()
 
-        before = _status(c)["live"]["updates"]
+        before = _settled_updates(c)
         osc.send(bundle(2.0, 7.5))
         s = wait_until(lambda: _near(c, jaw=2.0, brow_l=7.5, brow_r=7.5), 15.0)
-        assert s, _status(c)
+        assert s, _brief(c)
         assert s["live"]["updates"] == before + 1  # three messages, one update: applied together
         refused = s["inputs"]["osc"]["refused"]
         osc.send_message("/face/nose", 1.0)  # unmapped: refused and counted, nothing moves
@@ -173,28 +193,30 @@ def _set(sender: Any, jaw: float, brow: float) -> None:
 def test_sacn_sources_merge_by_priority_then_htp_and_silence_trips_the_watchdog(show) -> None:
     with Client(show.command_endpoint, timeout=10) as c:
         dest = c.call("hello")["inputs"]["sacn"]["bind"].rsplit(":", 1)[0]
-        c.call("enable")
+        _inactive(c)  # whatever an earlier test left
+        enable(c)
         events = Events(show.telemetry_endpoint)
-        a = _sender("console A", dest, 100, jaw=5.0, brow=20.0)
-        b = _sender("console B", dest, 100, jaw=15.0, brow=10.0)
+        # (small moves: the skin-strain guard lets them through whole)
+        a = _sender("console A", dest, 100, jaw=2.0, brow=3.0)
+        b = _sender("console B", dest, 100, jaw=4.0, brow=1.5)
         try:
             # the same priority: the highest value of each slot (HTP)
-            s = wait_until(lambda: _near(c, jaw=15.0, brow_r=20.0), 20.0)
-            assert s and s["mode"] == "live" and s["source"] == "sacn", _status(c)
+            s = wait_until(lambda: _near(c, jaw=4.0, brow_r=3.0), 20.0)
+            assert s and s["mode"] == "live" and s["source"] == "sacn", _brief(c)
             assert len(s["inputs"]["sacn"]["sources"]) == 2
             # a higher priority: that source alone
             b[3].priority = 150
-            _set(b, jaw=12.0, brow=10.0)
-            assert wait_until(lambda: _near(c, jaw=12.0, brow_r=10.0), 20.0), _status(c)
+            _set(b, jaw=3.0, brow=1.0)
+            assert wait_until(lambda: _near(c, jaw=3.0, brow_r=1.0), 20.0), _brief(c)
             # B falls silent: after E1.31's data loss time A, still sending, takes over
             b.stop()
-            assert wait_until(lambda: _near(c, jaw=5.0, brow_r=20.0), 20.0), _status(c)
+            assert wait_until(lambda: _near(c, jaw=2.0, brow_r=3.0), 20.0), _brief(c)
             # every source silent: the watchdog holds, then eases to neutral
             a.stop()
             assert wait_until(lambda: events.of("watchdog", stage="neutral"), 20.0), events.items
             assert events.of("watchdog", stage="hold", source="sacn")
             s = wait_until(lambda: _near(c, jaw=0.0, brow_r=0.0), 20.0)
-            assert s and s["mode"] == "neutral", _status(c)
+            assert s and s["mode"] == "neutral", _brief(c)
         finally:
             a.stop()
             b.stop()
@@ -206,7 +228,8 @@ def test_sacn_sources_merge_by_priority_then_htp_and_silence_trips_the_watchdog(
 def test_mtc_locks_freewheels_then_holds_and_a_jump_relocates_the_clip(show) -> None:
     with Client(show.command_endpoint, timeout=10) as c:
         host, port = c.call("hello")["inputs"]["timecode"]["bind"].rsplit(":", 1)
-        c.call("enable")
+        _inactive(c)  # whatever an earlier test left
+        enable(c)
         c.call("load_clip", clip=RAMP)
         events = Events(show.telemetry_endpoint)
         import mido.sockets
@@ -217,35 +240,37 @@ def test_mtc_locks_freewheels_then_holds_and_a_jump_relocates_the_clip(show) -> 
         try:
             gen.roll(600.0 + 2.0)  # 00:10:02:00: two seconds into the chased clip
             s = wait_until(lambda: _status(c)["clock"]["state"] == "locked" and _status(c), 20.0)
-            assert s and s["clock"]["rate"] == "25" and s["clock"]["source"] == "mtc", _status(c)
+            assert s and s["clock"]["rate"] == "25" and s["clock"]["source"] == "mtc", _brief(c)
             s = wait_until(lambda: (st := _status(c))["source"] == "timecode" and st, 10.0)
             assert s and s["mode"] == "clip" and s["timeline"]["clip"] == "ramp", s
             # the clip follows the timecode: clip time = timecode - 10 min, the jaw on the ramp
             s = _status(c)
             tc = s["clock"]["seconds"]
-            assert s["timeline"]["time"] == pytest.approx(tc - 600.0, abs=0.3)
-            assert wait_until(lambda: abs(_status(c)["commanded"]["jaw"] - (_status(c)["clock"]["seconds"] - 600))
-                              < 0.5, 10.0)
+            assert s["timeline"].get("time", -1.0) == pytest.approx(tc - 600.0, abs=0.3), _brief(c)
+            assert wait_until(lambda: abs((st := _status(c))["commanded"]["jaw"] - st["timeline"]["time"]) < 0.5,
+                              10.0), _brief(c)
             # a 2 s dropout: freewheel (1 s, freewheel_s), then hold
             gen.halt()
             assert wait_until(lambda: events.of("timecode", change="hold"), 15.0), events.items
             assert events.of("timecode", change="freewheel")
-            held = _status(c)["timeline"]["time"]
+            held = _status(c)["timeline"].get("time")
+            assert held is not None, _brief(c)
             time.sleep(0.5)
             s = _status(c)
-            assert s["clock"]["state"] == "hold" and s["timeline"]["time"] == pytest.approx(held)
+            assert s["clock"]["state"] == "hold" and s["timeline"].get("time", -1.0) == pytest.approx(held), _brief(c)
             # timecode runs again elsewhere: it relocks there, and the clip relocates
             gen.roll(600.0 + 12.0)
             s = wait_until(lambda: (st := _status(c))["clock"]["state"] == "locked" and st, 20.0)
-            assert s and s["timeline"]["time"] == pytest.approx(s["clock"]["seconds"] - 600.0, abs=0.3)
-            assert s["timeline"]["time"] > 11.0
+            assert s, _brief(c)
+            assert s["timeline"].get("time", -1.0) == pytest.approx(s["clock"]["seconds"] - 600.0, abs=0.3), _brief(c)
+            assert s["timeline"].get("time", -1.0) > 11.0, _brief(c)
             # a jump while running relocates the clip at once
             jumps = len(events.of("timecode", change="jump"))
             gen.roll(600.0 + 5.0)
             assert wait_until(lambda: len(events.of("timecode", change="jump")) > jumps, 10.0), events.items
             s = _status(c)
-            assert s["timeline"]["time"] == pytest.approx(s["clock"]["seconds"] - 600.0, abs=0.3)
-            assert s["timeline"]["time"] < 8.0
+            assert s["timeline"].get("time", -1.0) == pytest.approx(s["clock"]["seconds"] - 600.0, abs=0.3), _brief(c)
+            assert s["timeline"].get("time", -1.0) < 8.0, _brief(c)
             assert wait_until(lambda: _status(c)["commanded"]["jaw"] < 8.5, 10.0)
         finally:
             gen.close()
