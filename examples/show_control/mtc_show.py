@@ -33,6 +33,13 @@ def clock(c: Client, what: str) -> dict:
     return s
 
 
+def wait_for(c: Client, states: tuple[str, ...], timeout: float = 15.0) -> None:
+    """Until the chase is in one of ``states`` (a busy host may take a moment to lock)."""
+    end = time.monotonic() + timeout
+    while c.call("status")["clock"]["state"] not in states and time.monotonic() < end:
+        time.sleep(0.1)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--command", default="tcp://127.0.0.1:5555", help="the daemon's command endpoint")
@@ -50,15 +57,17 @@ def main(argv: list[str] | None = None) -> int:
         gen = MtcGenerator(mido.sockets.connect(host, int(port)), args.rate)
         try:
             gen.roll(HOUR)
+            wait_for(c, ("locked",))
             time.sleep(args.roll)
             clock(c, "rolling")
             gen.halt()  # dropout
             time.sleep(0.5)
             clock(c, "dropout")
-            time.sleep(1.5)
+            wait_for(c, ("hold",))
             clock(c, "held")
             gen.roll(HOUR + 5.0)  # comes back elsewhere: the clip relocates
-            time.sleep(args.roll)
+            wait_for(c, ("locked",))
+            time.sleep(1.0)
             clock(c, "relocated")
             gen.halt()
         finally:

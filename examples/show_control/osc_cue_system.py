@@ -46,8 +46,8 @@ def main(argv: list[str] | None = None) -> int:
     start = time.monotonic()
     while (t := time.monotonic() - start) < args.seconds:
         phase = t / args.seconds
-        osc.send_message("/face/jaw", 15.0 * math.sin(math.pi * phase))  # degrees, the channel's unit
-        osc.send(brows(10.0 * math.sin(math.pi * min(1.0, 2 * phase))))
+        osc.send_message("/face/jaw", 10.0 * math.sin(math.pi * phase))  # degrees, the channel's unit
+        osc.send(brows(6.0 * math.sin(math.pi * min(1.0, 2 * phase))))
         time.sleep(0.02)
     osc.send_message("/face/jaw", 0.0)
     osc.send(brows(0.0))

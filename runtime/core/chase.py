@@ -43,6 +43,7 @@ class Chase:
     state: str = STOPPED
     anchor_tc: float = 0.0  # timecode seconds at daemon time anchor_t
     anchor_t: float = 0.0
+    parked: float = 0.0  # timecode seconds where the chase holds (``hold``)
     last_sample: float | None = None  # daemon time of the last sample
     agree: int = 0  # samples in a row that agreed (while locking)
     fps: float = 0.0
@@ -65,6 +66,7 @@ class Chase:
         if full:
             moved = previous is None or not agrees
             self.anchor_tc, self.anchor_t = tc, t
+            self.parked = tc
             self.state, self.agree = HOLD, 0
             if moved:
                 self.jumps += 1
@@ -98,8 +100,7 @@ class Chase:
             return FREEWHEEL
         if self.state == FREEWHEEL and age > self.params.freewheel_s:
             # park where freewheeling ended
-            self.anchor_tc = self._running(self.last_sample + self.params.freewheel_s)
-            self.anchor_t = t
+            self.parked = self._running(self.last_sample + self.params.freewheel_s)
             self.state = HOLD
             return HOLD
         if self.state == LOCKING and age > self.params.freewheel_s:
@@ -111,7 +112,7 @@ class Chase:
         if self.state in (LOCKED, FREEWHEEL):
             return self._running(t)
         if self.state == HOLD:
-            return self.anchor_tc
+            return self.parked
         return None
 
     def clip_at(self, tc: float) -> tuple[str, float] | None:

@@ -5,19 +5,35 @@ from __future__ import annotations
 import random
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import pytest
-
-from tests.runtime.conftest import SAMPLE, daemon_overrides
+from tests.runtime.conftest import SAMPLE
 
 #: The emulated buses' patience, raised: these tests are about the inputs, and a loaded host stalls the emulators'
 #: processes for seconds at a time (a lost heartbeat or a missed read would fault the head mid-test).
 PATIENT = (("heartbeat_timeout_s = 1.0", "heartbeat_timeout_s = 5.0"), ("sdo_timeout_s = 1.0", "sdo_timeout_s = 5.0"),
            ("max_consecutive_failures = 20", "max_consecutive_failures = 500"),
            ("feedback_timeout_s = 1.0", "feedback_timeout_s = 5.0"), ("retries = 8", "retries = 10"))
+
+
+def started(make: Callable[[], Any], tries: int = 3) -> Any:
+    """A started daemon from ``make()``; an emulated bus that fails to open on a loaded host gets another try."""
+    from drivers.errors import BusError
+    from runtime.daemon import DaemonStartError
+
+    for k in range(tries):
+        daemon = make()
+        try:
+            daemon.start()
+            return daemon
+        except (BusError, DaemonStartError):
+            daemon.stop()
+            if k == tries - 1:
+                raise
+            time.sleep(2.0)
+    raise AssertionError("unreachable")
 
 
 def enable(c: Any, tries: int = 3) -> None:
@@ -54,27 +70,6 @@ def show_head(tmp: Path, fragment: str) -> Path:
 def loopback_address() -> str:
     """A random loopback address other than 127.0.0.1 (sACN's port is fixed: each receiver gets its own address)."""
     return f"127.{random.randint(1, 254)}.{random.randint(1, 254)}.{random.randint(1, 254)}"
-
-
-@pytest.fixture
-def inputs_daemon(tmp_path: Path) -> Iterator[Callable[..., Any]]:
-    """Start a daemon whose head has the ``[inputs]`` of ``fragment`` (TOML text); stopped afterwards."""
-    from models.headspec import load_head
-    from runtime.daemon import Daemon
-
-    made: list[Daemon] = []
-
-    def make(fragment: str, target_solvers: tuple | None = (), **extra: Any) -> Daemon:
-        head = show_head(tmp_path, fragment)
-        overrides = daemon_overrides(tmp_path, **{k.replace("__", "."): v for k, v in extra.items()})
-        daemon = Daemon(load_head(head), overrides, target_solvers=target_solvers)
-        made.append(daemon)
-        daemon.start()
-        return daemon
-
-    yield make
-    for daemon in made:
-        daemon.stop()
 
 
 class Events:

@@ -15,7 +15,7 @@ import pytest
 
 from runtime.client import Client, Telemetry
 from tests.runtime.conftest import ROOT, daemon_overrides, wait_until
-from tests.runtime.inputs.conftest import Events, enable, loopback_address, show_head
+from tests.runtime.inputs.conftest import Events, enable, loopback_address, show_head, started
 
 EXAMPLES = ROOT / "examples" / "show_control"
 
@@ -37,8 +37,8 @@ def example_daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
     head = show_head(tmp, _fragment(loopback_address()))
     overrides = daemon_overrides(tmp, **{"safety.watchdog_hold_s": 1.0, "safety.watchdog_neutral_s": 3.0,
                                              "safety.feedback_timeout_s": 5.0})
-    daemon = Daemon(load_head(head), overrides, target_solvers=None)  # the head's skin solver: arkit.* channels
-    daemon.start()
+    # target_solvers None: the head's skin solver, whose arkit.* channels the OSC example maps
+    daemon = started(lambda: Daemon(load_head(head), overrides, target_solvers=None))
     try:
         yield daemon
     finally:
@@ -71,10 +71,10 @@ def test_osc_cue_system_example_moves_the_head(example_daemon) -> None:
         out: list[str] = []
         th = threading.Thread(target=lambda: out.append(_run("osc_cue_system.py", "--port", port, "--wait", "8")))
         th.start()
-        peak = _peak(tel, "jaw", 14.0)  # the cue: the jaw opens to 15 degrees and closes
+        peak = _peak(tel, "jaw", 14.0)  # the cue: the jaw opens to 10 degrees and closes
         th.join(120.0)
         assert out and "cue sent" in out[0]
-        assert peak > 8.0
+        assert peak > 5.0
         assert wait_until(lambda: c.call("status")["lifecycle"] == "inactive", 20.0)  # the cue system disabled it
 
 
@@ -108,10 +108,12 @@ def test_mtc_show_example_chases_the_performance(example_daemon) -> None:
         finally:
             events.close()
         lines = dict(line.strip().split(": ", 1) for line in out.splitlines() if ": " in line)
-        assert "(locked, 25 fps); source timecode, clip expressive" in lines["rolling"], out
+        # (the lock state is not asserted on each line: a loaded host can stall the generator into a dropout)
+        assert "source timecode, clip expressive" in lines["rolling"], out
         assert "(hold, 25 fps)" in lines["held"], out
-        assert "(locked, 25 fps); source timecode, clip expressive" in lines["relocated"], out
-        changes = [e["change"] for e in events.items if e["event"] == "timecode"]
-        assert changes[:3] == ["lock", "freewheel", "hold"], changes
-        assert "lock" in changes[3:] or "jump" in changes[3:], changes
+        assert "source timecode, clip expressive" in lines["relocated"], out
+        assert re.search(r"timecode 01:00:(0[5-9]|1\d):", lines["relocated"]), out
+        changes = iter([e["change"] for e in events.items if e["event"] == "timecode"])
+        # in this order (a loaded host may add jumps between them)
+        assert all(any(c == want for c in changes) for want in ("lock", "freewheel", "hold", "lock")), events.items
         c.call("disable")

@@ -13,7 +13,7 @@ import pytest
 
 from runtime.client import Client
 from tests.runtime.conftest import wait_until
-from tests.runtime.inputs.conftest import Events, enable, loopback_address, show_head
+from tests.runtime.inputs.conftest import Events, enable, loopback_address, show_head, started
 
 FRAGMENT = """
 [inputs.osc]
@@ -59,8 +59,7 @@ def show(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
     # The OSC input uses the stream watchdog's times: generous here, so a stalled loaded host never trips it.
     overrides = daemon_overrides(tmp, **{"safety.watchdog_hold_s": 1.0, "safety.watchdog_neutral_s": 3.0,
                                              "safety.feedback_timeout_s": 5.0})
-    daemon = Daemon(load_head(head), overrides, target_solvers=())
-    daemon.start()
+    daemon = started(lambda: Daemon(load_head(head), overrides, target_solvers=()))
     try:
         yield daemon
     finally:
