@@ -101,13 +101,13 @@ class OscInput:
     def packet(self, data: bytes, client: tuple[str, int]) -> None:
         """One OSC packet (a message or a bundle) from ``client``."""
         received = time.monotonic()
-        wall = time.time()
         self.packets += 1
         try:
             timed = osc_packet.OscPacket(data).messages
         except osc_packet.ParseError as exc:
             self.refusals.refuse("malformed OSC", f"{exc} (from {client[0]})")
             return
+        wall = time.time()  # after parsing: the parser stamps "immediately" and past timetags with its own now
         groups: dict[float, list[Any]] = {}
         for tm in timed:
             groups.setdefault(tm.time, []).append(tm.message)

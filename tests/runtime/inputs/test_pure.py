@@ -228,3 +228,55 @@ def test_inputs_config_errors_name_the_key(inputs: dict, key: str) -> None:
     with pytest.raises(SpecError) as err:
         inputs_config(_head(inputs), CHANNELS)
     assert err.value.key.startswith(key), err.value
+
+
+# ---------------------------------------------------------------------- OSC packets (no sockets)
+def test_osc_packets_become_one_command_per_bundle_and_control_needs_the_allow_list() -> None:
+    import time
+
+    from pythonosc.osc_bundle_builder import IMMEDIATELY, OscBundleBuilder
+    from pythonosc.osc_message_builder import OscMessageBuilder
+
+    from runtime.core import commands as C
+    from runtime.inputs.config import OscConfig
+    from runtime.inputs.osc import OscInput
+
+    cfg = OscConfig("127.0.0.1", 0, None, (("/face/jaw", "jaw"), ("/face/brow/*", "brow_*")), "/likeness",
+                    ("127.0.0.1",), True)
+    got: list[C.Command] = []
+    trips: list[int] = []
+    osc = OscInput(cfg, CHANNELS, got.append, lambda: trips.append(1))
+
+    def msg(address: str, *args: object) -> object:
+        m = OscMessageBuilder(address)
+        for a in args:
+            m.add_arg(a)
+        return m.build()
+
+    def bundle(*msgs: object, timetag: float = IMMEDIATELY) -> bytes:
+        b = OscBundleBuilder(timetag)
+        for m in msgs:
+            b.add_content(m)
+        return b.build().dgram
+
+    local, remote = ("127.0.0.1", 5000), ("127.0.0.9", 5000)
+    osc.packet(bundle(msg("/face/jaw", 4.0), msg("/face/brow/l", 2.0), msg("/face/brow/r", 2)), local)
+    assert len(got) == 1 and isinstance(got[0], C.Live)
+    assert sorted(got[0].channels.tolist()) == sorted(CHANNELS.indices(["jaw", "brow_l", "brow_r"]).tolist())
+    assert got[0].at is None  # "immediately"
+    later = time.time() + 0.5
+    osc.packet(bundle(msg("/face/jaw", 1.0), timetag=later), local)
+    assert got[1].at is not None and 0.3 < got[1].at - got[1].received < 0.7  # its timetag on the daemon clock
+    osc.packet(bundle(msg("/face/jaw", 1.0), msg("/face/nose", 1.0)), local)  # one bad message: all refused
+    osc.packet(msg("/face/jaw", "open").dgram, local)
+    osc.packet(msg("/face/jaw", float("nan")).dgram, local)
+    osc.packet(b"\x00garbage", local)
+    assert len(got) == 2
+    assert set(osc.refusals.snapshot()) == {"unmapped address", "not one number", "non-finite value",
+                                            "malformed OSC"}
+    osc.packet(msg("/likeness/estop", "cue 12").dgram, remote)  # not on control_allow
+    assert len(got) == 2 and not trips
+    osc.packet(msg("/likeness/estop", "cue 12").dgram, local)
+    assert trips and isinstance(got[2], C.EStop) and got[2].reason == "cue 12"
+    osc.packet(msg("/likeness/play", "hi", 1).dgram, local)
+    assert isinstance(got[3], C.Play) and got[3].name == "hi" and got[3].loop and got[3].source == "osc"
