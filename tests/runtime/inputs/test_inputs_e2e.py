@@ -18,6 +18,7 @@ from tests.runtime.inputs.conftest import Events, enable, loopback_address, show
 FRAGMENT = """
 [inputs.osc]
 bind = "127.0.0.1:0"
+tcp = "127.0.0.1:0"
 control_allow = ["127.0.0.1"]
 [inputs.osc.map]
 "/face/jaw" = "jaw"
@@ -160,6 +161,16 @@ def test_osc_messages_and_bundles_move_the_head(show) -> None:
         osc.send_message("/face/jaw", "wide")
         assert wait_until(lambda: len(_status(c)["inputs"]["osc"]["refused"]) >= len(refused) + 2, 10.0)
         assert _near(c, jaw=2.0)
+        # OSC 1.1 over TCP (SLIP framing) reaches the same map
+        from pythonosc.tcp_client import SimpleTCPClient
+
+        host, port = hello["inputs"]["osc"]["tcp"].rsplit(":", 1)
+        tcp = SimpleTCPClient(host, int(port))
+        try:
+            tcp.send_message("/face/jaw", 3.5)
+            assert wait_until(lambda: _near(c, jaw=3.5), 15.0), _brief(c)
+        finally:
+            tcp.close()
         osc.send_message("/likeness/estop", ["stage manager"])
         s = wait_until(lambda: _status(c)["lifecycle"] == "estop" and _status(c), 10.0)
         assert s and s["estop"] == "stage manager"
@@ -249,11 +260,14 @@ def test_mtc_locks_freewheels_then_holds_and_a_jump_relocates_the_clip(show) -> 
             assert wait_until(lambda: abs((st := _status(c))["commanded"]["jaw"] - st["timeline"]["time"]) < 0.5,
                               10.0), _brief(c)
             # a 2 s dropout: freewheel (1 s, freewheel_s), then hold
+            at_halt = _status(c)["timeline"]["time"]
             gen.halt()
+            time.sleep(2.0)
             assert wait_until(lambda: events.of("timecode", change="hold"), 15.0), events.items
             assert events.of("timecode", change="freewheel")
             held = _status(c)["timeline"].get("time")
             assert held is not None, _brief(c)
+            assert 0.5 < held - at_halt < 1.3, (at_halt, held)  # it ran on for freewheel_s, then stopped
             time.sleep(0.5)
             s = _status(c)
             assert s["clock"]["state"] == "hold" and s["timeline"].get("time", -1.0) == pytest.approx(held), _brief(c)
