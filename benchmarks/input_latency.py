@@ -5,7 +5,9 @@ ZeroMQ stream's frame sent → bus write measured in the same run (goal: p99 <= 
 Per trial: wait for the jaw to stand still, send one packet that moves it (OSC ``/face/jaw``; an sACN universe
 flushed by the sender; an MTC full-frame locate of a chased ramp clip; a ZeroMQ ``stream`` frame stamped now, with
 the jitter buffer's delay at 1 ms), and poll the CAN bus link's last write until the jaw target changes. Includes
-the wait for the next control cycle (up to one period). Run with nothing else on the machine:
+the wait for the next control cycle (up to one period). A stream frame that reaches the daemon after its play-out
+time is late and moves nothing: such trials are left out of the stream's figures, as a lost packet is for any input.
+Run with nothing else on the machine:
 ``python benchmarks/input_latency.py [--trials 100] [--rate 250]``.
 """
 

@@ -68,12 +68,15 @@ class BoundReceiverSocket(ReceiverSocketBase):
                 if self._run:
                     log.exception("sACN receive failed")
                 return
-            if data is not None:
-                self._listener.on_data(data, time.monotonic())
-            # Timeouts are judged only with nothing left to read: a thread that was kept waiting must not find its
-            # sources silent while their packets queue in the socket.
-            if not select.select([self._socket], [], [], 0)[0]:
-                self._listener.on_periodic_callback(time.monotonic())
+            try:
+                if data is not None:
+                    self._listener.on_data(data, time.monotonic())
+                # Timeouts are judged only with nothing left to read: a thread that was kept waiting must not find
+                # its sources silent while their packets queue in the socket.
+                if not select.select([self._socket], [], [], 0)[0]:
+                    self._listener.on_periodic_callback(time.monotonic())
+            except Exception:  # a bug must not end the input: the packet is lost, the next one is taken
+                log.exception("sACN input: handling a packet failed")
 
     def stop(self) -> None:
         self._run = False
