@@ -5,6 +5,8 @@ the control core ready-made commands over the link (:mod:`runtime.ipc`); the cor
 snapshots and recorded rows come back over the same link and are formatted, published and written here. Nothing it
 does can hold up the control loop: it runs in another process. An ``estop`` also trips the shared e-stop flag
 before anything else is done with it, so it reaches the core within one cycle whatever is queued or being parsed.
+The show-control inputs a head configures (OSC, sACN, MIDI timecode: :mod:`runtime.inputs`) run on threads of this
+process and hand their commands to this thread, which sends them on the same link.
 """
 
 from __future__ import annotations
