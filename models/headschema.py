@@ -93,6 +93,63 @@ class SkinTable(_Table, kw_only=True):
     reference: str | None = None  # strain guard: "rest" or "neutral"
 
 
+class OscTable(_Table, kw_only=True):
+    """``[inputs.osc]``: an OSC server (``runtime.inputs.osc``); ``[inputs.osc.map]`` maps addresses to channels."""
+
+    bind: str = "127.0.0.1:9000"  # UDP host:port
+    tcp: str | None = None  # also serve OSC 1.1 over TCP (SLIP framing) on this host:port
+    map: dict[str, str] = {}  # "/face/jaw" = "jaw"; "/face/arkit/*" = "arkit.*"
+    control_prefix: str = "/likeness"  # control addresses: PREFIX/enable, /disable, /play, /stop, /estop
+    control_allow: list[str] = []  # sender addresses allowed to use the control addresses (empty: none)
+    allow_remote: bool = False  # binding beyond loopback needs this
+    watchdog: bool = True  # the stream watchdog on loss (false: the values hold until another source takes over)
+
+
+class SacnSlotTable(_Table, kw_only=True):
+    """One ``[[inputs.sacn.slots]]`` entry: DMX slot(s) onto a channel's range."""
+
+    channel: str
+    slot: int | None = None  # 1-based, relative to the start address; default: right after the previous entry
+    bits: int = 8  # 8 or 16 (coarse slot, then fine)
+    range: list[float] | None = None  # channel value at DMX 0 and at full; default: the actuator's [min, max]
+
+
+class SacnTable(_Table, kw_only=True):
+    """``[inputs.sacn]``: an sACN (E1.31) receiver of one universe (``runtime.inputs.sacn``)."""
+
+    bind: str = "127.0.0.1"  # the address to receive on (unicast), or the interface for multicast
+    port: int = 5568
+    universe: int = 1
+    start: int = 1  # DMX start address of the head's first slot
+    slots: list[dict[str, Any]] = []
+    merge: str = "htp"  # between sources of the same (highest) priority: "htp" or "ltp"
+    source_timeout_s: float = 2.5  # a source silent this long is dropped from the merge (E1.31 data loss)
+    multicast: bool = False  # join the universe's multicast group on the bind interface
+    allow_remote: bool = False
+
+
+class TimecodeTable(_Table, kw_only=True):
+    """``[inputs.timecode]``: MIDI timecode chase (``runtime.inputs.mtc``)."""
+
+    bind: str | None = "127.0.0.1:5004"  # a TCP MIDI port (mido.sockets) to listen on
+    midi_port: str | None = None  # or a MIDI input port by name (needs a mido backend, e.g. python-rtmidi)
+    rate: str = "25"  # the frame rate offsets are written in: "24", "25", "29.97" (drop frame), "30"
+    clips: dict[str, Any] = {}  # clip name = chase offset ("01:00:10:00", or seconds)
+    freewheel_s: float = 2.0
+    dropout_s: float = 0.15
+    jump_s: float = 0.25
+    lock_samples: int = 3
+    allow_remote: bool = False
+
+
+class InputsTable(_Table, kw_only=True):
+    """``[inputs]``: show-control inputs beside the ZeroMQ protocol (``docs/show_control.md``)."""
+
+    osc: dict[str, Any] | None = None
+    sacn: dict[str, Any] | None = None
+    timecode: dict[str, Any] | None = None
+
+
 class HeadFile(_Table, kw_only=True):
     """The top level. Required tables are optional here so that :mod:`models.headspec` names them when missing."""
 
@@ -107,6 +164,7 @@ class HeadFile(_Table, kw_only=True):
     runtime: dict[str, Any] = {}
     safety: dict[str, Any] = {}
     api: dict[str, Any] = {}
+    inputs: dict[str, Any] = {}
 
 
 def table_names() -> tuple[str, ...]:
@@ -167,3 +225,11 @@ def check_head_file(data: Mapping[str, Any], source: str) -> None:
     _convert(top.paths, PathsTable, source, "paths")
     if top.skin is not None:
         _convert(top.skin, SkinTable, source, "skin")
+    inputs = _convert(top.inputs, InputsTable, source, "inputs")
+    for key, cls in (("osc", OscTable), ("sacn", SacnTable), ("timecode", TimecodeTable)):
+        raw = getattr(inputs, key)
+        if raw is not None:
+            table = _convert(raw, cls, source, f"inputs.{key}")
+            if key == "sacn":
+                for i, slot in enumerate(table.slots):
+                    _convert(slot, SacnSlotTable, source, f"inputs.sacn.slots[{i}]")

@@ -72,6 +72,9 @@ class Daemon:
         self.target_solvers = list(target_solvers)
         self.channels = ChannelMap.build(head, channel_sets(self.target_solvers))
         self.guard = _strain_guard(head, self.target_solvers) if strain_guard else None
+        from runtime.inputs.config import inputs_config
+
+        self.inputs = inputs_config(head, self.channels)  # [inputs]: checked here, served by the API server
         self.hw = hardware
         self._own_hw = hardware is None
         self.links: list[Any] = []
@@ -161,7 +164,8 @@ class Daemon:
     def _start_loop(self) -> None:
         assert self._sock is not None and self._estop is not None
         self.params = K.CoreParams.build(self.head, self.cfg, self.channels,
-                                         [(link.name, link.actuators) for link in self.links], guard=self.guard)
+                                         [(link.name, link.actuators) for link in self.links], guard=self.guard,
+                                         chase=None if self.inputs.timecode is None else self.inputs.timecode.chase)
         solvers = as_array_solvers(self.target_solvers, self.channels.target_blocks, self.channels.names,
                                    self.names)
         self.state = K.CoreState.initial(self.head, self.params, solvers)

@@ -5,11 +5,14 @@ the control core ready-made commands over the link (:mod:`runtime.ipc`); the cor
 snapshots and recorded rows come back over the same link and are formatted, published and written here. Nothing it
 does can hold up the control loop: it runs in another process. An ``estop`` also trips the shared e-stop flag
 before anything else is done with it, so it reaches the core within one cycle whatever is queued or being parsed.
+The show-control inputs a head configures (OSC, sACN, MIDI timecode: :mod:`runtime.inputs`) run on threads of this
+process and hand their commands to this thread, which sends them on the same link.
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import itertools
 import logging
 import math
@@ -28,6 +31,7 @@ from runtime import ipc
 from runtime import messages as M
 from runtime import protocol as P
 from runtime.config import DaemonConfig, resolve
+from runtime.core import commands as C
 from runtime.core.channels import ChannelMap
 from runtime.requests import LOCAL_OPS, OPS, to_command
 
@@ -139,6 +143,7 @@ class Server:
         self.recording: dict[str, Any] | None = None
         self.auth: Any = None
         self.router, self.pub = self._bind()
+        self.inputs = _start_inputs(self.head, self.channels, self.ctx, self.estop_flag)
         self._start_decoder()
         ipc.send(self.link, ("ready", self.command_endpoint, self.telemetry_endpoint))
 
@@ -212,6 +217,8 @@ class Server:
             sock.close(0)
         if self.auth is not None:
             self.auth.stop()
+        if self.inputs is not None:
+            self.inputs.close()
         self.ctx.term()
         self.estop_flag.close()
 
@@ -221,6 +228,8 @@ class Server:
         poller.register(self.router, zmq.POLLIN)
         poller.register(self.link, zmq.POLLIN)
         poller.register(self.from_decoder, zmq.POLLIN)
+        if self.inputs is not None:
+            poller.register(self.inputs.pull, zmq.POLLIN)
         parent = os.getppid()
         while True:
             events = dict(poller.poll(200))
@@ -230,6 +239,8 @@ class Server:
                 self._drain_requests()
             if self.from_decoder in events:
                 self._drain_decoded()
+            if self.inputs is not None and self.inputs.pull in events:
+                self._drain_inputs()
             if os.getppid() != parent:
                 return
 
@@ -303,6 +314,15 @@ class Server:
             self.pending[token] = (envelope, rid, op, received)
             ipc.send(self.link, ("cmd", cmd))
 
+    def _drain_inputs(self) -> None:
+        """Commands from the show-control inputs (OSC, sACN, timecode): a token each, then on to the core."""
+        assert self.inputs is not None
+        for cmd in self.inputs.drain():
+            token = next(self.tokens)
+            source = "timecode" if isinstance(cmd, C.Timecode) else getattr(cmd, "source", "osc")  # control: OSC
+            self.pending[token] = ([], None, f"input:{source}", getattr(cmd, "received", None) or time.monotonic())
+            ipc.send(self.link, ("cmd", dataclasses.replace(cmd, token=token)))
+
     def _reply(self, envelope: list[bytes], reply: dict[str, Any]) -> None:
         try:
             self.router.send_multipart([*envelope, P.pack(reply)], zmq.NOBLOCK)
@@ -335,6 +355,7 @@ class Server:
             "rate_hz": rt.rate_hz, "telemetry": self.telemetry_endpoint, "ops": sorted(OPS),
             "max_message_bytes": self.cfg.api.max_message_bytes, "stream_delay_s": rt.stream_delay_s,
             "clip_memory_bytes": rt.clip_memory_bytes,
+            "inputs": {} if self.inputs is None else self.inputs.described(),
         }
 
     # ------------------------------------------------------------------ from the core
@@ -366,6 +387,10 @@ class Server:
             return
         envelope, rid, op, received = entry
         err = body.get("error")
+        if op.startswith("input:"):  # an input's command: nobody to answer; a refusal is logged
+            if err is not None and self.inputs is not None:
+                self.inputs.refused(op[6:], err["code"], err["message"])
+            return
         if err is not None:
             self._reply(envelope, P.error_reply(rid, err["code"], err["message"]))
             return
@@ -382,11 +407,13 @@ class Server:
         if op == "status":
             out = self._common(body)
             for key in ("estop", "fault", "moving", "timeline", "stream", "recording", "pose_reached", "pose_settled",
-                        "extra", "clip_bytes", "guard"):
+                        "extra", "clip_bytes", "guard", "source", "clock", "live"):
                 if key in body:
                     out[key] = body[key]
             out["loop"] = self.stats_summary
             out["realtime"] = self.realtime
+            if self.inputs is not None:
+                out["inputs"] = self.inputs.stats()
             return out
         if op == "pose":
             return {"targets": self._units(body["targets_si"]), "speed": body["speed"]}
@@ -447,7 +474,7 @@ class Server:
     def _state_message(self, snap: dict[str, Any]) -> dict[str, Any]:
         msg = self._common(snap)
         msg["loop"] = self.stats_summary
-        for key in ("clip", "stream", "extra", "guard"):
+        for key in ("clip", "stream", "extra", "guard", "source", "clock", "live"):
             if key in snap:
                 msg[key] = snap[key]
         measured = snap["measured_si"]
@@ -526,6 +553,23 @@ def _load_guard(head: Any) -> Any:
     except Exception:
         log.exception("the full skin-strain check is unavailable")
         return None
+
+
+def _start_inputs(head: Any, channels: ChannelMap, ctx: zmq.Context, estop: ipc.EStopFlag) -> Any:
+    """The show-control inputs the head configures (``[inputs]``), started; None when it configures none."""
+    from runtime.inputs.config import inputs_config
+    from runtime.inputs.hub import InputHub
+
+    cfg = inputs_config(head, channels)
+    if not cfg.any:
+        return None
+    hub = InputHub(cfg, channels, ctx, estop.trip)
+    try:
+        hub.start()
+    except Exception:
+        hub.close()
+        raise
+    return hub
 
 
 def _load_linkmap(head: Any) -> Any:

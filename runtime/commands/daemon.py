@@ -16,6 +16,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--telemetry", default=None, help="telemetry endpoint (overrides [api] telemetry)")
     p.add_argument("--no-realtime", action="store_true", help="do not ask for SCHED_FIFO")
     p.add_argument("--enable", action="store_true", help="enable torque right after start-up")
+    p.add_argument("--inputs", type=Path, default=None, metavar="FRAGMENT.toml",
+                   help="add the show-control inputs of a file of [inputs.*] tables (docs/show_control.md)")
     p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE",
                    help="override one daemon setting, value in TOML syntax (repeatable)")
     p.set_defaults(func=run)
@@ -50,7 +52,9 @@ def overrides_from_args(args: argparse.Namespace) -> dict[str, object]:
 
 
 def run(args: argparse.Namespace) -> int:
+    import shutil
     import signal
+    import tempfile
     import threading
 
     from drivers.errors import BusError
@@ -60,10 +64,19 @@ def run(args: argparse.Namespace) -> int:
     from runtime.daemon import Daemon, DaemonStartError
     from runtime.errors import LikenessError
 
+    tmp = None
     try:
-        head = load_head(args.config)
+        config = args.config
+        if args.inputs is not None:
+            from runtime.inputs.headfile import head_with_inputs
+
+            tmp = Path(tempfile.mkdtemp(prefix="likeness-head-"))
+            config = head_with_inputs(args.config, args.inputs, tmp / args.config.name)
+        head = load_head(config)
         daemon = Daemon(head, overrides_from_args(args))
-    except (SpecError, BusError, LikenessError) as exc:  # a config or asset error: one line, non-zero exit
+    except (SpecError, BusError, LikenessError, OSError) as exc:  # a config or asset error: one line, non-zero exit
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
         raise cli_error(exc) from exc
     stop = threading.Event()
 
@@ -76,6 +89,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         daemon.start()
     except (BusError, DaemonStartError, OSError) as exc:
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
         raise cli_error(exc if not isinstance(exc, OSError) else DaemonStartError(str(exc)), "cannot start: ") \
             from exc
     old = {s: signal.signal(s, on_stop) for s in (signal.SIGINT, signal.SIGTERM)}
@@ -84,11 +99,16 @@ def run(args: argparse.Namespace) -> int:
         print(f"ready: head {head.name!r} ({len(head.actuators)} actuators) at {daemon.cfg.runtime.rate_hz:g} Hz; "
               f"commands {daemon.command_endpoint}, telemetry {daemon.telemetry_endpoint}; {daemon.realtime_status}",
               flush=True)
+        if daemon.inputs.any:
+            with_inputs = daemon.call("hello").get("inputs", {})
+            print("inputs: " + "; ".join(f"{k} {v}" for k, v in with_inputs.items()), flush=True)
         while not stop.wait(0.5):
             pass
     finally:
         for s, h in old.items():
             signal.signal(s, h)
         daemon.stop()
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
     print("daemon stopped", flush=True)
     return 0

@@ -61,6 +61,7 @@ class Play(Command):
     offset: float = 0.0
     speed: float = 1.0
     loop: bool = False
+    source: str = "api"  # the input that asked (status and telemetry say which source drives)
 
 
 @dataclass(frozen=True)
@@ -102,3 +103,29 @@ class Pose(Command):
 class Record(Command):
     action: str = "start"  # "start" | "stop"
     name: str = "recording"
+
+
+@dataclass(frozen=True)
+class Live(Command):
+    """Values from a show-control input (OSC, sACN): set ``channels`` to ``values`` (config units) now, or at daemon
+    time ``at`` (an OSC bundle's timetag), all in the same cycle."""
+
+    source: str = "osc"
+    channels: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=np.intp))
+    values: np.ndarray = field(default_factory=lambda: np.empty(0))
+    at: float | None = None
+    received: float | None = None
+    takeover: bool = True  # False: keeps an active live source alive without taking over (sACN repeats)
+    watchdog_s: float | None = None  # silence before the watchdog holds (None: [safety] watchdog_hold_s)
+
+
+@dataclass(frozen=True)
+class Timecode(Command):
+    """A timecode sample: ``seconds`` of timecode as of daemon time ``received``; ``full``: a full-frame locate."""
+
+    seconds: float = 0.0
+    fps: float = 30.0
+    rate: str = "30"
+    label: str = ""
+    received: float = 0.0
+    full: bool = False

@@ -30,6 +30,9 @@ from runtime import errors as E
 from runtime.config import DaemonConfig
 from runtime.core import commands as C
 from runtime.core.channels import ChannelMap
+from runtime.core.chase import HOLD as CHASE_HOLD
+from runtime.core.chase import Chase, ChaseParams
+from runtime.core.live import LiveValues
 from runtime.core.stream import StreamBuffer
 from runtime.protocol import error_body
 from runtime.safety import VELOCITY_MARGIN, SafetyFilter
@@ -51,6 +54,7 @@ class Mode(enum.Enum):
     STREAM = "stream"
     POSE = "pose"
     NEUTRAL = "neutral"
+    LIVE = "live"  # values from a show-control input (OSC, sACN)
 
 
 #: Bisections of the strain guard toward a refused target, per cycle.
@@ -113,10 +117,12 @@ class CoreParams:
     telemetry_every: int
     record_capacity: int
     guard: Any = None  # skin-strain guard: limit(p_from, p_to) -> (p, verdict) and check(p) -> bool; None: no guard
+    chase: ChaseParams | None = None  # timecode chase ([inputs.timecode]); None: no timecode input
 
     @classmethod
     def build(cls, head: HeadSpec, cfg: DaemonConfig, channels: ChannelMap,
-              bus_order: Sequence[tuple[str, Sequence[str]]], guard: Any = None) -> CoreParams:
+              bus_order: Sequence[tuple[str, Sequence[str]]], guard: Any = None,
+              chase: ChaseParams | None = None) -> CoreParams:
         index = {n: i for i, n in enumerate(head.actuator_names)}
         rt = cfg.runtime
         return cls(
@@ -124,7 +130,7 @@ class CoreParams:
             period=1.0 / rt.rate_hz,
             buses=tuple((b, np.array([index[m] for m in motors], dtype=np.intp)) for b, motors in bus_order),
             channels=channels, cfg=cfg, telemetry_every=max(1, round(rt.rate_hz / rt.telemetry_hz)),
-            record_capacity=int(rt.record_max_s * rt.rate_hz) + 1, guard=guard,
+            record_capacity=int(rt.record_max_s * rt.rate_hz) + 1, guard=guard, chase=chase,
         )
 
 
@@ -182,6 +188,9 @@ class CoreState:
     guard_ok: np.ndarray | None = None  # the last target the skin guard accepted
     guard_verdict: str = "ok"
     guard_refused: int = 0  # targets limited or held by the guard since start
+    live: LiveValues | None = None  # latest values of the live input (OSC, sACN) in mode LIVE
+    chase: Chase | None = None  # timecode chase, when a timecode input is configured
+    source: str | None = None  # what drives the head: "api", "osc", "sacn", "timecode" (None: nothing)
 
     @classmethod
     def initial(cls, head: HeadSpec, params: CoreParams, solvers: Sequence[Any] = ()) -> CoreState:
@@ -195,6 +204,7 @@ class CoreState:
             bus_states={b: "unconfigured" for b, _ in params.buses},
             bus_connected={b: False for b, _ in params.buses}, bus_faults={b: {} for b, _ in params.buses},
             channel_values=np.full(params.channels.n, np.nan), pose_speed=params.cfg.safety.safe_speed,
+            live=LiveValues(params.channels.n), chase=None if params.chase is None else Chase(params.chase),
         )
 
 
@@ -220,6 +230,8 @@ def step(state: CoreState, params: CoreParams, inputs: CycleInputs) -> CycleOutp
     _check_transition(state, params, out, t)
     if state.lifecycle in (Lifecycle.ACTIVE, Lifecycle.INACTIVE) and state.transition is None:
         _supervise(state, params, out, t)
+    if state.chase is not None:
+        _chase_step(state, out, t)
     if state.lifecycle is Lifecycle.ACTIVE and state.transition is None:
         try:
             targets, speed = _sources(state, params, out, t)
@@ -374,20 +386,25 @@ def _sources(state: CoreState, params: CoreParams, out: CycleOutputs, t: float) 
             state.clip_done_reported = True
             out.events.append({"event": "clip", "t": t, "state": "finished", "clip": pb.clip.name})
         return solve_channels(state, params, out, values), 1.0
-    if mode is Mode.STREAM:
-        age = state.stream.starved_for(t)
-        if age > sf.watchdog_neutral_s:
-            out.events.append({"event": "watchdog", "t": t, "stage": "neutral", "age": age})
+    if mode is Mode.STREAM or mode is Mode.LIVE:
+        live = mode is Mode.LIVE
+        buffer: Any = state.live if live else state.stream
+        age = buffer.starved_for(t)
+        hold_s = sf.watchdog_hold_s
+        if live and state.live is not None and state.live.watchdog_s is not None:
+            hold_s = state.live.watchdog_s  # the input's own loss time (sACN: E1.31 data loss)
+        if age > hold_s + (sf.watchdog_neutral_s - sf.watchdog_hold_s):
+            out.events.append({"event": "watchdog", "t": t, "stage": "neutral", "age": age, "source": state.source})
             _set_mode(state, Mode.NEUTRAL)
-            state.stream.clear()
+            buffer.clear()
             return state.safety.neutral.copy(), sf.safe_speed
-        if age > sf.watchdog_hold_s:
+        if age > hold_s:
             if state.watchdog_stage != "hold":
                 state.watchdog_stage = "hold"
-                out.events.append({"event": "watchdog", "t": t, "stage": "hold", "age": age})
+                out.events.append({"event": "watchdog", "t": t, "stage": "hold", "age": age, "source": state.source})
             return np.full(n, np.nan), 1.0
         state.watchdog_stage = ""
-        if not state.stream.evaluate(t, values):
+        if not buffer.evaluate(t, values):
             return np.full(n, np.nan), 1.0
         return solve_channels(state, params, out, values), 1.0
     if mode is Mode.POSE and state.pose_target is not None:
@@ -444,7 +461,24 @@ def _stop_motion(state: CoreState) -> None:
     _set_mode(state, Mode.HOLD)
     state.timeline.stop()
     state.stream.clear()
+    if state.live is not None:
+        state.live.clear()
     state.pose_target = None
+    state.source = None
+
+
+def _take_over(state: CoreState, mode: Mode, source: str) -> None:
+    """``source`` becomes the one driving the head (the last active source wins): the others stop."""
+    if mode is not Mode.CLIP:
+        state.timeline.stop()
+    if mode is not Mode.STREAM or state.mode is not Mode.STREAM:
+        state.stream.clear()
+    if state.live is not None and (mode is not Mode.LIVE or state.mode is not Mode.LIVE
+                                   or state.live.source != source):
+        state.live.clear(source if mode is Mode.LIVE else None)
+    state.pose_target = None
+    _set_mode(state, mode)
+    state.source = source
 
 
 def _reset_solvers(state: CoreState) -> None:
@@ -696,10 +730,9 @@ def _on_play(state: CoreState, params: CoreParams, out: CycleOutputs, t: float, 
         raise E.NotFound(f"no clip {cmd.name!r} loaded; loaded: {sorted(state.timeline.clips)}")
     if cmd.at is not None and not t - 3600 <= cmd.at <= t + 3600:
         raise E.BadValue(f"field 'at' must lie within an hour of the daemon clock ({t:.3f})")
-    state.stream.clear()
+    _take_over(state, Mode.CLIP, cmd.source)
     start = state.timeline.play(cmd.name, t, cmd.at, cmd.offset, cmd.speed, cmd.loop)
     state.clip_done_reported = False
-    _set_mode(state, Mode.CLIP)
     _event(out, t, "clip", state="playing", clip=cmd.name, start=start)
     return {"clip": cmd.name, "start": start, "duration": state.timeline.clips[cmd.name].duration}
 
@@ -715,7 +748,8 @@ def _on_resume(state: CoreState, params: CoreParams, out: CycleOutputs, t: float
     if state.timeline.playback is None:
         raise E.BadState("nothing to resume: no clip is playing")
     state.timeline.resume(t)
-    _set_mode(state, Mode.CLIP)
+    if state.mode is not Mode.CLIP:
+        _take_over(state, Mode.CLIP, "api")
     return {"timeline": state.timeline.describe(t)}
 
 
@@ -735,9 +769,7 @@ def _on_seek(state: CoreState, params: CoreParams, out: CycleOutputs, t: float, 
 def _on_stream(state: CoreState, params: CoreParams, out: CycleOutputs, t: float, cmd: C.Stream) -> dict:
     _require_active(state, "stream")
     if state.mode is not Mode.STREAM:
-        state.timeline.stop()
-        state.stream.clear()
-        _set_mode(state, Mode.STREAM)
+        _take_over(state, Mode.STREAM, "api")
     # Late means behind the play-out point by the time the frames reached the daemon (what the jitter buffer's
     # delay absorbs), not by the time this cycle took them; frames already played past stay late.
     arrival = t if cmd.received is None else min(t, cmd.received)
@@ -755,12 +787,77 @@ def _on_pose(state: CoreState, params: CoreParams, out: CycleOutputs, t: float, 
     x = solve_channels(state, params, out, values)
     base = state.pose_target if state.mode is Mode.POSE and state.pose_target is not None else state.shaper.q
     target = state.safety.constrain(np.where(np.isfinite(x), x, base), state.shaper.q)
-    state.timeline.stop()
-    state.stream.clear()
+    _take_over(state, Mode.POSE, "api")
     state.pose_target = target
     state.pose_speed = cmd.speed
-    _set_mode(state, Mode.POSE)
     return {"targets_si": target.copy(), "speed": cmd.speed}
+
+
+def _on_live(state: CoreState, params: CoreParams, out: CycleOutputs, t: float, cmd: C.Live) -> dict:
+    """Values from a live input: it takes over (the last active source wins) unless it only repeats itself."""
+    _require_active(state, f"{cmd.source} input")
+    live = state.live
+    assert live is not None
+    if state.mode is not Mode.LIVE or live.source != cmd.source:
+        if not cmd.takeover:
+            return {"t": t, "ignored": True}
+        _take_over(state, Mode.LIVE, cmd.source)
+    arrival = t if cmd.received is None else min(t, cmd.received)
+    if cmd.at is not None and cmd.at > arrival + params.cfg.runtime.stream_max_ahead_s:
+        raise E.BadValue(f"time tag {cmd.at - arrival:.3f} s ahead; at most "
+                        f"{params.cfg.runtime.stream_max_ahead_s:g} s")
+    if not live.push(arrival, cmd.channels, cmd.values, cmd.at, cmd.watchdog_s):
+        raise E.TooLarge("too many timed updates waiting")
+    return {"t": t}
+
+
+def _on_timecode(state: CoreState, params: CoreParams, out: CycleOutputs, t: float, cmd: C.Timecode) -> dict:
+    """A timecode sample: the chase follows it; a lock or a jump hands the head to the timecode (when active)."""
+    chase = state.chase
+    if chase is None:
+        raise E.BadState("no timecode input is configured ([inputs.timecode])")
+    change = chase.feed(cmd.seconds, min(t, cmd.received), cmd.fps, cmd.rate, cmd.label, cmd.full)
+    if change:
+        _event(out, t, "timecode", state=chase.state, change=change, timecode=chase.label, rate=chase.rate)
+        if state.lifecycle is Lifecycle.ACTIVE and state.transition is None:
+            _take_over(state, Mode.CLIP, "timecode")
+            _chase_apply(state, out, t)
+    return {"state": chase.state}
+
+
+def _chase_step(state: CoreState, out: CycleOutputs, t: float) -> None:
+    """Advance the chase (dropout → freewheel → hold) and, while the timecode drives, place the clip."""
+    chase = state.chase
+    assert chase is not None
+    change = chase.update(t)
+    if change:
+        _event(out, t, "timecode", state=chase.state, change=change, timecode=chase.label, rate=chase.rate)
+    if state.source == "timecode" and state.mode is Mode.CLIP and state.lifecycle is Lifecycle.ACTIVE:
+        _chase_apply(state, out, t)
+
+
+def _chase_apply(state: CoreState, out: CycleOutputs, t: float) -> None:
+    """The timeline plays the chased clip at the chased clip time (paused while the chase holds)."""
+    chase = state.chase
+    assert chase is not None
+    tl = state.timeline
+    tc = chase.position(t)
+    sel = None if tc is None else chase.clip_at(tc)
+    if sel is None or sel[0] not in tl.clips:
+        tl.stop()  # before the first chased clip (or it is not loaded): hold
+        return
+    name, ct = sel
+    pb = tl.playback
+    if pb is None or pb.clip.name != name:
+        tl.play(name, t, None, ct, 1.0, False)
+        state.clip_done_reported = False
+        _event(out, t, "clip", state="playing", clip=name, start=t - ct, source="timecode")
+        pb = tl.playback
+        assert pb is not None
+    if ct < pb.clip.duration:
+        state.clip_done_reported = False
+    pb.offset, pb.start, pb.speed = ct, t, 1.0
+    pb.paused_at = ct if chase.state == CHASE_HOLD else None
 
 
 def _on_record(state: CoreState, params: CoreParams, out: CycleOutputs, t: float, cmd: C.Record) -> dict:
@@ -815,7 +912,7 @@ _HANDLERS: dict[type, Any] = {
     C.Enable: _on_enable, C.Disable: _on_disable, C.EStop: _on_estop, C.Reset: _on_reset, C.Status: _on_status,
     C.LoadClip: _on_load_clip, C.UnloadClip: _on_unload_clip, C.Play: _on_play, C.Pause: _on_pause,
     C.Resume: _on_resume, C.StopMotion: _on_stop, C.Seek: _on_seek, C.Stream: _on_stream, C.Pose: _on_pose,
-    C.Record: _on_record,
+    C.Record: _on_record, C.Live: _on_live, C.Timecode: _on_timecode,
 }
 
 
@@ -836,6 +933,11 @@ def _snapshot(state: CoreState, params: CoreParams, t: float) -> dict[str, Any]:
         body["clip"] = {"name": pb.clip.name, "time": state.timeline.clip_time(t), "duration": pb.clip.duration}
     if state.mode is Mode.STREAM:
         body["stream"] = state.stream.stats()
+    body["source"] = state.source
+    if state.mode is Mode.LIVE and state.live is not None:
+        body["live"] = state.live.stats()
+    if state.chase is not None:
+        body["clock"] = state.chase.describe(t)
     if state.extra:
         body["extra"] = dict(state.extra)
     return body

@@ -1,0 +1,102 @@
+"""The show-control inputs of one daemon, in the API server process: starts them, collects their commands.
+
+Each input's I/O runs on threads of its own (python-osc's server, the sACN receiver, the timecode port server);
+they hand commands to one in-process ZeroMQ PUSH socket (under a lock), and the server's thread, which polls the
+PULL end beside its ROUTER, gives each a token and sends it to the control core on the same link as the protocol's
+commands. Nothing here runs in the control loop's process.
+"""
+
+from __future__ import annotations
+
+import itertools
+import threading
+from collections.abc import Callable
+from typing import Any
+
+import zmq
+
+from runtime import ipc
+from runtime.core import commands as C
+from runtime.core.channels import ChannelMap
+from runtime.inputs.config import InputsConfig
+from runtime.inputs.refusals import Refusals
+
+_ENDPOINTS = itertools.count(1)
+
+
+class InputHub:
+    """Starts the configured inputs; :attr:`pull` yields their commands (token 0, to be given one)."""
+
+    def __init__(self, cfg: InputsConfig, channels: ChannelMap, ctx: zmq.Context, trip_estop: Callable[[], None]
+                 ) -> None:
+        self.cfg = cfg
+        endpoint = f"inproc://likeness-inputs-{next(_ENDPOINTS)}"
+        self.pull = ctx.socket(zmq.PULL)
+        self.pull.setsockopt(zmq.LINGER, 0)
+        self.pull.bind(endpoint)
+        self._push = ctx.socket(zmq.PUSH)
+        self._push.setsockopt(zmq.LINGER, 0)
+        self._push.setsockopt(zmq.SNDHWM, 10000)
+        self._push.connect(endpoint)
+        self._lock = threading.Lock()
+        self.refusals: dict[str, Refusals] = {}
+        self.inputs: list[Any] = []
+        if cfg.osc is not None:
+            from runtime.inputs.osc import OscInput
+
+            self.inputs.append(OscInput(cfg.osc, channels, self.emit, trip_estop))
+        if cfg.sacn is not None:
+            from runtime.inputs.sacn import SacnInput
+
+            self.inputs.append(SacnInput(cfg.sacn, channels, self.emit))
+        if cfg.timecode is not None:
+            from runtime.inputs.timecode import TimecodeInput
+
+            self.inputs.append(TimecodeInput(cfg.timecode, self.emit))
+        for inp in self.inputs:
+            self.refusals[inp.name] = inp.refusals
+
+    def start(self) -> None:
+        for inp in self.inputs:
+            inp.start()
+
+    def emit(self, cmd: C.Command) -> None:
+        """Called from the inputs' threads; never blocks (a full queue drops the command, logged)."""
+        with self._lock:
+            try:
+                ipc.send(self._push, cmd, zmq.NOBLOCK)
+            except zmq.Again:
+                source = getattr(cmd, "source", "input")
+                self.refusals.get(source, Refusals(source)).refuse("queue to the control loop full")
+
+    def drain(self, limit: int = 256) -> list[C.Command]:
+        """The commands waiting (server thread)."""
+        out = []
+        for _ in range(limit):
+            try:
+                out.append(ipc.recv(self.pull, zmq.NOBLOCK))
+            except zmq.Again:
+                break
+        return out
+
+    def refused(self, source: str, code: str, message: str) -> None:
+        """The core refused an input's command (head not active, ...): logged, rate-limited."""
+        self.refusals.setdefault(source, Refusals(source)).refuse(code, message)
+
+    def described(self) -> dict[str, Any]:
+        """Where each input listens (ports as bound), for ``hello``."""
+        return {inp.name: dict(inp.bound) for inp in self.inputs}
+
+    def stats(self) -> dict[str, Any]:
+        return {inp.name: inp.stats() for inp in self.inputs}
+
+    def close(self) -> None:
+        for inp in self.inputs:
+            try:
+                inp.close()
+            except Exception:  # one input failing to close must not keep the others open
+                import logging
+
+                logging.getLogger(__name__).exception("closing the %s input failed", inp.name)
+        self._push.close(0)
+        self.pull.close(0)
