@@ -21,7 +21,7 @@ import zmq
 
 from runtime import ipc
 from runtime.core import core as K
-from runtime.core.commands import Stream
+from runtime.core.commands import Live, Stream
 from runtime.loop import LoopStats, RateScheduler, SwitchInterval, drop_realtime, freeze_heap, try_realtime
 from runtime.phaselock import PhaseLock
 
@@ -176,7 +176,7 @@ class Runner:
                 break
             if kind == "cmd":
                 cmds.append(cmd)
-                if self.phase_lock is not None and isinstance(cmd, Stream) and cmd.received is not None:
+                if self.phase_lock is not None and isinstance(cmd, (Stream, Live)) and cmd.received is not None:
                     self.phase_lock.arrival(cmd.received, deadline)
         return cmds
 
