@@ -69,7 +69,8 @@ def grow_dataset(root: str | Path, spec: ProblemSpec, samples: np.ndarray, *, se
     cfg = config or LearnerConfig()
     root = Path(root)
     lo, hi = np.asarray(lo, float), np.asarray(hi, float)
-    sampling = {**sampling, "select": select, "budget": budget, "batch": batch, "init": init}
+    # The budget is not part of the dataset's identity: rerunning with a larger one grows the same dataset further.
+    sampling = {**sampling, "select": select, "batch": batch, "init": init}
     sel_path = root / "selection.json"
 
     def simulate(indices: Sequence[int]) -> dict[str, Any]:

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from offline.dataset.store import PoseDataset
+from offline.dataset.store import PoseDataset, PoseStore
 
 
 @dataclass(frozen=True)
@@ -63,9 +63,19 @@ def _rows(ds: PoseDataset, idx: np.ndarray) -> LabelledSet:
 
 def load_benchmark_data(dataset_dir: str | Path, policy_fraction: float = 0.35,
                         partition_seed: int = 0) -> BenchmarkData:
-    """Open a consolidated dataset and cut it into pool, policy pool and test set (converged poses only)."""
+    """Open a dataset and cut it into pool, policy pool and test set (converged poses only).
+
+    A dataset whose run was stopped early is consolidated with what it holds (poses never simulated count as
+    missing and are left out of every set; the split of the planned poses does not move).
+    """
     if not 0.0 < policy_fraction < 1.0:
         raise ValueError(f"policy fraction must lie in (0, 1), got {policy_fraction}")
+    store = PoseStore(dataset_dir)
+    n_planned = len(store.samples())
+    done = len(store.done())
+    status_path = Path(dataset_dir) / "status.npy"
+    if done < n_planned and (not status_path.exists() or int((np.load(status_path) >= 0).sum()) != done):
+        store.consolidate()
     ds = PoseDataset(dataset_dir)
     test = ds.split("test")
     rest = np.union1d(ds.split("train"), ds.split("validation"))
@@ -75,7 +85,7 @@ def load_benchmark_data(dataset_dir: str | Path, policy_fraction: float = 0.35,
         raise ValueError(f"{dataset_dir}: too few converged poses for a benchmark ({len(rest)} train/validation, "
                          f"{len(test)} test)")
     info = {"id": ds.id, "path": str(dataset_dir), "hash": ds.content_hash(), "head": ds.head,
-            "n_poses": len(ds.status), "n_converged": len(ds.usable),
+            "n_poses": len(ds.status), "n_simulated": done, "n_converged": len(ds.usable),
             "problem": ds.manifest.get("problem", {}).get("kind"), "mesh": ds.manifest.get("mesh"),
             "partition": {"policy_fraction": policy_fraction, "seed": partition_seed,
                           "test": "the dataset's test split", "pool_and_policy": "its train and validation splits"}}
