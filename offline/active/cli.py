@@ -27,6 +27,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--pool", default=None, help="use this consolidated pose dataset instead of DIR/pool")
     p.add_argument("--policy", default=None, help="use this learned policy file instead of learning one")
     p.add_argument("--methods", default=None, help="comma-separated subset of the methods (default: all)")
+    p.add_argument("--init", type=int, default=None, help="random initial poses per seed (default 10; quick 6)")
+    p.add_argument("--batch", type=int, default=None, help="poses per batch (default 10; quick 6)")
+    p.add_argument("--budget", type=int, default=None, help="labelled poses at the end (default 100; quick 36)")
+    p.add_argument("--synthetic", action="store_true",
+                   help="analytic sheet instead of the FEM at the default sizes (quick implies it)")
+    p.add_argument("--sheet-grid", type=int, default=None,
+                   help="analytic sheet: vertices per side (default 14; quick 12) - a finer or coarser 'mesh'")
+    p.add_argument("--sheet-stiffening", type=float, default=None,
+                   help="analytic sheet: cubic stiffening of its 'material' (default 2e4)")
     p.add_argument("--workers", type=int, default=None, help="FEM worker processes for the pool (default: CPUs)")
     p.add_argument("--engine", default="local", help="engine for the pool's FEM poses: local, dask-local, dask://")
     p.set_defaults(func=run)
@@ -36,6 +45,7 @@ def run(args: argparse.Namespace) -> int:
     """Pool, policy, benchmark, report and figure."""
     import sys
     import time
+    from dataclasses import replace
     from pathlib import Path
 
     import torch
@@ -79,6 +89,17 @@ def run(args: argparse.Namespace) -> int:
         bench = BenchmarkSettings(**({"seeds": args.seeds} if args.seeds else {}))
         policy = PolicySettings()
         cfg = LearnerConfig()
+    overrides = {k: v for k, v in (("init", args.init), ("batch", args.batch), ("budget", args.budget))
+                 if v is not None}
+    if any(v < 1 for v in overrides.values()):
+        raise CliError(f"--init, --batch and --budget must be positive, got {overrides}")
+    if overrides:
+        bench = replace(bench, **overrides)
+        policy = replace(policy, init=bench.init, batch=bench.batch, budget=bench.budget)
+    sheet = {k: v for k, v in (("synthetic_grid", args.sheet_grid), ("synthetic_stiffening", args.sheet_stiffening))
+             if v is not None}
+    if args.synthetic or sheet:
+        pool_settings = replace(pool_settings, synthetic=True, **sheet)
     pool_dir = Path(args.pool) if args.pool else out / "pool"
     if args.pool is None:
         mesh = args.mesh or str(Path(args.config).parent / "skin")

@@ -27,6 +27,7 @@ class PoolSettings:
     range_fraction: float = 1.0
     synthetic: bool = False
     synthetic_grid: int = 14
+    synthetic_stiffening: float = 2.0e4
 
 
 def ensure_pool(head, config: str, mesh: str | None, out: str | Path, settings: PoolSettings,
@@ -38,7 +39,8 @@ def ensure_pool(head, config: str, mesh: str | None, out: str | Path, settings: 
     if settings.synthetic:
         from offline.dataset.synthetic import SyntheticSpec
 
-        spec = SyntheticSpec(tuple(float(v) for v in lo), tuple(float(v) for v in hi), grid=settings.synthetic_grid)
+        spec = SyntheticSpec(tuple(float(v) for v in lo), tuple(float(v) for v in hi), grid=settings.synthetic_grid,
+                             stiffening=settings.synthetic_stiffening)
         engine_name = "serial"
     else:
         from offline.dataset.fem_problem import FemSpec, material_fields
