@@ -30,6 +30,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--init", type=int, default=None, help="random initial poses per seed (default 10; quick 6)")
     p.add_argument("--batch", type=int, default=None, help="poses per batch (default 10; quick 6)")
     p.add_argument("--budget", type=int, default=None, help="labelled poses at the end (default 100; quick 36)")
+    p.add_argument("--policy-runs", type=int, default=None, help="simulated AL runs the policy learns from "
+                   "(default 6; quick 2)")
+    p.add_argument("--policy-fraction", type=float, default=0.35,
+                   help="share of the dataset's train and validation poses set aside as the policy pool (default 0.35)")
     p.add_argument("--synthetic", action="store_true",
                    help="analytic sheet instead of the FEM at the default sizes (quick implies it)")
     p.add_argument("--sheet-grid", type=int, default=None,
@@ -96,6 +100,10 @@ def run(args: argparse.Namespace) -> int:
     if overrides:
         bench = replace(bench, **overrides)
         policy = replace(policy, init=bench.init, batch=bench.batch, budget=bench.budget)
+    if args.policy_runs is not None:
+        if args.policy_runs < 1:
+            raise CliError(f"--policy-runs must be positive, got {args.policy_runs}")
+        policy = replace(policy, n_runs=args.policy_runs)
     sheet = {k: v for k, v in (("synthetic_grid", args.sheet_grid), ("synthetic_stiffening", args.sheet_stiffening))
              if v is not None}
     if args.synthetic or sheet:
@@ -117,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
         log(f"pool: {summary['done']} poses ready ({summary['solved_now']} solved now, {summary['seconds']:.0f} s)")
     try:
         run_and_report(pool_dir, out, methods, bench, policy, cfg, args.policy, pool_settings,
-                       config=args.config, log=log)
+                       config=args.config, log=log, policy_fraction=args.policy_fraction)
     except (SpecError, ValueError) as exc:
         raise CliError(str(exc)) from exc
     except KeyboardInterrupt:

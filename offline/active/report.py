@@ -31,11 +31,11 @@ def _file_hash(path: str | Path) -> str:
 
 def run_and_report(pool_dir: str | Path, out: str | Path, methods: Sequence[str], bench: BenchmarkSettings,
                    policy_settings: PolicySettings, cfg: LearnerConfig, policy_path: str | None, pool_settings: Any,
-                   config: str, log: Callable[[str], None] = print) -> dict[str, Any]:
+                   config: str, log: Callable[[str], None] = print, policy_fraction: float = 0.35) -> dict[str, Any]:
     """The whole benchmark after the pool exists; returns the report (also written to ``out/report.json``)."""
     t0 = time.perf_counter()
     out = Path(out)
-    data = load_benchmark_data(pool_dir)
+    data = load_benchmark_data(pool_dir, policy_fraction=policy_fraction)
     log(f"data: pool {len(data.pool)}, policy pool {len(data.policy)}, test {len(data.test)} poses, "
         f"{data.base.shape[0]} vertices, {data.pool.x.shape[1]} actuators")
     selectors = {}
