@@ -34,7 +34,7 @@ def plot_curves(runs: dict[str, list[dict[str, Any]]], path: str | Path, title: 
             ax.fill_between(n, curves.min(axis=0), curves.max(axis=0), color=color, alpha=0.12)
     axes[0].set_ylabel("test mean Euclidean vertex error (µm)")
     axes[1].set_ylabel("test L1, mean |coordinate error| (µm)")
-    axes[1].set_xlabel("labelled poses (FEM simulations)")
+    axes[1].set_xlabel("labelled poses (simulated)")
     for ax in axes:
         ax.set_yscale("log")
         ax.grid(True, which="both", alpha=0.3)
