@@ -55,7 +55,9 @@ def run_method(name: str, selector: Selector, data: BenchmarkData, seed: int, se
         run = {"method": name, "seed": seed, "labelled": [int(i) for i in init], "n_labelled": [],
                "mean_euclidean_um": [], "l1_um": [], "select_seconds": [], "complete": False}
     labelled = np.asarray(run["labelled"], dtype=np.int64)
-    rng = np.random.default_rng([seed, 0x5E1, len(labelled)])
+    rng = np.random.default_rng([seed, 0x5E1, settings.init])
+    if "rng_state" in run:  # a resumed run continues the stream where the checkpoint left it
+        rng.bit_generator.state = run["rng_state"]
     t0 = time.perf_counter()
     while True:
         state = learner.fit(pool.x[labelled], pool.y[labelled], cfg)
@@ -78,6 +80,7 @@ def run_method(name: str, selector: Selector, data: BenchmarkData, seed: int, se
         run["select_seconds"].append(round(time.perf_counter() - t1, 3))
         labelled = np.concatenate([labelled, chosen])
         run["labelled"] = [int(i) for i in labelled]
+        run["rng_state"] = rng.bit_generator.state
         atomic_write_bytes(checkpoint, json.dumps(run).encode())
         log(f"{name} seed {seed}: {len(labelled)}/{settings.budget} labelled, test error "
             f"{run['mean_euclidean_um'][-1]:.1f} µm before this batch")

@@ -83,7 +83,8 @@ def simulate_run(x: np.ndarray, y: np.ndarray, tau: int, settings: PolicySetting
         steps.append(np.full(len(cand), step))
         add = rng.choice(np.asarray(unlabelled), size=min(settings.batch, len(unlabelled)), replace=False)
         labelled.extend(int(a) for a in add)
-        unlabelled = [u for u in unlabelled if u not in set(add.tolist())]
+        added = set(add.tolist())
+        unlabelled = [u for u in unlabelled if u not in added]
         step += 1
     return concat(feats), np.concatenate(deltas), np.concatenate(steps)
 

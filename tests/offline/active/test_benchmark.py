@@ -41,7 +41,8 @@ def test_a_run_interrupted_between_batches_resumes_to_the_same_curve(tiny, cfg, 
     assert resumed["complete"]
     assert resumed["labelled"][:18] == partial["labelled"]
     assert resumed["n_labelled"] == whole["n_labelled"] == [6, 12, 18, 24, 30]
-    np.testing.assert_allclose(resumed["mean_euclidean_um"][:3], whole["mean_euclidean_um"][:3])
+    assert resumed["labelled"] == whole["labelled"]  # the resumed run drew what the unbroken one did
+    np.testing.assert_allclose(resumed["mean_euclidean_um"], whole["mean_euclidean_um"])
 
 
 def test_the_fully_informed_greedy_ends_below_random_on_a_seeded_problem(tiny, cfg, tmp_path):
