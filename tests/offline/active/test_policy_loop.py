@@ -94,3 +94,17 @@ def test_selection_in_the_loop_grows_a_dataset_batch_by_batch_and_resumes(tmp_pa
     assert again[:3] == batches
     ds = PoseDataset(root)
     assert len(ds.usable) == 20 and set(ds.usable.tolist()) == {i for b in again for i in b}
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--select", "genlal", "--budget", "5"], "needs --policy"),
+    (["--select", "random"], "needs --budget"),
+    (["--budget", "5"], "need --select"),
+])
+def test_the_dataset_command_names_what_is_missing_for_selection(tmp_path, capsys, extra, message):
+    from likeness.cli import main
+
+    code = main(["offline", "dataset", "--config", str(ROOT / "heads" / "sample" / "head.toml"), "--synthetic",
+                 "--poses", "20", "--out", str(tmp_path / "ds"), "--engine", "serial", *extra])
+    assert code == 2 and message in capsys.readouterr().err
+    assert not (tmp_path / "ds").exists()
