@@ -46,13 +46,17 @@ def run_method(name: str, selector: Selector, data: BenchmarkData, seed: int, se
                cfg: LearnerConfig, checkpoint: Path, log: Callable[[str], None] = print) -> dict[str, Any]:
     """One AL run of ``selector`` (resumed from ``checkpoint`` when it holds a partial run); returns its curve."""
     pool = data.pool
+    pool_hash = pool.digest()
     if checkpoint.exists():
         run = json.loads(checkpoint.read_text())
+        if run.get("pool_hash") != pool_hash:
+            raise ValueError(f"{checkpoint}: made on a different pool (the dataset changed since); use a new --out")
         if run.get("complete"):
             return run
     else:
         init = np.random.default_rng([seed, 0x1417]).choice(len(pool), size=settings.init, replace=False)
-        run = {"method": name, "seed": seed, "labelled": [int(i) for i in init], "n_labelled": [],
+        run = {"method": name, "seed": seed, "pool_hash": pool_hash, "labelled": [int(i) for i in init],
+               "n_labelled": [],
                "mean_euclidean_um": [], "l1_um": [], "select_seconds": [], "complete": False}
     labelled = np.asarray(run["labelled"], dtype=np.int64)
     rng = np.random.default_rng([seed, 0x5E1, settings.init])

@@ -146,11 +146,23 @@ def offset_scale(y: np.ndarray) -> np.ndarray:
     return np.where(s > 1e-12, s, 1e-3)
 
 
+def pool_digest(x: np.ndarray, y: np.ndarray) -> str:
+    """SHA-256 of a policy pool's actuators and offsets: which data a policy was learned on."""
+    h = hashlib.sha256(np.ascontiguousarray(x, dtype=np.float64).tobytes())
+    h.update(np.ascontiguousarray(y, dtype=np.float32).tobytes())
+    return "sha256:" + h.hexdigest()
+
+
 def learn_policy(x: np.ndarray, y: np.ndarray, base: np.ndarray, settings: PolicySettings, cfg: LearnerConfig,
                  work_dir: str | Path, log: Callable[[str], None] = print) -> Policy:
     """Algorithm 1 on the policy pool (x, y): simulated runs (checkpointed in ``work_dir``), then the regressor."""
     work = Path(work_dir)
     work.mkdir(parents=True, exist_ok=True)
+    stamp = work / "pool.json"
+    digest = pool_digest(x, y)
+    if stamp.exists() and json.loads(stamp.read_text()).get("policy_pool_hash") != digest:
+        raise ValueError(f"{work}: simulated runs of a different policy pool; use a new output folder")
+    atomic_write_bytes(stamp, json.dumps({"policy_pool_hash": digest, "settings": asdict(settings)}).encode())
     order = morton_order(base)
     scale = offset_scale(y)
     parts: list[CandidateFeatures] = []
@@ -181,6 +193,7 @@ def learn_policy(x: np.ndarray, y: np.ndarray, base: np.ndarray, settings: Polic
     std = float(target.std()) or 1.0
     regressor = train_regressor(feats, target / std, epochs=settings.epochs, seed=settings.seed, log=log)
     info = {"settings": asdict(settings), "learner": asdict(cfg), "n_samples": len(target),
+            "policy_pool_hash": pool_digest(x, y),
             "n_pool": len(x), "n_vertices": len(base), "seconds": round(time.perf_counter() - t0, 1)}
     log(f"policy: regressor trained on {len(target)} measured candidates ({info['seconds']} s in all)")
     return Policy(regressor=regressor, order=order, scale=scale, n_actuators=int(x.shape[1]), info=info)

@@ -17,7 +17,7 @@ from typing import Any
 from offline.active.benchmark import REPORT_FORMAT, REPORT_VERSION, BenchmarkSettings, run_benchmark
 from offline.active.learner import LearnerConfig
 from offline.active.plot import plot_curves
-from offline.active.policy import Policy, PolicySettings, learn_policy
+from offline.active.policy import Policy, PolicySettings, learn_policy, pool_digest
 from offline.active.pool import load_benchmark_data
 from offline.active.selectors import BASELINES, genlal_selector
 from offline.dataset.store import atomic_write_bytes
@@ -53,6 +53,8 @@ def run_and_report(pool_dir: str | Path, out: str | Path, methods: Sequence[str]
             learned = out / "policy.npz"
             if learned.exists():
                 policy = Policy.load(learned)
+                if policy.info.get("policy_pool_hash") not in (None, pool_digest(data.policy.x, data.policy.y)):
+                    raise ValueError(f"{learned} was learned on a different policy pool; use a new --out")
                 log(f"policy: loaded {learned} (learned by an earlier run)")
             else:
                 log(f"policy: learning on the policy pool ({len(data.policy)} poses, {policy_settings.n_runs} "
