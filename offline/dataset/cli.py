@@ -30,6 +30,15 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "the dataset and the predictor trained on it record the sampled range")
     p.add_argument("--max-poses", type=int, default=None, help="stop after solving this many new poses")
     p.add_argument("--backend", default="auto", help="sparse solver backend for the FEM (auto|cholmod|pardiso|superlu)")
+    p.add_argument("--select", choices=("genlal", "random"), default=None,
+                   help="active learning: simulate only --budget of the --poses sampled candidates, chosen batch by "
+                   "batch by a learned GEN-LAL policy (or at random, for comparison), retraining the predictor "
+                   "between batches")
+    p.add_argument("--budget", type=int, default=None, help="with --select: poses to simulate")
+    p.add_argument("--batch", type=int, default=10, help="with --select: poses per batch (default 10)")
+    p.add_argument("--init", type=int, default=None, help="with --select: random initial poses (default: --batch)")
+    p.add_argument("--policy", default=None, help="with --select genlal: the policy file (likeness offline "
+                   "al-benchmark writes DIR/policy.npz)")
     p.add_argument("--quiet", action="store_true", help="no progress line")
     p.set_defaults(func=run)
 
@@ -98,8 +107,41 @@ def run(args: argparse.Namespace) -> int:
         raise KeyboardInterrupt
 
     signal.signal(signal.SIGTERM, _terminate)  # finish cleanly: in-flight poses are written, workers stop
+    if args.select is None and (args.budget is not None or args.policy is not None):
+        raise CliError("--budget and --policy need --select genlal|random")
+    if args.select is not None:
+        if args.budget is None:
+            raise CliError("--select needs --budget (poses to simulate)")
+        policy = None
+        if args.select == "genlal":
+            if not args.policy:
+                raise CliError("--select genlal needs --policy FILE (likeness offline al-benchmark writes "
+                               "DIR/policy.npz)")
+            from offline.active.policy import Policy
+
+            try:
+                policy = Policy.load(args.policy)
+            except ValueError as exc:
+                raise CliError(str(exc)) from exc
     try:
         with engine:
+            if args.select is not None:
+                import torch
+
+                from offline.active.loop import grow_dataset
+
+                torch.set_num_threads(1)
+                try:
+                    summary = grow_dataset(
+                        args.out, spec, samples, select=args.select, budget=args.budget, batch=args.batch,
+                        init=args.init or args.batch, policy=policy, head=head.name, names=head.actuator_names,
+                        units=units, lo=lo, hi=hi, engine=engine, seed=args.seed,
+                        sampling={"boundary_prob": args.boundary_prob, "range_fraction": args.range_fraction},
+                        progress_stream=None if args.quiet else sys.stderr)
+                except ValueError as exc:
+                    raise CliError(str(exc)) from exc
+                print(json.dumps(summary, indent=1))
+                return 0
             summary = generate_dataset(
                 args.out, spec, samples, head=head.name, names=head.actuator_names, units=units, lo=lo, hi=hi,
                 engine=engine, seed=args.seed,

@@ -86,10 +86,11 @@ def generate_dataset(root: str | Path, spec: ProblemSpec, samples: np.ndarray, *
                      names: Sequence[str], units: Sequence[str], lo: np.ndarray, hi: np.ndarray,
                      engine: Engine, seed: int, sampling: dict[str, Any],
                      progress_stream: TextIO | None = sys.stderr, max_in_flight: int | None = None,
-                     max_poses: int | None = None) -> dict[str, Any]:
+                     max_poses: int | None = None, indices: Sequence[int] | None = None) -> dict[str, Any]:
     """Create (or resume) the dataset at ``root`` and solve every missing pose; returns a summary.
 
-    ``max_poses`` stops after that many newly solved poses (for tests and partial runs).
+    ``max_poses`` stops after that many newly solved poses (for tests and partial runs); ``indices`` restricts
+    the run to those planned poses (active learning simulates the poses its policy chose, batch by batch).
     """
     root = Path(root)
     store = PoseStore(root)
@@ -112,12 +113,14 @@ def generate_dataset(root: str | Path, spec: ProblemSpec, samples: np.ndarray, *
     for i in sorted(done):
         if store.read_pose(i).converged:
             solved_idx.append(i)
-    todo = [i for i in range(len(samples)) if i not in done]
+    wanted = range(len(samples)) if indices is None else sorted({int(i) for i in indices})
+    todo = [i for i in wanted if i not in done]
     if max_poses is not None:
         todo = todo[:max_poses]
     failures_path = root / "failures.json"
     failures: dict[str, str] = json.loads(failures_path.read_text()) if failures_path.exists() else {}
-    prog = Progress(len(samples), len(done), progress_stream)
+    total = len(samples) if indices is None else len(done) + len(todo)
+    prog = Progress(total, len(done), progress_stream)
     t0 = time.perf_counter()
 
     def make_args(i: int) -> tuple[Any, ...]:

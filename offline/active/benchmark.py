@@ -1,0 +1,154 @@
+"""The active-learning benchmark: every method over several seeds on one pool, budget and test set.
+
+For each seed, all methods start from the same random initial labelled set drawn from the pool and add ``batch``
+poses per step until ``budget``; after each step the predictor is retrained from scratch (same schedule and seed
+for every method) and its test mean Euclidean error and L1 are recorded. Each (method, seed) run is checkpointed
+after every batch (``runs/METHOD_sSEED.json``), so a killed benchmark resumes where it stopped.
+
+``fraction_to_random_final``: per seed, the sample count at which a method's error curve first reaches random's
+final error (linear interpolation between batches), divided by random's final sample count; the report gives the
+mean over the seeds where it is reached and the number of such seeds (a method that never reaches it within the
+budget has no fraction for that seed, and its mean is null if no seed reaches it).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from offline.active import learner
+from offline.active.learner import LearnerConfig
+from offline.active.pool import BenchmarkData
+from offline.active.selectors import SelectionContext, Selector
+from offline.dataset.store import atomic_write_bytes
+
+REPORT_FORMAT = "likeness-al-benchmark"
+REPORT_VERSION = 1
+
+
+@dataclass(frozen=True)
+class BenchmarkSettings:
+    """Budget and schedule shared by every method."""
+
+    init: int = 10
+    batch: int = 10
+    budget: int = 100
+    seeds: int = 3
+
+
+def run_method(name: str, selector: Selector, data: BenchmarkData, seed: int, settings: BenchmarkSettings,
+               cfg: LearnerConfig, checkpoint: Path, log: Callable[[str], None] = print) -> dict[str, Any]:
+    """One AL run of ``selector`` (resumed from ``checkpoint`` when it holds a partial run); returns its curve."""
+    pool = data.pool
+    pool_hash = pool.digest()
+    if checkpoint.exists():
+        run = json.loads(checkpoint.read_text())
+        if run.get("pool_hash") != pool_hash:
+            raise ValueError(f"{checkpoint}: made on a different pool (the dataset changed since); use a new --out")
+        if run.get("complete"):
+            return run
+    else:
+        init = np.random.default_rng([seed, 0x1417]).choice(len(pool), size=settings.init, replace=False)
+        run = {"method": name, "seed": seed, "pool_hash": pool_hash, "labelled": [int(i) for i in init],
+               "n_labelled": [],
+               "mean_euclidean_um": [], "l1_um": [], "select_seconds": [], "complete": False}
+    labelled = np.asarray(run["labelled"], dtype=np.int64)
+    rng = np.random.default_rng([seed, 0x5E1, settings.init])
+    if "rng_state" in run:  # a resumed run continues the stream where the checkpoint left it
+        rng.bit_generator.state = run["rng_state"]
+    t0 = time.perf_counter()
+    while True:
+        state = learner.fit(pool.x[labelled], pool.y[labelled], cfg)
+        if len(run["n_labelled"]) == 0 or run["n_labelled"][-1] != len(labelled):
+            err = learner.errors(state, data.test.x, data.test.y)
+            run["n_labelled"].append(len(labelled))
+            run["mean_euclidean_um"].append(err["mean_euclidean_um"])
+            run["l1_um"].append(err["l1_um"])
+        if len(labelled) >= settings.budget:
+            break
+        cand = np.setdiff1d(np.arange(len(pool)), labelled)
+        b = min(settings.batch, settings.budget - len(labelled), len(cand))
+        ctx = SelectionContext(x=pool.x, labelled=labelled, candidates=cand, y_labelled=pool.y[labelled],
+                               state=state, batch=b, rng=rng, config=cfg,
+                               oracle_y=pool.y if name == "greedy" else None)
+        t1 = time.perf_counter()
+        chosen = np.asarray(selector(ctx), dtype=np.int64)
+        if len(np.unique(chosen)) != b or np.isin(chosen, labelled).any():
+            raise RuntimeError(f"{name} selected an invalid batch {chosen.tolist()}")
+        run["select_seconds"].append(round(time.perf_counter() - t1, 3))
+        labelled = np.concatenate([labelled, chosen])
+        run["labelled"] = [int(i) for i in labelled]
+        run["rng_state"] = rng.bit_generator.state
+        atomic_write_bytes(checkpoint, json.dumps(run).encode())
+        log(f"{name} seed {seed}: {len(labelled)}/{settings.budget} labelled, test error "
+            f"{run['mean_euclidean_um'][-1]:.1f} µm before this batch")
+    run["complete"] = True
+    run["seconds"] = round(run.get("seconds", 0.0) + time.perf_counter() - t0, 2)
+    atomic_write_bytes(checkpoint, json.dumps(run).encode())
+    return run
+
+
+def first_reach(n: Sequence[float], err: Sequence[float], target: float) -> float | None:
+    """Smallest sample count at which the piecewise-linear curve (n, err) reaches ``target`` (None: never)."""
+    for i, e in enumerate(err):
+        if e <= target:
+            if i == 0:
+                return float(n[0])
+            e0, n0, n1 = err[i - 1], n[i - 1], n[i]
+            return float(n0 + (n1 - n0) * (e0 - target) / (e0 - e))
+    return None
+
+
+def summarize(runs: dict[str, list[dict[str, Any]]]) -> dict[str, Any]:
+    """Per-method summary: final errors over seeds and ``fraction_to_random_final``."""
+    random_by_seed = {r["seed"]: r for r in runs.get("random", [])}
+    out: dict[str, Any] = {}
+    for name, rs in runs.items():
+        finals = np.array([r["mean_euclidean_um"][-1] for r in rs])
+        per_seed: dict[str, float | None] = {}
+        for r in rs:
+            ref = random_by_seed.get(r["seed"])
+            if ref is None:
+                continue
+            n_final = ref["n_labelled"][-1]
+            reach = first_reach(r["n_labelled"], r["mean_euclidean_um"], ref["mean_euclidean_um"][-1])
+            per_seed[str(r["seed"])] = None if reach is None else reach / n_final
+        reached = [v for v in per_seed.values() if v is not None]
+        out[name] = {
+            "final_mean_euclidean_um": {"mean": float(finals.mean()), "std": float(finals.std()),
+                                        "per_seed": finals.tolist()},
+            "final_l1_um_mean": float(np.mean([r["l1_um"][-1] for r in rs])),
+            "fraction_to_random_final": float(np.mean(reached)) if reached else None,
+            "fraction_to_random_final_per_seed": per_seed,
+            "seeds_reaching_random_final": len(reached),
+            "select_seconds_total_mean": float(np.mean([sum(r["select_seconds"]) for r in rs])),
+        }
+    return out
+
+
+def run_benchmark(data: BenchmarkData, selectors: dict[str, Selector], settings: BenchmarkSettings,
+                  cfg: LearnerConfig, out_dir: str | Path, log: Callable[[str], None] = print) -> dict[str, Any]:
+    """Run every method for every seed (resumable); returns the per-method runs and their summary."""
+    if settings.budget > len(data.pool) or settings.init >= settings.budget:
+        raise ValueError(f"budget {settings.budget} must exceed init {settings.init} and fit in the pool "
+                         f"({len(data.pool)} poses)")
+    runs_dir = Path(out_dir) / "runs"
+    runs_dir.mkdir(parents=True, exist_ok=True)
+    runs: dict[str, list[dict[str, Any]]] = {name: [] for name in selectors}
+    total = len(selectors) * settings.seeds
+    k = 0
+    for seed in range(settings.seeds):
+        for name, sel in selectors.items():
+            k += 1
+            t0 = time.perf_counter()
+            run = run_method(name, sel, data, seed, settings, cfg, runs_dir / f"{name}_s{seed}.json", log=log)
+            runs[name].append(run)
+            log(f"[{k}/{total}] {name} seed {seed}: final test error {run['mean_euclidean_um'][-1]:.1f} µm "
+                f"with {run['n_labelled'][-1]} poses ({time.perf_counter() - t0:.0f} s)")
+    return {"runs": runs, "summary": summarize(runs), "settings": asdict(settings), "learner": asdict(cfg)}

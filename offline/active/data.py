@@ -1,0 +1,61 @@
+"""Make (or resume) the labelled pose dataset a benchmark runs on, with the project's dataset engine.
+
+The default is FEM poses of the head on its skin mesh, sampled over each actuator's full range (10 % of the values
+at a range end, as the sample predictor's dataset): one resumable ``likeness offline dataset`` run, so a killed
+benchmark picks the pool up where it stopped. ``--quick`` uses the analytic test sheet (seconds).
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TextIO
+
+from offline.dataset.generate import generate_dataset
+from offline.dataset.sampling import sample_poses, sample_ranges
+from offline.engine import make_engine
+
+
+@dataclass(frozen=True)
+class PoolSettings:
+    """What the labelled dataset holds: pose count, sampling seed and settings, the problem (FEM or analytic)."""
+
+    poses: int = 480
+    seed: int = 11
+    boundary_prob: float = 0.1
+    range_fraction: float = 1.0
+    synthetic: bool = False
+    synthetic_grid: int = 14
+    synthetic_stiffening: float = 2.0e4
+
+
+def ensure_pool(head, config: str, mesh: str | None, out: str | Path, settings: PoolSettings,
+                engine_name: str = "local", workers: int | None = None,
+                progress: TextIO | None = sys.stderr) -> dict:
+    """Generate the dataset at ``out`` or resume it; returns the dataset generator's summary."""
+    lo, hi = sample_ranges(head, settings.range_fraction)
+    units = ["rad" if a.kind == "rotary" else "m" for a in head.actuators]
+    if settings.synthetic:
+        from offline.dataset.synthetic import SyntheticSpec
+
+        spec = SyntheticSpec(tuple(float(v) for v in lo), tuple(float(v) for v in hi), grid=settings.synthetic_grid,
+                             stiffening=settings.synthetic_stiffening)
+        engine_name = "serial"
+    else:
+        from offline.dataset.fem_problem import FemSpec, material_fields
+
+        linkmap = head.path("linkmap")
+        if mesh is None or linkmap is None:
+            raise ValueError("the FEM pool needs a skin mesh and the head's paths.linkmap")
+        spec = FemSpec(config=str(config), mesh=str(mesh), linkmap=str(linkmap),
+                       **material_fields(head.skin_material()))
+        spec.check()
+    samples = sample_poses(head, settings.poses, seed=settings.seed, boundary_prob=settings.boundary_prob,
+                           range_fraction=settings.range_fraction)
+    with make_engine(engine_name, workers, 1) as engine:
+        return generate_dataset(out, spec, samples, head=head.name, names=head.actuator_names, units=units, lo=lo,
+                                hi=hi, engine=engine, seed=settings.seed,
+                                sampling={"boundary_prob": settings.boundary_prob,
+                                          "range_fraction": settings.range_fraction},
+                                progress_stream=progress)

@@ -1,0 +1,99 @@
+"""The benchmark harness: runs resume after an interruption, greedy beats random, fractions, the --quick report."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from offline.active.benchmark import BenchmarkSettings, first_reach, run_method, summarize
+from offline.active.selectors import BASELINES
+
+ROOT = Path(__file__).resolve().parents[3]
+SETTINGS = BenchmarkSettings(init=6, batch=6, budget=30, seeds=1)
+
+
+class Interrupt(Exception):
+    pass
+
+
+def test_a_run_interrupted_between_batches_resumes_to_the_same_curve(tiny, cfg, tmp_path):
+    whole = run_method("random", BASELINES["random"], tiny, 0, SETTINGS, cfg, tmp_path / "whole.json",
+                       log=lambda m: None)
+    calls = {"n": 0}
+
+    def failing(ctx):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise Interrupt
+        return BASELINES["random"](ctx)
+
+    ck = tmp_path / "cut.json"
+    with pytest.raises(Interrupt):
+        run_method("random", failing, tiny, 0, SETTINGS, cfg, ck, log=lambda m: None)
+    partial = json.loads(ck.read_text())
+    assert not partial["complete"] and len(partial["labelled"]) == 18
+    resumed = run_method("random", BASELINES["random"], tiny, 0, SETTINGS, cfg, ck, log=lambda m: None)
+    assert resumed["complete"]
+    assert resumed["labelled"][:18] == partial["labelled"]
+    assert resumed["n_labelled"] == whole["n_labelled"] == [6, 12, 18, 24, 30]
+    assert resumed["labelled"] == whole["labelled"]  # the resumed run drew what the unbroken one did
+    np.testing.assert_allclose(resumed["mean_euclidean_um"], whole["mean_euclidean_um"])
+
+
+def test_the_fully_informed_greedy_ends_below_random_on_a_seeded_problem(tiny, cfg, tmp_path):
+    finals = {}
+    for name in ("random", "greedy"):
+        errs = [run_method(name, BASELINES[name], tiny, s, SETTINGS, cfg, tmp_path / f"{name}{s}.json",
+                           log=lambda m: None)["mean_euclidean_um"][-1] for s in range(2)]
+        finals[name] = float(np.mean(errs))
+    assert finals["greedy"] < finals["random"]
+
+
+def test_fraction_to_random_final_interpolates_and_reports_methods_that_never_reach_it():
+    assert first_reach([10, 20, 30], [100.0, 50.0, 40.0], 75.0) == pytest.approx(15.0)
+    assert first_reach([10, 20], [100.0, 90.0], 50.0) is None
+    runs = {"random": [{"seed": 0, "n_labelled": [10, 20, 30], "mean_euclidean_um": [100, 60, 50], "l1_um": [1, 1, 1],
+                        "select_seconds": [0, 0]}],
+            "fast": [{"seed": 0, "n_labelled": [10, 20, 30], "mean_euclidean_um": [100, 50, 40], "l1_um": [1, 1, 1],
+                      "select_seconds": [0, 0]}],
+            "slow": [{"seed": 0, "n_labelled": [10, 20, 30], "mean_euclidean_um": [100, 90, 80], "l1_um": [1, 1, 1],
+                      "select_seconds": [0, 0]}]}
+    s = summarize(runs)
+    assert s["random"]["fraction_to_random_final"] == pytest.approx(1.0)
+    assert s["fast"]["fraction_to_random_final"] == pytest.approx(20 / 30)
+    assert s["slow"]["fraction_to_random_final"] is None and s["slow"]["seeds_reaching_random_final"] == 0
+
+
+def test_quick_benchmark_writes_a_well_formed_report_and_resumes_from_its_checkpoints(tmp_path):
+    out = tmp_path / "bench"
+    cmd = [sys.executable, "-m", "likeness.cli", "offline", "al-benchmark", "--config",
+           str(ROOT / "heads" / "sample" / "head.toml"), "--out", str(out), "--quick", "--seeds", "1"]
+    env = {"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"}
+    first = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
+    assert first.returncode == 0, first.stderr[-3000:]
+    report = json.loads((out / "report.json").read_text())
+    assert report["format"] == "likeness-al-benchmark"
+    methods = ["random", "greedy", "space_filling", "committee", "lcmd", "maxdist", "genlal"]
+    assert report["methods"] == methods and set(report["summary"]) == set(methods)
+    for name in methods:
+        (run,) = report["runs"][name]
+        assert run["n_labelled"] == [6, 12, 18, 24, 30, 36]
+        assert len(run["mean_euclidean_um"]) == len(run["l1_um"]) == 6
+        assert all(np.isfinite(run["mean_euclidean_um"])) and all(e > 0 for e in run["l1_um"])
+        assert len(set(run["labelled_pool_rows"])) == 36
+    assert report["summary"]["random"]["fraction_to_random_final"] <= 1.0
+    hashes = report["inputs"]["hashes"]
+    assert len({hashes["pool"], hashes["policy"], hashes["test"]}) == 3
+    assert report["inputs"]["config_hash"].startswith("sha256:") and report["policy"]["hash"].startswith("sha256:")
+    assert (out / "al_benchmark.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # A second invocation finds every run and the policy checkpointed: nothing is recomputed, same report.
+    second = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
+    assert second.returncode == 0, second.stderr[-3000:]
+    assert "loaded" in second.stderr
+    again = json.loads((out / "report.json").read_text())
+    assert again["runs"] == report["runs"]

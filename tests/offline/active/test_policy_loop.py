@@ -1,0 +1,110 @@
+"""GEN-LAL's policy (learning resumes, save and load, other meshes) and the selection loop that grows a dataset."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from models.headspec import load_head
+from offline.active import learner
+from offline.active.features import morton_order
+from offline.active.loop import grow_dataset
+from offline.active.policy import Policy, PolicySettings, learn_policy
+from offline.dataset.sampling import sample_poses, sample_ranges
+from offline.dataset.store import PoseDataset
+from offline.dataset.synthetic import SyntheticSpec
+from offline.engine import SerialEngine
+
+ROOT = Path(__file__).resolve().parents[3]
+SMALL = PolicySettings(n_runs=2, init=5, batch=5, budget=20, candidates_per_step=3, pseudo_test=10, epochs=3)
+
+
+@pytest.fixture(scope="module")
+def policy(tiny, cfg, tmp_path_factory) -> Policy:
+    work = tmp_path_factory.mktemp("policy")
+    return learn_policy(tiny.policy.x, tiny.policy.y, tiny.base, SMALL, cfg, work, log=lambda m: None)
+
+
+def test_morton_order_is_a_permutation_that_keeps_neighbours_close():
+    g = np.stack(np.meshgrid(np.arange(16.0), np.arange(16.0), indexing="ij"), -1).reshape(-1, 2)
+    pts = np.c_[g, np.zeros(len(g))]
+    order = morton_order(pts)
+    assert sorted(order) == list(range(len(pts)))
+    steps = np.linalg.norm(np.diff(pts[order], axis=0), axis=1)
+    shuffled = np.linalg.norm(np.diff(pts[np.random.default_rng(0).permutation(len(pts))], axis=0), axis=1)
+    assert np.median(steps) == 1.0 and steps.mean() < 0.3 * shuffled.mean()
+
+
+def test_policy_learning_resumes_from_its_simulated_runs_and_the_policy_survives_a_round_trip(tiny, cfg, policy,
+                                                                                              tmp_path):
+    work = tmp_path / "runs"
+    first = learn_policy(tiny.policy.x, tiny.policy.y, tiny.base, SMALL, cfg, work, log=lambda m: None)
+    (work / "run_001.npz").unlink()  # as if killed during the second simulated run
+    messages: list[str] = []
+    again = learn_policy(tiny.policy.x, tiny.policy.y, tiny.base, SMALL, cfg, work, log=messages.append)
+    assert any("1/2 loaded" in m for m in messages) and not any("2/2 loaded" in m for m in messages)
+    assert again.regressor == first.regressor  # the recomputed run is identical, so is the regressor
+    policy.save(tmp_path / "p.npz")
+    back = Policy.load(tmp_path / "p.npz")
+    state = learner.fit(tiny.pool.x[:10], tiny.pool.y[:10], cfg)
+    np.testing.assert_array_equal(back.scores(state, tiny.pool.x[:10], tiny.pool.x[10:]),
+                                  policy.scores(state, tiny.pool.x[:10], tiny.pool.x[10:]))
+    with pytest.raises(ValueError, match="not a GEN-LAL policy"):
+        np.savez(tmp_path / "bad.npz", info=np.array(json.dumps({"format": "other"})))
+        Policy.load(tmp_path / "bad.npz")
+
+
+def test_a_policy_scores_candidates_on_another_mesh_only_once_adapted_to_it(tiny, cfg, policy):
+    skin = SyntheticSpec(tuple([0.0] * 4), tuple([1.0] * 4), grid=11).build()
+    x = np.random.default_rng(1).random((12, 4))
+    y = np.stack([skin.solve(p, None).surface - skin.base_surface() for p in x])
+    state = learner.fit(x[:6], y[:6], cfg)
+    with pytest.raises(ValueError, match="vertices"):
+        policy.scores(state, x[:6], x[6:])
+    chosen = policy.for_mesh(skin.base_surface(), policy.scale).select(state, x[:6], x[6:], 3)
+    assert len(set(chosen.tolist())) == 3 and chosen.max() < 6
+
+
+@pytest.mark.parametrize("select", ["genlal", "random"])
+def test_selection_in_the_loop_grows_a_dataset_batch_by_batch_and_resumes(tmp_path, cfg, select):
+    head = load_head(ROOT / "heads" / "sample" / "head.toml")
+    lo, hi = sample_ranges(head)
+    spec = SyntheticSpec(tuple(lo), tuple(hi), grid=8)
+    samples = sample_poses(head, 40, seed=3)
+    policy = None
+    if select == "genlal":
+        skin = spec.build()
+        x = np.random.default_rng(2).random((30, len(lo)))
+        y = np.stack([skin.solve(lo + p * (hi - lo), None).surface - skin.base_surface() for p in x])
+        policy = learn_policy(x, y, skin.base_surface(), SMALL, cfg, tmp_path / "policy", log=lambda m: None)
+    kw = dict(select=select, batch=4, init=4, policy=policy, head=head.name, names=head.actuator_names,
+              units=["rad"] * len(lo), lo=lo, hi=hi, engine=SerialEngine(), seed=3, sampling={},
+              config=cfg, progress_stream=None, log=lambda m: None)
+    root = tmp_path / "ds"
+    first = grow_dataset(root, spec, samples, budget=12, **kw)
+    assert first["simulated"] == 12 and first["batches"] == 3 and first["retrained_this_run"] == 2
+    batches = json.loads((root / "selection.json").read_text())["batches"]
+    assert [len(b) for b in batches] == [4, 4, 4] and len({i for b in batches for i in b}) == 12
+    more = grow_dataset(root, spec, samples, budget=20, **kw)  # rerun with a larger budget: grows the same dataset
+    assert more["simulated"] == 20 and more["retrained_this_run"] == 2
+    again = json.loads((root / "selection.json").read_text())["batches"]
+    assert again[:3] == batches
+    ds = PoseDataset(root)
+    assert len(ds.usable) == 20 and set(ds.usable.tolist()) == {i for b in again for i in b}
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--select", "genlal", "--budget", "5"], "needs --policy"),
+    (["--select", "random"], "needs --budget"),
+    (["--budget", "5"], "need --select"),
+])
+def test_the_dataset_command_names_what_is_missing_for_selection(tmp_path, capsys, extra, message):
+    from likeness.cli import main
+
+    code = main(["offline", "dataset", "--config", str(ROOT / "heads" / "sample" / "head.toml"), "--synthetic",
+                 "--poses", "20", "--out", str(tmp_path / "ds"), "--engine", "serial", *extra])
+    assert code == 2 and message in capsys.readouterr().err
+    assert not (tmp_path / "ds").exists()
