@@ -6,6 +6,8 @@ link to the daemon. Each tab is a small class in its own module that adds its co
 
 from __future__ import annotations
 
+import contextlib
+import io
 import logging
 import threading
 from dataclasses import dataclass
@@ -54,8 +56,11 @@ class Studio:
         self.daemon: DaemonLink | None = None
         if options.daemon:
             self.daemon = DaemonLink(options.daemon, options.telemetry, options.client_key, options.server_key)
-        self.server = viser.ViserServer(host=options.host, port=0, label="Likeness Studio", verbose=False)
-        self.server.gui.configure_theme(control_layout="fixed", control_width="large", show_logo=False, dark_mode=False)
+        with contextlib.redirect_stdout(io.StringIO()):  # viser prints its own address; the page's is ours
+            self.server = viser.ViserServer(host=options.host, port=0, label="Likeness Studio", verbose=False)
+        self.server.gui.configure_theme(control_width="large", show_logo=False,
+                                        show_share_button=False, dark_mode=False)
+        self.server.gui.main_panel.dock_right()
         self.server.scene.set_up_direction("+y")
         self._setup_camera()
         self.server.scene.add_light_directional("/light", color=(255, 255, 255), intensity=2.0,
