@@ -44,6 +44,7 @@ class AnimateTab:
         self.length.on_update(lambda _: self._set_length(float(self.length.value)))
         self.time = gui.add_slider("Time (s)", min=0.0, max=2.0, step=0.01, initial_value=0.0)
         self.time.on_update(self._on_scrub)
+        self.scrub_text = gui.add_markdown("")
         with gui.add_folder("Keys"):
             self.key_button = gui.add_button("Key channel", icon=viser.Icon.KEYFRAME,
                                              hint="Key the selected channel's present value at this time")
@@ -166,6 +167,8 @@ class AnimateTab:
     def show_time(self, t: float) -> None:
         """Pose the skin as the clip stands at time ``t`` (channels the clip does not key keep their values)."""
         values = self.studio.doc.sample(t)
+        ch = str(self.channel.value)
+        self.scrub_text.content = f"t = {t:.2f} s" + (f" · `{ch}` = {values[ch]:.3g}" if ch in values else "")
         if not values:
             return
         p = self.studio.head.pose_from_channels(values, self.studio.p)

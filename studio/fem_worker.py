@@ -60,6 +60,11 @@ class ExactPoser:
         return self._pool.submit(solve_exact, self.config, [float(x) for x in p])
 
     def close(self) -> None:
+        """Stop the worker, ending a solve still running (the page is going away)."""
         if self._pool is not None:
+            procs = list(getattr(self._pool, "_processes", {}).values())
             self._pool.shutdown(wait=False, cancel_futures=True)
+            for proc in procs:
+                if proc.is_alive():
+                    proc.terminate()
             self._pool = None
