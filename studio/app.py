@@ -95,7 +95,7 @@ class Studio:
         size = float(np.max(base.max(axis=0) - base.min(axis=0)))
         cam = self.server.initial_camera
         cam.look_at = tuple(float(x) for x in centre)
-        cam.position = (float(centre[0] + 0.35 * size), float(centre[1] + 0.15 * size), float(centre[2] + 1.5 * size))
+        cam.position = (float(centre[0] + 0.35 * size), float(centre[1] + 0.15 * size), float(centre[2] + 1.2 * size))
         cam.up = (0.0, 1.0, 0.0)
 
     def _banner_text(self) -> str:

@@ -120,8 +120,8 @@ class PerformTab:
             f"**Lifecycle** `{m.lifecycle}`" + (f" (e-stop: {estop})" if estop else "") + f" · mode `{m.mode}`",
             f"**Loop** {loop.get('rate_hz', 0):.0f} Hz, {loop.get('cycles', 0)} cycles, "
             f"**missed deadlines** {loop.get('missed', 0)}, jitter p99 {loop.get('jitter_p99_us', 0):.0f} µs",
-            f"**Clip** `{clip.get('name') or clip.get('clip') or '-'}` {clip.get('time', 0) or 0:.2f} / "
-            f"{clip.get('duration', 0) or 0:.2f} s",
+            f"**Clip** `{clip.get('name') or clip.get('clip') or '-'}` "
+            f"{min(clip.get('time', 0) or 0, clip.get('duration', 0) or 0):.2f} / {clip.get('duration', 0) or 0:.2f} s",
             f"**Fault** {fault}" if fault else "**Fault** none",
             f"**Guard** {(st.get('guard') or {}).get('verdict', '-')}",
         ]
