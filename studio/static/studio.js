@@ -47,21 +47,27 @@
   }
 
   function pinEstop() {
-    // The E-stop stays in view: its row sticks to the top of the scrolling control panel.
+    // The E-stop stays in view: the panel element holding it (a sibling of the tabs) sticks to the top of the
+    // scrolling control panel.
     document.querySelectorAll("button").forEach(function (b) {
       if (b.textContent.trim() !== "E-stop") return;
       b.setAttribute("aria-label", "E-stop");
-      let row = b.parentElement;
-      for (let up = 0; up < 3 && row && row.parentElement; up++) {
-        if (row.parentElement.children.length > 1) break;
-        row = row.parentElement;
-      }
-      if (row && row.dataset.studioPinned !== "1") {
+      let row = b;
+      while (row.parentElement && !row.parentElement.querySelector('[role="tablist"]')) row = row.parentElement;
+      if (!row.parentElement || row.contains(document.querySelector('[role="tablist"]'))) return;
+      if (row.dataset.studioPinned !== "1") {
         row.dataset.studioPinned = "1";
         row.style.position = "sticky";
         row.style.top = "0";
         row.style.zIndex = "20";
         row.style.background = "var(--mantine-color-body)";
+      }
+      // Sticky positioning holds only up to the nearest clipping ancestor: let the wrappers between the row and the
+      // panel's scrolling viewport show their overflow, so the row sticks to the viewport itself.
+      for (let up = row.parentElement; up && !up.classList.contains("mantine-ScrollArea-viewport");
+           up = up.parentElement) {
+        const cs = getComputedStyle(up);
+        if (cs.overflowY !== "visible" || cs.overflowX !== "visible") up.style.overflow = "visible";
       }
     });
   }

@@ -43,6 +43,16 @@ def _dismiss_notifications(page: Any) -> None:
             button.click(timeout=2000)
 
 
+def _on_top(page: Any, locator: Any) -> bool:
+    """The element is inside the viewport and is what a click at its centre would hit."""
+    box = locator.bounding_box()
+    view = page.viewport_size
+    if box is None or box["y"] < 0 or box["y"] + box["height"] > view["height"]:
+        return False
+    return bool(locator.evaluate("(el, p) => el.contains(document.elementFromPoint(p[0], p[1]))",
+                                 [box["x"] + box["width"] / 2, box["y"] + box["height"] / 2]))
+
+
 def _tab(page: Any, name: str) -> None:
     page.get_by_role("tab", name=name).click()
 
@@ -86,6 +96,9 @@ def test_every_control_is_named_and_the_jaw_slider_changes_the_rendered_skin(pag
     # The sample head's jaw at its limit stretches the skin past the validated range: the guard says so.
     assert wait_until(lambda: page.get_by_text("Refused:").count() > 0, 30)
     page.screenshot(path=str(image_dir / "studio-pose.png"))
+    # The E-stop stays in view (and on top) when the panel scrolls to its end.
+    page.get_by_role("button", name="Run exact FEM pose").scroll_into_view_if_needed()
+    assert _on_top(page, page.get_by_role("button", name="E-stop", exact=True))
 
 
 def test_key_two_frames_and_play_them_on_the_daemon(page: Any, studio: Any, daemon: Any, image_dir: Path) -> None:
