@@ -60,7 +60,7 @@ class AnimateTab:
             data=(np.array([0.0, 1.0]), np.array([0.0, 0.0]), np.array([np.nan, np.nan])),
             series=({"label": "t (s)"}, {"label": "curve", "stroke": "#1f77b4", "width": 2},
                     {"label": "keys", "stroke": "#d62728", "width": 0, "points": {"show": True, "size": 8}}),
-            title="Selected channel", aspect=1.6)
+            title="Selected channel", aspect=1.6, scales={"x": {"time": False}})
         with gui.add_folder("Preview"):
             self.play_button = gui.add_button("Play preview", icon=viser.Icon.PLAYER_PLAY)
             self.play_button.on_click(lambda _: self.play())

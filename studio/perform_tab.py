@@ -66,7 +66,7 @@ class PerformTab:
             data=(np.array([0.0, 1.0]), np.zeros(2), np.zeros(2)),
             series=({"label": "t (s)"}, {"label": "commanded", "stroke": "#1f77b4", "width": 2},
                     {"label": "measured", "stroke": "#ff7f0e", "width": 2}),
-            title="Commanded vs measured", aspect=1.6)
+            title="Commanded vs measured", aspect=1.6, scales={"x": {"time": False}})
         self.buses_text = gui.add_markdown("")
         self.events_text = gui.add_markdown("")
         self._thread = threading.Thread(target=self._run, name="studio-mirror", daemon=True)

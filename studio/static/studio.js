@@ -63,11 +63,14 @@
         row.style.background = "var(--mantine-color-body)";
       }
       // Sticky positioning holds only up to the nearest clipping ancestor: let the wrappers between the row and the
-      // panel's scrolling viewport show their overflow, so the row sticks to the viewport itself.
+      // panel's scrolling viewport show their vertical overflow, so the row sticks to the viewport itself.
       for (let up = row.parentElement; up && !up.classList.contains("mantine-ScrollArea-viewport");
            up = up.parentElement) {
         const cs = getComputedStyle(up);
-        if (cs.overflowY !== "visible" || cs.overflowX !== "visible") up.style.overflow = "visible";
+        if (cs.overflowY !== "visible") {
+          up.style.overflowX = "clip";  // clip, unlike hidden, makes no scroll container: sticky passes through
+          up.style.overflowY = "visible";
+        }
       }
     });
   }
