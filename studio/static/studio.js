@@ -64,14 +64,15 @@
       }
       // Sticky positioning holds only up to the nearest clipping ancestor: let the wrappers between the row and the
       // panel's scrolling viewport show their vertical overflow, so the row sticks to the viewport itself.
-      for (let up = row.parentElement; up && !up.classList.contains("mantine-ScrollArea-viewport");
-           up = up.parentElement) {
+      let up = row.parentElement;
+      for (; up && !up.classList.contains("mantine-ScrollArea-viewport"); up = up.parentElement) {
         const cs = getComputedStyle(up);
         if (cs.overflowY !== "visible") {
           up.style.overflowX = "clip";  // clip, unlike hidden, makes no scroll container: sticky passes through
           up.style.overflowY = "visible";
         }
       }
+      if (up) up.style.overflowX = "hidden";  // the panel scrolls vertically only
     });
   }
 
