@@ -70,6 +70,7 @@
         if (cs.overflowY !== "visible") {
           up.style.overflowX = "clip";  // clip, unlike hidden, makes no scroll container: sticky passes through
           up.style.overflowY = "visible";
+          up.style.contain = "inline-size";  // and, like hidden did, its content does not widen the panel
         }
       }
       if (up) up.style.overflowX = "hidden";  // the panel scrolls vertically only
