@@ -21,6 +21,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "runtime.cli",
     "sim_hardware.cli",
     "offline.cli",
+    "studio.cli",
 )
 
 

@@ -16,7 +16,8 @@ def test_contracts_cover_the_documented_layers() -> None:
     pairs = {(src, bad) for c in config["contracts"] for src in c["source_modules"] for bad in c["forbidden_modules"]}
     for need in [("models", "runtime"), ("models", "offline"), ("models", "drivers"), ("sim_hardware", "runtime"),
                  ("sim_hardware", "models"), ("runtime", "offline"), ("runtime", "torch"), ("drivers", "models"),
-                 ("drivers", "runtime"), ("likeness.cli", "runtime")]:
+                 ("drivers", "runtime"), ("likeness.cli", "runtime"),
+                 ("studio", "torch"), ("studio", "runtime.daemon"), ("studio", "drivers")]:
         assert need in pairs, need
 
 

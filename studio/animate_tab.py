@@ -1,0 +1,261 @@
+"""Animate tab: key channels on a timeline (step, linear, Bezier), scrub, preview at real time, save, load, import.
+
+The clip is :class:`studio.clipdoc.ClipDoc` (the protocol's clip schema). "Key channel" keys the selected channel's
+present value (from the Pose tab) at the time slider's time; "Key pose" keys every actuator. Scrubbing and preview
+show the clip's pose on the predicted skin; the plot shows the selected channel's curve and its keys.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import viser
+
+from studio.arkit_csv import clip_from_live_link_csv
+from studio.clipdoc import ClipDoc, ClipError
+
+if TYPE_CHECKING:
+    from studio.app import Studio
+
+#: Preview frame rate (Hz): the page's pose updates while a clip previews.
+PREVIEW_HZ = 30.0
+#: Samples of the curve plot.
+PLOT_SAMPLES = 200
+
+
+class AnimateTab:
+    """The Animate tab's controls and the preview player."""
+
+    def __init__(self, studio: Studio) -> None:
+        self.studio = studio
+        head = studio.head
+        gui = studio.server.gui
+        names = tuple(c.name for c in head.channels)
+        self.name_box = gui.add_text("Clip name", initial_value=studio.doc.name)
+        self.name_box.on_update(self._on_name)
+        self.channel = gui.add_dropdown("Channel", options=names, initial_value=names[0])
+        self.channel.on_update(lambda _: self.redraw())
+        self.interp = gui.add_dropdown("Interpolation", options=("linear", "step", "bezier"), initial_value="linear")
+        self.interp.on_update(self._on_interp)
+        self.length = gui.add_number("Clip length (s)", initial_value=2.0, min=0.1, max=3600.0, step=0.1)
+        self.length.on_update(lambda _: self._set_length(float(self.length.value)))
+        self.time = gui.add_slider("Time (s)", min=0.0, max=2.0, step=0.01, initial_value=0.0)
+        self.time.on_update(self._on_scrub)
+        self.scrub_text = gui.add_markdown("")
+        with gui.add_folder("Keys"):
+            self.key_button = gui.add_button("Key channel", icon=viser.Icon.KEYFRAME,
+                                             hint="Key the selected channel's present value at this time")
+            self.key_button.on_click(lambda _: self.key_channel())
+            self.key_pose_button = gui.add_button("Key pose", icon=viser.Icon.KEYFRAME,
+                                                  hint="Key every actuator's present value at this time")
+            self.key_pose_button.on_click(lambda _: self.key_pose())
+            self.delete_button = gui.add_button("Delete key", icon=viser.Icon.TRASH,
+                                                hint="Delete the selected channel's key at this time")
+            self.delete_button.on_click(lambda _: self.delete_key())
+            self.keys_text = gui.add_markdown("")
+        self.plot = gui.add_uplot(
+            data=(np.array([0.0, 1.0]), np.array([0.0, 0.0]), np.array([np.nan, np.nan])),
+            series=({"label": "t (s)"}, {"label": "curve", "stroke": "#1f77b4", "width": 2},
+                    {"label": "keys", "stroke": "#d62728", "width": 0, "points": {"show": True, "size": 8}}),
+            title="Selected channel", aspect=1.6, scales={"x": {"time": False}})
+        with gui.add_folder("Preview"):
+            self.play_button = gui.add_button("Play preview", icon=viser.Icon.PLAYER_PLAY)
+            self.play_button.on_click(lambda _: self.play())
+            self.stop_button = gui.add_button("Stop preview", icon=viser.Icon.PLAYER_STOP)
+            self.stop_button.on_click(lambda _: self.stop())
+            self.loop = gui.add_checkbox("Loop preview", initial_value=False)
+        with gui.add_folder("Files"):
+            self.save_button = gui.add_button("Save clip", icon=viser.Icon.DEVICE_FLOPPY,
+                                              hint="Write the clip as protocol JSON (clips folder) and download it")
+            self.save_button.on_click(lambda event: self.save(event.client))
+            self.load_button = gui.add_upload_button("Load clip (JSON)", icon=viser.Icon.UPLOAD,
+                                                     mime_type="application/json")
+            self.load_button.on_upload(lambda event: self._load(event.target.value))
+            self.fps = gui.add_number("CSV frame rate (fps)", initial_value=60.0, min=1.0, max=1000.0, step=1.0)
+            self.csv_button = gui.add_upload_button("Import ARKit CSV", icon=viser.Icon.UPLOAD, mime_type="text/csv")
+            self.csv_button.on_upload(lambda event: self._import_csv(event.target.value))
+            self.file_text = gui.add_markdown("")
+        self._player: threading.Thread | None = None
+        self._playing = threading.Event()
+        self.redraw()
+
+    # ------------------------------------------------------------------ edits
+    def _on_name(self, event: viser.GuiEvent) -> None:
+        if event.client_id is None:
+            return
+        try:
+            self.studio.doc.rename(str(self.name_box.value))
+        except ClipError as exc:
+            self.file_text.content = f"**{exc}**"
+
+    def _on_interp(self, event: viser.GuiEvent) -> None:
+        if event.client_id is None:
+            return
+        ch = str(self.channel.value)
+        if ch in self.studio.doc.tracks:
+            self.studio.doc.set_interp(ch, str(self.interp.value))
+            self.redraw()
+
+    def present_value(self, channel: str) -> float:
+        """The channel's value in the pose shown (config units)."""
+        head = self.studio.head
+        kind = head.kind(channel)
+        slider = self.studio.pose_tab.sliders.get(channel)
+        if kind == "actuator":
+            return head.channel_values(self.studio.p)[channel]
+        if slider is not None:
+            return float(slider.value)
+        return 0.0
+
+    def key_channel(self, channel: str | None = None, t: float | None = None) -> None:
+        ch = channel or str(self.channel.value)
+        at = float(self.time.value) if t is None else t
+        self.studio.doc.set_key(ch, at, round(self.present_value(ch), 6), str(self.interp.value)
+                                if ch not in self.studio.doc.tracks else None)
+        self.redraw()
+
+    def key_pose(self) -> None:
+        at = float(self.time.value)
+        for name in self.studio.head.names:
+            self.studio.doc.set_key(name, at, round(self.present_value(name), 6),
+                                    str(self.interp.value) if name not in self.studio.doc.tracks else None)
+        self.redraw()
+
+    def delete_key(self) -> None:
+        self.studio.doc.remove_key(str(self.channel.value), float(self.time.value))
+        self.redraw()
+
+    def _set_length(self, length: float) -> None:
+        length = max(length, self.studio.doc.duration, 0.1)
+        self.time.max = round(length, 3)
+        if float(self.time.value) > length:
+            self.time.value = round(length, 3)
+        self.redraw()
+
+    # ------------------------------------------------------------------ view
+    def redraw(self) -> None:
+        doc = self.studio.doc
+        ch = str(self.channel.value)
+        if doc.duration > float(self.time.max):
+            self.time.max = round(doc.duration, 3)
+            self.length.value = round(doc.duration, 3)
+        track = doc.tracks.get(ch)
+        if track is not None and str(self.interp.value) != track.interp:
+            self.interp.value = track.interp
+        times = doc.key_times(ch)
+        self.keys_text.content = (f"`{ch}`: {len(times)} key(s), {track.interp}: "
+                                  + ", ".join(f"{t:.2f} s" for t in times[:12]) + (" …" if len(times) > 12 else "")
+                                  if track else f"`{ch}` has no keys. Clip: {len(doc.tracks)} channel(s), "
+                                                f"{doc.duration:.2f} s.")
+        end = float(self.time.max)
+        x = np.union1d(np.linspace(0.0, end, PLOT_SAMPLES), np.asarray(times, dtype=np.float64))
+        curve = doc.curves().get(ch)
+        y = np.array([curve.value(t) for t in x]) if curve else np.full(len(x), self.present_value(ch))
+        keys = np.full(len(x), np.nan)
+        for t in times:
+            keys[np.argmin(np.abs(x - t))] = curve.value(t) if curve else np.nan
+        self.plot.data = (x, y, keys)
+
+    def _on_scrub(self, event: viser.GuiEvent) -> None:
+        if event.client_id is None:
+            return
+        self.show_time(float(self.time.value))
+
+    def show_time(self, t: float) -> None:
+        """Pose the skin as the clip stands at time ``t`` (channels the clip does not key keep their values)."""
+        values = self.studio.doc.sample(t)
+        ch = str(self.channel.value)
+        self.scrub_text.content = f"t = {t:.2f} s" + (f" · `{ch}` = {values[ch]:.3g}" if ch in values else "")
+        if not values:
+            return
+        p = self.studio.head.pose_from_channels(values, self.studio.p)
+        self.studio.set_pose(p)
+        targets = {k: v for k, v in values.items() if self.studio.head.by_name.get(k) is not None
+                   and self.studio.head.by_name[k].kind == "target"}
+        for k, v in targets.items():
+            s = self.studio.pose_tab.sliders.get(k)
+            if s is not None:
+                s.value = round(float(v), 4)
+
+    # ------------------------------------------------------------------ preview
+    def play(self) -> None:
+        if self._playing.is_set() or not self.studio.doc.tracks:
+            return
+        self._playing.set()
+        self._player = threading.Thread(target=self._run, name="studio-preview", daemon=True)
+        self._player.start()
+
+    def stop(self) -> None:
+        self._playing.clear()
+        if self._player is not None:
+            self._player.join(timeout=2.0)
+            self._player = None
+
+    def _run(self) -> None:
+        doc = self.studio.doc
+        start = time.monotonic() - float(self.time.value)
+        while self._playing.is_set():
+            t = time.monotonic() - start
+            end = max(doc.duration, 1e-3)
+            if t > end:
+                if not self.loop.value:
+                    self.time.value = round(end, 3)
+                    self.show_time(end)
+                    break
+                start += end * (t // end)
+                t = time.monotonic() - start
+            self.time.value = round(t, 3)
+            self.show_time(t)
+            time.sleep(max(0.0, 1.0 / PREVIEW_HZ - (time.monotonic() - start - t)))
+        self._playing.clear()
+
+    # ------------------------------------------------------------------ files
+    def save(self, client: Any = None) -> None:
+        doc = self.studio.doc
+        try:
+            text = doc.to_json()
+        except ClipError as exc:
+            self.file_text.content = f"**Not saved**: {exc}"
+            return
+        folder = self.studio.options.clips_dir
+        folder.mkdir(parents=True, exist_ok=True)
+        path = doc.save(folder / f"{doc.name}.json")
+        self.file_text.content = f"Saved `{path}`."
+        if client is not None:
+            client.send_file_download(f"{doc.name}.json", text.encode("utf-8"))
+
+    def _load(self, upload: Any) -> None:
+        try:
+            doc = ClipDoc.from_json(upload.content, upload.name)
+            doc.check_channels(self.studio.head.by_name)
+        except ClipError as exc:
+            self.file_text.content = f"**Not loaded**: {exc}"
+            return
+        self._replace(doc, f"Loaded `{upload.name}`")
+
+    def _import_csv(self, upload: Any) -> None:
+        try:
+            text = upload.content.decode("utf-8")
+            name = upload.name.rsplit(".", 1)[0] or "arkit"
+            doc = clip_from_live_link_csv(text, name, fps=float(self.fps.value), source=upload.name,
+                                          channels=[c.name for c in self.studio.head.channels if c.kind == "target"])
+        except (ClipError, UnicodeDecodeError) as exc:
+            self.file_text.content = f"**Not imported**: {exc}"
+            return
+        self._replace(doc, f"Imported `{upload.name}`")
+
+    def _replace(self, doc: ClipDoc, what: str) -> None:
+        self.stop()
+        self.studio.doc = doc
+        self.name_box.value = doc.name
+        if doc.tracks:
+            self.channel.value = sorted(doc.tracks)[0]
+        self._set_length(max(doc.duration, 0.1))
+        self.file_text.content = (f"{what}: {len(doc.tracks)} channel(s), "
+                                  f"{sum(len(t.keys) for t in doc.tracks.values())} keys, {doc.duration:.2f} s.")
+
+    def close(self) -> None:
+        self.stop()

@@ -1,0 +1,204 @@
+"""An editable clip: keyframes per channel with step, linear or Bezier interpolation, in the protocol's clip schema.
+
+The document is what the Animate tab edits and what is saved, loaded and sent to the daemon: ``to_dict`` gives the
+protocol's clip map (``docs/protocol.md``, ``load_clip``), ``from_dict`` reads one (validated by
+:func:`runtime.curves.clip_from_dict`, so a file the daemon would refuse is refused here with the same message).
+Bezier keys keep tangent handles read from a file; keys made in the studio get flat handles a third of the way to
+their neighbours (ease in and out), recomputed as keys move. Values are in each channel's configured unit.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from runtime.curves import INTERPS, Curve, clip_from_dict, make_curve
+
+#: Two keys closer than this (s) are the same key.
+TIME_EPS = 1e-6
+
+
+@dataclass
+class Key:
+    """One keyframe; ``handles`` = (in_dt, in_dv, out_dt, out_dv) for Bezier keys from a file, else None (auto)."""
+
+    t: float
+    value: float
+    handles: tuple[float, float, float, float] | None = None
+
+
+@dataclass
+class Track:
+    """One channel's keys (sorted by time) and interpolation."""
+
+    interp: str = "linear"
+    keys: list[Key] = field(default_factory=list)
+
+    def rows(self) -> list[list[float]]:
+        """The protocol's key rows: ``[t, v]``, or ``[t, v, in_dt, in_dv, out_dt, out_dv]`` for Bezier."""
+        if self.interp != "bezier":
+            return [[k.t, k.value] for k in self.keys]
+        out = []
+        for i, k in enumerate(self.keys):
+            if k.handles is not None:
+                out.append([k.t, k.value, *k.handles])
+                continue
+            before = (self.keys[i - 1].t - k.t) / 3.0 if i > 0 else 0.0
+            after = (self.keys[i + 1].t - k.t) / 3.0 if i + 1 < len(self.keys) else 0.0
+            out.append([k.t, k.value, before, 0.0, after, 0.0])
+        return out
+
+
+class ClipError(ValueError):
+    """An edit or a file the clip schema refuses; the message names what and where."""
+
+
+class ClipDoc:
+    """A named clip being edited; ``version`` increases with every edit (views redraw when it changes)."""
+
+    def __init__(self, name: str = "take") -> None:
+        self.name = check_name(name)
+        self.tracks: dict[str, Track] = {}
+        self.version = 0
+        self._curves: dict[str, Curve] | None = None
+
+    # ------------------------------------------------------------------ edits
+    def _changed(self) -> None:
+        self.version += 1
+        self._curves = None
+
+    def rename(self, name: str) -> None:
+        self.name = check_name(name)
+        self._changed()
+
+    def set_key(self, channel: str, t: float, value: float, interp: str | None = None) -> None:
+        """Add a key (or replace the key at the same time) on ``channel``; ``interp`` sets the channel's."""
+        if not math.isfinite(t) or t < 0:
+            raise ClipError(f"key time must be a finite number >= 0 s, got {t!r}")
+        if not math.isfinite(value):
+            raise ClipError(f"key value for {channel!r} must be finite, got {value!r}")
+        track = self.tracks.setdefault(channel, Track())
+        if interp is not None:
+            self._set_interp(track, interp)
+        for k in track.keys:
+            if abs(k.t - t) <= TIME_EPS:
+                k.value = float(value)
+                break
+        else:
+            track.keys.append(Key(float(t), float(value)))
+            track.keys.sort(key=lambda k: k.t)
+        self._changed()
+
+    def remove_key(self, channel: str, t: float) -> bool:
+        """Remove the key of ``channel`` at time ``t``; a channel left without keys leaves the clip."""
+        track = self.tracks.get(channel)
+        if track is None:
+            return False
+        before = len(track.keys)
+        track.keys = [k for k in track.keys if abs(k.t - t) > TIME_EPS]
+        if not track.keys:
+            del self.tracks[channel]
+        removed = len(track.keys) != before
+        if removed:
+            self._changed()
+        return removed
+
+    def set_interp(self, channel: str, interp: str) -> None:
+        track = self.tracks.get(channel)
+        if track is None:
+            raise ClipError(f"channel {channel!r} has no keys in clip {self.name!r}")
+        self._set_interp(track, interp)
+        self._changed()
+
+    @staticmethod
+    def _set_interp(track: Track, interp: str) -> None:
+        if interp not in INTERPS:
+            raise ClipError(f"interpolation must be one of {', '.join(INTERPS)}, got {interp!r}")
+        if interp != track.interp:
+            for k in track.keys:
+                k.handles = None
+        track.interp = interp
+
+    def clear(self) -> None:
+        self.tracks.clear()
+        self._changed()
+
+    # ------------------------------------------------------------------ reading
+    @property
+    def duration(self) -> float:
+        return max((t.keys[-1].t for t in self.tracks.values() if t.keys), default=0.0)
+
+    def key_times(self, channel: str) -> list[float]:
+        track = self.tracks.get(channel)
+        return [k.t for k in track.keys] if track else []
+
+    def curves(self) -> dict[str, Curve]:
+        if self._curves is None:
+            self._curves = {ch: make_curve(tr.interp, tr.rows(), f"clip {self.name!r}.channels.{ch}")
+                            for ch, tr in self.tracks.items() if tr.keys}
+        return self._curves
+
+    def sample(self, t: float) -> dict[str, float]:
+        """Every keyed channel's value at clip time ``t`` (as the daemon's timeline evaluates it)."""
+        return {ch: c.value(t) for ch, c in self.curves().items()}
+
+    # ------------------------------------------------------------------ protocol JSON
+    def to_dict(self) -> dict[str, Any]:
+        """The protocol's clip map (``load_clip``'s ``clip``); a clip needs at least one keyed channel."""
+        if not self.tracks:
+            raise ClipError(f"clip {self.name!r} has no keys yet")
+        return {"name": self.name,
+                "channels": {ch: {"interp": tr.interp, "keys": tr.rows()} for ch, tr in sorted(self.tracks.items())}}
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), indent=1)
+
+    @classmethod
+    def from_dict(cls, data: Any, where: str = "clip") -> ClipDoc:
+        """A document from a protocol clip map (validated as the daemon validates it)."""
+        try:
+            clip_from_dict(data, where)
+        except ValueError as exc:
+            raise ClipError(str(exc)) from None
+        doc = cls(data["name"])
+        for ch, spec in data["channels"].items():
+            interp = spec.get("interp", "linear")
+            keys = [Key(float(r[0]), float(r[1]), tuple(float(x) for x in r[2:6]) if interp == "bezier" else None)
+                    for r in spec["keys"]]
+            doc.tracks[ch] = Track(interp, keys)
+        doc._changed()
+        return doc
+
+    @classmethod
+    def from_json(cls, text: str | bytes, where: str = "clip") -> ClipDoc:
+        try:
+            data = json.loads(text)
+        except (ValueError, UnicodeDecodeError) as exc:
+            raise ClipError(f"{where}: not JSON: {exc}") from None
+        return cls.from_dict(data, where)
+
+    def save(self, path: str | Path) -> Path:
+        path = Path(path)
+        path.write_text(self.to_json() + "\n", encoding="utf-8")
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> ClipDoc:
+        path = Path(path)
+        return cls.from_json(path.read_bytes(), str(path))
+
+    def check_channels(self, known: Mapping[str, object]) -> None:
+        """Refuse channels the head does not have (naming them)."""
+        unknown = sorted(ch for ch in self.tracks if ch not in known)
+        if unknown:
+            raise ClipError(f"clip {self.name!r}: channel(s) not on this head: {', '.join(unknown)}")
+
+
+def check_name(name: str) -> str:
+    if not isinstance(name, str) or not 1 <= len(name) <= 128 or not name.strip():
+        raise ClipError(f"clip name must be 1..128 characters, got {name!r}")
+    return name

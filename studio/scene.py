@@ -1,0 +1,53 @@
+"""The 3D view: the skin as one single-colour mesh per colour band, drawn by the browser (WebGL, three.js via viser).
+
+A colour map over triangles becomes a handful of meshes that share the vertex positions and split the triangles
+between them; a pose update sends the new positions and each band's triangles in one atomic batch, so the
+browser never draws half an update. Bands without triangles are hidden.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import viser
+
+RGB = tuple[int, int, int]
+
+
+class BandedSkin:
+    """Band meshes under ``/skin`` in a viser scene."""
+
+    def __init__(self, server: viser.ViserServer, positions: np.ndarray, faces: np.ndarray, n_bands: int) -> None:
+        self.server = server
+        self._faces = np.asarray(faces, dtype=np.uint32)
+        self._handles: list[viser.MeshHandle] = []
+        pos = np.asarray(positions, dtype=np.float32)
+        for b in range(n_bands):
+            h = server.scene.add_mesh_simple(f"/skin/band{b}", pos, self._faces[:1], color=(200, 200, 200),
+                                             side="double", visible=False)
+            self._handles.append(h)
+        self._shown: list[np.ndarray | None] = [None] * n_bands
+
+    def show(self, positions: np.ndarray, band_faces: Sequence[np.ndarray], colors: Sequence[RGB]) -> None:
+        """Draw the surface ``positions`` (V, 3) with each band's triangles in its colour."""
+        if len(band_faces) != len(self._handles) or len(colors) != len(self._handles):
+            raise ValueError(f"need {len(self._handles)} bands and colours, got {len(band_faces)} and {len(colors)}")
+        pos = np.asarray(positions, dtype=np.float32)
+        with self.server.atomic():
+            for b, (h, faces, color) in enumerate(zip(self._handles, band_faces, colors, strict=True)):
+                if len(faces) == 0:
+                    if h.visible:
+                        h.visible = False
+                    self._shown[b] = None
+                    continue
+                faces = np.asarray(faces, dtype=np.uint32)
+                prev = self._shown[b]
+                if prev is None or prev.shape != faces.shape or not np.array_equal(prev, faces):
+                    h.faces = faces
+                    self._shown[b] = faces
+                h.vertices = pos
+                if tuple(h.color) != tuple(color):
+                    h.color = color
+                if not h.visible:
+                    h.visible = True

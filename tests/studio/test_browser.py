@@ -1,0 +1,175 @@
+"""The studio in a real browser (headless Chromium, software WebGL) on a simulated daemon.
+
+Controls are found by their accessible names, as assistive technology finds them. Waits are generous and nothing
+is timed: the machine may be a loaded two-core host where Chromium's software rendering takes a core.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from runtime.client import Client, DaemonError, Telemetry
+from tests.studio.conftest import wait_until
+
+pytestmark = pytest.mark.timeout(600)
+
+
+def _face(page: Any) -> np.ndarray:
+    """The middle of the 3D view (where the face is) as an RGB array."""
+    from PIL import Image
+
+    box = page.locator("canvas").first.bounding_box()
+    clip = {"x": box["x"] + 0.3 * box["width"], "y": box["y"] + 0.2 * box["height"],
+            "width": 0.4 * box["width"], "height": 0.6 * box["height"]}
+    png = page.screenshot(clip=clip)
+    return np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=np.int16)
+
+
+def _changed_fraction(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.mean(np.abs(a - b).max(axis=2) > 24))
+
+
+def _dismiss_notifications(page: Any) -> None:
+    """Close the client's notices (e.g. 'software WebGL') so they do not cover the view in screenshots."""
+    for button in page.locator(".mantine-Notification-closeButton").all():
+        with contextlib.suppress(Exception):  # already gone
+            button.click(timeout=2000)
+
+
+def _on_top(page: Any, locator: Any) -> bool:
+    """The element is inside the viewport and is what a click at its centre would hit."""
+    box = locator.bounding_box()
+    view = page.viewport_size
+    if box is None or box["y"] < 0 or box["y"] + box["height"] > view["height"]:
+        return False
+    return bool(locator.evaluate("(el, p) => el.contains(document.elementFromPoint(p[0], p[1]))",
+                                 [box["x"] + box["width"] / 2, box["y"] + box["height"] / 2]))
+
+
+def _tab(page: Any, name: str) -> None:
+    page.get_by_role("tab", name=name).click()
+
+
+def _status(daemon: Any) -> dict:
+    with Client(daemon.command_endpoint, timeout=10) as c:
+        return c.call("status")
+
+
+def _inactive(daemon: Any) -> None:
+    """Precondition: the daemon inactive, without a fault or e-stop left by an earlier test."""
+    with Client(daemon.command_endpoint, timeout=30) as c:
+        state = c.call("status")["lifecycle"]
+        if state in ("fault", "estop"):
+            c.call("reset")
+        elif state == "active":
+            c.call("disable")
+
+
+def test_every_control_is_named_and_the_jaw_slider_changes_the_rendered_skin(page: Any, studio: Any,
+                                                                             image_dir: Path) -> None:
+    head = studio.head
+    for c in head.channels:
+        if c.kind in ("actuator", "group"):
+            assert page.get_by_role("slider", name=c.name, exact=True).count() == 1, c.name
+    assert page.get_by_role("button", name="E-stop", exact=True).is_visible()
+    _tab(page, "Pose")
+    page.get_by_role("button", name="Neutral pose").click()
+    jaw_k = head.names.index("jaw")
+    assert wait_until(lambda: abs(studio.p[jaw_k] - head.neutral[jaw_k]) < 1e-9, 30)
+    assert wait_until(lambda: page.get_by_text("Accepted: within the skin's validated range").count() > 0, 30)
+    _dismiss_notifications(page)
+    page.wait_for_timeout(1500)
+    before = _face(page)
+    jaw = page.get_by_role("slider", name="jaw", exact=True)
+    jaw.focus()
+    page.keyboard.press("End")  # the jaw's upper limit
+    assert wait_until(lambda: abs(math.degrees(studio.p[jaw_k]) - head.by_name["jaw"].max) < 1e-6, 30)
+    changed = wait_until(lambda: _changed_fraction(_face(page), before) > 0.01, 60, interval=0.5)
+    assert changed, "the rendered skin did not change after the jaw slider moved"
+    # The sample head's jaw at its limit stretches the skin past the validated range: the guard says so.
+    assert wait_until(lambda: page.get_by_text("Refused:").count() > 0, 30)
+    page.screenshot(path=str(image_dir / "studio-pose.png"))
+    # The E-stop stays in view (and on top) when the panel scrolls to its end.
+    page.get_by_role("button", name="Run exact FEM pose").scroll_into_view_if_needed()
+    assert _on_top(page, page.get_by_role("button", name="E-stop", exact=True))
+
+
+def test_key_two_frames_and_play_them_on_the_daemon(page: Any, studio: Any, daemon: Any, image_dir: Path) -> None:
+    head = studio.head
+    jaw_k = head.names.index("jaw")
+    _tab(page, "Pose")
+    page.get_by_role("button", name="Neutral pose").click()
+    assert wait_until(lambda: abs(studio.p[jaw_k]) < 1e-9, 30)
+    studio.doc.clear()
+    _tab(page, "Animate")
+    assert page.get_by_role("combobox", name="Channel").input_value() == "jaw"
+    time_slider = page.get_by_role("slider", name="Time (s)", exact=True)
+    time_slider.focus()
+    page.keyboard.press("Home")
+    assert wait_until(lambda: studio.animate_tab.time.value == 0.0, 30)
+    page.get_by_role("button", name="Key channel").click()
+    assert wait_until(lambda: studio.doc.key_times("jaw") == [0.0], 30)
+    time_slider.focus()
+    page.keyboard.press("End")
+    assert wait_until(lambda: studio.animate_tab.time.value == pytest.approx(2.0), 30)
+    _tab(page, "Pose")
+    box = page.get_by_role("textbox", name="jaw value", exact=True)
+    box.fill("5")  # within the strain guard's range (about 6.7° on the sample head)
+    box.press("Enter")
+    assert wait_until(lambda: abs(math.degrees(studio.p[jaw_k]) - 5.0) < 1e-6, 30)
+    _tab(page, "Animate")
+    page.get_by_role("button", name="Key channel").click()
+    assert wait_until(lambda: studio.doc.key_times("jaw") == [0.0, 2.0], 30)
+    assert studio.doc.to_dict()["channels"]["jaw"] == {"interp": "linear", "keys": [[0.0, 0.0], [2.0, 5.0]]}
+    page.screenshot(path=str(image_dir / "studio-animate.png"))
+
+    _tab(page, "Perform")
+    _inactive(daemon)
+    with Telemetry(daemon.telemetry_endpoint) as tel:
+        page.get_by_role("button", name="Enable", exact=True).click()
+        assert wait_until(lambda: _status(daemon)["lifecycle"] == "active", 60, interval=0.5)
+        page.get_by_role("button", name="Send and play").click()
+        last: list[dict] = []
+
+        def moved(topic: str, m: dict) -> bool:
+            if topic == "state":
+                last[:] = [m]
+            return topic == "state" and m.get("mode") == "clip" and (m["measured"].get("jaw") or 0.0) > 3.5
+
+        seen = tel.wait_for(moved, timeout=60)
+        assert seen is not None, (f"telemetry never showed the jaw following the clip; page: "
+                                  f"{studio.perform_tab.reply_text.content!r}; last state: {last}")
+        assert seen[1]["clip"]["name"] == "take"
+        assert 3.5 < seen[1]["commanded"]["jaw"] <= 5.0 + 0.3
+    assert wait_until(lambda: page.get_by_text("Playing").count() > 0, 30)
+    assert wait_until(lambda: "active" in studio.perform_tab.state_text.content, 30)
+    page.wait_for_timeout(1500)  # a few mirror redraws with the trace
+    page.screenshot(path=str(image_dir / "studio-perform.png"))
+    page.get_by_role("button", name="Disable", exact=True).click()
+    assert wait_until(lambda: _status(daemon)["lifecycle"] == "inactive", 60, interval=0.5)
+
+
+def test_the_e_stop_reaches_the_daemon_and_reset_clears_it(page: Any, studio: Any, daemon: Any) -> None:
+    _inactive(daemon)
+    with Client(daemon.command_endpoint, timeout=30) as c:
+        try:  # the e-stop matters most with torque on; it must latch from inactive too
+            c.call("enable")
+        except DaemonError:  # an emulated servo that missed its answer on a loaded host: go on from inactive
+            c.call("reset")
+    with Telemetry(daemon.telemetry_endpoint) as tel:
+        page.get_by_role("button", name="E-stop", exact=True).click()
+        event = tel.wait_for(lambda topic, m: topic == "event" and m.get("event") == "estop", timeout=30)
+    assert event is not None, "the daemon published no estop event"
+    st = _status(daemon)
+    assert st["lifecycle"] == "estop" and st["estop"]
+    assert wait_until(lambda: "estop" in studio.perform_tab.state_text.content, 30)
+    _tab(page, "Perform")
+    page.get_by_role("button", name="Reset", exact=True).click()
+    assert wait_until(lambda: _status(daemon)["lifecycle"] == "inactive", 60, interval=0.5)
