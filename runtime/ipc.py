@@ -17,6 +17,7 @@ from typing import Any
 import zmq
 
 _COUNTER = struct.Struct("<Q")
+_REASON = struct.Struct("<B63s")  # length, then the reason of the latest trip (UTF-8, truncated)
 
 
 def send(sock: zmq.Socket, obj: Any, flags: int = 0) -> None:
@@ -33,11 +34,12 @@ def recv(sock: zmq.Socket, flags: int = 0) -> Any:
 
 
 class EStopFlag:
-    """A shared counter: :meth:`trip` adds one, :meth:`seen` tells the loop whether it moved since last time."""
+    """A shared counter: :meth:`trip` adds one, :meth:`tripped` tells the loop whether it moved since last time, and
+    :meth:`reason` what the latest trip gave as its reason."""
 
     def __init__(self, name: str | None = None) -> None:
         if name is None:
-            self._shm = shared_memory.SharedMemory(create=True, size=_COUNTER.size)
+            self._shm = shared_memory.SharedMemory(create=True, size=_COUNTER.size + _REASON.size)
             self._owner = True
             _COUNTER.pack_into(self._shm.buf, 0, 0)
         else:
@@ -58,10 +60,17 @@ class EStopFlag:
     def value(self) -> int:
         return _COUNTER.unpack_from(self._shm.buf, 0)[0]
 
-    def trip(self) -> None:
-        """Raise the flag (one writer at a time per process; increments from two processes may merge into one,
-        which still reads as tripped)."""
+    def trip(self, reason: str = "api") -> None:
+        """Raise the flag with ``reason`` (one writer at a time per process; increments from two processes may merge
+        into one, which still reads as tripped). The reason is written before the counter moves."""
+        raw = reason.encode("utf-8", "replace")[:63]
+        _REASON.pack_into(self._shm.buf, _COUNTER.size, len(raw), raw)
         _COUNTER.pack_into(self._shm.buf, 0, self.value() + 1)
+
+    def reason(self) -> str:
+        """The reason given by the latest trip ("api" before any)."""
+        n, raw = _REASON.unpack_from(self._shm.buf, _COUNTER.size)
+        return raw[:n].decode("utf-8", "replace") if n else "api"
 
     def tripped(self) -> bool:
         """True once per change of the counter since the previous call."""

@@ -183,7 +183,7 @@ class Runner:
     def _estop_now(self) -> str | None:
         estop = None
         if self.estop.tripped():
-            estop = "api"
+            estop = self.estop.reason()
         if self._signal_estop is not None:
             estop, self._signal_estop = self._signal_estop, None
         return estop

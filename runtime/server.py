@@ -281,7 +281,7 @@ class Server:
             req = M.decode_request(payload)
             rid, op = req.id, type(req).__struct_config__.tag
             if op == "estop":
-                self.estop_flag.trip()  # reaches the core this cycle, before the command itself
+                self.estop_flag.trip(getattr(req, "reason", None) or "api")  # reaches the core before the command
             if op in LOCAL_OPS:
                 self._reply(envelope, {"id": rid, "ok": True, **self._local(req, received)})
                 return
@@ -310,7 +310,7 @@ class Server:
                 self._reply(envelope, error)
                 continue
             if op == "estop":
-                self.estop_flag.trip()
+                self.estop_flag.trip(getattr(cmd, "reason", None) or "api")
             self.pending[token] = (envelope, rid, op, received)
             ipc.send(self.link, ("cmd", cmd))
 

@@ -27,7 +27,7 @@ _ENDPOINTS = itertools.count(1)
 class InputHub:
     """Starts the configured inputs; :attr:`pull` yields their commands (token 0, to be given one)."""
 
-    def __init__(self, cfg: InputsConfig, channels: ChannelMap, ctx: zmq.Context, trip_estop: Callable[[], None]
+    def __init__(self, cfg: InputsConfig, channels: ChannelMap, ctx: zmq.Context, trip_estop: Callable[[str], None]
                  ) -> None:
         self.cfg = cfg
         endpoint = f"inproc://likeness-inputs-{next(_ENDPOINTS)}"

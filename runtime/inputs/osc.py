@@ -58,7 +58,7 @@ class OscInput:
     name = "osc"
 
     def __init__(self, cfg: OscConfig, channels: ChannelMap, emit: Callable[[C.Command], None],
-                 estop: Callable[[], None]) -> None:
+                 estop: Callable[[str], None]) -> None:
         self.cfg = cfg
         self.map = OscMap(cfg.map, channels, cfg.control_prefix)
         self.emit = emit
@@ -149,7 +149,7 @@ class OscInput:
                                  f"{self.cfg.control_prefix}/{op} from {client[0]}")
             return
         if op == "estop":
-            self.trip_estop()  # reaches the core this cycle, before the command itself
+            self.trip_estop("osc")  # reaches the core this cycle, before the command itself
             reason = str(params[0]) if params else f"osc from {client[0]}"
             self.emit(C.EStop(0, reason[:128]))
         elif op == "enable":

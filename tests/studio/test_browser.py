@@ -167,8 +167,9 @@ def test_the_e_stop_reaches_the_daemon_and_reset_clears_it(page: Any, studio: An
         page.get_by_role("button", name="E-stop", exact=True).click()
         event = tel.wait_for(lambda topic, m: topic == "event" and m.get("event") == "estop", timeout=30)
     assert event is not None, "the daemon published no estop event"
+    assert event[1]["reason"] == "studio E-stop", event  # the page's reason travels with the shared e-stop flag
     st = _status(daemon)
-    assert st["lifecycle"] == "estop" and st["estop"]
+    assert st["lifecycle"] == "estop" and st["estop"] == "studio E-stop"
     assert wait_until(lambda: "estop" in studio.perform_tab.state_text.content, 30)
     _tab(page, "Perform")
     page.get_by_role("button", name="Reset", exact=True).click()
