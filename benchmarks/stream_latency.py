@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import threading
 import time
+from typing import Any
 
 import msgpack
 import numpy as np
@@ -105,41 +106,70 @@ def stream_latency(daemon, trials: int) -> list[float]:
     return lat
 
 
-def steady_latency(daemon, rate: float, steps: int, rng: np.random.Generator) -> list[float]:
-    """A producer streaming one frame per request at ``rate`` Hz whose jaw value steps between 0° and 4° every
-    0.5–0.7 s; for each step frame, its arrival → the first bus write that moved the jaw (seconds)."""
+def _producer(endpoint: str, rate: float, steps: int, seed: int, out: Any) -> None:
+    """A show-control producer in a process of its own: one frame per request at ``rate`` Hz on a fixed grid, sent
+    without waiting for replies (a DEALER socket, as a streaming client would), the jaw stepping between 0° and 4°
+    every 0.5–0.7 s; puts the arrival times (``t_recv``) of the step frames on ``out``."""
     from runtime.client import Client
+
+    with Client(endpoint) as c:
+        offset, _ = c.clock_offset()
+    rng = np.random.default_rng(seed)
+    sock = zmq.Context.instance().socket(zmq.DEALER)
+    sock.setsockopt(zmq.LINGER, 0)
+    sock.connect(endpoint)
+    step_ids: set[int] = set()
+    recv: list[float] = []
+    period = 1.0 / rate
+    value, k, next_step = 0.0, 0, int(rng.integers(125, 175))
+    t_next = time.monotonic() + period
+
+    def replies() -> None:
+        while sock.poll(0):
+            r = msgpack.unpackb(sock.recv())
+            if r.get("id") in step_ids and r.get("ok") and r.get("accepted"):
+                recv.append(r["t_recv"])
+
+    while len(recv) < steps:
+        while (left := t_next - time.monotonic()) > 0:
+            replies()
+            time.sleep(min(left, 0.0005) if left > 0.0006 else 0)  # sleep, then spin the last half-ms
+        t_next += period
+        k += 1
+        if k == next_step:
+            value = 4.0 if value == 0.0 else 0.0
+            next_step = k + int(rng.integers(125, 175))
+            step_ids.add(k)
+        sock.send(msgpack.packb({"op": "stream", "id": k, "channels": ["jaw"],
+                                 "frames": [[time.monotonic() + offset, value]]}))
+    sock.close(0)
+    out.put(recv)
+
+
+def steady_latency(daemon, rate: float, steps: int, seed: int) -> list[float]:
+    """For each step frame of a steady producer (:func:`_producer`, its own process), its arrival → the first bus
+    write that moved the jaw (seconds); this process watches the bus writes meanwhile."""
+    import multiprocessing as mp
 
     link = next(lk for lk in daemon.links if "jaw" in lk.actuators)
     j = link.actuators.index("jaw")
-    writes: list[tuple[float, float]] = []  # (bus write time, jaw target) as the bus process reports them
-    recv: list[float] = []  # arrival of each step frame
-    with Client(daemon.command_endpoint) as c:
-        offset, _ = c.clock_offset()
-        period = 1.0 / rate
-        value, k, next_step = 0.0, 0, int(rng.integers(125, 175))
-        t_next = time.monotonic() + period
-        while len(recv) < steps:
-            while (now := time.monotonic()) < t_next:  # between frames: watch the bus writes
-                fb = link.feedback()
-                if not writes or fb.write_stamp != writes[-1][0]:
-                    writes.append((fb.write_stamp, float(fb.written[j])))
-                time.sleep(min(100e-6, max(0.0, t_next - now)))
-            t_next += period
-            k += 1
-            stepped = k == next_step
-            if stepped:
-                value = 4.0 if value == 0.0 else 0.0
-                next_step = k + int(rng.integers(125, 175))
-            r = c.call("stream", channels=["jaw"], frames=[[time.monotonic() + offset, value]])
-            if stepped and r["accepted"]:
-                recv.append(r["t_recv"])
-        end = time.monotonic() + 0.05
-        while time.monotonic() < end:
-            fb = link.feedback()
-            if fb.write_stamp != writes[-1][0]:
-                writes.append((fb.write_stamp, float(fb.written[j])))
-            time.sleep(100e-6)
+    writes: list[tuple[float, float]] = [(0.0, float("nan"))]  # (bus write time, jaw target) from the bus process
+    ctx = mp.get_context("spawn")
+    out = ctx.Queue()
+    proc = ctx.Process(target=_producer, args=(daemon.command_endpoint, rate, steps, seed, out), daemon=True)
+    proc.start()
+    recv: list[float] | None = None
+    while recv is None:
+        fb = link.feedback()
+        if fb.write_stamp != writes[-1][0]:
+            writes.append((fb.write_stamp, float(fb.written[j])))
+        try:
+            recv = out.get_nowait()
+        except Exception:
+            time.sleep(200e-6)
+        if not proc.is_alive() and recv is None and out.empty():
+            raise RuntimeError(f"the producer process ended without a result (exit code {proc.exitcode})")
+    proc.join(5)
     stamps = np.array([w[0] for w in writes])
     values = np.array([w[1] for w in writes])
     lat = []
@@ -189,7 +219,7 @@ def main(argv: list[str] | None = None) -> int:
         daemon = make_daemon(args.rate, True, **{"runtime.stream_delay_s": 0.001, "runtime.stream_phase_lock": lock})
         try:
             time.sleep(0.5)
-            steady[lock] = steady_latency(daemon, args.rate, max(20, args.trials // 4), np.random.default_rng(2))
+            steady[lock] = steady_latency(daemon, args.rate, max(20, args.trials // 4), seed=2)
         finally:
             daemon.stop()
     daemon = make_daemon(args.rate, True, **{"runtime.stream_delay_s": 0.001})

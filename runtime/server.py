@@ -18,6 +18,8 @@ import logging
 import math
 import os
 import signal
+import sys
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -100,6 +102,8 @@ def main(spec: ServerSpec) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the daemon process stops us
     logging.basicConfig(level=spec.log_level, format="%(asctime)s %(name)s: %(message)s")
     _die_with_parent()
+    # The telemetry thread computes between requests; it must hand the GIL to the request thread within 0.5 ms.
+    sys.setswitchinterval(0.0005)
     server = Server(spec)
     try:
         server.run()
@@ -143,6 +147,8 @@ class Server:
         self.recording: dict[str, Any] | None = None
         self.auth: Any = None
         self.router, self.pub = self._bind()
+        self._pub_lock = threading.Lock()  # the publish socket is shared by the request and telemetry threads
+        self._telemetry = _LatestWorker(self._publish_state, "telemetry")
         self.inputs = _start_inputs(self.head, self.channels, self.ctx, self.estop_flag)
         self._start_decoder()
         ipc.send(self.link, ("ready", self.command_endpoint, self.telemetry_endpoint))
@@ -204,6 +210,7 @@ class Server:
     def close(self) -> None:
         import shutil
 
+        self._telemetry.close()
         if self.recording is not None:  # the daemon stops while recording: the file is complete up to here
             self.recording["writer"].close()
             self.recording = None
@@ -371,8 +378,8 @@ class Server:
                 self._core_reply(*rest)
             elif kind == "event":
                 self._publish(P.TOPIC_EVENT, rest[0])
-            elif kind == "state":
-                self._publish(P.TOPIC_STATE, self._state_message(rest[0]))
+            elif kind == "state":  # link poses and the full strain check take ms: off the request thread
+                self._telemetry.put(rest[0])
             elif kind == "stats":
                 self.stats_summary = _summary(*rest)
             elif kind == "realtime":
@@ -505,13 +512,55 @@ class Server:
         poses = self.linkmap.poses(dict(zip(self.names, q.tolist(), strict=True)))
         return {name: [*T[:3, 3].tolist(), *matrix_to_rotvec(T[:3, :3]).tolist()] for name, T in poses.items()}
 
+    def _publish_state(self, snap: dict[str, Any]) -> None:
+        self._publish(P.TOPIC_STATE, self._state_message(snap))
+
     def _publish(self, topic: bytes, msg: dict[str, Any]) -> None:
+        data = P.pack(_plain(msg))
         try:
-            self.pub.send_multipart([topic, P.pack(_plain(msg))], zmq.NOBLOCK)
+            with self._pub_lock:
+                self.pub.send_multipart([topic, data], zmq.NOBLOCK)
         except zmq.Again:
             pass
         except zmq.ZMQError as exc:
             log.warning("telemetry publish failed: %s", exc)
+
+
+class _LatestWorker:
+    """A thread that runs ``work`` on the latest item put, dropping any it had no time for (telemetry snapshots:
+    only the newest matters), so slow formatting never delays the requests handled on the calling thread."""
+
+    def __init__(self, work: Any, name: str) -> None:
+        self._work = work
+        self._cond = threading.Condition()
+        self._item: Any = None
+        self._closed = False
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread.start()
+
+    def put(self, item: Any) -> None:
+        with self._cond:
+            self._item = item
+            self._cond.notify()
+
+    def close(self) -> None:
+        with self._cond:
+            self._closed = True
+            self._cond.notify()
+        self._thread.join(2.0)
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while self._item is None and not self._closed:
+                    self._cond.wait()
+                if self._closed:
+                    return
+                item, self._item = self._item, None
+            try:
+                self._work(item)
+            except Exception:
+                log.exception("telemetry failed")
 
 
 def _plain(obj: Any) -> Any:
