@@ -37,7 +37,7 @@ class RuntimeSettings:
     spin_us: float = 200.0  # sleep until this long before a deadline, then spin
     switch_interval_s: float = 0.0005  # sys.setswitchinterval while the loop runs (other threads yield sooner)
     stream_delay_s: float = 0.05  # jitter buffer: streamed frames play this long after their timestamp
-    stream_phase_lock: bool = True  # slide the loop's phase to just after a steady stream's frames (runtime.phaselock)
+    stream_phase_lock: bool = False  # slide the loop's phase to just after a steady stream's frames (runtime.phaselock)
     stream_max_ahead_s: float = 30.0  # frames further in the future are refused
     stream_max_frames: int = 20000  # jitter buffer capacity
     record_dir: str = "recordings"  # where ``record`` writes (relative to the working directory)
