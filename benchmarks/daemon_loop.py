@@ -49,7 +49,7 @@ def bare_loop(rate_hz: float, seconds: float) -> dict:
     return {**stats.summary(), **out}
 
 
-def daemon_run(rate_hz: float, performance: Path) -> dict:
+def daemon_run(rate_hz: float, performance: Path, extra: dict | None = None) -> dict:
     """Start the daemon, play the performance once, return the loop statistics over the playing time."""
     from models.headspec import load_head
     from runtime.client import Client
@@ -59,7 +59,7 @@ def daemon_run(rate_hz: float, performance: Path) -> dict:
     head = load_head(SAMPLE)
     clip = clip_file_as_dict(performance)
     overrides = {"api.command": "tcp://127.0.0.1:*", "api.telemetry": "tcp://127.0.0.1:*",
-                 "runtime.rate_hz": rate_hz, "runtime.telemetry_hz": 50.0}
+                 "runtime.rate_hz": rate_hz, "runtime.telemetry_hz": 50.0, **(extra or {})}
     daemon = Daemon(head, overrides)
     daemon.start()
     try:
@@ -93,9 +93,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rates", type=float, nargs="+", default=[500.0, 1000.0])
     parser.add_argument("--performance", type=Path,
                         default=ROOT / "heads" / "sample" / "performances" / "expressive.json")
+    parser.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE",
+                        help="a config override, e.g. runtime.bus_priority=0 (TOML value)")
     args = parser.parse_args(argv)
+    import tomllib
+
+    extra = {k: tomllib.loads(f"v = {v}")["v"] for k, v in (item.split("=", 1) for item in args.set)}
     for rate in args.rates:
-        d = daemon_run(rate, args.performance)
+        d = daemon_run(rate, args.performance, extra)
         seconds = d["cycles"] / rate
         b = bare_loop(rate, seconds)
         ratio = d["jitter_p99_us"] / max(b["jitter_p99_us"], 1e-3)
