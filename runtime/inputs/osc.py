@@ -149,9 +149,9 @@ class OscInput:
                                  f"{self.cfg.control_prefix}/{op} from {client[0]}")
             return
         if op == "estop":
-            self.trip_estop("osc")  # reaches the core this cycle, before the command itself
-            reason = str(params[0]) if params else f"osc from {client[0]}"
-            self.emit(C.EStop(0, reason[:128]))
+            reason = (str(params[0]) if params else f"osc from {client[0]}")[:128]
+            self.trip_estop(reason)  # reaches the core this cycle, before the command itself
+            self.emit(C.EStop(0, reason))
         elif op == "enable":
             self.emit(C.Enable(0))
         elif op == "disable":

@@ -84,7 +84,7 @@ def test_daemon_process_status_stream_estop_and_sigterm(tmp_path: Path) -> None:
         assert est.returncode == 0 and "e-stop latched" in est.stdout
         st = cli("status")
         assert "lifecycle estop" in st.stdout and "cli test" in st.stdout
-        assert cli("enable").returncode == 2  # refused while latched, with a clear message
+        assert cli("enable").returncode == 5  # refused in the present state (latched), with a clear message
         assert cli("reset").returncode == 0
         with Client(endpoint) as c:
             assert c.call("status")["lifecycle"] == "inactive"

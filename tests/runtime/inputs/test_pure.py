@@ -244,8 +244,8 @@ def test_osc_packets_become_one_command_per_bundle_and_control_needs_the_allow_l
     cfg = OscConfig("127.0.0.1", 0, None, (("/face/jaw", "jaw"), ("/face/brow/*", "brow_*")), "/likeness",
                     ("127.0.0.1",), True)
     got: list[C.Command] = []
-    trips: list[int] = []
-    osc = OscInput(cfg, CHANNELS, got.append, lambda: trips.append(1))
+    trips: list[str] = []
+    osc = OscInput(cfg, CHANNELS, got.append, trips.append)
 
     def msg(address: str, *args: object) -> object:
         m = OscMessageBuilder(address)
@@ -277,6 +277,6 @@ def test_osc_packets_become_one_command_per_bundle_and_control_needs_the_allow_l
     osc.packet(msg("/likeness/estop", "cue 12").dgram, remote)  # not on control_allow
     assert len(got) == 2 and not trips
     osc.packet(msg("/likeness/estop", "cue 12").dgram, local)
-    assert trips and isinstance(got[2], C.EStop) and got[2].reason == "cue 12"
+    assert trips == ["cue 12"] and isinstance(got[2], C.EStop) and got[2].reason == "cue 12"
     osc.packet(msg("/likeness/play", "hi", 1).dgram, local)
     assert isinstance(got[3], C.Play) and got[3].name == "hi" and got[3].loop and got[3].source == "osc"
