@@ -32,6 +32,8 @@ class RuntimeSettings:
     # SCHED_FIFO priority of the bus processes (0: normal scheduling at raised niceness, the default). Measured on the
     # sample head (benchmarks/daemon_loop.py --set runtime.bus_priority=10): realtime bus processes cost the loop
     # deadlines on 2 cores (260 missed of 9,565 at 1 kHz against 16), so leave it 0 unless the host has cores to spare.
+    # (Emulated devices keep normal scheduling too: the CANopen emulator takes ~60 % of a core, too much to run above
+    # the API server.)
     bus_priority: int = 0
     cpu: int = -1  # pin the control thread to this CPU (-1: no pinning)
     spin_us: float = 200.0  # sleep until this long before a deadline, then spin

@@ -40,10 +40,6 @@ READY_TIMEOUT_S = 20.0
 #: emulator queues behind ordinary processes. A SCHED_FIFO control thread still preempts it. Needs CAP_SYS_NICE;
 #: without it the emulator keeps the parent's niceness.
 EMULATOR_NICE = -10
-#: SCHED_RR priority given to emulator processes where permitted (below the control thread's SCHED_FIFO priority).
-#: Niceness alone is not enough on a loaded 2-core machine (a browser with software WebGL renices itself to -8):
-#: the emulators block on their transports between packets, so a realtime class costs nothing while idle.
-EMULATOR_RT_PRIORITY = 20
 
 #: Emulators still running, stopped at interpreter exit if their owner did not close them.
 _RUNNING: weakref.WeakSet[SimProcess] = weakref.WeakSet()
@@ -153,8 +149,6 @@ class SimProcess:
         self._watch = threading.Thread(target=self._supervise, name=f"sim-{self.bus_name}-watch", daemon=True)
         self._watch.start()
         line = self.wait_ready(timeout_s)
-        if self._nice:
-            _realtime(self._proc.pid, self.bus_name)
         log.warning("emulator of bus %s restarted (pid %d): %s", self.bus_name, self.pid, line)
         return line
 
@@ -231,8 +225,7 @@ def start(
     """Start the emulator of ``driver`` serving ``motors`` in a child process, each motor at ``initial[name]`` (SI,
     default 0); ``SimProcess.options`` are ``options`` rewritten so the real driver reaches it.
 
-    ``nice`` is added to the child's niceness, and unless it is 0 the child also runs SCHED_RR where permitted
-    (:data:`EMULATOR_RT_PRIORITY`). ConfigError for a driver without an emulator; BusInitError when the
+    ``nice`` is added to the child's niceness. ConfigError for a driver without an emulator; BusInitError when the
     emulator does not come up (its output is in the message).
     """
     if driver not in _ARGS:
@@ -249,8 +242,6 @@ def start(
     sim = SimProcess(driver, bus_name, proc, control, lambda: _remove_link(link), cmd, nice)
     try:
         line = sim.wait_ready(ready_timeout_s)
-        if nice:
-            _realtime(proc.pid, bus_name)  # threads started before the first call
         sim.options = _OPTIONS[driver](line, dict(options), link)
         if "--port" in cmd:  # a restart listens where the driver already connects
             sim._command[cmd.index("--port") + 1] = str(sim.options["port"])
@@ -276,25 +267,7 @@ def _spawn(cmd: Sequence[str], bus_name: str, nice: int) -> subprocess.Popen[str
             os.setpriority(os.PRIO_PROCESS, proc.pid, os.getpriority(os.PRIO_PROCESS, 0) + nice)
         except OSError as exc:
             log.debug("emulator of bus %s keeps its niceness (%s)", bus_name, exc)
-        _realtime(proc.pid, bus_name)
     return proc
-
-
-def _realtime(pid: int, bus_name: str) -> None:
-    """Every thread of emulator ``pid`` under SCHED_RR at :data:`EMULATOR_RT_PRIORITY`, where permitted."""
-    if not hasattr(os, "sched_setscheduler"):
-        return
-    try:
-        tids = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
-    except OSError:
-        tids = [pid]
-    for tid in tids:
-        try:
-            if os.sched_getscheduler(tid) == os.SCHED_OTHER:
-                os.sched_setscheduler(tid, os.SCHED_RR, os.sched_param(EMULATOR_RT_PRIORITY))
-        except OSError as exc:
-            log.debug("emulator of bus %s keeps normal scheduling (%s)", bus_name, exc)
-            return
 
 
 def _remove_link(path: str) -> None:
