@@ -112,7 +112,8 @@ class Studio:
             frame = self.skin.frame(self.p)
             self.show_frame(frame)
             self.pose_tab.follow(self.p, source)
-            return frame
+        self.server.flush()  # send now rather than at the end of viser's 1/60 s batching window
+        return frame
 
     def show_frame(self, frame: SkinFrame) -> None:
         self.view.show(frame.positions, frame.band_faces, (*STRAIN_COLORS, UNMEASURED))
