@@ -400,6 +400,11 @@ class CanOpen402Bus(MotorBus):
             w(node, mapping, 0, "<B", len(entries))
             w(node, comm, 2, "<B", 1)  # synchronous, every SYNC
             w(node, comm, 1, "<I", cob + nid)
+        # The drive's own software position limits (0x607D) at the motor's configured limits: a second line of
+        # defence behind the driver's checks, and what stops a quick-stop ramp at the end of the travel.
+        lo, hi = sorted((node.motor.to_counts(node.motor.min_position), node.motor.to_counts(node.motor.max_position)))
+        w(node, 0x607D, 1, "<i", lo)
+        w(node, 0x607D, 2, "<i", hi)
         if o.following_error_window_counts is not None:
             w(node, 0x6065, 0, "<I", o.following_error_window_counts)
         if o.cycle_period_s is not None:

@@ -90,6 +90,7 @@ class Daemon:
         self._sock: zmq.Socket | None = None
         self._estop: ipc.EStopFlag | None = None
         self._tmp: str | None = None
+        self._commands: ipc.PipeReader | None = None
 
     @property
     def realtime_status(self) -> str:
@@ -132,11 +133,14 @@ class Daemon:
         self._sock.setsockopt(zmq.LINGER, 0)
         self._sock.setsockopt(zmq.SNDHWM, 10000)
         self._sock.bind(f"ipc://{self._tmp}/link")
+        ipc.make_pipe(f"{self._tmp}/commands")
+        self._commands = ipc.PipeReader(f"{self._tmp}/commands")  # opened before the server opens its end
         self._estop = ipc.EStopFlag()
 
     def _start_server(self) -> None:
         assert self._sock is not None and self._estop is not None and self._tmp is not None
         spec = server_mod.ServerSpec(str(self.head.source), self.overrides, self.channels, f"ipc://{self._tmp}/link",
+                                     f"{self._tmp}/commands",
                                      self._estop.name, self.cfg.safety.safe_speed,
                                      logging.getLogger().getEffectiveLevel())
         # A fresh interpreter (not multiprocessing's spawn, which re-imports the caller's main script): the spec
@@ -162,14 +166,14 @@ class Daemon:
         log.info("commands on %s, telemetry on %s", self.command_endpoint, self.telemetry_endpoint)
 
     def _start_loop(self) -> None:
-        assert self._sock is not None and self._estop is not None
+        assert self._sock is not None and self._estop is not None and self._commands is not None
         self.params = K.CoreParams.build(self.head, self.cfg, self.channels,
                                          [(link.name, link.actuators) for link in self.links], guard=self.guard,
                                          chase=None if self.inputs.timecode is None else self.inputs.timecode.chase)
         solvers = as_array_solvers(self.target_solvers, self.channels.target_blocks, self.channels.names,
                                    self.names)
         self.state = K.CoreState.initial(self.head, self.params, solvers)
-        self.runner = Runner(self.params, self.state, self.links, self._sock, self._estop,
+        self.runner = Runner(self.params, self.state, self.links, self._sock, self._commands, self._estop,
                              input_log=self.input_log)
         self._thread = threading.Thread(target=self.runner.run, name="likeness-control", daemon=True)
         self._thread.start()
@@ -203,6 +207,9 @@ class Daemon:
         if self._sock is not None:
             self._sock.close(0)
             self._sock = None
+        if self._commands is not None:
+            self._commands.close()
+            self._commands = None
         if self._ctx is not None:
             self._ctx.term()
             self._ctx = None

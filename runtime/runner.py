@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import os
+import select
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -38,12 +39,15 @@ class Runner:
     """Runs the core at the configured rate on the calling thread until :meth:`stop`."""
 
     def __init__(self, params: K.CoreParams, state: K.CoreState, links: Sequence[Any], sock: zmq.Socket,
-                 estop: ipc.EStopFlag, clock: Callable[[], float] = time.monotonic,
+                 commands: ipc.PipeReader, estop: ipc.EStopFlag, clock: Callable[[], float] = time.monotonic,
                  input_log: list[K.CycleInputs] | None = None) -> None:
         self.params = params
         self.state = state
         self.links = list(links)
-        self.sock = sock
+        self.sock = sock  # to the server: replies, events, state
+        self.commands = commands  # from the server: ready-made commands
+        self._poll = select.poll()
+        self._poll.register(commands.fileno(), select.POLLIN)
         self.estop = estop
         self.clock = clock
         self.stats = LoopStats(params.period)
@@ -129,7 +133,7 @@ class Runner:
             left = until - self.clock()
             if left <= 0:
                 return
-            if not self.sock.poll(max(0, int(left * 1000))):
+            if self.commands.closed or not self._poll.poll(max(0, int(left * 1000))):
                 left = until - self.clock()
                 if left > 0:
                     time.sleep(left)
@@ -166,18 +170,16 @@ class Runner:
         return tuple(out)
 
     def _drain(self, deadline: float) -> list[Any]:
-        """The commands waiting on the link; stream frames tell the phase lock when they arrived, for the cycle
-        due at ``deadline``."""
+        """The commands waiting on the link; stream frames tell the phase lock when this loop took them, for the
+        cycle due at ``deadline`` (the time that matters is when a frame reaches the loop, not the server: the hop
+        between them takes a few hundred microseconds)."""
         cmds = []
-        for _ in range(MAX_COMMANDS_PER_CYCLE):
-            try:
-                kind, cmd = ipc.recv(self.sock, zmq.NOBLOCK)
-            except zmq.Again:
-                break
+        taken = self.clock()
+        for kind, cmd in self.commands.recv(MAX_COMMANDS_PER_CYCLE):
             if kind == "cmd":
                 cmds.append(cmd)
-                if self.phase_lock is not None and isinstance(cmd, (Stream, Live)) and cmd.received is not None:
-                    self.phase_lock.arrival(cmd.received, deadline)
+                if self.phase_lock is not None and isinstance(cmd, (Stream, Live)):
+                    self.phase_lock.arrival(taken, deadline)
         return cmds
 
     def _estop_now(self) -> str | None:

@@ -47,7 +47,8 @@ class ServerSpec:
     head_path: str
     overrides: dict[str, Any]
     channels: ChannelMap
-    link: str  # the loop's PAIR endpoint
+    link: str  # the loop's PAIR endpoint (loop → server: replies, events, state)
+    commands: str  # the named pipe the loop reads its commands from (server → loop)
     estop_flag: str  # shared-memory name of the e-stop counter
     safe_speed: float  # [safety] safe_speed: the default speed of a pose
     log_level: int = logging.WARNING
@@ -140,6 +141,7 @@ class Server:
         self.link = self.ctx.socket(zmq.PAIR)
         self.link.setsockopt(zmq.LINGER, 0)
         self.link.connect(spec.link)
+        self.to_loop = ipc.PipeWriter(spec.commands)
         self.tokens = itertools.count(1)
         self.pending: dict[int, tuple[list[bytes], Any, str, float]] = {}
         self.stats_summary: dict[str, Any] = {}
@@ -222,6 +224,7 @@ class Server:
         shutil.rmtree(self.tmp, ignore_errors=True)
         for sock in (self.router, self.pub, self.link, self.to_decoder, self.from_decoder):
             sock.close(0)
+        self.to_loop.close()
         if self.auth is not None:
             self.auth.stop()
         if self.inputs is not None:
@@ -238,8 +241,17 @@ class Server:
         if self.inputs is not None:
             poller.register(self.inputs.pull, zmq.POLLIN)
         parent = os.getppid()
+        writing = False
         while True:
+            if self.to_loop.wants_write != writing:  # watch the pipe only while commands wait for room in it
+                writing = self.to_loop.wants_write
+                poller.register(self.to_loop.fileno(), zmq.POLLOUT if writing else 0)
             events = dict(poller.poll(200))
+            if writing and self.to_loop.fileno() in events:
+                try:
+                    self.to_loop.flush()
+                except BrokenPipeError:
+                    return
             if self.link in events and not self._drain_link():
                 return
             if self.router in events:
@@ -305,7 +317,7 @@ class Server:
             self._reply(envelope, P.reply_for(rid, exc))
             return
         self.pending[token] = (envelope, rid, op, received)
-        ipc.send(self.link, ("cmd", cmd))
+        self._to_core(cmd)
 
     def _drain_decoded(self) -> None:
         for _ in range(100):
@@ -319,7 +331,14 @@ class Server:
             if op == "estop":
                 self.estop_flag.trip(getattr(cmd, "reason", None) or "api")
             self.pending[token] = (envelope, rid, op, received)
-            ipc.send(self.link, ("cmd", cmd))
+            self._to_core(cmd)
+
+    def _to_core(self, cmd: Any) -> None:
+        """A ready command to the loop, in order; what the pipe cannot take now is written by :meth:`run` later."""
+        try:
+            self.to_loop.send(("cmd", cmd))
+        except BrokenPipeError:
+            log.error("the control loop is gone; command dropped")
 
     def _drain_inputs(self) -> None:
         """Commands from the show-control inputs (OSC, sACN, timecode): a token each, then on to the core."""
@@ -328,7 +347,7 @@ class Server:
             token = next(self.tokens)
             source = "timecode" if isinstance(cmd, C.Timecode) else getattr(cmd, "source", "osc")  # control: OSC
             self.pending[token] = ([], None, f"input:{source}", getattr(cmd, "received", None) or time.monotonic())
-            ipc.send(self.link, ("cmd", dataclasses.replace(cmd, token=token)))
+            self._to_core(dataclasses.replace(cmd, token=token))
 
     def _reply(self, envelope: list[bytes], reply: dict[str, Any]) -> None:
         try:

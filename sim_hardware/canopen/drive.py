@@ -687,8 +687,12 @@ class EmulatedDrive:
             v = self._demand_velocity
             dv = decel * dt
             v = 0.0 if abs(v) <= dv else v - math.copysign(dv, v)
+            demand = self._demand + v * dt
+            if self._limit_min < self._limit_max and not self._limit_min <= demand <= self._limit_max:
+                demand = min(max(demand, self._limit_min), self._limit_max)  # the ramp ends at a software limit
+                v = 0.0
             self._demand_velocity = v
-            self._demand += v * dt
+            self._demand = demand
             motor.step_closed_loop(p, m, self._demand, v, dt, self._max_velocity, self._max_current)
             if v == 0.0:
                 if state == FAULT_REACTION_ACTIVE:

@@ -381,6 +381,11 @@ def test_optional_drive_parameters_are_written(drives):
             assert drive._get(0x6065) == 8000
             assert drive.node.nmt.heartbeat_time_ms == 10
             assert drive._get(0x6061) == 8  # CSP
+        # the configured limits (±1 rad) as the drives' software position limits, in counts (lip runs reversed)
+        for node_id, gear in ((1, 10.0), (2, 5.0)):
+            counts = round(4096 * gear / (2 * math.pi))
+            drive = drives.drives[node_id]
+            assert (drive._get(0x607D, 1), drive._get(0x607D, 2)) == (-counts, counts)
     finally:
         bus.close()
     # close leaves the drives pre-operational (no PDO processing without a master)

@@ -1,4 +1,5 @@
-"""The shared e-stop flag carries the latest trip's reason across processes, along with the trip itself."""
+"""The shared e-stop flag carries the latest trip's reason across processes, along with the trip itself; the
+command pipe delivers messages whole, in order, without blocking the writer or long reads in the loop."""
 
 from __future__ import annotations
 
@@ -7,7 +8,10 @@ import subprocess
 import sys
 from pathlib import Path
 
-from runtime.ipc import EStopFlag
+import numpy as np
+import pytest
+
+from runtime.ipc import EStopFlag, PipeReader, PipeWriter, make_pipe
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -26,3 +30,78 @@ def test_a_trip_in_another_process_is_seen_once_with_its_reason() -> None:
         assert flag.tripped() and flag.reason().startswith("é")
     finally:
         flag.close()
+
+
+# ---------------------------------------------------------------------------------------------------- command pipe
+def _pipe(tmp_path: Path) -> tuple[PipeReader, PipeWriter]:
+    path = str(tmp_path / "commands")
+    make_pipe(path)
+    reader = PipeReader(path)  # the reader opens first, as the daemon does
+    return reader, PipeWriter(path)
+
+
+def _drain(reader: PipeReader, writer: PipeWriter, n: int) -> list:
+    got: list = []
+    for _ in range(100_000):
+        if len(got) >= n:
+            break
+        writer.flush()
+        got += reader.recv()
+    return got
+
+
+def test_pipe_messages_arrive_whole_and_in_order_small_and_large(tmp_path: Path) -> None:
+    reader, writer = _pipe(tmp_path)
+    try:
+        big = np.random.default_rng(0).random(3_000_000)  # 24 MB: far more than the pipe holds
+        sent = [("cmd", 1), ("cmd", {"a": np.arange(5)}), ("cmd", big), ("cmd", "after the big one"),
+                ("cmd", [np.ones(70_000), np.zeros(2)])]
+        for msg in sent:
+            writer.send(msg)  # never blocks: what the pipe cannot take yet waits in order
+        assert writer.wants_write and writer.queued_bytes > 0
+        got = _drain(reader, writer, len(sent))
+        assert [g[0] for g in got] == ["cmd"] * len(sent)
+        assert got[0][1] == 1 and got[3][1] == "after the big one"
+        np.testing.assert_array_equal(got[1][1]["a"], np.arange(5))
+        np.testing.assert_array_equal(got[2][1], big)
+        np.testing.assert_array_equal(got[4][1][0], np.ones(70_000))
+        assert not writer.wants_write and writer.queued_bytes == 0
+    finally:
+        writer.close()
+        reader.close()
+
+
+def test_pipe_reads_are_bounded_per_call(tmp_path: Path) -> None:
+    reader, writer = _pipe(tmp_path)
+    try:
+        writer.send(("cmd", np.zeros(200_000)))  # 1.6 MB
+        calls = 0
+        got: list = []
+        while not got:
+            writer.flush()
+            got = reader.recv(max_bytes=64 * 1024)
+            calls += 1
+        assert calls >= 1_600_000 // (64 * 1024)  # the large message took many short reads, never one long one
+        for i in range(100):
+            writer.send(("cmd", i))
+        firsts = reader.recv(max_messages=10)
+        assert [m[1] for m in firsts] == list(range(10))
+        assert [m[1] for m in _drain(reader, writer, 90)] == list(range(10, 100))
+    finally:
+        writer.close()
+        reader.close()
+
+
+def test_pipe_reader_sees_the_writer_go_and_the_writer_a_missing_reader(tmp_path: Path) -> None:
+    reader, writer = _pipe(tmp_path)
+    writer.send(("cmd", "last"))
+    writer.close()
+    assert [m[1] for m in reader.recv()] == ["last"]
+    assert reader.recv() == [] and reader.closed  # end of file: the server is gone
+    reader.close()
+    (tmp_path / "again").mkdir()
+    reader, writer = _pipe(tmp_path / "again")
+    reader.close()  # the loop is gone
+    with pytest.raises(BrokenPipeError):
+        writer.send(("cmd", "nobody reads"))
+    writer.close()

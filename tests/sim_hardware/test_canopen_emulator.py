@@ -150,6 +150,25 @@ def test_profile_position_mode_and_quick_stop(rig):
     assert drive.position_counts > -400_000 + 100_000  # stopped well before the target
 
 
+def test_a_quick_stop_ramp_ends_at_the_software_position_limit(rig):
+    drives, net = rig
+    node = _sdo_node(net, 1)
+    drive = drives.drives[1]
+    node.sdo.download(0x607D, 1, struct.pack("<i", -50_000))
+    node.sdo.download(0x607D, 2, struct.pack("<i", 50_000))
+    node.sdo.download(0x6085, 0, struct.pack("<I", 20_000))  # a gentle quick-stop deceleration: a long ramp
+    _enable_via_sdo(node, 1)
+    node.sdo.download(0x6081, 0, struct.pack("<I", 100_000))
+    node.sdo.download(0x6083, 0, struct.pack("<I", 10_000_000))  # reach speed at once, brake late
+    node.sdo.download(0x6084, 0, struct.pack("<I", 10_000_000))
+    node.sdo.download(0x607A, 0, struct.pack("<i", 49_000))  # inside the limits
+    _cw(node, 0x1F)
+    assert _wait(lambda: drive.position_counts > 30_000 and drive.velocity_counts > 90_000, 2.0)
+    _cw(node, 0x0B)  # quick stop at speed: unclamped, the ramp would run ~250,000 counts further
+    assert _wait(lambda: drive.state == drv.SWITCH_ON_DISABLED, 2.0)
+    assert drive.position_counts <= 50_000 + 500  # stopped at the limit (less the motor's tracking error)
+
+
 def test_quick_stop_option_6_holds_and_resumes(rig):
     drives, net = rig
     node = _sdo_node(net, 2)
