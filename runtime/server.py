@@ -510,9 +510,17 @@ class Server:
             msg["guard_full"] = self._confirm_guard(snap["t"], snap["commanded_si"])
         return msg
 
+    # Both results below cost about a millisecond each (a full predictor pass; m(p) per link) and the pose they
+    # depend on stands still most of the time: each is recomputed only when its pose moved.
+    _links_cache: tuple[bytes, dict[str, list[float]]] | None = None
+    _guard_cache: tuple[bytes, dict[str, Any]] | None = None
+
     def _confirm_guard(self, t: float, q: np.ndarray) -> dict[str, Any]:
         """Full strain check of the commanded pose (off the loop): its strain range, and an event when the loop's
-        reduced check decided otherwise."""
+        reduced check decided otherwise (once per pose)."""
+        key = np.asarray(q, dtype=np.float64).tobytes()
+        if self._guard_cache is not None and self._guard_cache[0] == key:
+            return {**self._guard_cache[1], "mismatches": self.guard_mismatch}
         strain = self.guard.full(q)
         full_ok = bool(self.guard.passes(strain) and self.guard.in_range(q))
         reduced_ok = bool(self.guard.check(q))
@@ -521,15 +529,22 @@ class Server:
             self._publish(P.TOPIC_EVENT, {"event": "skin_guard", "t": t, "full": full_ok, "reduced": reduced_ok,
                                           "strain": [float(strain[0]), float(strain[1])],
                                           "mismatches": self.guard_mismatch})
-        return {"ok": full_ok, "strain": [round(float(strain[0]), 4), round(float(strain[1]), 4)],
-                "mismatches": self.guard_mismatch}
+        out = {"ok": full_ok, "strain": [round(float(strain[0]), 4), round(float(strain[1]), 4)],
+               "mismatches": self.guard_mismatch}
+        self._guard_cache = (key, out)
+        return dict(out)
 
     def _link_poses(self, q: np.ndarray) -> dict[str, list[float]]:
         """Predicted link poses m(q) at measured actuator values: [x, y, z (m), rx, ry, rz (rotation vector)]."""
         from models.rigid import matrix_to_rotvec
 
+        key = np.asarray(q, dtype=np.float64).tobytes()
+        if self._links_cache is not None and self._links_cache[0] == key:
+            return self._links_cache[1]
         poses = self.linkmap.poses(dict(zip(self.names, q.tolist(), strict=True)))
-        return {name: [*T[:3, 3].tolist(), *matrix_to_rotvec(T[:3, :3]).tolist()] for name, T in poses.items()}
+        out = {name: [*T[:3, 3].tolist(), *matrix_to_rotvec(T[:3, :3]).tolist()] for name, T in poses.items()}
+        self._links_cache = (key, out)
+        return out
 
     def _publish_state(self, snap: dict[str, Any]) -> None:
         self._publish(P.TOPIC_STATE, self._state_message(snap))
