@@ -21,6 +21,8 @@ from scipy.linalg.lapack import dposv as _dposv
 
 from models.predictor import KsnnWeights
 
+_EMPTY = np.empty(0)
+
 
 @dataclass(frozen=True)
 class SolveResult:
@@ -39,12 +41,13 @@ class KsnnInverse:
 
     ``face_units`` (U, V, 3) are target offsets per unit weight; ``vertex_weights`` (V,) select/weight surface
     vertices (default 1). ``smoothness`` weighs ‖p̂ − p̂_prev‖² against the mean squared vertex error (m²):
-    the default makes a full-range jump of one actuator cost as much as 0.3 mm RMS surface error.
+    the default makes a full-range jump of one actuator cost as much as 0.3 mm RMS surface error. ``compiled``
+    runs the iteration compiled (the same steps; numpy's interpreter overhead is most of a frame's cost otherwise).
     """
 
     def __init__(self, weights: KsnnWeights, face_units: np.ndarray, vertex_weights: np.ndarray | None = None,
                  smoothness: float = (0.3e-3) ** 2, damping: float = 1e-12, lo: np.ndarray | None = None,
-                 hi: np.ndarray | None = None) -> None:
+                 hi: np.ndarray | None = None, compiled: bool = True) -> None:
         w = weights
         n_vert = w.n_vertices
         fu = np.asarray(face_units, dtype=np.float64)
@@ -54,6 +57,7 @@ class KsnnInverse:
         if s2.shape != (n_vert,) or not np.all(np.isfinite(s2)) or s2.sum() <= 0:
             raise ValueError(f"vertex_weights must be ({n_vert},) finite with a positive sum")
         self.weights = w
+        self.compiled = compiled  # the compiled iteration (models._skin_kernels); False: the numpy reference
         self.n_units = fu.shape[0]
         self.smoothness = float(smoothness)
         self.damping = float(damping)
@@ -112,6 +116,8 @@ class KsnnInverse:
         self._mid = 0.5 * (self._xlo + self._xhi)
         half = 0.5 * (self._xhi - self._xlo)
         self._ihalf = np.where(half > 0, 1.0 / np.where(half > 0, half, 1.0), 1e300)
+        if compiled:  # compile (or load the cached kernel) now, never in a control cycle
+            self.solve(np.zeros(self.n_units), max_iterations=1)
 
     # ------------------------------------------------------------------ pieces
     def _terms(self, wts: np.ndarray) -> tuple[np.ndarray, float]:
@@ -143,6 +149,19 @@ class KsnnInverse:
         wts = np.asarray(unit_weights, dtype=np.float64)
         if wts.shape != (self.n_units,) or not np.isfinite(wts @ wts):
             raise ValueError(f"unit_weights must be {self.n_units} finite numbers, got shape {wts.shape}")
+        if self.compiled:
+            from models._skin_kernels import solve_frame
+
+            w = self.weights
+            none = _EMPTY
+            p, h, fit, f, it, conv = solve_frame(
+                wts, none if p_prev is None else np.asarray(p_prev, dtype=np.float64),
+                none if p0 is None else np.asarray(p0, dtype=np.float64), w.lo, w.hi, self._scale_in, self._const_b,
+                self._e, self._M, self._q0, self._Qd, self.smoothness / self.scale, self._W1, self._b1, self._W1b,
+                self._Rb, self._xlo, self._xhi, self._mid, self._ihalf, self.damping / self.scale, max_iterations,
+                tol, xtol)
+            return SolveResult(p=p, residual_rms=float(np.sqrt(fit * self.scale)), iterations=it, converged=conv,
+                               objective=f * self.scale, hidden=h)
         kappa = self._const_b - 2.0 * float(wts @ self._e) + float(wts @ (self._M @ wts))
         w = self.weights
         xlo, xhi = self._xlo, self._xhi
@@ -168,8 +187,8 @@ class KsnnInverse:
         if smooth:
             dx = x - x_prev
             f += lam_s * float(dx @ dx)
-        on_bound = float((np.abs(x - mid) * ihalf).max()) >= 1.0 - 1e-12
         mu = self.damping / self.scale
+        on_bound = float((np.abs(x - mid) * ihalf).max()) >= 1.0 - 1e-12
         converged = False
         it = 0
         for it in range(1, max_iterations + 1):  # noqa: B007 - it is reported

@@ -273,6 +273,7 @@ class StrainGuard:
         if not -1.0 < lo_s < 0.0 < hi_s:
             raise ValueError(f"strain_range must satisfy -1 < min < 0 < max, got {strain_range}")
         self.predictor = predictor
+        self.compiled = True  # the in-cycle measure compiled (models._skin_kernels); False: numpy
         self.names = tuple(names) if names is not None else predictor.actuator_names
         if len(self.names) != predictor.n_actuators:
             raise ValueError(f"names lists {len(self.names)} actuators, the predictor {predictor.n_actuators}")
@@ -298,6 +299,7 @@ class StrainGuard:
         # Full-field numpy forward (for calibration): positions = base + b2 + h_k @ W2_k.
         self._H = H
         self._select(samples, tuple(levels), seed)
+        self.measure_hidden(np.zeros(3 * H))  # compile (or load the cached kernel) now, never in a control cycle
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -447,7 +449,18 @@ class StrainGuard:
         return np.tanh(self._W1 @ x + self._b1)
 
     def measure_hidden(self, h: np.ndarray) -> tuple[float, float]:
-        """Reduced measure (min, max) from hidden activations (3H,) (for callers that already have them)."""
+        """Reduced measure (min, max) from hidden activations (3H,) (for callers that already have them);
+        compiled (:mod:`models._skin_kernels`) unless ``compiled`` is False."""
+        if self.compiled:
+            from models._skin_kernels import reduced_measure
+
+            lo, hi = reduced_measure(np.asarray(h, dtype=np.float64), self._E, self._e0, self._C, self._idet,
+                                     self._S)
+            return float(lo), float(hi)
+        return self.measure_hidden_numpy(h)
+
+    def measure_hidden_numpy(self, h: np.ndarray) -> tuple[float, float]:
+        """The reduced measure in numpy: the reference for the compiled one."""
         n = self._n_t
         e = np.matmul(h.reshape(3, 1, self._H).astype(np.float32), self._E)  # (3, 1, 2n) edge vectors
         e += self._e0

@@ -85,3 +85,27 @@ def test_bad_inputs_are_refused():
         inv.solve(np.zeros(3))
     with pytest.raises(ValueError, match="unit_weights"):
         inv.solve(np.array([np.nan, 0.0]))
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_the_compiled_iteration_takes_the_numpy_steps(seed):
+    """The compiled Gauss-Newton (models._skin_kernels) against the numpy loop: same iterations, same answer, with
+    and without a warm start, smoothness and active bounds."""
+    w = weights(seed)
+    rng = np.random.default_rng(20 + seed)
+    fu = rng.normal(size=(6, w.n_vertices, 3)) * 2e-3  # large: many targets push actuators onto their bounds
+    fast = KsnnInverse(w, fu)
+    ref = KsnnInverse(w, fu, compiled=False)
+    p_prev = None
+    at_bound = 0
+    for _ in range(60):
+        u = rng.uniform(0, 1, 6) * (rng.random(6) < 0.5)
+        a = fast.solve(u, p_prev=p_prev, max_iterations=4)
+        b = ref.solve(u, p_prev=p_prev, max_iterations=4)
+        assert (a.iterations, a.converged) == (b.iterations, b.converged)
+        np.testing.assert_allclose(a.p, b.p, rtol=0, atol=1e-12 * np.max(w.hi - w.lo))
+        np.testing.assert_allclose(a.hidden, b.hidden, rtol=0, atol=1e-12)
+        assert a.objective == pytest.approx(b.objective, rel=1e-10, abs=1e-20)
+        at_bound += int(np.any((a.p <= w.lo + 1e-12) | (a.p >= w.hi - 1e-12)))
+        p_prev = a.p if rng.random() < 0.7 else None
+    assert at_bound > 0  # the bound handling was exercised

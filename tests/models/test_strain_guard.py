@@ -88,6 +88,16 @@ def test_reduced_check_agrees_with_the_full_measure_on_fresh_poses(guard):
     assert np.all(red[:, 1] <= full[:200, 1] + 1e-5) and np.all(red[:, 0] >= full[:200, 0] - 1e-5)
 
 
+def test_the_compiled_reduced_measure_matches_numpy(guard):
+    """The in-cycle measure, compiled (its metric in float64) against the numpy one (float32 metric)."""
+    rng = np.random.default_rng(7)
+    for p in rng.uniform(guard.lo, guard.hi, (300, len(guard.lo))):
+        h = guard.hidden(p)
+        fast = guard.measure_hidden(h)
+        ref = guard.measure_hidden_numpy(h)
+        np.testing.assert_allclose(fast, ref, rtol=0, atol=5e-5)
+
+
 def test_full_pass_matches_the_onnx_predictor_and_neutral_reads_near_zero(guard):
     n = guard.neutral
     assert guard.check(n)

@@ -1,0 +1,233 @@
+"""Compiled inner loops of the hidden-space inverse solve and the reduced strain measure (numba).
+
+Both run once per frame in the control loop. Written with numpy they are a few dozen small array operations each,
+and on a two-core machine the interpreter's per-operation overhead (microseconds) is most of their cost; compiled,
+the same arithmetic runs without it. The numpy versions stay in :mod:`models.ksnn_solve` and
+:mod:`models.strain_guard` as the reference the tests compare against. Compiled on first use and cached on disk.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True, fastmath=False)
+def _cholesky_solve(A: np.ndarray, b: np.ndarray, out: np.ndarray) -> bool:
+    """Solve A x = b (A symmetric positive definite, n small) into ``out``; False when A is not positive definite.
+    ``A`` is overwritten by its Cholesky factor."""
+    n = A.shape[0]
+    for j in range(n):
+        s = A[j, j]
+        for k in range(j):
+            s -= A[j, k] * A[j, k]
+        if not s > 0.0:
+            return False
+        d = np.sqrt(s)
+        A[j, j] = d
+        for i in range(j + 1, n):
+            s = A[i, j]
+            for k in range(j):
+                s -= A[i, k] * A[j, k]
+            A[i, j] = s / d
+    for i in range(n):  # L y = b
+        s = b[i]
+        for k in range(i):
+            s -= A[i, k] * out[k]
+        out[i] = s / A[i, i]
+    for i in range(n - 1, -1, -1):  # Lᵀ x = y
+        s = out[i]
+        for k in range(i + 1, n):
+            s -= A[k, i] * out[k]
+        out[i] = s / A[i, i]
+    return True
+
+
+@njit(cache=True)
+def _hidden_residual(x: np.ndarray, W1: np.ndarray, b1: np.ndarray, Rb: np.ndarray, q: np.ndarray,
+                     h: np.ndarray, r: np.ndarray) -> float:
+    """h = tanh(W1 x + b1); r = R h + q (R block diagonal, blocks Rb); returns r·r."""
+    H = Rb.shape[1]
+    h[:] = np.tanh(W1 @ x + b1)
+    rr = 0.0
+    for k in range(3):
+        rk = Rb[k] @ h[k * H:(k + 1) * H]
+        for i in range(H):
+            v = rk[i] + q[k * H + i]
+            r[k * H + i] = v
+            rr += v * v
+    return rr
+
+
+@njit(cache=True)
+def gauss_newton(x: np.ndarray, x_prev: np.ndarray, smooth: bool, lam_s: float, W1: np.ndarray, b1: np.ndarray,
+                 W1b: np.ndarray, Rb: np.ndarray, q: np.ndarray, kq: float, xlo: np.ndarray, xhi: np.ndarray,
+                 mid: np.ndarray, ihalf: np.ndarray, mu: float, max_iterations: int, tol: float,
+                 xtol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, int, bool]:
+    """The damped, projected Gauss-Newton of :meth:`models.ksnn_solve.KsnnInverse.solve`, step for step.
+
+    Returns (x, h, r, f, iterations, converged) in normalized units."""
+    A = x.shape[0]
+    H = Rb.shape[1]
+    h = np.empty(3 * H)
+    r = np.empty(3 * H)
+    h_new = np.empty(3 * H)
+    r_new = np.empty(3 * H)
+    x = x.copy()
+    f = _hidden_residual(x, W1, b1, Rb, q, h, r) + kq
+    if smooth:
+        dx = x - x_prev
+        f += lam_s * (dx @ dx)
+    on_bound = np.max(np.abs(x - mid) * ihalf) >= 1.0 - 1e-12
+    converged = False
+    it = 0
+    J = np.empty((3 * H, A))
+    step = np.empty(A)
+    fixed = np.zeros(A, dtype=np.bool_)
+    for it in range(1, max_iterations + 1):  # noqa: B007 - it is returned
+        for k in range(3):
+            s = 1.0 - h[k * H:(k + 1) * H] ** 2
+            J[k * H:(k + 1) * H] = (Rb[k] * s.reshape(1, H)) @ W1b[k]
+        g = J.T @ r
+        Hm = J.T @ J
+        if smooth:
+            g += lam_s * (x - x_prev)
+        if on_bound:
+            n_fixed = 0
+            for a in range(A):
+                fixed[a] = (x[a] <= xlo[a] and g[a] > 0.0) or (x[a] >= xhi[a] and g[a] < 0.0)
+                n_fixed += fixed[a]
+            if n_fixed == A:
+                converged = True
+                break
+            if n_fixed > 0:
+                for a in range(A):
+                    if fixed[a]:
+                        Hm[a, :] = 0.0
+                        Hm[:, a] = 0.0
+                        Hm[a, a] = 1.0
+                        g[a] = 0.0
+        base = (lam_s if smooth else 0.0) + 1e-14 * np.trace(Hm)
+        accepted = False
+        f_new = f
+        u = 0.0
+        x_new = x
+        for _ in range(8):
+            M = Hm.copy()
+            for a in range(A):
+                M[a, a] += base + mu
+            if not _cholesky_solve(M, g, step):
+                mu = max(mu * 10.0, 1e-12 * max(abs(f), 1e-30))
+                continue
+            y = x - step
+            u = np.max(np.abs(y - mid) * ihalf)
+            x_new = np.minimum(np.maximum(y, xlo), xhi) if u > 1.0 else y
+            f_new = _hidden_residual(x_new, W1, b1, Rb, q, h_new, r_new) + kq
+            if smooth:
+                dxn = x_new - x_prev
+                f_new += lam_s * (dxn @ dxn)
+            if f_new <= f:
+                accepted = True
+                break
+            mu = max(mu * 10.0, 1e-12 * max(abs(f), 1e-30))
+        if not accepted:
+            converged = True  # no descent possible within damping limits: at a (local) minimum
+            break
+        mu *= 0.3
+        decrease = f - f_new
+        x = x_new
+        f = f_new
+        h, h_new = h_new, h
+        r, r_new = r_new, r
+        on_bound = u >= 1.0 - 1e-12
+        if decrease <= tol * max(f, 1e-30) or (xtol > 0.0 and np.max(np.abs(step)) <= xtol):
+            converged = True
+            break
+    return x, h, r, f, it, converged
+
+
+@njit(cache=True)
+def reduced_measure(h: np.ndarray, E: np.ndarray, e0: np.ndarray, C: np.ndarray, idet: np.ndarray,
+                    S: np.ndarray) -> tuple[float, float]:
+    """The strain guard's reduced measure (min, max) from hidden activations (3H,): the computation of
+    :meth:`models.strain_guard.StrainGuard.measure_hidden` (edge vectors in float32, as there)."""
+    H = E.shape[1]
+    n = E.shape[2] // 2
+    e = np.empty((3, 2 * n), dtype=np.float32)
+    for k in range(3):
+        e[k] = h[k * H:(k + 1) * H].astype(np.float32) @ E[k] + e0[k, 0]
+    lam_lo = np.empty(n)
+    lam_hi = np.empty(n)
+    for t in range(n):
+        m00 = 0.0
+        m01 = 0.0
+        m11 = 0.0
+        for k in range(3):
+            a = np.float64(e[k, t])
+            b = np.float64(e[k, n + t])
+            m00 += a * a
+            m01 += a * b
+            m11 += b * b
+        half_tr = m00 * C[0, 0, t] + m01 * (C[0, 1, t] + C[1, 0, t]) + m11 * C[1, 1, t]
+        det = (m00 * m11 - m01 * m01) * idet[t]
+        disc = np.sqrt(max(half_tr * half_tr - det, 0.0))
+        lam_lo[t] = np.sqrt(max(half_tr - disc, 0.0))
+        lam_hi[t] = np.sqrt(max(half_tr + disc, 0.0))
+    lo_s = lam_lo @ S
+    hi_s = lam_hi @ S
+    return np.min(lo_s) - 1.0, np.max(hi_s) - 1.0
+
+
+@njit(cache=True)
+def solve_frame(wts: np.ndarray, p_prev: np.ndarray, p0: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                scale_in: np.ndarray, const_b: float, e: np.ndarray, M: np.ndarray, q0: np.ndarray, Qd: np.ndarray,
+                lam_s: float, W1: np.ndarray, b1: np.ndarray, W1b: np.ndarray, Rb: np.ndarray, xlo: np.ndarray,
+                xhi: np.ndarray, mid: np.ndarray, ihalf: np.ndarray, mu: float, max_iterations: int, tol: float,
+                xtol: float) -> tuple[np.ndarray, np.ndarray, float, float, int, bool]:
+    """One frame of :meth:`models.ksnn_solve.KsnnInverse.solve` from face-unit weights to actuator values: the
+    objective's terms, the start (``p0``, else ``p_prev``, else mid-range; empty arrays mean absent), the
+    iteration. Returns (p, hidden, unscaled squared error, objective, iterations, converged)."""
+    kappa = const_b - 2.0 * (wts @ e) + wts @ (M @ wts)
+    has_prev = p_prev.shape[0] > 0
+    x_prev = (p_prev - lo) * scale_in if has_prev else np.empty(0)
+    if p0.shape[0] > 0:
+        x = np.minimum(np.maximum((p0 - lo) * scale_in, xlo), xhi)
+    elif has_prev:
+        x = np.minimum(np.maximum(x_prev, xlo), xhi)
+    else:
+        x = np.minimum(np.maximum(np.full(lo.shape[0], 0.5), xlo), xhi)
+    smooth = has_prev and lam_s > 0.0
+    q = q0 - Qd @ wts
+    kq = kappa - q @ q
+    x, h, r, f, it, converged = gauss_newton(x, x_prev, smooth, lam_s, W1, b1, W1b, Rb, q, kq, xlo, xhi, mid,
+                                             ihalf, mu, max_iterations, tol, xtol)
+    p = lo + x * (hi - lo)
+    return p, h, max(r @ r + kq, 0.0), f, it, converged
+
+
+def warm(head_path: str) -> None:
+    """Compile every kernel into numba's on-disk cache with the argument types a head's solver and guard use
+    (``make install`` runs this, so the first daemon start does not spend seconds compiling)."""
+    from models.headspec import load_head
+    from models.ksnn_solve import KsnnInverse
+    from models.predictor import SkinPredictor
+    from models.strain_guard import StrainGuard
+
+    head = load_head(head_path)
+    path = head.path("predictor")
+    if path is None:
+        return
+    sp = SkinPredictor(path)
+    StrainGuard.for_head(head, sp)  # compiles the reduced measure
+    if sp.face_unit_offsets is not None:
+        lo = np.maximum([a.min for a in head.actuators], sp.lo)
+        hi = np.minimum([a.max for a in head.actuators], sp.hi)
+        inv = KsnnInverse(sp.weights, sp.face_unit_offsets, lo=lo, hi=hi)  # compiles the solve
+        inv.solve(np.zeros(inv.n_units), p_prev=0.5 * (lo + hi), max_iterations=2)
+
+
+if __name__ == "__main__":
+    import sys
+    from pathlib import Path
+
+    warm(sys.argv[1] if len(sys.argv) > 1 else str(Path(__file__).resolve().parents[1] / "heads/sample/head.toml"))
