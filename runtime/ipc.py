@@ -33,16 +33,34 @@ _F_SETPIPE_SZ = 1031  # Linux: the pipe's kernel buffer size
 _REASON = struct.Struct("<B63s")  # length, then the reason of the latest trip (UTF-8, truncated)
 
 
+def _out_of_band(buffers: list[pickle.PickleBuffer]) -> Any:
+    """A pickle ``buffer_callback``: buffers of ``OUT_OF_BAND_BYTES`` or more travel out of band (appended to
+    ``buffers``), smaller ones in the pickle (a separate buffer costs more than copying it)."""
+
+    def callback(buf: pickle.PickleBuffer) -> bool:
+        if buf.raw().nbytes < OUT_OF_BAND_BYTES:
+            return True
+        buffers.append(buf)
+        return False
+
+    return callback
+
+
 def send(sock: zmq.Socket, obj: Any, flags: int = 0) -> None:
-    """Pickle ``obj`` (protocol 5, out-of-band buffers as extra frames) and send it."""
+    """Pickle ``obj`` (protocol 5, large buffers out of band as extra frames, sent without copying) and send it."""
     buffers: list[pickle.PickleBuffer] = []
-    head = pickle.dumps(obj, protocol=5, buffer_callback=buffers.append)
-    sock.send_multipart([head, *buffers], flags, copy=len(buffers) == 0)
+    head = pickle.dumps(obj, protocol=5, buffer_callback=_out_of_band(buffers))
+    if buffers:
+        sock.send_multipart([head, *buffers], flags, copy=False)
+    else:
+        sock.send(head, flags)
 
 
 def recv(sock: zmq.Socket, flags: int = 0) -> Any:
     """Receive one message sent by :func:`send` (``zmq.Again`` with NOBLOCK and nothing waiting)."""
     frames = sock.recv_multipart(flags, copy=False)
+    if len(frames) == 1:
+        return pickle.loads(frames[0].bytes)
     return pickle.loads(frames[0].buffer, buffers=[f.buffer for f in frames[1:]])
 
 
@@ -129,14 +147,7 @@ class PipeWriter:
     def send(self, obj: Any) -> None:
         """Queue ``obj`` (pickled, large buffers out of band) and write as much as the pipe takes now."""
         buffers: list[pickle.PickleBuffer] = []
-
-        def oob(buf: pickle.PickleBuffer) -> bool:
-            if buf.raw().nbytes < OUT_OF_BAND_BYTES:
-                return True  # in band
-            buffers.append(buf)
-            return False
-
-        head = pickle.dumps(obj, protocol=5, buffer_callback=oob)
+        head = pickle.dumps(obj, protocol=5, buffer_callback=_out_of_band(buffers))
         parts = [memoryview(head), *(b.raw() for b in buffers)]
         sizes = [p.nbytes for p in parts]
         prefix = _HEADER.pack(sum(sizes) + _LEN.size * len(parts), len(buffers)) + b"".join(
