@@ -11,7 +11,7 @@ $(VENV)/.installed: pyproject.toml constraints.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PIP) install -q --upgrade pip
 	$(PIP) install -q -c constraints.txt -e '.[$(EXTRAS)]'
-	$(PY) -m models._skin_kernels  # compile the in-cycle kernels into numba's cache once
+	$(PY) -m models.kernels  # compile the in-cycle kernels into numba's cache once
 	touch $@
 
 install: $(VENV)/.installed

@@ -204,30 +204,3 @@ def solve_frame(wts: np.ndarray, p_prev: np.ndarray, p0: np.ndarray, lo: np.ndar
     p = lo + x * (hi - lo)
     return p, h, max(r @ r + kq, 0.0), f, it, converged
 
-
-def warm(head_path: str) -> None:
-    """Compile every kernel into numba's on-disk cache with the argument types a head's solver and guard use
-    (``make install`` runs this, so the first daemon start does not spend seconds compiling)."""
-    from models.headspec import load_head
-    from models.ksnn_solve import KsnnInverse
-    from models.predictor import SkinPredictor
-    from models.strain_guard import StrainGuard
-
-    head = load_head(head_path)
-    path = head.path("predictor")
-    if path is None:
-        return
-    sp = SkinPredictor(path)
-    StrainGuard.for_head(head, sp)  # compiles the reduced measure
-    if sp.face_unit_offsets is not None:
-        lo = np.maximum([a.min for a in head.actuators], sp.lo)
-        hi = np.minimum([a.max for a in head.actuators], sp.hi)
-        inv = KsnnInverse(sp.weights, sp.face_unit_offsets, lo=lo, hi=hi)  # compiles the solve
-        inv.solve(np.zeros(inv.n_units), p_prev=0.5 * (lo + hi), max_iterations=2)
-
-
-if __name__ == "__main__":
-    import sys
-    from pathlib import Path
-
-    warm(sys.argv[1] if len(sys.argv) > 1 else str(Path(__file__).resolve().parents[1] / "heads/sample/head.toml"))

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg.lapack import dposv as _dposv
 
+from models.kernels import kernels_available
 from models.predictor import KsnnWeights
 
 _EMPTY = np.empty(0)
@@ -42,12 +43,13 @@ class KsnnInverse:
     ``face_units`` (U, V, 3) are target offsets per unit weight; ``vertex_weights`` (V,) select/weight surface
     vertices (default 1). ``smoothness`` weighs ‖p̂ − p̂_prev‖² against the mean squared vertex error (m²):
     the default makes a full-range jump of one actuator cost as much as 0.3 mm RMS surface error. ``compiled``
-    runs the iteration compiled (the same steps; numpy's interpreter overhead is most of a frame's cost otherwise).
+    runs the iteration compiled (the same steps; numpy's interpreter overhead is most of a frame's cost otherwise);
+    default: compiled when numba is installed.
     """
 
     def __init__(self, weights: KsnnWeights, face_units: np.ndarray, vertex_weights: np.ndarray | None = None,
                  smoothness: float = (0.3e-3) ** 2, damping: float = 1e-12, lo: np.ndarray | None = None,
-                 hi: np.ndarray | None = None, compiled: bool = True) -> None:
+                 hi: np.ndarray | None = None, compiled: bool | None = None) -> None:
         w = weights
         n_vert = w.n_vertices
         fu = np.asarray(face_units, dtype=np.float64)
@@ -57,7 +59,8 @@ class KsnnInverse:
         if s2.shape != (n_vert,) or not np.all(np.isfinite(s2)) or s2.sum() <= 0:
             raise ValueError(f"vertex_weights must be ({n_vert},) finite with a positive sum")
         self.weights = w
-        self.compiled = compiled  # the compiled iteration (models._skin_kernels); False: the numpy reference
+        # the compiled iteration (models._skin_kernels) where numba is installed; else the numpy reference
+        self.compiled = kernels_available() if compiled is None else bool(compiled)
         self.n_units = fu.shape[0]
         self.smoothness = float(smoothness)
         self.damping = float(damping)
@@ -116,7 +119,7 @@ class KsnnInverse:
         self._mid = 0.5 * (self._xlo + self._xhi)
         half = 0.5 * (self._xhi - self._xlo)
         self._ihalf = np.where(half > 0, 1.0 / np.where(half > 0, half, 1.0), 1e300)
-        if compiled:  # compile (or load the cached kernel) now, never in a control cycle
+        if self.compiled:  # compile (or load the cached kernel) now, never in a control cycle
             self.solve(np.zeros(self.n_units), max_iterations=1)
 
     # ------------------------------------------------------------------ pieces

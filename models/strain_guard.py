@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from models.errors import SpecError
+from models.kernels import kernels_available
 from models.predictor import DEFAULT_STRAIN_RANGE, KsnnWeights, SkinPredictor
 
 #: Default neighbourhood radius (m) of the area-weighted average: above the coarse sample mesh's 5.6 mm edges,
@@ -273,7 +274,7 @@ class StrainGuard:
         if not -1.0 < lo_s < 0.0 < hi_s:
             raise ValueError(f"strain_range must satisfy -1 < min < 0 < max, got {strain_range}")
         self.predictor = predictor
-        self.compiled = True  # the in-cycle measure compiled (models._skin_kernels); False: numpy
+        self.compiled = kernels_available()  # the in-cycle measure compiled (models._skin_kernels) or numpy
         self.names = tuple(names) if names is not None else predictor.actuator_names
         if len(self.names) != predictor.n_actuators:
             raise ValueError(f"names lists {len(self.names)} actuators, the predictor {predictor.n_actuators}")

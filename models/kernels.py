@@ -1,0 +1,49 @@
+"""The compiled in-cycle kernels (:mod:`models._skin_kernels`): whether they can run (they need numba), and
+compiling them ahead of the first daemon start (``python -m models.kernels [HEAD]``, run by ``make install``).
+
+numba comes with the ``offline`` extra. A runtime-only install without it runs the numpy versions of the same
+computations (the same results, a few times slower per frame), so ``models`` imports numba only where it exists.
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib.util
+
+import numpy as np
+
+
+@functools.cache
+def kernels_available() -> bool:
+    return importlib.util.find_spec("numba") is not None
+
+
+def warm(head_path: str) -> None:
+    """Compile every kernel into numba's on-disk cache with the argument types a head's solver and guard use
+    (``make install`` runs this, so the first daemon start does not spend seconds compiling); nothing to do
+    without numba."""
+    if not kernels_available():
+        return
+    from models.headspec import load_head
+    from models.ksnn_solve import KsnnInverse
+    from models.predictor import SkinPredictor
+    from models.strain_guard import StrainGuard
+
+    head = load_head(head_path)
+    path = head.path("predictor")
+    if path is None:
+        return
+    sp = SkinPredictor(path)
+    StrainGuard.for_head(head, sp)  # compiles the reduced measure
+    if sp.face_unit_offsets is not None:
+        lo = np.maximum([a.min for a in head.actuators], sp.lo)
+        hi = np.minimum([a.max for a in head.actuators], sp.hi)
+        inv = KsnnInverse(sp.weights, sp.face_unit_offsets, lo=lo, hi=hi)  # compiles the solve
+        inv.solve(np.zeros(inv.n_units), p_prev=0.5 * (lo + hi), max_iterations=2)
+
+
+if __name__ == "__main__":
+    import sys
+    from pathlib import Path
+
+    warm(sys.argv[1] if len(sys.argv) > 1 else str(Path(__file__).resolve().parents[1] / "heads/sample/head.toml"))
