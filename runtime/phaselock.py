@@ -1,4 +1,4 @@
-"""Phase lock of the control loop to a steady stream: cycles slide to just after the frames arrive.
+"""Phase lock of the control loop to a steady stream: cycles slide to just after the frames reach the loop.
 
 A fixed-rate loop samples a stream at an arbitrary phase, so a frame waits up to one period for its cycle (at
 250 Hz, 0–4 ms). When frames arrive at a steady phase of the loop (a producer at the loop rate, or at a divisor of
