@@ -32,6 +32,18 @@ def make_daemon(rate_hz: float, realtime: bool, with_buses: bool = True, **extra
     return daemon
 
 
+def demote_emulators(nice: int | None) -> str:
+    """Start emulator processes at niceness ``nice`` (added to this process's) instead of the daemon's default
+    (``runtime.simhw.EMULATOR_NICE``); returns a line for the report. A positive value stands in for hardware whose
+    CPU is not the host's: the emulators then take what the daemon's processes leave."""
+    from runtime import simhw
+
+    if nice is None:
+        return f"emulators at niceness {simhw.EMULATOR_NICE:+d} (the daemon's default)"
+    simhw.EMULATOR_NICE = nice
+    return f"emulators demoted to niceness {nice:+d} (standing in for devices with CPUs of their own)"
+
+
 def pct(values: Any, q: float) -> float:
     import numpy as np
 

@@ -14,6 +14,7 @@ Run with nothing else on the machine:
 from __future__ import annotations
 
 import argparse
+import os
 import random
 import tempfile
 import time
@@ -26,9 +27,9 @@ import numpy as np
 import zmq
 
 try:
-    from benchmarks._daemon import SAMPLE, pct
+    from benchmarks._daemon import SAMPLE, demote_emulators, pct
 except ImportError:  # run as a script
-    from _daemon import SAMPLE, pct
+    from _daemon import SAMPLE, demote_emulators, pct
 
 FRAGMENT = """
 [inputs.osc]
@@ -136,7 +137,11 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--trials", type=int, default=100)
     parser.add_argument("--rate", type=float, default=250.0)
+    parser.add_argument("--emulator-nice", type=int, default=None,
+                        help="niceness of the emulator processes (default: the daemon's); e.g. 10 to measure the "
+                             "daemon's own path with the emulated devices taking only the CPU it leaves")
     args = parser.parse_args(argv)
+    emulators = demote_emulators(args.emulator_nice)
     results: dict[str, list[float]] = {}
     with tempfile.TemporaryDirectory() as tmp:
         daemon = start_daemon(args.rate, Path(tmp))
@@ -192,6 +197,7 @@ def main(argv: list[str] | None = None) -> int:
     period = 1e6 / args.rate
     base = results["zeromq stream"]
     b50, b99 = pct(base, 50) * 1e6, pct(base, 99) * 1e6
+    print(f"{emulators}; load average {os.getloadavg()[0]:.1f} at the end")
     print(f"packet sent -> bus write at {args.rate:g} Hz (loop period {period:.0f} us; goal p99 <= 2000 us) [{state}]")
     for name, lat in results.items():
         l50, l99 = pct(lat, 50) * 1e6, pct(lat, 99) * 1e6

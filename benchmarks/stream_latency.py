@@ -13,6 +13,7 @@ delay is 1 ms here. Run with nothing else on the machine:
 from __future__ import annotations
 
 import argparse
+import os
 import threading
 import time
 from typing import Any
@@ -22,9 +23,9 @@ import numpy as np
 import zmq
 
 try:
-    from benchmarks._daemon import make_daemon, pct
+    from benchmarks._daemon import demote_emulators, make_daemon, pct
 except ImportError:  # run as a script
-    from _daemon import make_daemon, pct
+    from _daemon import demote_emulators, make_daemon, pct
 
 
 def bare_push_pull(n: int, frame: dict) -> list[float]:
@@ -209,7 +210,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--trials", type=int, default=200)
     parser.add_argument("--rate", type=float, default=250.0)
     parser.add_argument("--seconds", type=float, default=3.0)
+    parser.add_argument("--emulator-nice", type=int, default=None,
+                        help="niceness of the emulator processes (default: the daemon's); e.g. 10 to measure the "
+                             "daemon's own path with the emulated devices taking only the CPU it leaves")
     args = parser.parse_args(argv)
+    emulators = demote_emulators(args.emulator_nice)
     frame = {"op": "stream", "id": 1, "channels": ["jaw"], "frames": [[0.0, 1.0]]}
     base = bare_push_pull(max(200, args.trials), frame)
     base_rate = bare_router_rate(args.seconds)
@@ -233,6 +238,7 @@ def main(argv: list[str] | None = None) -> int:
     b50, b99 = pct(base, 50) * 1e6, pct(base, 99) * 1e6
     l50, l99 = pct(lat, 50) * 1e6, pct(lat, 99) * 1e6
     period = 1e6 / args.rate
+    print(f"{emulators}; load average {os.getloadavg()[0]:.1f} at the end")
     print(f"baseline PUSH->PULL one way: p50 {b50:.0f} us, p99 {b99:.0f} us")
     s50, s99 = pct(steady[True], 50) * 1e6, pct(steady[True], 99) * 1e6
     u50, u99 = pct(steady[False], 50) * 1e6, pct(steady[False], 99) * 1e6
