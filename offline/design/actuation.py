@@ -274,6 +274,7 @@ class Evaluation:
     strain: tuple[float, float] | None = None  # the guard's exact measure, when the problem has a constraint
     strain_penalty: float = 0.0
     strain_weight: float = 0.0  # the penalty's weight w in this value
+    strain_lam: np.ndarray | None = None  # and its multipliers (K, 2)
 
 
 def simulate(problem: ActuationProblem, p: np.ndarray, x0: np.ndarray | None = None) -> np.ndarray | None:
@@ -293,26 +294,27 @@ def simulate(problem: ActuationProblem, p: np.ndarray, x0: np.ndarray | None = N
 
 
 def evaluate(problem: ActuationProblem, z: np.ndarray, target: np.ndarray, x0: np.ndarray | None = None,
-             strain_weight: float | None = None) -> Evaluation | None:
+             strain_weight: float | None = None, strain_lam: np.ndarray | None = None) -> Evaluation | None:
     """Simulate at p = B z and evaluate the objective against ``target`` (R, 3); with a strain constraint, its
-    penalty at weight ``strain_weight`` (default: the constraint's starting weight) is part of the value."""
+    penalty at weight ``strain_weight`` (default: the constraint's starting weight) and multipliers ``strain_lam``
+    (default none) is part of the value."""
     p = problem.space.expand(z)
     x = simulate(problem, p, x0)
     if x is None:
         return None
-    return _objective(problem, np.asarray(z, dtype=np.float64).copy(), p, x, target, strain_weight)
+    return _objective(problem, np.asarray(z, dtype=np.float64).copy(), p, x, target, strain_weight, strain_lam)
 
 
 def _objective(problem: ActuationProblem, z: np.ndarray, p: np.ndarray, x: np.ndarray, target: np.ndarray,
-               strain_weight: float | None) -> Evaluation:
+               strain_weight: float | None, strain_lam: np.ndarray | None = None) -> Evaluation:
     match = 0.5 * _scale(problem) * float(np.sum((x[problem.region] - target) ** 2))
     value = match + penalty_terms(problem, z)[0]
     strain, pen, w = None, 0.0, 0.0
     if problem.strain is not None:
         w = problem.strain.weight if strain_weight is None else float(strain_weight)
-        pen, strain = problem.strain.penalty(x, w)
+        pen, strain = problem.strain.penalty(x, w, strain_lam)
         value += pen
-    return Evaluation(z, p, x, value, match, strain, pen, w)
+    return Evaluation(z, p, x, value, match, strain, pen, w, strain_lam)
 
 
 def _linearization(problem: ActuationProblem, p: np.ndarray, x: np.ndarray):
@@ -349,7 +351,7 @@ def adjoint_gradient(problem: ActuationProblem, ev: Evaluation, target: np.ndarr
     dEdx = np.zeros(3 * problem.mesh.n_nodes)
     dEdx[_region_dofs(problem)] = _scale(problem) * (ev.x[problem.region] - target).ravel()
     if problem.strain is not None:
-        r, Jr = problem.strain.jacobian(ev.x)
+        r, Jr = problem.strain.jacobian(ev.x, ev.strain_weight, ev.strain_lam)
         dEdx += ev.strain_weight * np.asarray(Jr.T @ r).ravel()
     lam = fac.solve(dEdx[free_idx])
     dEdc = dEdx[con] - np.asarray(Kfc.T @ lam).ravel()
@@ -363,7 +365,7 @@ def direct_gradient(problem: ActuationProblem, ev: Evaluation, target: np.ndarra
     r = (ev.x[problem.region] - target).ravel()
     g = _scale(problem) * (J.T @ r) + penalty_terms(problem, ev.z)[1]
     if problem.strain is not None:
-        rs, Jr = problem.strain.jacobian(ev.x)
+        rs, Jr = problem.strain.jacobian(ev.x, ev.strain_weight, ev.strain_lam)
         g += ev.strain_weight * (np.asarray(Jr @ dx) @ problem.space.basis).T @ rs
     return g
 
@@ -390,11 +392,12 @@ class TargetResult:
     strain_weight: float = 0.0
 
 
-def _gauss_newton(problem: ActuationProblem, target: np.ndarray, ev: Evaluation, w: float, max_iterations: int,
-                  tol_step: float, tol_value: float, log: list[dict], t0: float,
-                  progress: Callable[[dict], None] | None) -> tuple[Evaluation, int, int, bool]:
-    """Projected, damped Gauss-Newton from ``ev`` at strain-penalty weight ``w``: (result, iterations, solves,
-    converged)."""
+def _gauss_newton(problem: ActuationProblem, target: np.ndarray, ev: Evaluation, w: float,
+                  lam: np.ndarray | None, max_iterations: int, tol_step: float, tol_value: float, log: list[dict],
+                  t0: float, progress: Callable[[dict], None] | None, seen: Callable[[Evaluation], None]
+                  ) -> tuple[Evaluation, int, int, bool]:
+    """Projected, damped Gauss-Newton from ``ev`` at strain-penalty weight ``w`` and multipliers ``lam``: (result,
+    iterations, solves, converged). ``seen`` is called with every converged trial pose."""
     space = problem.space
     rd = _region_dofs(problem)
     s = _scale(problem)
@@ -409,7 +412,7 @@ def _gauss_newton(problem: ActuationProblem, target: np.ndarray, ev: Evaluation,
         J = np.sqrt(s) * (dx[rd] @ space.basis)
         r = np.sqrt(s) * (ev.x[problem.region] - target).ravel()
         if problem.strain is not None:
-            rs, Jr = problem.strain.jacobian(ev.x)
+            rs, Jr = problem.strain.jacobian(ev.x, w, lam)
             if rs.size:
                 J = np.vstack([J, np.sqrt(w) * (np.asarray(Jr @ dx) @ space.basis)])
                 r = np.concatenate([r, np.sqrt(w) * rs])
@@ -431,8 +434,10 @@ def _gauss_newton(problem: ActuationProblem, target: np.ndarray, ev: Evaluation,
             z_t = space.project(ev.z + step)
             if np.max(np.abs(z_t - ev.z) / zr) < 0.1 * tol_step:
                 break
-            trial = evaluate(problem, z_t, target, ev.x, strain_weight=w)
+            trial = evaluate(problem, z_t, target, ev.x, strain_weight=w, strain_lam=lam)
             solves += 1
+            if trial is not None:
+                seen(trial)
             if trial is not None and trial.value < ev.value:
                 new = trial
                 break
@@ -478,32 +483,73 @@ def optimize_target(problem: ActuationProblem, target: np.ndarray, p0: np.ndarra
     space = problem.space
     con = problem.strain
     w = (con.weight if strain_weight is None else float(strain_weight)) if con is not None else 0.0
+    lam = None
     solves = 0
     ev = start_eval
-    if ev is not None and con is not None and ev.strain_weight != w:
+    if ev is not None and con is not None and (ev.strain_weight != w or ev.strain_lam is not None):
         ev = _objective(problem, ev.z, ev.p, ev.x, target, w)
     if ev is None:
         ev = evaluate(problem, space.project(space.reduce(p0)), target, x0, strain_weight=w)
         solves += 1
         if ev is None:
             raise ValueError("the starting actuation does not give a converged FEM pose")
+    best: list[Evaluation] = []  # the best pose seen whose exact measure is inside the range (by match)
+
+    def seen(e: Evaluation) -> None:
+        if con is not None and con.inside(e.strain) and (not best or e.match < best[0].match):
+            best[:] = [e]
+
+    seen(ev)
     log = [{"iteration": 0, "objective": ev.value, "match": ev.match}]
     iterations = 0
     rounds = 0
+    violation = np.inf
     while True:
-        ev, it, n, converged = _gauss_newton(problem, target, ev, w, max_iterations, tol_step, tol_value, log, t0,
-                                             progress)
+        ev, it, n, converged = _gauss_newton(problem, target, ev, w, lam, max_iterations, tol_step, tol_value, log,
+                                             t0, progress, seen)
         iterations += it
         solves += n
-        if con is None or con.inside(ev.strain) or rounds >= con.max_rounds:
+        if con is None or rounds >= con.max_rounds:
             break
+        v = con.violation(ev.x)
+        if con.inside(ev.strain):
+            break  # the exact measure is inside the range
+        # augmented Lagrangian round: multiplier update; weight growth when the violation did not shrink enough
         rounds += 1
-        w *= con.growth
-        ev = _objective(problem, ev.z, ev.p, ev.x, target, w)
+        lam = con.multipliers(ev.x, w, lam)
+        if v > 0.25 * violation:
+            w = min(w * con.growth, con.max_weight)
+        violation = v
+        ev = _objective(problem, ev.z, ev.p, ev.x, target, w, lam)
+    if con is not None and not con.inside(ev.strain) and best:
+        ev = best[0]  # the optimum left the range: the best pose seen inside it
+    elif con is not None and best and best[0].match < ev.match:
+        ev = best[0]
     res = TargetResult(ev.p, ev.x, ev.value, ev.match, iterations, converged, solves, log, time.perf_counter() - t0)
     if con is not None:
         res.strain, res.strain_inside, res.strain_weight = ev.strain, con.inside(ev.strain), w
     return res
+
+
+def pull_back(problem: ActuationProblem, ev: Evaluation, target: np.ndarray, steps: int = 6) -> Evaluation | None:
+    """The pose on the straight line from neutral to ``ev.p`` furthest from neutral whose strain lies within the
+    constraint's tightened limits (bisection, ``steps`` solves), or None when none of the tried ones does."""
+    con = problem.strain
+    space = problem.space
+    z0, z1 = space.reduce(space.neutral), ev.z
+    a, b = 0.0, 1.0
+    found = None
+    x_prev = ev.x
+    for _ in range(steps):
+        t = 0.5 * (a + b)
+        e = evaluate(problem, space.project(z0 + t * (z1 - z0)), target, x_prev)
+        if e is not None and con.violation(e.x) == 0.0:
+            a, found = t, e
+        else:
+            b = t
+        if e is not None:
+            x_prev = e.x
+    return found
 
 
 def optimize_targets(problem: ActuationProblem, targets: Sequence[np.ndarray], *,
@@ -530,7 +576,7 @@ def optimize_targets(problem: ActuationProblem, targets: Sequence[np.ndarray], *
         cands.append(("neutral", space.neutral, None))
         w = None
         if problem.strain is not None and previous is not None and previous[k] is not None:
-            w = max(previous[k].strain_weight, problem.strain.weight)  # the weight this target needed before
+            w = float(np.clip(previous[k].strain_weight, problem.strain.weight, problem.strain.max_weight))
         best: tuple[str, Evaluation] | None = None
         solves = 0
         for name, p, x in cands:
@@ -540,6 +586,11 @@ def optimize_targets(problem: ActuationProblem, targets: Sequence[np.ndarray], *
                 best = (name, ev)
         if best is None:
             raise RuntimeError(f"target {k}: no starting actuation gives a converged FEM pose")
+        if problem.strain is not None and problem.strain.violation(best[1].x) > 0:
+            back = pull_back(problem, best[1], target)  # start inside the constraint
+            solves += 6
+            if back is not None:
+                best = (f"{best[0]}, pulled back", back)
 
         def report(entry: dict, k: int = k) -> None:
             if progress is not None:

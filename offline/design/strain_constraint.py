@@ -3,15 +3,18 @@
 The guard's measure (``models.strain_guard.SurfaceStrain``) is, per kept patch k of the outer surface, the
 area-weighted mean f_k = Σ_t S_kt ε_t of the triangles' principal engineering strains (ε_min, ε_max), reduced to
 (min_k f_k,min, max_k f_k,max). The pose is inside the validated range exactly when every patch is, so the constraint
-is the hinge on every patch against limits tightened by a small ``margin``:
+is the hinge on every patch against limits tightened by a small ``margin``, in augmented-Lagrangian form with a
+multiplier λ ≥ 0 per patch and side:
 
-    r_k = max(0, f_k,max − (strain_max − margin)),   r'_k = max(0, (strain_min + margin) − f_k,min)
+    r_k = max(0, f_k,max − (strain_max − margin) + λ_k / w),   r'_k = max(0, (strain_min + margin) − f_k,min + λ'_k / w)
     P(x) = ½ w Σ (r_k² + r'_k²)
 
-P is zero exactly when every patch lies within the tightened limits and is continuously differentiable; its
-residuals r are Gauss-Newton rows, their Jacobian dr/dx analytic (principal stretches of G0⁻¹G from the triangle
-metric) and chained through the FEM sensitivities dx/dp. The optimizer raises w until the exact measure (the same
-``SurfaceStrain.extremes`` the report and the runtime guard use) lies inside [strain_min, strain_max].
+With λ = 0, P is the plain quadratic penalty: zero exactly when every patch lies within the tightened limits. P is
+continuously differentiable; its residuals r are Gauss-Newton rows, their Jacobian dr/dx analytic (principal
+stretches of G0⁻¹G from the triangle metric) and chained through the FEM sensitivities dx/dp. Between rounds the
+optimizer sets λ ← w r (the multiplier update) and raises w when the violation does not shrink, until the exact
+measure (the same ``SurfaceStrain.extremes`` the report and the runtime guard use) lies inside
+[strain_min, strain_max]; the multipliers let that happen at a moderate w, so the match term keeps its say.
 """
 
 from __future__ import annotations
@@ -69,17 +72,19 @@ def strain_jacobian(surface: SurfaceStrain, pos: np.ndarray) -> tuple[np.ndarray
 class StrainConstraint:
     """strain_min ≤ guard measure ≤ strain_max on the outer surface ``surface`` whose vertex i is mesh node
     ``nodes[i]``. ``margin``: how far inside the limits the penalty's hinge sits (strain, e.g. 0.01 = 1 %);
-    ``weight``: the penalty's starting weight w (objective units), raised by ``growth`` up to ``max_rounds`` times
-    until the exact measure is inside."""
+    ``weight``: the penalty's starting weight w (objective units); the optimizer runs at most ``max_rounds``
+    multiplier rounds, raising w by ``growth`` (up to ``max_weight``) after a round that did not cut the violation
+    to a quarter."""
 
     surface: SurfaceStrain
     nodes: np.ndarray
     strain_min: float
     strain_max: float
     margin: float = 0.01
-    weight: float = 100.0
+    weight: float = 1e4
     growth: float = 10.0
-    max_rounds: int = 4
+    max_rounds: int = 8
+    max_weight: float = 1e6
 
     def __post_init__(self) -> None:
         nodes = np.asarray(self.nodes, dtype=np.int64).reshape(-1)
@@ -90,9 +95,9 @@ class StrainConstraint:
             raise ValueError(f"need -1 < strain_min < 0 < strain_max, got {self.strain_min}, {self.strain_max}")
         if not 0.0 <= self.margin < min(-self.strain_min, self.strain_max):
             raise ValueError(f"margin must be in [0, {min(-self.strain_min, self.strain_max)}), got {self.margin}")
-        if not self.weight > 0 or not self.growth > 1 or self.max_rounds < 0:
-            raise ValueError(f"need weight > 0, growth > 1, max_rounds >= 0; got {self.weight}, {self.growth}, "
-                             f"{self.max_rounds}")
+        if not 0 < self.weight <= self.max_weight or not self.growth > 1 or self.max_rounds < 0:
+            raise ValueError(f"need 0 < weight <= max_weight, growth > 1, max_rounds >= 0; got {self.weight}, "
+                             f"{self.max_weight}, {self.growth}, {self.max_rounds}")
         object.__setattr__(self, "nodes", nodes)
         dofs = (3 * nodes[:, None] + np.arange(3)).ravel()
         object.__setattr__(self, "dofs", dofs)
@@ -107,22 +112,48 @@ class StrainConstraint:
         return bool(self.strain_min <= strain[0] and strain[1] <= self.strain_max)
 
     # ------------------------------------------------------------------ penalty
-    def residuals(self, x: np.ndarray) -> tuple[np.ndarray, tuple[float, float]]:
-        """Hinge residuals (positive parts only, one per patch side beyond the tightened limits) and the exact
-        measure, of the mesh positions x (N, 3)."""
-        f = self.surface.field(np.asarray(x)[self.nodes])
+    @property
+    def n_patches(self) -> int:
+        return int(self.surface.smooth.shape[0])
+
+    def _hinge(self, f: np.ndarray, weight: float, lam: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """Shifted hinge arguments (K,) of the max and min sides (positive where the penalty is active)."""
         r_hi = f[:, 1] - (self.strain_max - self.margin)
         r_lo = (self.strain_min + self.margin) - f[:, 0]
-        r = np.concatenate([r_hi[r_hi > 0], r_lo[r_lo > 0]])
-        return r, (float(f[:, 0].min()), float(f[:, 1].max()))
+        if lam is not None:
+            r_hi = r_hi + lam[:, 1] / weight
+            r_lo = r_lo + lam[:, 0] / weight
+        return r_hi, r_lo
 
-    def penalty(self, x: np.ndarray, weight: float | None = None) -> tuple[float, tuple[float, float]]:
+    def residuals(self, x: np.ndarray, weight: float | None = None, lam: np.ndarray | None = None
+                  ) -> tuple[np.ndarray, tuple[float, float]]:
+        """Hinge residuals (positive parts only: the patch sides where the penalty is active) and the exact measure,
+        of the mesh positions x (N, 3); ``lam`` (K, 2): multipliers of the (min, max) sides per patch."""
+        f = self.surface.field(np.asarray(x)[self.nodes])
+        r_hi, r_lo = self._hinge(f, self.weight if weight is None else weight, lam)
+        return np.concatenate([r_hi[r_hi > 0], r_lo[r_lo > 0]]), (float(f[:, 0].min()), float(f[:, 1].max()))
+
+    def penalty(self, x: np.ndarray, weight: float | None = None, lam: np.ndarray | None = None
+                ) -> tuple[float, tuple[float, float]]:
         """P(x) = ½ w Σ r² and the exact measure."""
-        r, m = self.residuals(x)
         w = self.weight if weight is None else weight
+        r, m = self.residuals(x, w, lam)
         return 0.5 * w * float(r @ r), m
 
-    def jacobian(self, x: np.ndarray) -> tuple[np.ndarray, sparse.csr_matrix]:
+    def multipliers(self, x: np.ndarray, weight: float, lam: np.ndarray | None = None) -> np.ndarray:
+        """The multiplier update at x: λ ← w · max(0, hinge argument) (K, 2), (min, max) sides."""
+        f = self.surface.field(np.asarray(x)[self.nodes])
+        r_hi, r_lo = self._hinge(f, weight, lam)
+        return weight * np.stack([np.maximum(r_lo, 0.0), np.maximum(r_hi, 0.0)], axis=1)
+
+    def violation(self, x: np.ndarray) -> float:
+        """Largest excess of any patch over the tightened limits (0 when inside them)."""
+        f = self.surface.field(np.asarray(x)[self.nodes])
+        r_hi, r_lo = self._hinge(f, 1.0, None)
+        return float(max(r_hi.max(), r_lo.max(), 0.0))
+
+    def jacobian(self, x: np.ndarray, weight: float | None = None, lam: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, sparse.csr_matrix]:
         """Residuals r (as :meth:`residuals`) and dr/dx (n_r, 3N) over all mesh coordinates (sparse)."""
         x = np.asarray(x, dtype=np.float64)
         pos = x[self.nodes]
@@ -134,8 +165,7 @@ class StrainConstraint:
         cols = (3 * self.nodes[faces][:, :, None] + np.arange(3)).reshape(n_t, 9)
         rows = np.repeat(np.arange(n_t), 9)
         n_x = 3 * x.shape[0]
-        r_hi = f[:, 1] - (self.strain_max - self.margin)
-        r_lo = (self.strain_min + self.margin) - f[:, 0]
+        r_hi, r_lo = self._hinge(f, self.weight if weight is None else weight, lam)
         a_hi, a_lo = np.flatnonzero(r_hi > 0), np.flatnonzero(r_lo > 0)
         deps = np.nan_to_num(deps)
         D_hi = sparse.csr_matrix((deps[:, 1].reshape(-1), (rows, cols.reshape(-1))), shape=(n_t, n_x))
@@ -158,7 +188,7 @@ def face_strain_surface(face, mesh=None) -> SurfaceStrain:
     return SurfaceStrain(np.asarray(mesh.nodes)[face.outer], face.faces, rim, radius, band)
 
 
-def face_strain_constraint(face, margin: float = 0.01, weight: float = 100.0) -> StrainConstraint:
+def face_strain_constraint(face, margin: float = 0.01, weight: float = 1e4) -> StrainConstraint:
     """The constraint of a design face: the head's validated range (``[skin] strain_min``/``strain_max``) on the
     guard's measure of the outer surface (which the thickness design keeps fixed, so it holds on every rest
     shape the design produces)."""
