@@ -67,6 +67,17 @@ def test_constrained_objective_gradient_matches_finite_differences():
         e[i] = step
         fd = (evaluate(cp, z + e, target, ev.x).value - evaluate(cp, z - e, target, ev.x).value) / (2 * step)
         assert g_adj[i] == pytest.approx(fd, rel=1e-5)
+    # with augmented-Lagrangian multipliers (shifted hinges) at another weight
+    lam = con.multipliers(ev.x, 300.0)
+    ev2 = evaluate(cp, z, target, strain_weight=300.0, strain_lam=lam)
+    g2 = adjoint_gradient(cp, ev2, target)
+    assert np.allclose(direct_gradient(cp, ev2, target), g2, rtol=1e-8, atol=1e-12 * np.abs(g2).max())
+    for i, step in enumerate((1e-7, 1e-7, 1e-6)):
+        e = np.zeros(3)
+        e[i] = step
+        fd = (evaluate(cp, z + e, target, ev.x, 300.0, lam).value
+              - evaluate(cp, z - e, target, ev.x, 300.0, lam).value) / (2 * step)
+        assert g2[i] == pytest.approx(fd, rel=1e-5)
 
 
 def test_target_beyond_the_strain_limit_is_matched_inside_it():
