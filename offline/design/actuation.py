@@ -33,6 +33,8 @@ from offline.fem.materials import Material
 from offline.fem.mesh import TetMesh
 from offline.fem.solve import Dirichlet, NotConverged, SolverOptions, solve_static
 
+from .strain_constraint import StrainConstraint
+
 Boundary = Callable[[np.ndarray], Dirichlet]
 
 
@@ -197,6 +199,7 @@ class ActuationProblem:
     spread_weight: float = 1e3
     length_scale: float = 1e-3
     solver: SolverOptions = field(default_factory=lambda: SolverOptions(tol_force=1e-9))
+    strain: StrainConstraint | None = None
 
     def __post_init__(self) -> None:
         region = np.asarray(self.region, dtype=np.int64).reshape(-1)
@@ -208,9 +211,17 @@ class ActuationProblem:
         object.__setattr__(self, "_cache", {})
 
     def with_mesh(self, mesh: TetMesh) -> ActuationProblem:
-        """The same problem on another rest shape (same topology and attachments, e.g. a new thickness)."""
+        """The same problem on another rest shape (same topology and attachments, e.g. a new thickness).
+
+        A strain constraint is kept: its surface must keep its rest geometry (the thickness design moves only the
+        inner surface), checked here."""
         from dataclasses import replace
 
+        if self.strain is not None:
+            moved = np.abs(np.asarray(mesh.nodes)[self.strain.nodes] - self.strain.surface.rest).max()
+            if moved > 1e-9:
+                raise ValueError(f"the strain-constrained surface moved by {moved:.3g} m in the new rest shape; "
+                                 "build the constraint on the new mesh")
         return replace(self, mesh=mesh)
 
     def sparse_solver(self):
@@ -260,6 +271,10 @@ class Evaluation:
     x: np.ndarray
     value: float
     match: float
+    strain: tuple[float, float] | None = None  # the guard's exact measure, when the problem has a constraint
+    strain_penalty: float = 0.0
+    strain_weight: float = 0.0  # the penalty's weight w in this value
+    strain_lam: np.ndarray | None = None  # and its multipliers (K, 2)
 
 
 def simulate(problem: ActuationProblem, p: np.ndarray, x0: np.ndarray | None = None) -> np.ndarray | None:
@@ -278,15 +293,28 @@ def simulate(problem: ActuationProblem, p: np.ndarray, x0: np.ndarray | None = N
     return None
 
 
-def evaluate(problem: ActuationProblem, z: np.ndarray, target: np.ndarray, x0: np.ndarray | None = None
-             ) -> Evaluation | None:
-    """Simulate at p = B z and evaluate the objective against ``target`` (R, 3)."""
+def evaluate(problem: ActuationProblem, z: np.ndarray, target: np.ndarray, x0: np.ndarray | None = None,
+             strain_weight: float | None = None, strain_lam: np.ndarray | None = None) -> Evaluation | None:
+    """Simulate at p = B z and evaluate the objective against ``target`` (R, 3); with a strain constraint, its
+    penalty at weight ``strain_weight`` (default: the constraint's starting weight) and multipliers ``strain_lam``
+    (default none) is part of the value."""
     p = problem.space.expand(z)
     x = simulate(problem, p, x0)
     if x is None:
         return None
+    return _objective(problem, np.asarray(z, dtype=np.float64).copy(), p, x, target, strain_weight, strain_lam)
+
+
+def _objective(problem: ActuationProblem, z: np.ndarray, p: np.ndarray, x: np.ndarray, target: np.ndarray,
+               strain_weight: float | None, strain_lam: np.ndarray | None = None) -> Evaluation:
     match = 0.5 * _scale(problem) * float(np.sum((x[problem.region] - target) ** 2))
-    return Evaluation(np.asarray(z, dtype=np.float64).copy(), p, x, match + penalty_terms(problem, z)[0], match)
+    value = match + penalty_terms(problem, z)[0]
+    strain, pen, w = None, 0.0, 0.0
+    if problem.strain is not None:
+        w = problem.strain.weight if strain_weight is None else float(strain_weight)
+        pen, strain = problem.strain.penalty(x, w, strain_lam)
+        value += pen
+    return Evaluation(z, p, x, value, match, strain, pen, w, strain_lam)
 
 
 def _linearization(problem: ActuationProblem, p: np.ndarray, x: np.ndarray):
@@ -322,6 +350,9 @@ def adjoint_gradient(problem: ActuationProblem, ev: Evaluation, target: np.ndarr
     fac, free_idx, con, Kfc, dcdp = _linearization(problem, ev.p, ev.x)
     dEdx = np.zeros(3 * problem.mesh.n_nodes)
     dEdx[_region_dofs(problem)] = _scale(problem) * (ev.x[problem.region] - target).ravel()
+    if problem.strain is not None:
+        r, Jr = problem.strain.jacobian(ev.x, ev.strain_weight, ev.strain_lam)
+        dEdx += ev.strain_weight * np.asarray(Jr.T @ r).ravel()
     lam = fac.solve(dEdx[free_idx])
     dEdc = dEdx[con] - np.asarray(Kfc.T @ lam).ravel()
     return problem.space.basis.T @ (dcdp.T @ dEdc) + penalty_terms(problem, ev.z)[1]
@@ -329,15 +360,22 @@ def adjoint_gradient(problem: ActuationProblem, ev: Evaluation, target: np.ndarr
 
 def direct_gradient(problem: ActuationProblem, ev: Evaluation, target: np.ndarray) -> np.ndarray:
     """dE/dz from the direct sensitivities (what each Gauss-Newton step uses)."""
-    J = sensitivities(problem, ev.p, ev.x)[_region_dofs(problem)] @ problem.space.basis
+    dx = sensitivities(problem, ev.p, ev.x)
+    J = dx[_region_dofs(problem)] @ problem.space.basis
     r = (ev.x[problem.region] - target).ravel()
-    return _scale(problem) * (J.T @ r) + penalty_terms(problem, ev.z)[1]
+    g = _scale(problem) * (J.T @ r) + penalty_terms(problem, ev.z)[1]
+    if problem.strain is not None:
+        rs, Jr = problem.strain.jacobian(ev.x, ev.strain_weight, ev.strain_lam)
+        g += ev.strain_weight * (np.asarray(Jr @ dx) @ problem.space.basis).T @ rs
+    return g
 
 
 # ------------------------------------------------------------------------------------------------ optimizer
 @dataclass
 class TargetResult:
-    """Actuation found for one target: values, equilibrium, objective, iterations, pose solves, log, time."""
+    """Actuation found for one target: values, equilibrium, objective, iterations, pose solves, log, time; with a
+    strain constraint, the guard's exact measure at the result, whether it is inside the range, and the penalty
+    weight that got it there."""
 
     p: np.ndarray
     x: np.ndarray
@@ -349,39 +387,35 @@ class TargetResult:
     log: list[dict]
     seconds: float
     start: str = ""
+    strain: tuple[float, float] | None = None
+    strain_inside: bool | None = None
+    strain_weight: float = 0.0
 
 
-def optimize_target(problem: ActuationProblem, target: np.ndarray, p0: np.ndarray, x0: np.ndarray | None = None,
-                    *, max_iterations: int = 30, tol_step: float = 1e-5, tol_value: float = 1e-6,
-                    start_eval: Evaluation | None = None, progress: Callable[[dict], None] | None = None
-                    ) -> TargetResult:
-    """Projected, damped Gauss-Newton on E(z) for one target (R, 3), from actuator values p0.
-
-    Stops when no actuator moves by more than ``tol_step`` of its range, or the objective's relative decrease is
-    below ``tol_value``, or no step decreases it. Variables at a limit whose gradient pushes outward are held.
-    """
-    t0 = time.perf_counter()
-    target = np.asarray(target, dtype=np.float64)
-    if target.shape != (problem.region.size, 3):
-        raise ValueError(f"target must have shape ({problem.region.size}, 3), got {target.shape}")
+def _gauss_newton(problem: ActuationProblem, target: np.ndarray, ev: Evaluation, w: float,
+                  lam: np.ndarray | None, max_iterations: int, tol_step: float, tol_value: float, log: list[dict],
+                  t0: float, progress: Callable[[dict], None] | None, seen: Callable[[Evaluation], None]
+                  ) -> tuple[Evaluation, int, int, bool]:
+    """Projected, damped Gauss-Newton from ``ev`` at strain-penalty weight ``w`` and multipliers ``lam``: (result,
+    iterations, solves, converged). ``seen`` is called with every converged trial pose."""
     space = problem.space
-    solves = 0
-    ev = start_eval
-    if ev is None:
-        ev = evaluate(problem, space.project(space.reduce(p0)), target, x0)
-        solves += 1
-        if ev is None:
-            raise ValueError("the starting actuation does not give a converged FEM pose")
     rd = _region_dofs(problem)
     s = _scale(problem)
     zr = space.zhi - space.zlo
-    log = [{"iteration": 0, "objective": ev.value, "match": ev.match}]
     mu = 1e-6
     converged = False
+    solves = 0
     it = 0
+    it0 = log[-1]["iteration"] if log else 0
     for it in range(1, max_iterations + 1):
-        J = np.sqrt(s) * (sensitivities(problem, ev.p, ev.x)[rd] @ space.basis)
+        dx = sensitivities(problem, ev.p, ev.x)
+        J = np.sqrt(s) * (dx[rd] @ space.basis)
         r = np.sqrt(s) * (ev.x[problem.region] - target).ravel()
+        if problem.strain is not None:
+            rs, Jr = problem.strain.jacobian(ev.x, w, lam)
+            if rs.size:
+                J = np.vstack([J, np.sqrt(w) * (np.asarray(Jr @ dx) @ space.basis)])
+                r = np.concatenate([r, np.sqrt(w) * rs])
         _, gpen, Hpen = penalty_terms(problem, ev.z)
         g = J.T @ r + gpen
         H = J.T @ J + Hpen
@@ -400,8 +434,10 @@ def optimize_target(problem: ActuationProblem, target: np.ndarray, p0: np.ndarra
             z_t = space.project(ev.z + step)
             if np.max(np.abs(z_t - ev.z) / zr) < 0.1 * tol_step:
                 break
-            trial = evaluate(problem, z_t, target, ev.x)
+            trial = evaluate(problem, z_t, target, ev.x, strain_weight=w, strain_lam=lam)
             solves += 1
+            if trial is not None:
+                seen(trial)
             if trial is not None and trial.value < ev.value:
                 new = trial
                 break
@@ -414,15 +450,106 @@ def optimize_target(problem: ActuationProblem, target: np.ndarray, p0: np.ndarra
         decrease = ev.value - new.value
         old = ev.value
         ev = new
-        entry = {"iteration": it, "objective": ev.value, "match": ev.match, "step_max": dz,
+        entry = {"iteration": it0 + it, "objective": ev.value, "match": ev.match, "step_max": dz,
                  "seconds": time.perf_counter() - t0}
+        if ev.strain is not None:
+            entry.update(strain_min=ev.strain[0], strain_max=ev.strain[1], strain_weight=w)
         log.append(entry)
         if progress is not None:
             progress(entry)
         if dz < tol_step or decrease < tol_value * old:
             converged = True
             break
-    return TargetResult(ev.p, ev.x, ev.value, ev.match, it, converged, solves, log, time.perf_counter() - t0)
+    return ev, it, solves, converged
+
+
+def optimize_target(problem: ActuationProblem, target: np.ndarray, p0: np.ndarray, x0: np.ndarray | None = None,
+                    *, max_iterations: int = 30, tol_step: float = 1e-5, tol_value: float = 1e-6,
+                    start_eval: Evaluation | None = None, progress: Callable[[dict], None] | None = None,
+                    strain_weight: float | None = None) -> TargetResult:
+    """Projected, damped Gauss-Newton on E(z) for one target (R, 3), from actuator values p0.
+
+    Stops when no actuator moves by more than ``tol_step`` of its range, or the objective's relative decrease is
+    below ``tol_value``, or no step decreases it. Variables at a limit whose gradient pushes outward are held.
+    With a strain constraint (``problem.strain``) its hinge residuals are Gauss-Newton rows; when the exact measure
+    at the optimum is still outside the range, the weight grows by the constraint's ``growth`` and the optimization
+    continues from there (at most ``max_rounds`` times; ``max_iterations`` per round). ``strain_weight`` overrides
+    the constraint's starting weight (e.g. the weight an earlier solution of the same target needed).
+    """
+    t0 = time.perf_counter()
+    target = np.asarray(target, dtype=np.float64)
+    if target.shape != (problem.region.size, 3):
+        raise ValueError(f"target must have shape ({problem.region.size}, 3), got {target.shape}")
+    space = problem.space
+    con = problem.strain
+    w = (con.weight if strain_weight is None else float(strain_weight)) if con is not None else 0.0
+    lam = None
+    solves = 0
+    ev = start_eval
+    if ev is not None and con is not None and (ev.strain_weight != w or ev.strain_lam is not None):
+        ev = _objective(problem, ev.z, ev.p, ev.x, target, w)
+    if ev is None:
+        ev = evaluate(problem, space.project(space.reduce(p0)), target, x0, strain_weight=w)
+        solves += 1
+        if ev is None:
+            raise ValueError("the starting actuation does not give a converged FEM pose")
+    best: list[Evaluation] = []  # the best pose seen whose exact measure is inside the range (by match)
+
+    def seen(e: Evaluation) -> None:
+        if con is not None and con.inside(e.strain) and (not best or e.match < best[0].match):
+            best[:] = [e]
+
+    seen(ev)
+    log = [{"iteration": 0, "objective": ev.value, "match": ev.match}]
+    iterations = 0
+    rounds = 0
+    violation = np.inf
+    while True:
+        ev, it, n, converged = _gauss_newton(problem, target, ev, w, lam, max_iterations, tol_step, tol_value, log,
+                                             t0, progress, seen)
+        iterations += it
+        solves += n
+        if con is None or rounds >= con.max_rounds:
+            break
+        v = con.violation(ev.x)
+        if con.inside(ev.strain):
+            break  # the exact measure is inside the range
+        # augmented Lagrangian round: multiplier update; weight growth when the violation did not shrink enough
+        rounds += 1
+        lam = con.multipliers(ev.x, w, lam)
+        if v > 0.25 * violation:
+            w = min(w * con.growth, con.max_weight)
+        violation = v
+        ev = _objective(problem, ev.z, ev.p, ev.x, target, w, lam)
+    if con is not None and not con.inside(ev.strain) and best:
+        ev = best[0]  # the optimum left the range: the best pose seen inside it
+    elif con is not None and best and best[0].match < ev.match:
+        ev = best[0]
+    res = TargetResult(ev.p, ev.x, ev.value, ev.match, iterations, converged, solves, log, time.perf_counter() - t0)
+    if con is not None:
+        res.strain, res.strain_inside, res.strain_weight = ev.strain, con.inside(ev.strain), w
+    return res
+
+
+def pull_back(problem: ActuationProblem, ev: Evaluation, target: np.ndarray, steps: int = 6) -> Evaluation | None:
+    """The pose on the straight line from neutral to ``ev.p`` furthest from neutral whose strain lies within the
+    constraint's tightened limits (bisection, ``steps`` solves), or None when none of the tried ones does."""
+    con = problem.strain
+    space = problem.space
+    z0, z1 = space.reduce(space.neutral), ev.z
+    a, b = 0.0, 1.0
+    found = None
+    x_prev = ev.x
+    for _ in range(steps):
+        t = 0.5 * (a + b)
+        e = evaluate(problem, space.project(z0 + t * (z1 - z0)), target, x_prev)
+        if e is not None and con.violation(e.x) == 0.0:
+            a, found = t, e
+        else:
+            b = t
+        if e is not None:
+            x_prev = e.x
+    return found
 
 
 def optimize_targets(problem: ActuationProblem, targets: Sequence[np.ndarray], *,
@@ -447,22 +574,31 @@ def optimize_targets(problem: ActuationProblem, targets: Sequence[np.ndarray], *
         if results:
             cands.append(("last target", results[-1].p, results[-1].x))
         cands.append(("neutral", space.neutral, None))
+        w = None
+        if problem.strain is not None and previous is not None and previous[k] is not None:
+            w = float(np.clip(previous[k].strain_weight, problem.strain.weight, problem.strain.max_weight))
         best: tuple[str, Evaluation] | None = None
         solves = 0
         for name, p, x in cands:
-            ev = evaluate(problem, space.project(space.reduce(p)), target, x)
+            ev = evaluate(problem, space.project(space.reduce(p)), target, x, strain_weight=w)
             solves += 1
             if ev is not None and (best is None or ev.value < best[1].value):
                 best = (name, ev)
         if best is None:
             raise RuntimeError(f"target {k}: no starting actuation gives a converged FEM pose")
+        if problem.strain is not None and problem.strain.violation(best[1].x) > 0:
+            back = pull_back(problem, best[1], target)  # start inside the constraint
+            solves += 6
+            if back is not None:
+                best = (f"{best[0]}, pulled back", back)
 
         def report(entry: dict, k: int = k) -> None:
             if progress is not None:
                 progress(k, entry)
 
         res = optimize_target(problem, target, best[1].p, best[1].x, max_iterations=max_iterations,
-                              tol_step=tol_step, tol_value=tol_value, start_eval=best[1], progress=report)
+                              tol_step=tol_step, tol_value=tol_value, start_eval=best[1], progress=report,
+                              strain_weight=w)
         res.solves += solves
         res.start = best[0]
         results.append(res)

@@ -9,7 +9,13 @@ Stages (each outer iteration is checkpointed to ``DIR/checkpoint.npz``, so a kil
 3. **outer iterations**: thickness (:func:`offline.design.thickness.optimize_adjoint`, Gauss-Newton, MLS samples
    placed denser where the target poses strain the skin most) with the actuation fixed, then the actuation again
    on the new rest shape, until neither improves the total objective by more than ``tol`` (relative) or
-   ``max_outer`` is reached. The final errors are the report's "after".
+   ``max_outer`` is reached (an iteration that ends worse is discarded). The final errors are the report's
+   "after".
+
+With ``strain_constraint`` (the default) every actuation solve keeps its pose inside the head's validated strain
+range, measured with the runtime guard's measure (:mod:`offline.design.strain_constraint`); the thickness step does
+not see the constraint, the actuation step after it restores it on the new rest shape (the outer surface the measure
+lives on is fixed by the design), so every pose the run returns has been checked with the exact measure.
 """
 
 from __future__ import annotations
@@ -49,6 +55,8 @@ class CloneSettings:
     goal_mean_m: float = 1.35e-3
     goal_max_m: float = 4e-3
     tol_force: float = 1e-8
+    strain_constraint: bool = True  # every pose inside the head's validated strain range (the guard's measure)
+    strain_margin: float = 0.01  # the constraint's hinge sits this far (strain) inside the range
 
 
 Progress = Callable[[str], None]
@@ -157,6 +165,12 @@ class CloneRun:
         self.targets = [target_surface(self.rest_outer, offsets, self.unit_names, w) for w in targets.values()]
         self.weights = [unit_weights(w, self.unit_names) for w in targets.values()]
         self.problem = face.actuation_problem(tol_force=settings.tol_force)
+        if settings.strain_constraint:
+            from dataclasses import replace
+
+            from .strain_constraint import face_strain_constraint
+
+            self.problem = replace(self.problem, strain=face_strain_constraint(face, margin=settings.strain_margin))
 
     # ------------------------------------------------------------------ checkpoint
     def _save(self, state: dict) -> None:
@@ -210,9 +224,13 @@ class CloneRun:
             results.append(res)
             err = vertex_errors(res.x[self.face.outer], self.targets[k])
             clock.done += 1
+            strain = ""
+            if res.strain is not None:
+                strain = (f", strain {res.strain[0]:+.1%} / {res.strain[1]:+.1%} "
+                          f"({'inside' if res.strain_inside else 'OUTSIDE'} the range, weight {res.strain_weight:.0e})")
             self.say(f"[clone] {label} target {k + 1}/{len(names)} {names[k]} done: {res.iterations} it, "
-                     f"objective {res.value:.4g}, error mean {err.mean() * 1e3:.2f} max {err.max() * 1e3:.2f} mm "
-                     f"(start: {res.start})  {clock.eta()}")
+                     f"objective {res.value:.4g}, error mean {err.mean() * 1e3:.2f} max {err.max() * 1e3:.2f} mm"
+                     f"{strain} (start: {res.start})  {clock.eta()}")
         return results
 
     def run(self, resume: bool = True) -> dict:
@@ -249,7 +267,8 @@ class CloneRun:
             res = self._actuation(face.mesh, None, list(p_pred) if p_pred is not None else None,
                                   "actuation (uniform skin)", clock)
             state.update(stage="actuation", outer=0, P_before=np.array([r.p for r in res]),
-                         X_before=np.array([r.x for r in res]), seconds=state["seconds"] + clock_elapsed(t_start),
+                         X_before=np.array([r.x for r in res]), W_before=np.array([r.strain_weight for r in res]),
+                         seconds=state["seconds"] + clock_elapsed(t_start),
                          log=[{"stage": "actuation", "objective": float(sum(r.match for r in res))}])
             self._save(state)
         # 3. thickness + actuation
@@ -258,6 +277,7 @@ class CloneRun:
         h = np.asarray(state.get("h", h0), dtype=np.float64)
         P = np.asarray(state.get("P", state["P_before"]))
         X = np.asarray(state.get("X", state["X_before"]))
+        W = np.asarray(state.get("W", state.get("W_before", np.zeros(n_t))), dtype=np.float64)
         total = float(state["log"][-1]["objective"])
         outer = int(state.get("outer", 0))
         clock.done = n_t * (2 + 2 * outer)
@@ -278,20 +298,25 @@ class CloneRun:
             self.say(f"[clone] outer {outer}: thickness objective {total:.4g} -> {t_obj:.4g} "
                      f"(heights {tres.h.min() * 1e3:.2f}-{tres.h.max() * 1e3:.2f} mm)  {clock.eta()}")
             mesh = warp.rest_mesh(tres.h)
-            prev = [TargetResult(p, x, 0.0, 0.0, 0, True, 0, [], 0.0) for p, x in zip(P, tres.xs, strict=True)]
+            prev = [TargetResult(p, x, 0.0, 0.0, 0, True, 0, [], 0.0, strain_weight=float(w))
+                    for p, x, w in zip(P, tres.xs, W, strict=True)]
             ares = self._actuation(mesh, prev, None, f"outer {outer}: actuation", clock)
             a_obj = float(sum(r.match for r in ares))
             improved = (total - a_obj) > s.tol * total
             self.say(f"[clone] outer {outer}: objective {total:.4g} -> {a_obj:.4g} "
                      f"({time.perf_counter() - t_it:.0f}s)  {clock.eta()}")
-            h, P, X = tres.h, np.array([r.p for r in ares]), np.array([r.x for r in ares])
+            if a_obj <= total:
+                h, P, X = tres.h, np.array([r.p for r in ares]), np.array([r.x for r in ares])
+                W = np.array([r.strain_weight for r in ares])
+            else:  # worse (e.g. the constraint took back what the thickness step gained): keep the previous design
+                self.say(f"[clone] outer {outer}: worse than before; keeping the previous thickness and actuation")
             thickness_gain = (total - t_obj) / max(total, 1e-300)
             actuation_gain = (t_obj - a_obj) / max(total, 1e-300)
             state["log"] = [*state["log"], {"stage": "outer", "outer": outer, "objective": a_obj,
                                                   "thickness_objective": t_obj, "seconds": time.perf_counter() - t_it,
                                                   "thickness_gain": thickness_gain, "actuation_gain": actuation_gain}]
             total = min(total, a_obj)
-            state.update(stage="outer" if improved else "done", outer=outer, h=h, P=P, X=X,
+            state.update(stage="outer" if improved else "done", outer=outer, h=h, P=P, X=X, W=W,
                          seconds=float(state["seconds"]) + time.perf_counter() - t_it)
             self._save(state)
             if not improved:
@@ -299,7 +324,7 @@ class CloneRun:
                          f"{s.tol:.1%}: stopping")
                 break
         if "h" not in state:
-            state.update(h=h, P=P, X=X)
+            state.update(h=h, P=P, X=X, W=W)
         state["warp"] = warp
         state["h0"] = h0
         return state

@@ -7,6 +7,10 @@ and proposed link-layout changes for targets not reached, input hashes and setti
 colour scale), ``thickness.png``, ``skin/`` (the optimized skin, usable by ``likeness offline simulate``,
 ``dataset`` and ``train``), ``mold/`` (the STL set of ``likeness offline export-mold``, checked) and
 ``checkpoint.npz`` (a killed run started again with the same arguments resumes).
+
+Every pose is kept inside the skin's validated strain range (``[skin] strain_min``/``strain_max`` of the head,
+measured with the runtime guard's measure) by a constraint inside the actuation optimization;
+``--no-strain-constraint`` optimizes without it (poses beyond the range are then reported, and pulled back).
 """
 
 from __future__ import annotations
@@ -32,6 +36,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--fresh", action="store_true", help="ignore an existing checkpoint")
     p.add_argument("--threads", type=int, default=1, help="numba kernel threads (default 1)")
     p.add_argument("--backend", default="auto", help="sparse solver: auto, cholmod, pardiso or superlu")
+    p.add_argument("--no-strain-constraint", action="store_true",
+                   help="optimize actuation without keeping the poses inside the skin's validated strain range "
+                        "(poses beyond it are then only reported, and pulled back toward neutral)")
     p.add_argument("--no-mold", action="store_true", help="skip the STL export of the optimized skin's mold")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.set_defaults(func=run)
@@ -104,7 +111,7 @@ def run(args: argparse.Namespace) -> int:
     except (SpecError, FileNotFoundError, ValueError) as exc:
         raise CliError(str(exc)) from exc
     settings = CloneSettings(n_samples=args.samples, max_outer=args.max_outer, h_min=args.min_thickness_mm * 1e-3,
-                             h_max=args.max_thickness_mm * 1e-3)
+                             h_max=args.max_thickness_mm * 1e-3, strain_constraint=not args.no_strain_constraint)
     say = (lambda line: None) if args.quiet else (lambda line: print(line, flush=True))
     with kernel_threads(args.threads):
         if args.dry_run:
@@ -112,6 +119,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"head {face.skin.head.name}: {face.mesh.n_nodes} nodes, {face.mesh.n_tets} tets, "
                   f"{info['free_dofs']} free DoFs, {len(face.outer)} outer-surface vertices matched")
             print(f"{len(targets)} targets: {', '.join(targets)}")
+            print("strain constraint: " + ("on (every pose inside [skin] strain_min .. strain_max, the guard's measure)"
+                                           if settings.strain_constraint else "off"))
             print(f"{face.space.n_actuators} actuators ({face.space.n_free} independent after groups), "
                   f"{settings.n_samples} thickness samples, up to {settings.max_outer} outer iterations")
             print(f"one Newton iteration (assembly + factorization) {info['newton_iteration_s']:.3f} s, one "
@@ -129,7 +138,8 @@ def run(args: argparse.Namespace) -> int:
     sm = report["summary"]
     mm = 1e3
     print(f"before (uniform skin, actuation optimized): surface error mean {sm['before']['surface_mean_m'] * mm:.2f} "
-          f"mm, max {sm['before']['surface_max_m'] * mm:.2f} mm")
+          f"mm, max {sm['before']['surface_max_m'] * mm:.2f} mm; strain measure "
+          f"{sm['strain_before']['measure_min']:+.1%} .. {sm['strain_before']['measure_max']:+.1%}")
     print(f"after (thickness + actuation): surface error mean {sm['after']['surface_mean_m'] * mm:.2f} mm, "
           f"max {sm['after']['surface_max_m'] * mm:.2f} mm; strain measure "
           f"{sm['strain_after']['measure_min']:+.1%} .. {sm['strain_after']['measure_max']:+.1%} "

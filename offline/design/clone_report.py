@@ -32,14 +32,9 @@ def _sha256(path: Path | None) -> str | None:
 
 
 def _strain_surface(run: CloneRun, mesh):
-    from models.strain_guard import DEFAULT_BAND, DEFAULT_RADIUS, SurfaceStrain, skin_number
-    from offline.strain_eval import attachment_distance
+    from .strain_constraint import face_strain_surface
 
-    head = run.face.skin.head
-    radius = skin_number(head, "radius_mm", DEFAULT_RADIUS * 1e3) * 1e-3
-    band = skin_number(head, "band_mm", DEFAULT_BAND * 1e3) * 1e-3
-    rim, _ = attachment_distance(head, mesh, run.face.outer[run.face.faces])
-    return SurfaceStrain(np.asarray(mesh.nodes)[run.face.outer], run.face.faces, rim, radius, band)
+    return face_strain_surface(run.face, mesh)
 
 
 def _strain(surf, x_outer: np.ndarray) -> dict:
@@ -238,8 +233,12 @@ def write_report(run: CloneRun, state: dict, inputs: dict[str, Path | None]) -> 
             }
             panels.insert(0, ("runtime predictor inverse (FEM)", sp_))
         lo_v, hi_v = _validated_range(head)
-        m_lo, m_hi = row["after"]["strain"]["measure"]
-        row["after"]["strain_inside_validated_range"] = bool(lo_v <= m_lo and m_hi <= hi_v)
+        for stage in ("before", "after"):
+            m_lo, m_hi = row[stage]["strain"]["measure"]
+            row[stage]["strain_inside_validated_range"] = bool(lo_v <= m_lo and m_hi <= hi_v)
+        if "W" in state:
+            row["strain_penalty_weight"] = {"before": float(np.asarray(state["W_before"])[k]),
+                                            "after": float(np.asarray(state["W"])[k])}
         if not row["after"]["strain_inside_validated_range"]:
             lim = strain_limited(run, run.problem.with_mesh(mesh_after), surf_after, np.asarray(state["P"][k]),
                                  np.asarray(state["X"][k]), lo_v, hi_v)
@@ -280,6 +279,11 @@ def write_report(run: CloneRun, state: dict, inputs: dict[str, Path | None]) -> 
             "surface_max_m": float(np.max([r["predictor_inverse"]["surface_max_m"] for r in rows])),
             "max_abs_actuator_difference_config_units": float(
                 np.max([r["predictor_inverse"]["max_abs_difference_config_units"] for r in rows]))}
+    strain_before = np.array([r["before"]["strain"]["measure"] for r in rows])
+    summary["strain_before"] = {"measure_min": float(strain_before[:, 0].min()),
+                                "measure_max": float(strain_before[:, 1].max()),
+                                "validated_range": [lo_v, hi_v],
+                                "inside": bool(strain_before[:, 0].min() >= lo_v and strain_before[:, 1].max() <= hi_v)}
     strain_after = np.array([r["after"]["strain"]["measure"] for r in rows])
     summary["strain_after"] = {"measure_min": float(strain_after[:, 0].min()),
                                "measure_max": float(strain_after[:, 1].max()),
@@ -308,6 +312,7 @@ def write_report(run: CloneRun, state: dict, inputs: dict[str, Path | None]) -> 
                                    "patches and skull, measured through the skin) are left out of the measure; "
                                    "single_triangle_all gives the raw per-triangle extremes including them",
                            "kept_area_fraction": surf_after.kept_area_fraction},
+        "strain_constraint": _constraint_info(run),
         "thickness": {"h_min_m": s.h_min, "h_max_m": s.h_max, "start_m": np.asarray(state["h0"]).tolist(),
                       "after_m": h.tolist(), "samples_uv_m": warp.samples_uv.tolist(), "mls_width_m": warp.width},
         "log": state["log"], "outer_iterations": int(state.get("outer", 0)),
@@ -318,6 +323,20 @@ def write_report(run: CloneRun, state: dict, inputs: dict[str, Path | None]) -> 
     }
     (out / "report.json").write_text(json.dumps(report, indent=1, default=float))
     return report
+
+
+def _constraint_info(run: CloneRun) -> dict:
+    con = run.problem.strain
+    if con is None:
+        return {"enabled": False, "note": "poses were optimized without the strain constraint "
+                                          "(--no-strain-constraint); poses outside the range are pulled back"}
+    return {"enabled": True, "strain_min": con.strain_min, "strain_max": con.strain_max, "margin": con.margin,
+            "starting_weight": con.weight, "growth": con.growth, "max_rounds": con.max_rounds,
+            "method": "hinge penalty ½ w Σ_k max(0, f_k − limit ∓ margin)² over every kept patch k of the guard's "
+                      "smoothed principal strains (both sides), its residuals Gauss-Newton rows with analytic "
+                      "derivatives chained through the FEM sensitivities dx/dp; w grows until the exact guard measure "
+                      "(SurfaceStrain.extremes) of the optimum is inside [strain_min, strain_max]. The thickness step "
+                      "does not see it; the actuation step after it restores it on the new rest shape."}
 
 
 def _validated_range(head) -> tuple[float, float]:
