@@ -27,9 +27,9 @@ import numpy as np
 import zmq
 
 try:
-    from benchmarks._daemon import SAMPLE, demote_emulators, pct
+    from benchmarks._daemon import demote_emulators, patient_head, pct
 except ImportError:  # run as a script
-    from _daemon import SAMPLE, demote_emulators, pct
+    from _daemon import demote_emulators, patient_head, pct
 
 FRAGMENT = """
 [inputs.osc]
@@ -53,27 +53,15 @@ lock_samples = 1
 [inputs.timecode.clips]
 ramp = "00:00:10:00"
 """
-#: The emulated buses' patience, raised: a loaded host stalls the emulators for seconds, and a bus fault would end
-#: the measurement of an input path that does not depend on them (real buses keep the head file's values).
-PATIENT = (("heartbeat_timeout_s = 1.0", "heartbeat_timeout_s = 5.0"), ("sdo_timeout_s = 1.0", "sdo_timeout_s = 5.0"),
-           ("max_consecutive_failures = 20", "max_consecutive_failures = 500"), ("retries = 8", "retries = 10"))
 RAMP = {"name": "ramp", "channels": {"jaw": {"interp": "linear", "keys": [[0, 0], [20, 20]]}}}
 
 
 def start_daemon(rate: float, tmp: Path) -> Any:
     from models.headspec import load_head
     from runtime.daemon import Daemon
-    from runtime.inputs.headfile import head_with_inputs
 
-    frag = tmp / "inputs.toml"
     sacn_ip = f"127.{random.randint(1, 254)}.{random.randint(1, 254)}.{random.randint(1, 254)}"
-    frag.write_text(FRAGMENT.replace("{sacn}", sacn_ip))
-    path = head_with_inputs(SAMPLE, frag, tmp / "head" / "head.toml")
-    text = path.read_text()
-    for old, new in PATIENT:
-        text = text.replace(old, new)
-    path.write_text(text)
-    head = load_head(path)
+    head = load_head(patient_head(tmp / "head" / "head.toml", FRAGMENT.replace("{sacn}", sacn_ip)))
     overrides = {"api.command": "tcp://127.0.0.1:*", "api.telemetry": "tcp://127.0.0.1:*",
                  "runtime.rate_hz": rate, "runtime.telemetry_hz": min(50, rate), "runtime.stream_delay_s": 0.001,
                  "safety.feedback_timeout_s": 0.5, "safety.watchdog_hold_s": 5.0, "safety.watchdog_neutral_s": 10.0}

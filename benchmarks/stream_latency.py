@@ -14,8 +14,10 @@ from __future__ import annotations
 
 import argparse
 import os
+import tempfile
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 import msgpack
@@ -23,9 +25,9 @@ import numpy as np
 import zmq
 
 try:
-    from benchmarks._daemon import demote_emulators, make_daemon, pct
+    from benchmarks._daemon import demote_emulators, make_daemon, patient_head, pct
 except ImportError:  # run as a script
-    from _daemon import demote_emulators, make_daemon, pct
+    from _daemon import demote_emulators, make_daemon, patient_head, pct
 
 
 def bare_push_pull(n: int, frame: dict) -> list[float]:
@@ -121,6 +123,7 @@ def _producer(endpoint: str, rate: float, steps: int, seed: int, out: Any) -> No
     sock.connect(endpoint)
     step_ids: set[int] = set()
     recv: list[float] = []
+    counts = {"replies": 0, "late": 0}
     period = 1.0 / rate
     value, k, next_step = 0.0, 0, int(rng.integers(125, 175))
     t_next = time.monotonic() + period
@@ -128,10 +131,13 @@ def _producer(endpoint: str, rate: float, steps: int, seed: int, out: Any) -> No
     def replies() -> None:
         while sock.poll(0):
             r = msgpack.unpackb(sock.recv())
+            counts["replies"] += 1
+            counts["late"] += int(r.get("late", 0) or 0)
             if r.get("id") in step_ids and r.get("ok") and r.get("accepted"):
                 recv.append(r["t_recv"])
 
-    while len(recv) < steps:
+    give_up = time.monotonic() + 30.0 + 2.0 * steps  # a faulted or refusing daemon ends the measurement
+    while len(recv) < steps and time.monotonic() < give_up:
         while (left := t_next - time.monotonic()) > 0:
             replies()
             time.sleep(min(left, 0.0005) if left > 0.0006 else 0)  # sleep, then spin the last half-ms
@@ -144,10 +150,10 @@ def _producer(endpoint: str, rate: float, steps: int, seed: int, out: Any) -> No
         sock.send(msgpack.packb({"op": "stream", "id": k, "channels": ["jaw"],
                                  "frames": [[time.monotonic() + offset, value]]}))
     sock.close(0)
-    out.put(recv)
+    out.put((recv, counts))
 
 
-def steady_latency(daemon, rate: float, steps: int, seed: int) -> list[float]:
+def steady_latency(daemon, rate: float, steps: int, seed: int) -> tuple[list[float], dict[str, int]]:
     """For each step frame of a steady producer (:func:`_producer`, its own process), its arrival → the first bus
     write that moved the jaw (seconds); this process watches the bus writes meanwhile."""
     import multiprocessing as mp
@@ -159,18 +165,19 @@ def steady_latency(daemon, rate: float, steps: int, seed: int) -> list[float]:
     out = ctx.Queue()
     proc = ctx.Process(target=_producer, args=(daemon.command_endpoint, rate, steps, seed, out), daemon=True)
     proc.start()
-    recv: list[float] | None = None
-    while recv is None:
+    got: Any = None
+    while got is None:
         fb = link.feedback()
         if fb.write_stamp != writes[-1][0]:
             writes.append((fb.write_stamp, float(fb.written[j])))
         try:
-            recv = out.get_nowait()
+            got = out.get_nowait()
         except Exception:
             time.sleep(200e-6)
-        if not proc.is_alive() and recv is None and out.empty():
+        if not proc.is_alive() and got is None and out.empty():
             raise RuntimeError(f"the producer process ended without a result (exit code {proc.exitcode})")
     proc.join(5)
+    recv, counts = got
     stamps = np.array([w[0] for w in writes])
     values = np.array([w[1] for w in writes])
     lat = []
@@ -181,7 +188,7 @@ def steady_latency(daemon, rate: float, steps: int, seed: int) -> list[float]:
         moved = np.nonzero(values[i:] != values[i - 1])[0]
         if len(moved):
             lat.append(stamps[i + moved[0]] - t_recv)
-    return lat
+    return lat, counts
 
 
 def throughput(daemon, seconds: float, batch: int) -> tuple[float, float]:
@@ -215,19 +222,23 @@ def main(argv: list[str] | None = None) -> int:
                              "daemon's own path with the emulated devices taking only the CPU it leaves")
     args = parser.parse_args(argv)
     emulators = demote_emulators(args.emulator_nice)
+    tmp = tempfile.TemporaryDirectory()
+    head = patient_head(Path(tmp.name) / "head" / "head.toml")
     frame = {"op": "stream", "id": 1, "channels": ["jaw"], "frames": [[0.0, 1.0]]}
     base = bare_push_pull(max(200, args.trials), frame)
     base_rate = bare_router_rate(args.seconds)
     # The jitter buffer's delay is part of the measured latency: 1 ms here (default 50 ms).
     steady: dict[bool, list[float]] = {}
+    late: dict[bool, dict[str, int]] = {}
     for lock in (False, True):
-        daemon = make_daemon(args.rate, True, **{"runtime.stream_delay_s": 0.001, "runtime.stream_phase_lock": lock})
+        daemon = make_daemon(args.rate, True, head_path=head,
+                             **{"runtime.stream_delay_s": 0.001, "runtime.stream_phase_lock": lock})
         try:
             time.sleep(0.5)
-            steady[lock] = steady_latency(daemon, args.rate, max(20, args.trials // 4), seed=2)
+            steady[lock], late[lock] = steady_latency(daemon, args.rate, max(20, args.trials // 4), seed=2)
         finally:
             daemon.stop()
-    daemon = make_daemon(args.rate, True, **{"runtime.stream_delay_s": 0.001})
+    daemon = make_daemon(args.rate, True, head_path=head, **{"runtime.stream_delay_s": 0.001})
     try:
         lat = stream_latency(daemon, args.trials)
         tp1 = throughput(daemon, args.seconds, 1)
@@ -243,9 +254,10 @@ def main(argv: list[str] | None = None) -> int:
     s50, s99 = pct(steady[True], 50) * 1e6, pct(steady[True], 99) * 1e6
     u50, u99 = pct(steady[False], 50) * 1e6, pct(steady[False], 99) * 1e6
     print(f"steady {args.rate:g} Hz stream, frame arrival -> bus write, phase lock on ({len(steady[True])} steps): "
-          f"p50 {s50:.0f} us, p99 {s99:.0f} us  (goal p99 <= 2000 us)")
+          f"p50 {s50:.0f} us, p99 {s99:.0f} us  (goal p99 <= 2000 us); frames late (lost) "
+          f"{late[True]['late']} of {late[True]['replies']}")
     print(f"  same stream, phase lock off ({len(steady[False])} steps): p50 {u50:.0f} us, p99 {u99:.0f} us  "
-          f"(lock on / off: p99 x{s99 / u99:.2f})")
+          f"(lock on / off: p99 x{s99 / u99:.2f}); frames late {late[False]['late']} of {late[False]['replies']}")
     print(f"single frames at random phases, arrival -> bus write at {args.rate:g} Hz ({len(lat)}/{args.trials} "
           f"trials): p50 {l50:.0f} us, p99 {l99:.0f} us  (x{l50 / b50:.1f} / x{l99 / b99:.1f} baseline; loop period "
           f"{period:.0f} us: p99 = {l99 / period:.2f} periods)")
