@@ -1,17 +1,22 @@
-"""Studio latency in headless Chromium: slider move → rendered skin change, against a page round trip, and E-stop.
+"""Studio latency in headless Chromium: slider move → rendered skin change, where the time goes, and E-stop.
 
 The studio runs on the sample head; Debian's Chromium (software WebGL, SwiftShader) loads its page through
-Playwright. Each trial presses a key on the jaw slider (End and Home in turn: the jaw's two limits) and measures, in
-the page, from the keydown to the first animation frame whose pixels in the face region differ (the WebGL canvas is
-read back with ``readPixels``; an init script asks for ``preserveDrawingBuffer`` so the last frame can be read at any
-time). The baseline, in the same run and page: a key on the Animate tab's time slider with an empty clip, from the
-keydown to the server's text reply appearing in the page (browser → server → browser, no mesh). The server's own
-share (prediction, strain bands and verdict: ``SkinView.frame``) is timed too. With ``--estop`` (default) a
-simulated daemon is started in a process of its own and the E-stop button is clicked: from the click event in the
-page to the daemon's ``estop`` event time (the page's wall clock and the daemon's monotonic clock related through
-this process's reading of both). Figures are medians; the goal is ≤ 50 ms slider-to-render on the sample head.
+Playwright. Each trial presses a key on the jaw slider (End and Home in turn: the jaw's two limits).
 
-Run: ``python benchmarks/studio_latency.py [--trials 30] [--no-estop]``.
+The figure: an in-page timeline (``TIMELINE_SCRIPT``) from the keydown through the message sent, the WebSocket frames
+in viser's worker, the decoded batch with the skin on the page, the vertex uploads and the draw call after the last
+of them, to the next animation frame (the frame with the new skin drawn and handed on); stages as medians and p90s.
+The server's share of a move is timed in ``Studio.set_pose`` (predict, bands, verdict, send).
+
+Cross-check and baseline, on a second page whose WebGL frames stay readable (``preserveDrawingBuffer``): from the
+keydown to the first animation frame whose face pixels differ (``readPixels`` every frame, which itself costs time),
+and a key on the Animate tab's time slider with an empty clip, from the keydown to the server's text reply in the
+page (browser → server → browser, no mesh). With the E-stop figure (default) a simulated daemon runs in a process of
+its own and the E-stop button is clicked: from the click event in the page to the daemon's ``estop`` event time
+(the page's wall clock and the daemon's monotonic clock related through this process's reading of both). The goal
+is ≤ 50 ms slider-to-render on the sample head.
+
+Run: ``python benchmarks/studio_latency.py [--trials 30] [--no-estop] [--chromium-arg=--disable-gpu-vsync ...]``.
 """
 
 from __future__ import annotations
@@ -33,20 +38,25 @@ GOAL_MS = 50.0
 CHROMIUM_ARGS = ("--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist",
                  "--no-sandbox", "--disable-dev-shm-usage")
 
-#: Runs before the page's scripts: WebGL contexts keep their last frame readable (for the pixel cross-check), and a
-#: timeline of what happens after a key is kept in ``window.__ev`` as [event, performance.now(), detail]: "key" (a
-#: keydown), "send" (the page hands a message to viser's WebSocket worker), "recv" (a batch of server messages
-#: arrives from the worker, decoded), "upload" (vertex-sized ``bufferData``/``bufferSubData``), "draw" (the first
-#: draw call after an upload) and "raf" (the animation frame after that draw: the drawn frame has been handed on).
-#: viser's WebSocket lives in a dedicated worker (it decompresses and decodes there), so its frames are taken from
-#: the DevTools protocol instead ("wsout"/"wsin", added by the benchmark).
-INIT_SCRIPT = """
+#: Run before the page's scripts. PRESERVE_SCRIPT (the pixel cross-check's page only): WebGL contexts keep their last
+#: frame readable, which costs a copy per frame. TIMELINE_SCRIPT: a timeline of what follows a key, in
+#: ``window.__ev`` as [event, performance.now(), detail]: "key" (a keydown), "send" (the page hands a message to
+#: viser's WebSocket worker), "wsout"/"wsin" (WebSocket frames sent and received in that worker, stamped by a wrapper
+#: worker and handed to the page with the next batch), "recv" (a decoded batch of server messages reaches the page),
+#: "upload" (vertex-sized ``bufferData``/``bufferSubData``), "draw" (the first draw call after an upload) and "raf"
+#: (the animation frame after that draw: the frame with the new skin has been drawn and handed on).
+PRESERVE_SCRIPT = """
 (() => {
   const orig = HTMLCanvasElement.prototype.getContext;
   HTMLCanvasElement.prototype.getContext = function (kind, attrs) {
     if (kind === "webgl" || kind === "webgl2") attrs = Object.assign({}, attrs || {}, {preserveDrawingBuffer: true});
     return orig.call(this, kind, attrs);
   };
+})();
+"""
+
+TIMELINE_SCRIPT = """
+(() => {
   const ev = window.__ev = [];
   window.__bigUpload = 1e12;  // bytes: uploads at least this large are vertex data (set by the benchmark)
   const now = () => performance.now();
@@ -260,6 +270,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--chromium", default="/usr/bin/chromium")
     ap.add_argument("--chromium-arg", action="append", default=[],
                     help="an extra Chromium flag (repeatable), e.g. --disable-gpu-vsync")
+    ap.add_argument("--viser-lighting", action="store_true",
+                    help="for comparison: viser's default scene lighting (shadow-casting lights, environment map) "
+                         "and shadow-casting skin meshes instead of the studio's")
     args = ap.parse_args(argv)
     if not Path(args.chromium).is_file():
         print(f"studio_latency: {args.chromium} not found (apt-get install -y chromium)")
@@ -287,6 +300,12 @@ def main(argv: list[str] | None = None) -> int:
             in_set_pose.append((time.perf_counter() - t0) * 1e3)
 
     studio.set_pose = timed_set_pose  # type: ignore[method-assign]
+    if args.viser_lighting:
+        studio.server.scene.configure_default_lights(enabled=True, cast_shadow=True)
+        studio.server.scene.configure_environment_map("warehouse")
+        for h in studio.view.handles:
+            h.cast_shadow, h.receive_shadow = True, True
+    print(f"scene lighting: {'viser default (shadows, environment map)' if args.viser_lighting else 'studio'}")
     n_vertices = head.predictor.n_vertices
     try:
         # The server's share: one pose's prediction, strain bands and verdict.
@@ -302,7 +321,7 @@ def main(argv: list[str] | None = None) -> int:
             browser = pw.chromium.launch(executable_path=args.chromium,
                                          args=[*CHROMIUM_ARGS, *args.chromium_arg])
             page = browser.new_page(viewport={"width": 1200, "height": 800})
-            page.add_init_script(INIT_SCRIPT)
+            page.add_init_script(TIMELINE_SCRIPT)
             page.set_default_timeout(120_000)
             page.goto(studio.url())
             slider = page.get_by_role("slider", name="jaw", exact=True)
@@ -338,6 +357,15 @@ def main(argv: list[str] | None = None) -> int:
                         stages.append(st)
             if args.trials and not stages:
                 print("no complete move; first events of the last:", page.evaluate("window.__ev")[:40])
+            page.close()
+            # The pixel cross-check and the baseline, on a page of their own whose WebGL frames stay readable.
+            page = browser.new_page(viewport={"width": 1200, "height": 800})
+            page.add_init_script(PRESERVE_SCRIPT)
+            page.set_default_timeout(120_000)
+            page.goto(studio.url())
+            slider = page.get_by_role("slider", name="jaw", exact=True)
+            slider.wait_for()
+            page.wait_for_timeout(3000)
             render, trip = [], []
             for i in range(args.trials + 2):  # the pixel cross-check and the baseline, two warm-up trials each
                 page.get_by_role("tab", name="Pose").click()
