@@ -13,7 +13,6 @@ import threading
 import time
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
 import viser
 
 from studio.arkit_csv import clip_from_live_link_csv
@@ -63,11 +62,13 @@ class AnimateTab:
                                                 hint="Delete the selected channel's key at this time")
             self.delete_button.on_click(lambda _: self.delete_key())
             self.keys_text = gui.add_markdown("")
-        self.plot = gui.add_uplot(
-            data=(np.array([0.0, 1.0]), np.array([np.nan, np.nan])), series=({"label": "t (s)"}, {"label": "-"}),
-            title="Timeline: every keyed channel, playhead", aspect=1.6, legend={"show": False},
-            scales={"x": {"time": False}})
-        self.tracks_text = gui.add_markdown("")
+        # The chart is made anew when the tracks change (the client's chart keeps the series it was made with);
+        # between, playhead and key moves only send new data.
+        self.timeline_folder = gui.add_folder("Timeline")
+        self.plot: Any = None
+        self._plot_series: tuple[tuple[dict, ...], dict] | None = None
+        with self.timeline_folder:
+            self.tracks_text = gui.add_markdown("", order=1.0)
         with gui.add_folder("Selected key"):
             self.key_pick = gui.add_dropdown("Key", options=(NO_KEY,), initial_value=NO_KEY,
                                              hint="A key of the selected channel")
@@ -189,8 +190,16 @@ class AnimateTab:
         chart = timeline_chart(doc, ranges, tuple(c.name for c in head.channels), float(self.time.max),
                                float(self.time.value), self._selected)
         with self.studio.server.atomic():
-            self.plot.series = chart.series
-            self.plot.data = chart.data
+            if self.plot is None or (chart.series, chart.scales) != self._plot_series:
+                if self.plot is not None:
+                    self.plot.remove()
+                with self.timeline_folder:
+                    self.plot = self.studio.server.gui.add_uplot(
+                        data=chart.data, series=chart.series, title="Every keyed channel, one row each; playhead",
+                        aspect=1.6, legend={"show": False}, scales=chart.scales, order=0.0)
+                self._plot_series = (chart.series, chart.scales)
+            else:
+                self.plot.data = chart.data
         self._last_playhead = time.monotonic()
         rows = []
         for ch in chart.tracks:

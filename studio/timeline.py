@@ -27,11 +27,17 @@ SAMPLES = 200
 
 @dataclass(frozen=True)
 class Chart:
-    """uPlot data (x first) and series for :class:`viser.GuiUplotHandle`, and the tracks top to bottom."""
+    """uPlot data (x first), series and scales for :class:`viser.GuiUplotHandle`, and the tracks top to bottom."""
 
     data: tuple[np.ndarray, ...]
     series: tuple[dict, ...]
     tracks: tuple[str, ...]
+
+    @property
+    def scales(self) -> dict:
+        """A fixed height (one unit per row): uPlot's automatic range would fail on the key series, which are NaN
+        (gaps) away from their keys."""
+        return {"x": {"time": False}, "y": {"auto": False, "range": [0.0, float(max(len(self.tracks), 1))]}}
 
 
 def track_order(doc: ClipDoc, channel_order: tuple[str, ...]) -> tuple[str, ...]:

@@ -76,5 +76,6 @@ def test_the_timeline_has_a_row_per_track_keys_the_selected_key_and_the_playhead
     assert x[sel] == pytest.approx(1.5) and selected[sel] == pytest.approx(row_y(0.0, 1, 2, 0.0, 1.0))
     ph = np.flatnonzero(np.isfinite(playhead))
     assert list(x[ph]) == [1.25, 1.25] and list(playhead[ph]) == [0.0, 2.0]  # a vertical line across both rows
+    assert chart.scales["y"] == {"auto": False, "range": [0.0, 2.0]}  # fixed: the key series are mostly gaps
     with pytest.raises(ValueError, match="length"):
         timeline_chart(doc, RANGES, ORDER, end=0.0, playhead=0.0)
