@@ -182,6 +182,8 @@ def test_select_a_key_on_the_timeline_and_move_it(page: Any, studio: Any, image_
     assert wait_until(lambda: studio.doc.tracks["jaw"].keys[1].value == 4.0, 30)
     page.get_by_role("button", name="Later", exact=True).click()  # one preview frame later
     assert wait_until(lambda: studio.doc.key_times("jaw")[1] == pytest.approx(1.5 + 1 / 30), 30)
+    value_box = page.get_by_role("textbox", name="Key value", exact=True)
+    assert wait_until(lambda: value_box.input_value() == "4", 30), value_box.input_value()
     page.get_by_text("Every keyed channel, one row each").scroll_into_view_if_needed()
     page.screenshot(path=str(image_dir / "studio-timeline.png"))
     page.get_by_role("button", name="Save clip").click()
