@@ -1,17 +1,22 @@
-"""Studio latency in headless Chromium: slider move → rendered skin change, against a page round trip, and E-stop.
+"""Studio latency in headless Chromium: slider move → rendered skin change, where the time goes, and E-stop.
 
 The studio runs on the sample head; Debian's Chromium (software WebGL, SwiftShader) loads its page through
-Playwright. Each trial presses a key on the jaw slider (End and Home in turn: the jaw's two limits) and measures, in
-the page, from the keydown to the first animation frame whose pixels in the face region differ (the WebGL canvas is
-read back with ``readPixels``; an init script asks for ``preserveDrawingBuffer`` so the last frame can be read at any
-time). The baseline, in the same run and page: a key on the Animate tab's time slider with an empty clip, from the
-keydown to the server's text reply appearing in the page (browser → server → browser, no mesh). The server's own
-share (prediction, strain bands and verdict: ``SkinView.frame``) is timed too. With ``--estop`` (default) a
-simulated daemon is started in a process of its own and the E-stop button is clicked: from the click event in the
-page to the daemon's ``estop`` event time (the page's wall clock and the daemon's monotonic clock related through
-this process's reading of both). Figures are medians; the goal is ≤ 50 ms slider-to-render on the sample head.
+Playwright. Each trial presses a key on the jaw slider (End and Home in turn: the jaw's two limits).
 
-Run: ``python benchmarks/studio_latency.py [--trials 30] [--no-estop]``.
+The figure: an in-page timeline (``TIMELINE_SCRIPT``) from the keydown through the message sent, the WebSocket frames
+in viser's worker, the decoded batch with the skin on the page, the vertex uploads and the draw call after the last
+of them, to the next animation frame (the frame with the new skin drawn and handed on); stages as medians and p90s.
+The server's share of a move is timed in ``Studio.set_pose`` (predict, bands, verdict, send).
+
+Cross-check and baseline, on a second page whose WebGL frames stay readable (``preserveDrawingBuffer``): from the
+keydown to the first animation frame whose face pixels differ (``readPixels`` every frame, which itself costs time),
+and a key on the Animate tab's time slider with an empty clip, from the keydown to the server's text reply in the
+page (browser → server → browser, no mesh). With the E-stop figure (default) a simulated daemon runs in a process of
+its own and the E-stop button is clicked: from the click event in the page to the daemon's ``estop`` event time
+(the page's wall clock and the daemon's monotonic clock related through this process's reading of both). The goal
+is ≤ 50 ms slider-to-render on the sample head.
+
+Run: ``python benchmarks/studio_latency.py [--trials 30] [--no-estop] [--chromium-arg=--disable-gpu-vsync ...]``.
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -32,14 +38,86 @@ GOAL_MS = 50.0
 CHROMIUM_ARGS = ("--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist",
                  "--no-sandbox", "--disable-dev-shm-usage")
 
-#: Runs before the page's scripts: WebGL contexts keep their last frame readable.
-INIT_SCRIPT = """
+#: Run before the page's scripts. PRESERVE_SCRIPT (the pixel cross-check's page only): WebGL contexts keep their last
+#: frame readable, which costs a copy per frame. TIMELINE_SCRIPT: a timeline of what follows a key, in
+#: ``window.__ev`` as [event, performance.now(), detail]: "key" (a keydown), "send" (the page hands a message to
+#: viser's WebSocket worker), "wsout"/"wsin" (WebSocket frames sent and received in that worker, stamped by a wrapper
+#: worker and handed to the page with the next batch), "recv" (a decoded batch of server messages reaches the page),
+#: "upload" (vertex-sized ``bufferData``/``bufferSubData``), "draw" (the first draw call after an upload) and "raf"
+#: (the animation frame after that draw: the frame with the new skin has been drawn and handed on).
+PRESERVE_SCRIPT = """
 (() => {
   const orig = HTMLCanvasElement.prototype.getContext;
   HTMLCanvasElement.prototype.getContext = function (kind, attrs) {
     if (kind === "webgl" || kind === "webgl2") attrs = Object.assign({}, attrs || {}, {preserveDrawingBuffer: true});
     return orig.call(this, kind, attrs);
   };
+})();
+"""
+
+TIMELINE_SCRIPT = """
+(() => {
+  const ev = window.__ev = [];
+  window.__bigUpload = 1e12;  // bytes: uploads at least this large are vertex data (set by the benchmark)
+  const now = () => performance.now();
+  document.addEventListener("keydown", () => ev.push(["key", now(), null]), {capture: true});
+  const W = window.Worker;
+  const post = W.prototype.postMessage;
+  W.prototype.postMessage = function (data, ...rest) {
+    if (data && data.type === "send") ev.push(["send", now(), data.message && data.message.type]);
+    return post.call(this, data, ...rest);
+  };
+  // The WebSocket lives in viser's worker: a wrapper worker stamps its frames (wall clock) and hands the stamps
+  // to the page with the next decoded batch.
+  const tap = `
+    const stamps = [];
+    const wall = () => performance.timeOrigin + performance.now();
+    const send = WebSocket.prototype.send;
+    WebSocket.prototype.send = function (d) { stamps.push(["wsout", wall(), 0]); return send.call(this, d); };
+    const om = Object.getOwnPropertyDescriptor(WebSocket.prototype, "onmessage");
+    Object.defineProperty(WebSocket.prototype, "onmessage", {configurable: true, get() { return om.get.call(this); },
+      set(fn) { om.set.call(this, function (e) { stamps.push(["wsin", wall(), e.data.size || e.data.byteLength || 0]);
+                                                 return fn.call(this, e); }); }});
+    const post = self.postMessage.bind(self);
+    self.postMessage = (d, tr) => { if (d && d.type === "message_batch") d.__stamps = stamps.splice(0);
+                                    return post(d, tr); };`;
+  window.Worker = class extends W {
+    constructor(url, opts) {
+      const module = opts && opts.type === "module";
+      const src = tap + (module ? `\nimport(${JSON.stringify(String(url))});`
+                                : `\nimportScripts(${JSON.stringify(String(url))});`);
+      super(URL.createObjectURL(new Blob([src], {type: "text/javascript"})), opts);
+      this.addEventListener("message", (e) => {
+        const d = e.data;
+        if (!d || d.type !== "message_batch") return;
+        for (const [k, t, n] of d.__stamps || []) ev.push([k, t - performance.timeOrigin, n]);
+        ev.push(["recv", now(), d.messages.map((m) => m.type + (m.name ? ":" + m.name : ""))]);
+      });
+    }
+  };
+  let armed = false;
+  for (const C of [window.WebGLRenderingContext, window.WebGL2RenderingContext]) {
+    if (!C) continue;
+    for (const fn of ["bufferData", "bufferSubData"]) {
+      const o = C.prototype[fn];
+      C.prototype[fn] = function (target, data, ...rest) {
+        const n = data && data.byteLength !== undefined ? data.byteLength : 0;
+        if (n >= window.__bigUpload) { ev.push(["upload", now(), n]); armed = true; }
+        return o.call(this, target, data, ...rest);
+      };
+    }
+    for (const fn of ["drawElements", "drawArrays"]) {
+      const o = C.prototype[fn];
+      C.prototype[fn] = function (...args) {
+        if (armed) {
+          armed = false;
+          ev.push(["draw", now(), fn]);
+          requestAnimationFrame(() => ev.push(["raf", now(), null]));
+        }
+        return o.apply(this, args);
+      };
+    }
+  }
 })();
 """
 
@@ -93,6 +171,61 @@ def _median(xs: list[float]) -> float:
     return statistics.median(good) if good else float("nan")
 
 
+def _p90(xs: list[float]) -> float:
+    import numpy as np
+
+    good = [x for x in xs if x >= 0]
+    return float(np.percentile(good, 90)) if good else float("nan")
+
+
+#: The stages of a slider move, in order, as (label, from event, to event) over :func:`_stages`' event times.
+STAGES = (("key → message handed to the WebSocket worker", "key", "send"),
+          ("worker → frame sent", "send", "wsout"),
+          ("frame sent → skin frame received (server, loopback)", "wsout", "wsin"),
+          ("worker: decompress, decode, pace → batch on the page", "wsin", "recv"),
+          ("  (message handed on → skin batch on the page, all of the above)", "send", "recv"),
+          ("batch → first vertex upload (viser frame clock, React commit)", "recv", "upload0"),
+          ("first → last vertex upload", "upload0", "upload"),
+          ("last upload → its draw call", "upload", "draw"),
+          ("draw → next animation frame (frame handed on)", "draw", "raf"))
+
+
+def _stages(ev: list[list]) -> dict[str, float] | None:
+    """Event times (page ms) of one slider move: the key, the message out, the skin's batch back, its uploads, the
+    draw after the last upload and the animation frame after that draw; None when the move did not complete."""
+    def first(name: str, after: float, pred: Any = None) -> float | None:
+        for e in ev:
+            if e[0] == name and e[1] >= after and (pred is None or pred(e[2])):
+                return float(e[1])
+        return None
+
+    out: dict[str, float] = {}
+    key = first("key", -1e18)
+    if key is None:
+        return None
+    send = first("send", key, lambda d: d == "GuiUpdateMessage")
+    if send is None:
+        return None
+    recv = first("recv", send, lambda d: any("/skin/" in m for m in d))
+    if recv is None:
+        return None
+    uploads = [float(e[1]) for e in ev if e[0] == "upload" and e[1] >= recv]
+    if not uploads:
+        return None
+    draw = first("draw", uploads[-1])
+    raf = first("raf", draw) if draw is not None else None
+    if raf is None:
+        return None
+    out.update(key=key, send=send, recv=recv, upload0=uploads[0], upload=uploads[-1], draw=draw, raf=raf)
+    wsout = first("wsout", send)
+    if wsout is not None:  # the frame that brought the skin: the largest received between the send and the batch
+        ins = [e for e in ev if e[0] == "wsin" and wsout <= e[1] <= recv]
+        if ins:
+            out.update(wsout=wsout, wsin=float(max(ins, key=lambda e: e[2])[1]))
+    out["uploads"] = float(len(uploads))
+    return out
+
+
 def _load_average() -> str:
     try:
         return " ".join(Path("/proc/loadavg").read_text().split()[:3])
@@ -135,6 +268,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--trials", type=int, default=30)
     ap.add_argument("--no-estop", action="store_true", help="skip the E-stop figure (no daemon started)")
     ap.add_argument("--chromium", default="/usr/bin/chromium")
+    ap.add_argument("--chromium-arg", action="append", default=[],
+                    help="an extra Chromium flag (repeatable), e.g. --disable-gpu-vsync")
+    ap.add_argument("--viser-lighting", action="store_true",
+                    help="for comparison: viser's default scene lighting (shadow-casting lights, environment map) "
+                         "and shadow-casting skin meshes instead of the studio's")
     args = ap.parse_args(argv)
     if not Path(args.chromium).is_file():
         print(f"studio_latency: {args.chromium} not found (apt-get install -y chromium)")
@@ -146,10 +284,29 @@ def main(argv: list[str] | None = None) -> int:
     from studio.head import StudioHead
 
     print(f"load average before: {_load_average()}")
+    print(f"chromium flags: {' '.join((*CHROMIUM_ARGS, *args.chromium_arg))}")
     daemon = None if args.no_estop else _start_daemon()
     head = StudioHead.load(SAMPLE)
     studio = Studio(head, StudioOptions(port=0, daemon=daemon[1] if daemon else None,
                                         telemetry=daemon[2] if daemon else None))
+    # The server's share of a page slider move: the pose handler from the pose to the flushed messages.
+    set_pose, in_set_pose = studio.set_pose, []
+
+    def timed_set_pose(*a: Any, **kw: Any) -> Any:
+        t0 = time.perf_counter()
+        try:
+            return set_pose(*a, **kw)
+        finally:
+            in_set_pose.append((time.perf_counter() - t0) * 1e3)
+
+    studio.set_pose = timed_set_pose  # type: ignore[method-assign]
+    if args.viser_lighting:
+        studio.server.scene.configure_default_lights(enabled=True, cast_shadow=True)
+        studio.server.scene.configure_environment_map("warehouse")
+        for h in studio.view.handles:
+            h.cast_shadow, h.receive_shadow = True, True
+    print(f"scene lighting: {'viser default (shadows, environment map)' if args.viser_lighting else 'studio'}")
+    n_vertices = head.predictor.n_vertices
     try:
         # The server's share: one pose's prediction, strain bands and verdict.
         jaw = head.names.index("jaw")
@@ -161,16 +318,56 @@ def main(argv: list[str] | None = None) -> int:
             studio.skin.frame(poses[i % 2])
             server.append((time.perf_counter() - t0) * 1e3)
         with sync_playwright() as pw:
-            browser = pw.chromium.launch(executable_path=args.chromium, args=list(CHROMIUM_ARGS))
+            browser = pw.chromium.launch(executable_path=args.chromium,
+                                         args=[*CHROMIUM_ARGS, *args.chromium_arg])
             page = browser.new_page(viewport={"width": 1200, "height": 800})
-            page.add_init_script(INIT_SCRIPT)
+            page.add_init_script(TIMELINE_SCRIPT)
+            page.set_default_timeout(120_000)
+            page.goto(studio.url())
+            slider = page.get_by_role("slider", name="jaw", exact=True)
+            slider.wait_for()
+            page.wait_for_timeout(3000)
+            page.evaluate(f"window.__bigUpload = {n_vertices * 12}")  # one float32 xyz per vertex
+            # The page's idle frame clock: intervals between animation frames over one second.
+            frame_ms = page.evaluate("""() => new Promise((resolve) => { const ts = [];
+                const f = (t) => { ts.push(t); if (ts.length < 61) requestAnimationFrame(f);
+                                   else resolve(ts.slice(1).map((x, i) => x - ts[i])); };
+                requestAnimationFrame(f); })""")
+            stages: list[dict[str, float]] = []
+            incomplete = 0
+            page.get_by_role("tab", name="Pose").click()
+            for i in range(args.trials + 2):  # two warm-up trials
+                slider.focus()
+                page.wait_for_timeout(300)
+                page.evaluate("window.__ev.length = 0")
+                page.keyboard.press("End" if i % 2 == 0 else "Home")
+                st = None
+                end = time.monotonic() + 10
+                while time.monotonic() < end:
+                    page.wait_for_timeout(200)
+                    st = _stages(page.evaluate("window.__ev"))
+                    if st is not None:
+                        page.wait_for_timeout(300)  # later uploads of the same move, if any
+                        st = _stages(page.evaluate("window.__ev"))
+                        break
+                if i >= 2:
+                    if st is None:
+                        incomplete += 1
+                    else:
+                        stages.append(st)
+            if args.trials and not stages:
+                print("no complete move; first events of the last:", page.evaluate("window.__ev")[:40])
+            page.close()
+            # The pixel cross-check and the baseline, on a page of their own whose WebGL frames stay readable.
+            page = browser.new_page(viewport={"width": 1200, "height": 800})
+            page.add_init_script(PRESERVE_SCRIPT)
             page.set_default_timeout(120_000)
             page.goto(studio.url())
             slider = page.get_by_role("slider", name="jaw", exact=True)
             slider.wait_for()
             page.wait_for_timeout(3000)
             render, trip = [], []
-            for i in range(args.trials + 2):  # two warm-up trials each
+            for i in range(args.trials + 2):  # the pixel cross-check and the baseline, two warm-up trials each
                 page.get_by_role("tab", name="Pose").click()
                 slider.focus()
                 page.wait_for_timeout(300)
@@ -208,16 +405,30 @@ def main(argv: list[str] | None = None) -> int:
         if daemon is not None:
             daemon[0].terminate()
             daemon[0].wait(timeout=30)
+    print(f"sample head: {n_vertices} vertices, {len(studio.skin.faces)} triangles; {args.trials} trials")
+    print(f"page frame clock while idle: median {_median(frame_ms):.1f} ms between animation frames "
+          f"(p90 {_p90(frame_ms):.1f} ms)")
+    total = [s["raf"] - s["key"] for s in stages]
+    print(f"in-page timeline, {len(stages)} complete moves ({incomplete} incomplete within 10 s), "
+          f"median / p90 ms:")
+    for label, a, b in STAGES:
+        xs = [s[b] - s[a] for s in stages if a in s and b in s]
+        if xs:
+            print(f"  {label:<62} {_median(xs):7.1f} / {_p90(xs):7.1f}   (n={len(xs)})")
+        else:
+            print(f"  {label:<62}     n/a (no WebSocket timestamps from the worker)")
+    if stages:
+        print(f"  vertex uploads per move: median {_median([s['uploads'] for s in stages]):.0f}")
+    print(f"  {'total: key → frame with the new skin drawn and handed on':<62} {_median(total):7.1f} / "
+          f"{_p90(total):7.1f}   goal ≤ {GOAL_MS:.0f} ms: {'met' if _median(total) <= GOAL_MS else 'NOT met'}")
+    print(f"  server: set_pose (predict, bands, verdict, send) median {_median(in_set_pose):.2f} ms "
+          f"(p90 {_p90(in_set_pose):.2f} ms); SkinView.frame alone median {float(np.median(server)):.2f} ms")
     failed = sum(x < 0 for x in render) + sum(x < 0 for x in trip)
-    r, b, s = _median(render), _median(trip), float(np.median(server))
-    print(f"sample head: {head.predictor.n_vertices} vertices, {len(studio.skin.faces)} triangles; "
-          f"{args.trials} trials; {failed} without a change within 10 s")
-    p90 = float(np.percentile([x for x in render if x >= 0] or [np.nan], 90))
-    print(f"slider → rendered skin change: median {r:.1f} ms (p90 {p90:.1f} ms); goal ≤ {GOAL_MS:.0f} ms: "
-          f"{'met' if r <= GOAL_MS else 'NOT met'}")
-    print(f"baseline, page round trip without a mesh (slider → server → text): median {b:.1f} ms")
-    print(f"ratio render / round trip: {r / b:.2f}")
-    print(f"server share (predict + strain bands + verdict): median {s:.2f} ms")
+    r, b = _median(render), _median(trip)
+    print(f"cross-check by pixels (readPixels every frame; {failed} without a change within 10 s):")
+    print(f"  slider → face pixels changed: median {r:.1f} ms (p90 {_p90(render):.1f} ms)")
+    print(f"  baseline, page round trip without a mesh (slider → server → text): median {b:.1f} ms")
+    print(f"  ratio pixels / round trip: {r / b:.2f}; in-page total / round trip: {_median(total) / b:.2f}")
     if daemon is not None:
         print(f"E-stop click → daemon estop event: {estop_ms:.1f} ms (goal ≤ 100 ms)" if estop_ms is not None
               else "E-stop: no estop event within 10 s")

@@ -2,7 +2,9 @@
 
 The clip is :class:`studio.clipdoc.ClipDoc` (the protocol's clip schema). "Key channel" keys the selected channel's
 present value (from the Pose tab) at the time slider's time; "Key pose" keys every actuator. Scrubbing and preview
-show the clip's pose on the predicted skin; the plot shows the selected channel's curve and its keys.
+show the clip's pose on the predicted skin. The timeline chart shows every keyed channel as a track with its keys, the
+selected key and the playhead; the "Selected key" controls pick a key of the selected channel and move it in time
+and value (typed or nudged a frame at a time) and set a Bezier key's handles.
 """
 
 from __future__ import annotations
@@ -11,19 +13,23 @@ import threading
 import time
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
 import viser
 
 from studio.arkit_csv import clip_from_live_link_csv
 from studio.clipdoc import ClipDoc, ClipError
+from studio.timeline import timeline_chart
 
 if TYPE_CHECKING:
     from studio.app import Studio
 
 #: Preview frame rate (Hz): the page's pose updates while a clip previews.
 PREVIEW_HZ = 30.0
-#: Samples of the curve plot.
-PLOT_SAMPLES = 200
+#: Time step of the nudge buttons (s): one preview frame.
+NUDGE_S = 1.0 / PREVIEW_HZ
+#: Playhead redraws of the timeline while the time moves (Hz): the chart carries every track.
+PLAYHEAD_HZ = 5.0
+#: The key dropdown's entry when the selected channel has no keys.
+NO_KEY = "(no keys)"
 
 
 class AnimateTab:
@@ -56,11 +62,34 @@ class AnimateTab:
                                                 hint="Delete the selected channel's key at this time")
             self.delete_button.on_click(lambda _: self.delete_key())
             self.keys_text = gui.add_markdown("")
-        self.plot = gui.add_uplot(
-            data=(np.array([0.0, 1.0]), np.array([0.0, 0.0]), np.array([np.nan, np.nan])),
-            series=({"label": "t (s)"}, {"label": "curve", "stroke": "#1f77b4", "width": 2},
-                    {"label": "keys", "stroke": "#d62728", "width": 0, "points": {"show": True, "size": 8}}),
-            title="Selected channel", aspect=1.6, scales={"x": {"time": False}})
+        # The chart is made anew when the tracks change (the client's chart keeps the series it was made with);
+        # between, playhead and key moves only send new data.
+        self.timeline_folder = gui.add_folder("Timeline")
+        self.plot: Any = None
+        self._plot_series: tuple[tuple[dict, ...], dict] | None = None
+        with self.timeline_folder:
+            self.tracks_text = gui.add_markdown("", order=1.0)
+        with gui.add_folder("Selected key"):
+            self.key_pick = gui.add_dropdown("Key", options=(NO_KEY,), initial_value=NO_KEY,
+                                             hint="A key of the selected channel")
+            self.key_pick.on_update(self._on_pick)
+            self.key_t = gui.add_number("Key time (s)", initial_value=0.0, min=0.0, max=3600.0, step=0.001)
+            self.key_t.on_update(self._on_key_edit)
+            self.key_v = gui.add_number("Key value", initial_value=0.0, step=0.0001)
+            self.key_v.on_update(self._on_key_edit)
+            self.earlier_button = gui.add_button("Earlier", icon=viser.Icon.PLAYER_TRACK_PREV,
+                                                 hint="Move the selected key one frame earlier")
+            self.earlier_button.on_click(lambda _: self.nudge_key(-NUDGE_S))
+            self.later_button = gui.add_button("Later", icon=viser.Icon.PLAYER_TRACK_NEXT,
+                                               hint="Move the selected key one frame later")
+            self.later_button.on_click(lambda _: self.nudge_key(NUDGE_S))
+            self.handle_boxes = tuple(gui.add_number(label, initial_value=0.0, step=0.001, visible=False)
+                                      for label in ("In dt (s)", "In dv", "Out dt (s)", "Out dv"))
+            for box in self.handle_boxes:
+                box.on_update(self._on_handles)
+            self.key_text = gui.add_markdown("")
+        self._selected: tuple[str, int] | None = None
+        self._last_playhead = 0.0
         with gui.add_folder("Preview"):
             self.play_button = gui.add_button("Play preview", icon=viser.Icon.PLAYER_PLAY)
             self.play_button.on_click(lambda _: self.play())
@@ -150,14 +179,128 @@ class AnimateTab:
                                   + ", ".join(f"{t:.2f} s" for t in times[:12]) + (" …" if len(times) > 12 else "")
                                   if track else f"`{ch}` has no keys. Clip: {len(doc.tracks)} channel(s), "
                                                 f"{doc.duration:.2f} s.")
-        end = float(self.time.max)
-        x = np.union1d(np.linspace(0.0, end, PLOT_SAMPLES), np.asarray(times, dtype=np.float64))
-        curve = doc.curves().get(ch)
-        y = np.array([curve.value(t) for t in x]) if curve else np.full(len(x), self.present_value(ch))
-        keys = np.full(len(x), np.nan)
-        for t in times:
-            keys[np.argmin(np.abs(x - t))] = curve.value(t) if curve else np.nan
-        self.plot.data = (x, y, keys)
+        self._sync_key_controls()
+        self.draw_timeline()
+
+    def draw_timeline(self) -> None:
+        """Redraw the timeline chart (every track, the selected key, the playhead)."""
+        head = self.studio.head
+        doc = self.studio.doc
+        ranges = {c.name: (c.min, c.max) for c in head.channels}
+        chart = timeline_chart(doc, ranges, tuple(c.name for c in head.channels), float(self.time.max),
+                               float(self.time.value), self._selected)
+        with self.studio.server.atomic():
+            if self.plot is None or (chart.series, chart.scales) != self._plot_series:
+                if self.plot is not None:
+                    self.plot.remove()
+                with self.timeline_folder:
+                    self.plot = self.studio.server.gui.add_uplot(
+                        data=chart.data, series=chart.series, title="Every keyed channel, one row each; playhead",
+                        aspect=1.6, legend={"show": False}, scales=chart.scales, order=0.0)
+                self._plot_series = (chart.series, chart.scales)
+            else:
+                self.plot.data = chart.data
+        self._last_playhead = time.monotonic()
+        rows = []
+        for ch in chart.tracks:
+            tr = doc.tracks[ch]
+            keys = ", ".join(("**" if self._selected == (ch, i) else "") + f"{k.t:.2f} s"
+                             + ("**" if self._selected == (ch, i) else "") for i, k in enumerate(tr.keys[:8]))
+            rows.append(f"- `{ch}` ({tr.interp}): {keys}{' …' if len(tr.keys) > 8 else ''}")
+        self.tracks_text.content = ("Tracks, top to bottom:\n" + "\n".join(rows)) if rows else "No tracks yet."
+
+    # ------------------------------------------------------------------ selected key
+    def _key_label(self, i: int, t: float) -> str:
+        return f"#{i + 1} at {t:.3f} s"
+
+    def _sync_key_controls(self) -> None:
+        """The key dropdown lists the selected channel's keys; the number boxes show the selected key."""
+        doc = self.studio.doc
+        ch = str(self.channel.value)
+        track = doc.tracks.get(ch)
+        if track is None:
+            self._selected = None
+            self.key_pick.options = (NO_KEY,)
+            self.key_pick.value = NO_KEY
+            for box in self.handle_boxes:
+                box.visible = False
+            return
+        if self._selected is None or self._selected[0] != ch or self._selected[1] >= len(track.keys):
+            self._selected = (ch, 0)
+        i = self._selected[1]
+        self.key_pick.options = tuple(self._key_label(j, k.t) for j, k in enumerate(track.keys))
+        self.key_pick.value = self._key_label(i, track.keys[i].t)
+        key = track.keys[i]
+        self.key_t.value = round(key.t, 6)
+        self.key_v.value = round(key.value, 6)
+        bezier = track.interp == "bezier"
+        for box in self.handle_boxes:
+            box.visible = bezier
+        if bezier:
+            for box, h in zip(self.handle_boxes, doc.handles(ch, i), strict=True):
+                box.value = round(h, 6)
+
+    def _on_pick(self, event: viser.GuiEvent) -> None:
+        if event.client_id is None or str(self.key_pick.value) == NO_KEY:
+            return
+        ch = str(self.channel.value)
+        labels = [self._key_label(j, t) for j, t in enumerate(self.studio.doc.key_times(ch))]
+        if str(self.key_pick.value) in labels:
+            self.select_key(ch, labels.index(str(self.key_pick.value)))
+
+    def select_key(self, channel: str, index: int) -> None:
+        """Select key ``index`` of ``channel`` and move the playhead to it (the skin shows the clip there)."""
+        t = self.studio.doc.key_times(channel)[index]
+        self._selected = (channel, index)
+        if t > float(self.time.max):
+            self.time.max = round(t, 3)
+        self.time.value = round(t, 3)
+        self.key_text.content = ""
+        self.redraw()
+        self.show_time(float(self.time.value))
+
+    def move_selected(self, t: float, value: float) -> None:
+        """Move the selected key to time ``t`` and ``value`` (refusals are shown beside the controls)."""
+        if self._selected is None:
+            self.key_text.content = "**No key selected**: the selected channel has no keys."
+            return
+        ch, i = self._selected
+        try:
+            j = self.studio.doc.move_key(ch, i, round(t, 6), value)
+        except ClipError as exc:
+            self.key_text.content = f"**Not moved**: {exc}"
+            self.redraw()
+            return
+        self._selected = (ch, j)
+        self.key_text.content = f"Moved `{ch}` key to {t:.3f} s, value {value:.4g}."
+        self.redraw()
+
+    def nudge_key(self, dt: float) -> None:
+        if self._selected is None:
+            self.key_text.content = "**No key selected**: the selected channel has no keys."
+            return
+        ch, i = self._selected
+        key = self.studio.doc.tracks[ch].keys[i]
+        self.move_selected(max(0.0, key.t + dt), key.value)
+
+    def _on_key_edit(self, event: viser.GuiEvent) -> None:
+        if event.client_id is None:
+            return
+        self.move_selected(float(self.key_t.value), float(self.key_v.value))
+
+    def _on_handles(self, event: viser.GuiEvent) -> None:
+        if event.client_id is None or self._selected is None:
+            return
+        ch, i = self._selected
+        h = tuple(float(b.value) for b in self.handle_boxes)
+        try:
+            self.studio.doc.set_handles(ch, i, (h[0], h[1], h[2], h[3]))
+        except ClipError as exc:
+            self.key_text.content = f"**Handles not set**: {exc}"
+            self.redraw()
+            return
+        self.key_text.content = f"Set `{ch}` key #{i + 1}'s handles."
+        self.redraw()
 
     def _on_scrub(self, event: viser.GuiEvent) -> None:
         if event.client_id is None:
@@ -169,6 +312,8 @@ class AnimateTab:
         values = self.studio.doc.sample(t)
         ch = str(self.channel.value)
         self.scrub_text.content = f"t = {t:.2f} s" + (f" · `{ch}` = {values[ch]:.3g}" if ch in values else "")
+        if not self._playing.is_set() or time.monotonic() - self._last_playhead >= 1.0 / PLAYHEAD_HZ:
+            self.draw_timeline()  # the playhead (throttled while the preview plays)
         if not values:
             return
         p = self.studio.head.pose_from_channels(values, self.studio.p)
@@ -211,6 +356,7 @@ class AnimateTab:
             self.show_time(t)
             time.sleep(max(0.0, 1.0 / PREVIEW_HZ - (time.monotonic() - start - t)))
         self._playing.clear()
+        self.draw_timeline()  # the playhead where the preview stopped
 
     # ------------------------------------------------------------------ files
     def save(self, client: Any = None) -> None:

@@ -62,6 +62,9 @@ class Studio:
                                         show_share_button=False, dark_mode=False)
         self.server.gui.main_panel.dock_right()
         self.server.scene.set_up_direction("+y")
+        # No shadows: a face lit from the front gains little from them, and viser's shadow-casting default lights
+        # (cascaded shadow maps) multiply the cost of every frame in a software renderer.
+        self.server.scene.configure_default_lights(enabled=True, cast_shadow=False)
         self._setup_camera()
         self.server.scene.add_light_directional("/light", color=(255, 255, 255), intensity=2.0,
                                                 position=(0.0, 1.0, 1.0))

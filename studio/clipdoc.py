@@ -107,6 +107,52 @@ class ClipDoc:
             self._changed()
         return removed
 
+    def move_key(self, channel: str, index: int, t: float, value: float) -> int:
+        """Move key ``index`` of ``channel`` to time ``t`` and ``value``; returns its index after the move (keys stay
+        sorted). Refused when another key of the channel already sits at ``t``."""
+        track, key = self._key(channel, index)
+        if not math.isfinite(t) or t < 0:
+            raise ClipError(f"key time must be a finite number >= 0 s, got {t!r}")
+        if not math.isfinite(value):
+            raise ClipError(f"key value for {channel!r} must be finite, got {value!r}")
+        for other in track.keys:
+            if other is not key and abs(other.t - t) <= TIME_EPS:
+                raise ClipError(f"{channel!r} already has a key at {t:.3f} s: delete it first or choose another time")
+        key.t, key.value = float(t), float(value)
+        track.keys.sort(key=lambda k: k.t)
+        self._changed()
+        return track.keys.index(key)
+
+    def handles(self, channel: str, index: int) -> tuple[float, float, float, float]:
+        """Key ``index``'s Bezier handles (in_dt, in_dv, out_dt, out_dv) as the clip uses them (auto or set)."""
+        track, _ = self._key(channel, index)
+        if track.interp != "bezier":
+            raise ClipError(f"channel {channel!r} is {track.interp}, not bezier: its keys have no handles")
+        row = track.rows()[index]
+        return (row[2], row[3], row[4], row[5])
+
+    def set_handles(self, channel: str, index: int, handles: tuple[float, float, float, float]) -> None:
+        """Set key ``index``'s Bezier handles (in_dt <= 0 <= out_dt, as the clip schema requires); they stay as set
+        when neighbouring keys move."""
+        track, key = self._key(channel, index)
+        if track.interp != "bezier":
+            raise ClipError(f"channel {channel!r} is {track.interp}, not bezier: set its interpolation to bezier first")
+        h = tuple(float(x) for x in handles)
+        if len(h) != 4 or not all(math.isfinite(x) for x in h):
+            raise ClipError(f"handles must be four finite numbers (in_dt, in_dv, out_dt, out_dv), got {handles!r}")
+        if h[0] > 0 or h[2] < 0:
+            raise ClipError(f"handles need in_dt <= 0 <= out_dt (got in_dt={h[0]!r}, out_dt={h[2]!r})")
+        key.handles = (h[0], h[1], h[2], h[3])
+        self._changed()
+
+    def _key(self, channel: str, index: int) -> tuple[Track, Key]:
+        track = self.tracks.get(channel)
+        if track is None:
+            raise ClipError(f"channel {channel!r} has no keys in clip {self.name!r}")
+        if not 0 <= index < len(track.keys):
+            raise ClipError(f"channel {channel!r} has {len(track.keys)} key(s): no key #{index + 1}")
+        return track, track.keys[index]
+
     def set_interp(self, channel: str, interp: str) -> None:
         track = self.tracks.get(channel)
         if track is None:

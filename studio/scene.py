@@ -25,9 +25,14 @@ class BandedSkin:
         pos = np.asarray(positions, dtype=np.float32)
         for b in range(n_bands):
             h = server.scene.add_mesh_simple(f"/skin/band{b}", pos, self._faces[:1], color=(200, 200, 200),
-                                             side="double", visible=False)
+                                             side="double", visible=False, cast_shadow=False, receive_shadow=False)
             self._handles.append(h)
         self._shown: list[np.ndarray | None] = [None] * n_bands
+
+    @property
+    def handles(self) -> tuple[viser.MeshHandle, ...]:
+        """The band meshes, in band order."""
+        return tuple(self._handles)
 
     def show(self, positions: np.ndarray, band_faces: Sequence[np.ndarray], colors: Sequence[RGB]) -> None:
         """Draw the surface ``positions`` (V, 3) with each band's triangles in its colour."""

@@ -156,6 +156,43 @@ def test_key_two_frames_and_play_them_on_the_daemon(page: Any, studio: Any, daem
     assert wait_until(lambda: _status(daemon)["lifecycle"] == "inactive", 60, interval=0.5)
 
 
+def test_select_a_key_on_the_timeline_and_move_it(page: Any, studio: Any, image_dir: Path) -> None:
+    import json
+
+    animate = studio.animate_tab
+    studio.doc.clear()
+    studio.doc.set_key("jaw", 0.0, 0.0, "linear")
+    studio.doc.set_key("jaw", 2.0, 5.0)
+    studio.doc.set_key("blink", 1.0, 0.5, "bezier")
+    animate.channel.value = "jaw"
+    animate.redraw()
+    _tab(page, "Animate")
+    assert wait_until(lambda: page.get_by_text("Tracks, top to bottom:").count() > 0, 30)
+    page.get_by_role("combobox", name="Key", exact=True).click()
+    page.get_by_role("option", name="#2 at 2.000 s").click()
+    assert wait_until(lambda: animate._selected == ("jaw", 1), 30)
+    assert wait_until(lambda: animate.time.value == pytest.approx(2.0), 30)  # the playhead goes to the key
+    box = page.get_by_role("textbox", name="Key time (s)", exact=True)
+    box.fill("1.5")
+    box.press("Enter")
+    assert wait_until(lambda: studio.doc.key_times("jaw") == [0.0, 1.5], 30)
+    box = page.get_by_role("textbox", name="Key value", exact=True)
+    box.fill("4")
+    box.press("Enter")
+    assert wait_until(lambda: studio.doc.tracks["jaw"].keys[1].value == 4.0, 30)
+    page.get_by_role("button", name="Later", exact=True).click()  # one preview frame later
+    assert wait_until(lambda: studio.doc.key_times("jaw")[1] == pytest.approx(1.5 + 1 / 30), 30)
+    value_box = page.get_by_role("textbox", name="Key value", exact=True)
+    assert wait_until(lambda: value_box.input_value() == "4", 30), value_box.input_value()
+    page.get_by_text("Every keyed channel, one row each").scroll_into_view_if_needed()
+    page.screenshot(path=str(image_dir / "studio-timeline.png"))
+    page.get_by_role("button", name="Save clip").click()
+    saved = studio.options.clips_dir / "take.json"
+    assert wait_until(saved.is_file, 30)
+    keys = json.loads(saved.read_text())["channels"]["jaw"]["keys"]
+    assert keys[0] == [0.0, 0.0] and keys[1] == [pytest.approx(1.5 + 1 / 30), 4.0]
+
+
 def test_the_e_stop_reaches_the_daemon_and_reset_clears_it(page: Any, studio: Any, daemon: Any) -> None:
     _inactive(daemon)
     with Client(daemon.command_endpoint, timeout=30) as c:
