@@ -38,6 +38,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+def _shown(path: str | Path) -> str:
+    """A path as the report shows it: relative to the working directory when inside it (portable reports)."""
+    p = Path(path).resolve()
+    try:
+        return str(p.relative_to(Path.cwd().resolve()))
+    except ValueError:
+        return str(p)
+
+
 def _atomic_json(path: Path, doc: dict[str, Any]) -> None:
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(json.dumps(doc, indent=1) + "\n")
@@ -132,10 +141,10 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(str(exc)) from exc
     folders = _write_level_meshes(meshes, outer, tris, out, source_hash)
     linkmap = head.path("linkmap")
-    inputs = {"config": str(args.config), "config_sha256": file_hash(args.config),
-              "mesh": str(mesh_dir / "skin.vtu"), "mesh_sha256": source_hash,
+    inputs = {"config": _shown(args.config), "config_sha256": file_hash(args.config),
+              "mesh": _shown(mesh_dir / "skin.vtu"), "mesh_sha256": source_hash,
               "face_units_sha256": file_hash(mesh_dir / "face_units.npz"),
-              "linkmap": str(linkmap), "linkmap_sha256": file_hash(linkmap)}
+              "linkmap": _shown(linkmap), "linkmap_sha256": file_hash(linkmap)}
     if material is not None and material.source:
         inputs["material_source"] = material.source
 
