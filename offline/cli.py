@@ -16,6 +16,7 @@ OFFLINE_COMMAND_MODULES: tuple[str, ...] = (
     "offline.train.cli",
     "offline.train.evaluate_cli",
     "offline.guard_cli",
+    "offline.refinement_cli",
     "offline.active.cli",
 )
 
