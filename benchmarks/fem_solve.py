@@ -57,7 +57,7 @@ def _problem(size: str, depth_frac: float):
 # ----------------------------------------------------------------------------------------------- solvers (children)
 
 
-def run_ours(size: str, depth_frac: float, backend: str, tol: float) -> dict:
+def run_ours(size: str, depth_frac: float, backend: str, tol: float, reuse: bool = True) -> dict:
     from offline.fem import Dirichlet, SolverOptions, box_mesh, combine, fixed, neo_hookean, prepare, solve_static
 
     mat = neo_hookean(MU, KAPPA)
@@ -70,16 +70,18 @@ def run_ours(size: str, depth_frac: float, backend: str, tol: float) -> dict:
     prepare(mesh)  # per-mesh geometry and CSR pattern, as the peers build theirs during setup
     rss0 = _rss_mb()
     t1 = time.perf_counter()
-    res = solve_static(mesh, mat, bc, options=SolverOptions(backend=backend, tol_force=tol))
+    res = solve_static(mesh, mat, bc, options=SolverOptions(backend=backend, tol_force=tol, reuse_factorization=reuse))
     t2 = time.perf_counter()
     from offline.fem.linsolve import resolve_backend
 
     on_patch = np.isin(bc.nodes, patch)
-    return {"name": f"offline.fem ({resolve_backend(backend)})", "setup_s": t1 - t0, "solve_s": t2 - t1,
+    name = f"offline.fem ({resolve_backend(backend)}{'' if reuse else ', exact Newton'})"
+    return {"name": name, "setup_s": t1 - t0, "solve_s": t2 - t1,
             "u": res.x - X, "iterations": res.iterations, "load_steps": res.load_steps,
             "timings": dict(res.timings), "rss_before_mb": rss0, "rss_peak_mb": _rss_mb(),
             "threshold": res.log[-1]["tolerance"], "residuals": [e["residual"] for e in res.log],
-            "patch_force": float(res.reactions[on_patch, 2].sum())}
+            "patch_force": float(res.reactions[on_patch, 2].sum()), "factorizations": res.factorizations,
+            "krylov_iterations": res.krylov_iterations, "reuse": reuse}
 
 
 def run_sfepy(size: str, depth_frac: float, n_steps: int, threshold: float) -> dict:
@@ -224,6 +226,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--peers", default="sfepy,felupe,felupe-sym",
                     help="comma-separated peers to run (sfepy, felupe, felupe-sym: felupe with symmetric PARDISO)")
     ap.add_argument("--tol", type=float, default=1e-6, help="offline.fem relative force tolerance")
+    ap.add_argument("--exact-newton", action="store_true",
+                    help="also run offline.fem with reuse_factorization=False (one factorization per iteration)")
     args = ap.parse_args(argv)
     peers = [p for p in args.peers.split(",") if p]
 
@@ -237,6 +241,8 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     results = [ours]
     thr = ours["threshold"]
+    if args.exact_newton:
+        results.append(_in_process("run_ours", args.size, args.depth, args.backend, args.tol, False))
     for peer in peers:
         if peer == "sfepy":
             results.append(_in_process("run_sfepy", args.size, args.depth, args.sfepy_steps, thr))
@@ -269,6 +275,15 @@ def main(argv: list[str] | None = None) -> int:
     print("\noffline.fem phases (s): " + ", ".join(f"{k} {v:.3f}" for k, v in t.items()))
     other = t["total"] - sum(v for k, v in t.items() if k != "total")
     print(f"  (unaccounted: {other:.3f} s: reduced-matrix selector, reactions, bookkeeping)")
+    for r in results:
+        if "factorizations" in r:
+            print(f"{r['name']}: {r['factorizations']} numeric factorizations, {r['krylov_iterations']} "
+                  f"preconditioned CG iterations, {r['iterations']} Newton iterations")
+    for r in results:
+        if r is not ours and "error" not in r and r["name"].startswith("felupe (1 step, symmetric"):
+            print(f"RATIO felupe-sym / ours = {r['solve_s'] / ours['solve_s']:.2f} "
+                  f"(ours {ours['solve_s']:.2f} s, felupe-sym {r['solve_s']:.2f} s, goal >= 3; "
+                  f"load average at end {os.getloadavg()[0]:.1f})")
     print("SfePy's iteration count is that of its last load step.")
     return 0
 
