@@ -161,7 +161,7 @@ class SolverOptions:
     verbose: bool = False
     failure_dir: Path | None = None
     reuse_factorization: bool = True
-    krylov_rtol: float = 1e-2
+    krylov_rtol: float = 0.1
     krylov_max_iterations: int = 12
     factor_precision: str = "double"
 
