@@ -534,17 +534,25 @@ def _reactions(mesh: TetMesh, material: Material, x: np.ndarray, nodes: np.ndarr
 
 
 def tangent_factorization(mesh: TetMesh, material: Material, x: np.ndarray, dirichlet: Dirichlet, *,
-                          backend: str = "auto", project_psd: bool = False
+                          backend: str = "auto", project_psd: bool = False, cache: FactorCache | None = None
                           ) -> tuple[Factorization, np.ndarray, sp.csr_matrix]:
     """Factor the free-free block K_ff of the tangent stiffness at ``x`` for adjoint and sensitivity solves.
 
     Returns (factorization, free DoF indices, full stiffness K). At an equilibrium, the change of the free DoFs for a
     change δc of the prescribed coordinates is δu_f = −K_ff⁻¹ K_fc δc, and an adjoint λ = K_ff⁻¹ ∂q/∂u_f gives
-    dq/dp = −λᵀ ∂r_f/∂p for any parameter p.
+    dq/dp = −λᵀ ∂r_f/∂p for any parameter p. With a double-precision ``cache`` (the one the forward solves use) the
+    symbolic analysis is reused and the new factorization becomes the cache's preconditioner for the next solve;
+    with PARDISO this invalidates the cache's previous factorization object.
     """
     K = _en.stiffness(mesh, material, x, project_psd=project_psd)
     free = np.ones(3 * mesh.n_nodes, dtype=bool)
     free[dirichlet.dofs] = False
     free_idx = np.flatnonzero(free)
     Kff = K[free_idx][:, free_idx].tocsr()
-    return make_solver(backend).factor(Kff), free_idx, K
+    if cache is None:
+        return make_solver(backend).factor(Kff), free_idx, K
+    cache.bind(mesh, free_idx, backend)
+    cache.factorization = None
+    fac = cache.solver.factor(Kff)
+    cache.factorization = fac
+    return fac, free_idx, K

@@ -113,3 +113,21 @@ def test_krylov_options_are_checked() -> None:
         SolverOptions(krylov_rtol=0.0)
     with pytest.raises(ValueError, match="krylov_max_iterations"):
         SolverOptions(krylov_max_iterations=0)
+
+
+def test_tangent_factorization_through_the_cache_preconditions_the_next_solve() -> None:
+    from offline.fem import tangent_factorization
+
+    mesh = box_mesh((0.04, 0.04, 0.01), (8, 8, 2))
+    bc = _indentation(mesh, 0.0010)
+    cache = FactorCache()
+    res = solve_static(mesh, MAT, bc, options=SolverOptions(backend="superlu"), cache=cache)
+    fac, free_idx, K = tangent_factorization(mesh, MAT, res.x, bc, backend="superlu", cache=cache)
+    assert cache.factorization is fac
+    g = np.random.default_rng(2).standard_normal(free_idx.size)
+    lam = fac.solve(g)
+    np.testing.assert_allclose(K[free_idx][:, free_idx] @ lam, g, atol=1e-8 * np.abs(g).max())
+    # the next pose, warm-started from this equilibrium, where the adjoint's tangent was factored
+    again = solve_static(mesh, MAT, _indentation(mesh, 0.00105), x0=res.x, options=SolverOptions(backend="superlu"),
+                         cache=cache)
+    assert again.converged and again.factorizations == 0
