@@ -363,6 +363,7 @@ def solve_static(mesh: TetMesh, material: Material, dirichlet: Dirichlet, *, x0:
         nonlocal iterations
         xk = x_in.copy()
         tiny = 0
+        e_known = None  # the potential at xk when the line search already evaluated it
         # the last step's target is the goal itself (c + 1.0 * (g - c) may differ from g by round-off)
         target = c_goal if lam >= 1.0 else c_start + lam * (c_goal - c_start)
         fext = lam * f_grav
@@ -376,7 +377,7 @@ def solve_static(mesh: TetMesh, material: Material, dirichlet: Dirichlet, *, x0:
             f_ref = max(float(np.linalg.norm(fext)), float(np.linalg.norm(r[cdofs])) if cdofs.size else 0.0)
             boundary_done = not np.any(dc)
             t = time.perf_counter()
-            e_now = potential(xk, fext)  # the line search's reference value
+            e_now = potential(xk, fext) if e_known is None else e_known  # the line search's reference value
             timings["line_search"] += time.perf_counter() - t
             if boundary_done and res <= opts.tol_force * max(1.0, f_ref):
                 log.append({"step": step, "iteration": it, "energy": e_now, "residual": res, "alpha": 0.0,
@@ -493,6 +494,7 @@ def solve_static(mesh: TetMesh, material: Material, dirichlet: Dirichlet, *, x0:
             if tiny >= _STALL_ITERATIONS:
                 raise _StepFailed(f"Newton stalled ({tiny} steps in a row with alpha < {_STALL_ALPHA:g})")
             xk = xt
+            e_known = e_t if boundary_done else e_t - float(np.sum(fext * xt))
         raise _StepFailed(f"no convergence in {opts.max_iterations} iterations")
 
     dlam0 = 1.0 / n_steps
