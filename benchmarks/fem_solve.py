@@ -10,8 +10,10 @@ bulk)``, Newton + ``pypardiso.spsolve``). SfePy's terms define S = μ J^(-2/3)(I
 S = κ (J − 1) J C⁻¹, i.e. exactly the energy above (checked in their docstrings, and by the displacement agreement
 printed here); felupe's NeoHooke with ``bulk`` is the same energy. All use the same residual threshold (N).
 
-Prints wall times (setup and solve), the time ratio peer / ours, our per-phase breakdown, peak RSS, and the max
-difference in displacements against ours. Run: ``python benchmarks/fem_solve.py [--size small|full]``.
+Prints wall times (setup and solve), the time ratio peer / ours, our per-phase breakdown, the numbers of numeric
+factorizations and preconditioned CG iterations, peak RSS, and the max difference in displacements against ours;
+then one ``RATIO`` line: felupe-sym's solve time over ours (wall clock; process CPU time too, which a loaded machine
+disturbs less). Run: ``python benchmarks/fem_solve.py [--size small|full]``.
 """
 
 from __future__ import annotations
@@ -57,7 +59,8 @@ def _problem(size: str, depth_frac: float):
 # ----------------------------------------------------------------------------------------------- solvers (children)
 
 
-def run_ours(size: str, depth_frac: float, backend: str, tol: float) -> dict:
+def run_ours(size: str, depth_frac: float, backend: str, tol: float, reuse: bool = True,
+             precision: str = "double") -> dict:
     from offline.fem import Dirichlet, SolverOptions, box_mesh, combine, fixed, neo_hookean, prepare, solve_static
 
     mat = neo_hookean(MU, KAPPA)
@@ -69,17 +72,21 @@ def run_ours(size: str, depth_frac: float, backend: str, tol: float) -> dict:
     bc = combine(Dirichlet(patch, X[patch] + [0.0, 0.0, -depth]), fixed(mesh, "z0"))
     prepare(mesh)  # per-mesh geometry and CSR pattern, as the peers build theirs during setup
     rss0 = _rss_mb()
-    t1 = time.perf_counter()
-    res = solve_static(mesh, mat, bc, options=SolverOptions(backend=backend, tol_force=tol))
-    t2 = time.perf_counter()
+    t1, c1 = time.perf_counter(), time.process_time()
+    opts = SolverOptions(backend=backend, tol_force=tol, reuse_factorization=reuse, factor_precision=precision)
+    res = solve_static(mesh, mat, bc, options=opts)
+    t2, c2 = time.perf_counter(), time.process_time()
     from offline.fem.linsolve import resolve_backend
 
     on_patch = np.isin(bc.nodes, patch)
-    return {"name": f"offline.fem ({resolve_backend(backend)})", "setup_s": t1 - t0, "solve_s": t2 - t1,
+    name = f"offline.fem ({resolve_backend(backend)}{'' if reuse else ', exact Newton'}" \
+           f"{', float32 factor' if precision == 'single' else ''})"
+    return {"name": name, "setup_s": t1 - t0, "solve_s": t2 - t1, "cpu_s": c2 - c1,
             "u": res.x - X, "iterations": res.iterations, "load_steps": res.load_steps,
             "timings": dict(res.timings), "rss_before_mb": rss0, "rss_peak_mb": _rss_mb(),
             "threshold": res.log[-1]["tolerance"], "residuals": [e["residual"] for e in res.log],
-            "patch_force": float(res.reactions[on_patch, 2].sum())}
+            "patch_force": float(res.reactions[on_patch, 2].sum()), "factorizations": res.factorizations,
+            "krylov_iterations": res.krylov_iterations, "reuse": reuse}
 
 
 def run_sfepy(size: str, depth_frac: float, n_steps: int, threshold: float) -> dict:
@@ -181,13 +188,13 @@ def run_felupe(size: str, depth_frac: float, threshold: float, symmetric: bool =
     ext0 = fem.dof.apply(field, bounds, dof0)
     solid = fem.SolidBody(fem.NeoHooke(mu=MU, bulk=KAPPA), field)
     rss0 = _rss_mb()
-    t1 = time.perf_counter()
+    t1, c1 = time.perf_counter(), time.process_time()
     solver = _symmetric_pardiso() if symmetric else pypardiso.spsolve
     res = fem.newtonraphson(field, items=[solid], dof1=dof1, dof0=dof0, ext0=ext0, solver=solver,
                             tol=1e-6, verbose=0)
-    t2 = time.perf_counter()
+    t2, c2 = time.perf_counter(), time.process_time()
     name = "felupe (1 step, symmetric PARDISO)" if symmetric else "felupe (1 load step, pypardiso.spsolve)"
-    return {"name": name, "setup_s": t1 - t0, "solve_s": t2 - t1,
+    return {"name": name, "setup_s": t1 - t0, "solve_s": t2 - t1, "cpu_s": c2 - c1,
             "u": np.asarray(field[0].values).reshape(-1, 3).copy(), "iterations": int(res.iterations),
             "load_steps": 1, "rss_before_mb": rss0, "rss_peak_mb": _rss_mb(), "converged": bool(res.success)}
 
@@ -224,6 +231,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--peers", default="sfepy,felupe,felupe-sym",
                     help="comma-separated peers to run (sfepy, felupe, felupe-sym: felupe with symmetric PARDISO)")
     ap.add_argument("--tol", type=float, default=1e-6, help="offline.fem relative force tolerance")
+    ap.add_argument("--factor-precision", choices=("double", "single"), default="double",
+                    help="offline.fem factorization precision (single: float32 PARDISO factor as a preconditioner)")
+    ap.add_argument("--exact-newton", action="store_true",
+                    help="also run offline.fem with reuse_factorization=False (one factorization per iteration)")
     args = ap.parse_args(argv)
     peers = [p for p in args.peers.split(",") if p]
 
@@ -231,12 +242,14 @@ def main(argv: list[str] | None = None) -> int:
     print(f"slab {SIZES[args.size][0]} m, {mesh.n_tets} tets, {mesh.n_nodes} nodes, {3 * mesh.n_nodes} DoFs; "
           f"indentation {depth * 1e3:.2f} mm on {len(patch)} nodes; mu={MU:g} Pa kappa={KAPPA:g} Pa; "
           f"cpus={os.cpu_count()}, load average {os.getloadavg()[0]:.1f}")
-    ours = _in_process("run_ours", args.size, args.depth, args.backend, args.tol)
+    ours = _in_process("run_ours", args.size, args.depth, args.backend, args.tol, True, args.factor_precision)
     if "error" in ours:
         print("offline.fem failed:", ours["error"], ours.get("traceback", ""))
         return 1
     results = [ours]
     thr = ours["threshold"]
+    if args.exact_newton:
+        results.append(_in_process("run_ours", args.size, args.depth, args.backend, args.tol, False))
     for peer in peers:
         if peer == "sfepy":
             results.append(_in_process("run_sfepy", args.size, args.depth, args.sfepy_steps, thr))
@@ -269,6 +282,16 @@ def main(argv: list[str] | None = None) -> int:
     print("\noffline.fem phases (s): " + ", ".join(f"{k} {v:.3f}" for k, v in t.items()))
     other = t["total"] - sum(v for k, v in t.items() if k != "total")
     print(f"  (unaccounted: {other:.3f} s: reduced-matrix selector, reactions, bookkeeping)")
+    for r in results:
+        if "factorizations" in r:
+            print(f"{r['name']}: {r['factorizations']} numeric factorizations, {r['krylov_iterations']} "
+                  f"preconditioned CG iterations, {r['iterations']} Newton iterations")
+    for r in results:
+        if r is not ours and "error" not in r and r["name"].startswith("felupe (1 step, symmetric"):
+            print(f"RATIO felupe-sym / ours = {r['solve_s'] / ours['solve_s']:.2f} "
+                  f"(ours {ours['solve_s']:.2f} s, felupe-sym {r['solve_s']:.2f} s, goal >= 3; "
+                  f"load average at end {os.getloadavg()[0]:.1f}); process CPU time ratio "
+                  f"{r['cpu_s'] / ours['cpu_s']:.2f} ({ours['cpu_s']:.2f} s vs {r['cpu_s']:.2f} s)")
     print("SfePy's iteration count is that of its last load step.")
     return 0
 

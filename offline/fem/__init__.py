@@ -38,6 +38,7 @@ from .mesh import TetMesh, boundary_faces, box_mesh, cylinder_mesh, load_mesh, s
 from .rest_shape import mixed_stiffness, rest_energy_gradient
 from .solve import (
     Dirichlet,
+    FactorCache,
     NotConverged,
     SolverOptions,
     StaticResult,
@@ -51,6 +52,7 @@ from .solve import (
 __all__ = [
     "Dirichlet",
     "E_nu_from_mu_kappa",
+    "FactorCache",
     "Factorization",
     "Material",
     "NotConverged",

@@ -107,6 +107,7 @@ class SparseSolver(ABC):
     """Factors matrices of one sparsity pattern, reusing the symbolic analysis between calls."""
 
     backend: str = ""
+    precision: str = "double"
 
     @abstractmethod
     def factor(self, A: sp.spmatrix) -> Factorization:
@@ -160,22 +161,24 @@ class _PardisoFactorization(Factorization):
         if self._generation != self._owner.generation:
             raise RuntimeError("this PARDISO factorization was replaced by a newer factor() call on its solver")
         b = np.asarray(b, dtype=np.float64)
-        bf = np.asfortranarray(b.reshape(b.shape[0], -1))
+        bf = np.asfortranarray(b.reshape(b.shape[0], -1), dtype=self._upper.dtype)
         x = self._owner.call(self._upper, bf, 33)
-        return x.reshape(b.shape)
+        return x.reshape(b.shape).astype(np.float64, copy=False)
 
 
 class _PardisoSolver(SparseSolver):
     """MKL PARDISO through pypardiso's ctypes binding, symmetric positive definite mode on the upper triangle.
 
-    One numeric factor lives in the solver at a time (older Factorization objects refuse to solve).
+    One numeric factor lives in the solver at a time (older Factorization objects refuse to solve). With
+    ``precision="single"`` the factorization and solves run in float32 (less time and memory; solutions accurate to
+    about single precision times the condition number: meant as a preconditioner, see :mod:`offline.fem.krylov`).
     """
 
     backend = "pardiso"
 
     _template = None  # pypardiso searches the whole environment for libmkl_rt on every construction: do it once
 
-    def __init__(self) -> None:
+    def __init__(self, precision: str = "double") -> None:
         import copy
 
         import pypardiso
@@ -183,6 +186,8 @@ class _PardisoSolver(SparseSolver):
         if _PardisoSolver._template is None:
             _PardisoSolver._template = pypardiso.PyPardisoSolver(mtype=2)
         self._ps = copy.copy(_PardisoSolver._template)
+        self.precision = precision
+        self._dtype = np.float32 if precision == "single" else np.float64
         self._upper_cache = None
         self.generation = 0
         self._fresh_state()
@@ -193,6 +198,8 @@ class _PardisoSolver(SparseSolver):
         self._ps.iparm = np.zeros_like(self._ps.iparm)
         self._ps.perm = np.zeros_like(self._ps.perm)
         self._ps.set_iparm(1, 2)
+        # iparm(28): single-precision factorization; the matrix, right-hand sides and solutions are then float32
+        self._ps.iparm[27] = 1 if self.precision == "single" else 0
         self._analyzed_key = None
 
     def call(self, upper: sp.csr_matrix, b: np.ndarray, phase: int) -> np.ndarray:
@@ -220,12 +227,12 @@ class _PardisoSolver(SparseSolver):
             cache = (A.indptr.copy(), A.indices.copy(), keep, indptr, A.indices[keep].copy())
             self._upper_cache = cache
         _, _, keep, indptr, indices = cache
-        return sp.csr_matrix((A.data[keep], indices, indptr), shape=A.shape)
+        return sp.csr_matrix((A.data[keep].astype(self._dtype, copy=False), indices, indptr), shape=A.shape)
 
     def factor(self, A: sp.spmatrix) -> Factorization:
         upper = self._upper(A)
         key = (upper.shape, upper.nnz)
-        b = np.zeros((upper.shape[0], 1), order="F")
+        b = np.zeros((upper.shape[0], 1), order="F", dtype=self._dtype)
         if key != self._analyzed_key:
             self.call(upper, b, 11)
             self._analyzed_key = key
@@ -278,13 +285,22 @@ class _SuperLUSolver(SparseSolver):
         return _SuperLUFactorization(lu)
 
 
-def make_solver(backend: str = "auto") -> SparseSolver:
-    """A new solver for ``backend`` (``auto``, ``cholmod``, ``pardiso`` or ``superlu``)."""
+PRECISIONS = ("double", "single")
+
+
+def make_solver(backend: str = "auto", precision: str = "double") -> SparseSolver:
+    """A new solver for ``backend`` (``auto``, ``cholmod``, ``pardiso`` or ``superlu``).
+
+    ``precision="single"`` asks for a float32 factorization (a preconditioner, not an exact solver); only PARDISO
+    offers one, the other backends factor in double precision. ``solver.precision`` says which one was made.
+    """
+    if precision not in PRECISIONS:
+        raise ValueError(f"unknown factorization precision {precision!r}; choose one of {PRECISIONS}")
     name = resolve_backend(backend)
     if name == "cholmod":
         return _CholmodSolver()
     if name == "pardiso":
-        return _PardisoSolver()
+        return _PardisoSolver(precision)
     return _SuperLUSolver()
 
 

@@ -14,6 +14,7 @@ halved (and grows back after a success); after ``max_load_step_halvings`` succes
 
 from __future__ import annotations
 
+import hashlib
 import math
 import os
 import tempfile
@@ -28,7 +29,8 @@ import numpy as np
 import scipy.sparse as sp
 
 from . import energy as _en
-from .linsolve import Factorization, NotPositiveDefinite, make_solver, resolve_backend
+from .krylov import pcg
+from .linsolve import Factorization, NotPositiveDefinite, SparseSolver, make_solver, resolve_backend
 from .materials import Material
 from .mesh import TetMesh
 
@@ -138,6 +140,15 @@ class SolverOptions:
     ``load_steps``: number of equal load increments, or ``"auto"`` (one step per mean element edge length of the
     largest boundary displacement). ``gravity``: acceleration vector (m/s²) or None. ``failure_dir``: where the
     state of a failed solve is saved (default: the system temp dir).
+
+    ``reuse_factorization`` (inexact Newton): each Newton system is first solved by conjugate gradients
+    preconditioned with the most recent numeric factorization (of an earlier tangent, possibly of an earlier load
+    step or, through a :class:`FactorCache`, an earlier solve), to a relative residual min(``krylov_rtol``, ‖r‖ / f_ref)
+    (a forcing term that shrinks with the residual keeps Newton's quadratic convergence); the current
+    tangent is factored only when CG needs more than ``krylov_max_iterations`` back-substitutions or meets
+    non-positive curvature. The convergence test on the force residual is the same either way.
+    ``factor_precision="single"`` (PARDISO only, with ``reuse_factorization``) factors in float32 and uses every
+    factorization only as a CG preconditioner, also right after it is made.
     """
 
     backend: str = "auto"
@@ -149,6 +160,10 @@ class SolverOptions:
     gravity: tuple[float, float, float] | None = None
     verbose: bool = False
     failure_dir: Path | None = None
+    reuse_factorization: bool = True
+    krylov_rtol: float = 0.1
+    krylov_max_iterations: int = 12
+    factor_precision: str = "double"
 
     def __post_init__(self) -> None:
         if not (self.tol_force > 0):
@@ -161,6 +176,16 @@ class SolverOptions:
             raise ValueError("SolverOptions.max_load_step_halvings must be >= 0")
         if not (0 < self.armijo < 1):
             raise ValueError(f"SolverOptions.armijo must be in (0, 1), got {self.armijo}")
+        if not (0 < self.krylov_rtol < 1):
+            raise ValueError(f"SolverOptions.krylov_rtol must be in (0, 1), got {self.krylov_rtol}")
+        if self.krylov_max_iterations < 1:
+            raise ValueError(f"SolverOptions.krylov_max_iterations must be >= 1, got {self.krylov_max_iterations}")
+        if self.factor_precision not in ("double", "single"):
+            raise ValueError(f"SolverOptions.factor_precision must be 'double' or 'single', "
+                             f"got {self.factor_precision!r}")
+        if self.factor_precision == "single" and not self.reuse_factorization:
+            raise ValueError("SolverOptions.factor_precision='single' needs reuse_factorization=True "
+                             "(a float32 factorization is used only as a preconditioner)")
         if self.gravity is not None and np.asarray(self.gravity).shape != (3,):
             raise ValueError(f"SolverOptions.gravity must be a 3-vector or None, got {self.gravity!r}")
 
@@ -170,8 +195,10 @@ class StaticResult:
     """Outcome of :func:`solve_static`: positions, convergence, per-iteration log, phase timings (s), reactions (N).
 
     Each ``log`` entry holds step, iteration, energy (J), residual (N), alpha, projected (number of element
-    Hessians projected to PSD), factor_s and tolerance (the residual threshold, N). ``reactions`` follows
-    ``dirichlet.nodes``; coordinates a node leaves free carry only the (converged, ≈ 0) residual there.
+    Hessians projected to PSD), factor_s, tolerance (the residual threshold, N), factorized (whether the tangent was
+    factored) and krylov (CG iterations spent on it). ``reactions`` follows ``dirichlet.nodes``; coordinates a node
+    leaves free carry only the (converged, ≈ 0) residual there. ``factorizations`` counts numeric factorizations
+    (failed ones included), ``krylov_iterations`` the CG iterations of the whole solve.
     """
 
     x: np.ndarray
@@ -181,10 +208,12 @@ class StaticResult:
     log: tuple[dict, ...] = ()
     timings: Mapping[str, float] = field(default_factory=dict)
     reactions: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    factorizations: int = 0
+    krylov_iterations: int = 0
 
     def __reduce__(self):
         return (StaticResult, (self.x, self.converged, self.iterations, self.load_steps, self.log,
-                               dict(self.timings), self.reactions))
+                               dict(self.timings), self.reactions, self.factorizations, self.krylov_iterations))
 
     def reaction_total(self) -> np.ndarray:
         """Sum of the constraint forces over all Dirichlet nodes (3,)."""
@@ -213,6 +242,29 @@ _BOUNDARY_HALVINGS = 4
 #: nearly inverted state can take 100 such steps without progress; a smaller load step recovers sooner).
 _STALL_ITERATIONS = 3
 _STALL_ALPHA = 1e-4
+
+
+class FactorCache:
+    """A sparse solver and its last numeric factorization, kept between :func:`solve_static` calls.
+
+    Bound to one mesh topology, set of constrained DoFs and backend; binding to another discards the contents
+    (rest positions may change: a factorization for a nearby rest shape still preconditions well).
+    """
+
+    def __init__(self) -> None:
+        self._key: tuple | None = None
+        self.solver: SparseSolver | None = None
+        self.factorization: Factorization | None = None
+
+    def bind(self, mesh: TetMesh, free_idx: np.ndarray, backend: str, precision: str = "double") -> None:
+        """Use this cache for ``mesh``'s topology with free DoFs ``free_idx``; reset it if that differs."""
+        tets = np.ascontiguousarray(mesh.tets)
+        key = (resolve_backend(backend), precision, mesh.n_nodes, tets.shape, hashlib.sha1(tets.data).hexdigest(),
+               hashlib.sha1(np.ascontiguousarray(free_idx, dtype=np.int64).data).hexdigest())
+        if key != self._key:
+            self._key = key
+            self.solver = make_solver(backend, precision)
+            self.factorization = None
 
 
 def _mean_edge_length(mesh: TetMesh) -> float:
@@ -248,8 +300,13 @@ def _save_failure(directory: Path | None, mesh: TetMesh, x: np.ndarray, dirichle
 
 
 def solve_static(mesh: TetMesh, material: Material, dirichlet: Dirichlet, *, x0: np.ndarray | None = None,
-                 options: SolverOptions = SolverOptions()) -> StaticResult:
-    """Equilibrium positions x = argmin W(x) − f_g·x subject to x[nodes] = positions (see module doc)."""
+                 options: SolverOptions = SolverOptions(), cache: FactorCache | None = None) -> StaticResult:
+    """Equilibrium positions x = argmin W(x) − f_g·x subject to x[nodes] = positions (see module doc).
+
+    ``cache``: a :class:`FactorCache` shared by successive solves on one mesh topology and constraint set (poses,
+    design iterations) keeps the symbolic analysis and the last numeric factorization, which then preconditions
+    the next solve (with ``options.reuse_factorization``).
+    """
     t_total = time.perf_counter()
     opts = options
     resolve_backend(opts.backend)
@@ -280,8 +337,11 @@ def solve_static(mesh: TetMesh, material: Material, dirichlet: Dirichlet, *, x0:
     else:
         n_steps = int(opts.load_steps)
 
-    solver = make_solver(opts.backend)
-    timings = {"assemble": 0.0, "factor": 0.0, "solve": 0.0, "line_search": 0.0, "total": 0.0}
+    if cache is None:
+        cache = FactorCache()
+    cache.bind(mesh, free_idx, opts.backend, opts.factor_precision)
+    timings = {"assemble": 0.0, "factor": 0.0, "solve": 0.0, "krylov": 0.0, "line_search": 0.0, "total": 0.0}
+    counts = {"factor": 0, "krylov": 0}
     log: list[dict] = []
     sel_cache: dict = {}
     iterations = 0
@@ -303,6 +363,7 @@ def solve_static(mesh: TetMesh, material: Material, dirichlet: Dirichlet, *, x0:
         nonlocal iterations
         xk = x_in.copy()
         tiny = 0
+        e_known = None  # the potential at xk when the line search already evaluated it
         # the last step's target is the goal itself (c + 1.0 * (g - c) may differ from g by round-off)
         target = c_goal if lam >= 1.0 else c_start + lam * (c_goal - c_start)
         fext = lam * f_grav
@@ -316,15 +377,18 @@ def solve_static(mesh: TetMesh, material: Material, dirichlet: Dirichlet, *, x0:
             f_ref = max(float(np.linalg.norm(fext)), float(np.linalg.norm(r[cdofs])) if cdofs.size else 0.0)
             boundary_done = not np.any(dc)
             t = time.perf_counter()
-            e_now = potential(xk, fext)  # the line search's reference value
+            e_now = potential(xk, fext) if e_known is None else e_known  # the line search's reference value
             timings["line_search"] += time.perf_counter() - t
             if boundary_done and res <= opts.tol_force * max(1.0, f_ref):
                 log.append({"step": step, "iteration": it, "energy": e_now, "residual": res, "alpha": 0.0,
-                            "projected": 0, "factor_s": 0.0, "tolerance": opts.tol_force * max(1.0, f_ref)})
+                            "projected": 0, "factor_s": 0.0, "tolerance": opts.tol_force * max(1.0, f_ref),
+                            "factorized": False, "krylov": 0})
                 if opts.verbose:
                     print(f"  step {step} it {it}: converged |r|={res:.3e} (ref {f_ref:.3e})")
                 return xk
             project = False
+            direct = not opts.reuse_factorization
+            factor_s, n_kry, factored = 0.0, 0, False
             while True:
                 K, Kff, n_proj = assemble_reduced(xk, project)
                 rhs = -rf
@@ -332,30 +396,55 @@ def solve_static(mesh: TetMesh, material: Material, dirichlet: Dirichlet, *, x0:
                     dfull = np.zeros(3 * N)
                     dfull[cdofs] = dc
                     rhs = rhs - (K @ dfull)[free_idx]
-                t = time.perf_counter()
-                try:
-                    fac = solver.factor(Kff)
-                except NotPositiveDefinite:
-                    timings["factor"] += time.perf_counter() - t
-                    if project:
-                        raise _StepFailed("projected stiffness still not positive definite") from None
-                    project = True
-                    continue
-                factor_s = time.perf_counter() - t
-                timings["factor"] += factor_s
-                t = time.perf_counter()
-                du = fac.solve(rhs)
-                timings["solve"] += time.perf_counter() - t
+                du = None
+                # forcing term ∝ the residual keeps Newton's quadratic convergence (and the final state as
+                # accurate as an exact Newton step leaves it)
+                rtol = max(1e-14, min(opts.krylov_rtol, res / max(1.0, f_ref)))
+                if not direct and not project and cache.factorization is not None:
+                    t = time.perf_counter()
+                    kr = pcg(Kff, rhs, cache.factorization.solve, rtol, opts.krylov_max_iterations)
+                    timings["krylov"] += time.perf_counter() - t
+                    n_kry += kr.iterations
+                    counts["krylov"] += kr.iterations
+                    du = kr.x
+                    direct = True  # if this direction is refused, factor the current tangent
+                if du is None:
+                    t = time.perf_counter()
+                    counts["factor"] += 1
+                    try:
+                        fac = cache.solver.factor(Kff)
+                    except NotPositiveDefinite:
+                        cache.factorization = None  # the backend's state was reset
+                        timings["factor"] += time.perf_counter() - t
+                        if project:
+                            raise _StepFailed("projected stiffness still not positive definite") from None
+                        project = True
+                        continue
+                    cache.factorization = fac
+                    factored = True
+                    factor_s = time.perf_counter() - t
+                    timings["factor"] += factor_s
+                    t = time.perf_counter()
+                    if cache.solver.precision == "single":  # a preconditioner, not an exact solve
+                        kr = pcg(Kff, rhs, fac.solve, rtol, opts.krylov_max_iterations)
+                        n_kry += kr.iterations
+                        counts["krylov"] += kr.iterations
+                        du = np.full(rhs.shape, np.nan) if kr.x is None else kr.x
+                    else:
+                        du = fac.solve(rhs)
+                    timings["solve"] += time.perf_counter() - t
                 if not np.all(np.isfinite(du)):
                     if project:
                         raise _StepFailed("non-finite Newton direction")
-                    project = True
+                    project = project or factored
+                    direct = True
                     continue
                 slope = float(rf @ du)
                 if boundary_done and slope >= 0.0:
                     if project:
                         raise _StepFailed("no descent direction even with PSD projection")
-                    project = True
+                    project = project or factored
+                    direct = True
                     continue
                 break
             d = np.zeros(3 * N)
@@ -395,16 +484,17 @@ def solve_static(mesh: TetMesh, material: Material, dirichlet: Dirichlet, *, x0:
             iterations += 1
             log.append({"step": step, "iteration": it, "energy": e_now, "residual": res,
                         "alpha": alpha if accepted else 0.0, "projected": int(n_proj), "factor_s": factor_s,
-                        "tolerance": opts.tol_force * max(1.0, f_ref)})
+                        "tolerance": opts.tol_force * max(1.0, f_ref), "factorized": factored, "krylov": n_kry})
             if opts.verbose:
                 print(f"  step {step} it {it}: |r|={res:.3e} (ref {f_ref:.3e}) E={e_now:.6e} alpha={alpha:.3g} "
-                      f"projected={n_proj} factor={factor_s:.3f}s")
+                      f"projected={n_proj} factor={factor_s:.3f}s cg={n_kry}")
             if not accepted:
                 raise _StepFailed("line search found no admissible step")
             tiny = tiny + 1 if boundary_done and alpha < _STALL_ALPHA else 0
             if tiny >= _STALL_ITERATIONS:
                 raise _StepFailed(f"Newton stalled ({tiny} steps in a row with alpha < {_STALL_ALPHA:g})")
             xk = xt
+            e_known = e_t if boundary_done else e_t - float(np.sum(fext * xt))
         raise _StepFailed(f"no convergence in {opts.max_iterations} iterations")
 
     dlam0 = 1.0 / n_steps
@@ -427,7 +517,8 @@ def solve_static(mesh: TetMesh, material: Material, dirichlet: Dirichlet, *, x0:
             if halvings > opts.max_load_step_halvings:
                 timings["total"] = time.perf_counter() - t_total
                 result = StaticResult(x, False, iterations, steps_done, tuple(log), MappingProxyType(dict(timings)),
-                                      _reactions(mesh, material, x, nodes, f_grav * state_lam))
+                                      _reactions(mesh, material, x, nodes, f_grav * state_lam), counts["factor"],
+                                      counts["krylov"])
                 path = _save_failure(opts.failure_dir, mesh, x, dirichlet, state_lam, log)
                 raise NotConverged(f"solve_static: {exc} at load factor {lam1:.4f} after {halvings - 1} successive "
                                    "halvings",
@@ -435,7 +526,7 @@ def solve_static(mesh: TetMesh, material: Material, dirichlet: Dirichlet, *, x0:
             dlam *= 0.5
     timings["total"] = time.perf_counter() - t_total
     return StaticResult(x, True, iterations, steps_done, tuple(log), MappingProxyType(dict(timings)),
-                        _reactions(mesh, material, x, nodes, f_grav))
+                        _reactions(mesh, material, x, nodes, f_grav), counts["factor"], counts["krylov"])
 
 
 def _reactions(mesh: TetMesh, material: Material, x: np.ndarray, nodes: np.ndarray, fext: np.ndarray) -> np.ndarray:
@@ -445,17 +536,25 @@ def _reactions(mesh: TetMesh, material: Material, x: np.ndarray, nodes: np.ndarr
 
 
 def tangent_factorization(mesh: TetMesh, material: Material, x: np.ndarray, dirichlet: Dirichlet, *,
-                          backend: str = "auto", project_psd: bool = False
+                          backend: str = "auto", project_psd: bool = False, cache: FactorCache | None = None
                           ) -> tuple[Factorization, np.ndarray, sp.csr_matrix]:
     """Factor the free-free block K_ff of the tangent stiffness at ``x`` for adjoint and sensitivity solves.
 
     Returns (factorization, free DoF indices, full stiffness K). At an equilibrium, the change of the free DoFs for a
     change δc of the prescribed coordinates is δu_f = −K_ff⁻¹ K_fc δc, and an adjoint λ = K_ff⁻¹ ∂q/∂u_f gives
-    dq/dp = −λᵀ ∂r_f/∂p for any parameter p.
+    dq/dp = −λᵀ ∂r_f/∂p for any parameter p. With a double-precision ``cache`` (the one the forward solves use) the
+    symbolic analysis is reused and the new factorization becomes the cache's preconditioner for the next solve;
+    with PARDISO this invalidates the cache's previous factorization object.
     """
     K = _en.stiffness(mesh, material, x, project_psd=project_psd)
     free = np.ones(3 * mesh.n_nodes, dtype=bool)
     free[dirichlet.dofs] = False
     free_idx = np.flatnonzero(free)
     Kff = K[free_idx][:, free_idx].tocsr()
-    return make_solver(backend).factor(Kff), free_idx, K
+    if cache is None:
+        return make_solver(backend).factor(Kff), free_idx, K
+    cache.bind(mesh, free_idx, backend)
+    cache.factorization = None
+    fac = cache.solver.factor(Kff)
+    cache.factorization = fac
+    return fac, free_idx, K
