@@ -106,7 +106,8 @@ def test_posted_targets_reach_the_motors_and_feedback_follows(hw: LinkedHardware
         for name, value in goals.items():
             if name in link.actuators:
                 assert f.written[link.actuators.index(name)] == pytest.approx(value), name
-        assert f.seq > posted[bus].seq
+        _wait(f"{bus}: feedback keeps coming after the targets",
+              lambda b=bus: hw.links[b].feedback().seq > posted[b].seq)
     hw.call("disable")
     assert all(f.state is LifecycleState.INACTIVE for f in hw.feedback().values())
     # inactive: posted targets are not written

@@ -7,29 +7,16 @@ import pytest
 import scipy.sparse as sp
 
 from offline.fem import (
-    Dirichlet,
     FactorCache,
     SolverOptions,
     box_mesh,
-    combine,
     factorize,
     fixed,
-    neo_hookean,
     solve_static,
     stiffness,
 )
 from offline.fem.krylov import pcg
-
-MAT = neo_hookean(3.0e4, 3.0e5)
-
-
-def _indentation(mesh, depth: float) -> Dirichlet:
-    X = np.asarray(mesh.nodes)
-    top = mesh.node_sets["z1"]
-    c = X[top].mean(axis=0)
-    half = 0.26 * (X.max(axis=0) - X.min(axis=0))
-    patch = top[np.all(np.abs(X[top, :2] - c[:2]) <= half[:2], axis=1)]
-    return combine(Dirichlet(patch, X[patch] + [0.0, 0.0, -depth]), fixed(mesh, "z0"))
+from tests.offline.fem.test_fem_solver import MAT, _indentation
 
 
 def _free_block(mesh, x, bc):
