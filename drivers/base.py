@@ -172,6 +172,7 @@ class MotorBus(abc.ABC):
         self._lock = threading.RLock()
         self._faults: dict[str, tuple[int, str]] = {}
         self._last_command: dict[str, tuple[float, float]] = {}  # name -> (position, monotonic time)
+        self._holding: set[str] = set()  # motors still at the hold enable set up (no target written since)
 
     # ------------------------------------------------------------------ introspection
     @property
@@ -222,6 +223,7 @@ class MotorBus(abc.ABC):
                 device, (code, message) = next(iter(self._faults.items()))
                 raise DeviceFault(device, code, f"fault while enabling bus {self.name!r}: {message}")
             self._last_command = {n: (s.position, now) for n, s in states.items()}
+            self._holding = set(self._last_command)  # until each motor's first written target
             self._state = LifecycleState.ACTIVE
 
     def disable(self) -> None:
@@ -296,7 +298,12 @@ class MotorBus(abc.ABC):
                     )
                 last = self._last_command.get(name)
                 if last is not None:
-                    dt = max(now - last[1], 1e-3)
+                    dt = now - last[1]
+                    if name in self._holding and dt < 0:
+                        # Targets computed before the hold that enable set up (the caller could not see it yet):
+                        # the time that has really passed since that hold is what the motor had.
+                        dt = time.monotonic() - last[1]
+                    dt = max(dt, 1e-3)
                     allowed = motor.max_velocity * dt * self.RATE_TOLERANCE + 1e-9
                     if abs(target - last[0]) > allowed:
                         raise CommandRejected(
@@ -307,6 +314,7 @@ class MotorBus(abc.ABC):
             self._write(checked)
             for name, target in checked.items():
                 self._last_command[name] = (target, now)
+                self._holding.discard(name)
 
     # ------------------------------------------------------------------ helpers
     def _require(self, expected: LifecycleState, operation: str) -> None:

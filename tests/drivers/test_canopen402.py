@@ -135,6 +135,22 @@ def test_velocity_is_reported_in_si(bus, drives):
     assert math.isfinite(states["jaw"].effort)
 
 
+def test_targets_computed_before_the_enable_hold_are_rated_on_the_time_since_it(bus, drives):
+    """A caller stamps its targets when it computed them; the first one after enable may predate the hold enable set
+    up (the caller had not seen it yet). Its step is rated on the time that has passed since that hold."""
+    bus.open()
+    t_before = time.monotonic()
+    bus.enable()
+    hold = bus.read()["jaw"].position
+    time.sleep(0.05)
+    with pytest.raises(CommandRejected, match="max_velocity"):  # far more than 2 rad/s over 50 ms
+        bus.write({"jaw": hold + 0.5}, stamp=t_before)
+    bus.write({"jaw": hold + 0.02}, stamp=t_before)  # 0.4 rad/s over the 50 ms since the hold: taken
+    assert bus.state is LifecycleState.ACTIVE
+    with pytest.raises(CommandRejected, match="max_velocity"):  # later targets: rated between their own stamps
+        bus.write({"jaw": hold + 0.04}, stamp=t_before + 0.001)
+
+
 def test_limits_guard_rejects_and_sends_nothing(bus, drives):
     bus.open()
     bus.enable()
