@@ -59,6 +59,13 @@ def make_daemon(rate_hz: float, realtime: bool, with_buses: bool = True, head_pa
     return daemon
 
 
+def add_emulator_nice(parser: Any) -> None:
+    """The ``--emulator-nice`` option of the latency benchmarks (read it with :func:`demote_emulators`)."""
+    parser.add_argument("--emulator-nice", type=int, default=None,
+                        help="niceness of the emulator processes (default: the daemon's); e.g. 10 to measure the "
+                             "daemon's own path with the emulated devices taking only the CPU it leaves")
+
+
 def demote_emulators(nice: int | None) -> str:
     """Start emulator processes at niceness ``nice`` (added to this process's) instead of the daemon's default
     (``runtime.simhw.EMULATOR_NICE``); returns a line for the report. A positive value stands in for hardware whose

@@ -27,9 +27,9 @@ import numpy as np
 import zmq
 
 try:
-    from benchmarks._daemon import demote_emulators, patient_head, pct
+    from benchmarks._daemon import add_emulator_nice, demote_emulators, patient_head, pct
 except ImportError:  # run as a script
-    from _daemon import demote_emulators, patient_head, pct
+    from _daemon import add_emulator_nice, demote_emulators, patient_head, pct
 
 FRAGMENT = """
 [inputs.osc]
@@ -125,9 +125,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--trials", type=int, default=100)
     parser.add_argument("--rate", type=float, default=250.0)
-    parser.add_argument("--emulator-nice", type=int, default=None,
-                        help="niceness of the emulator processes (default: the daemon's); e.g. 10 to measure the "
-                             "daemon's own path with the emulated devices taking only the CPU it leaves")
+    add_emulator_nice(parser)
     args = parser.parse_args(argv)
     emulators = demote_emulators(args.emulator_nice)
     results: dict[str, list[float]] = {}
