@@ -191,6 +191,7 @@ class PipeReader:
         self._need = _HEADER.size
         self._body: bytearray | None = None
         self._lens: list[int] = []
+        self._total = 0  # bytes of the message body being read
         self._got = 0
         self.closed = False  # the writer went away (end of file)
 
