@@ -40,6 +40,9 @@ class RuntimeSettings:
     switch_interval_s: float = 0.0005  # sys.setswitchinterval while the loop runs (other threads yield sooner)
     stream_delay_s: float = 0.05  # jitter buffer: streamed frames play this long after their timestamp
     stream_phase_lock: bool = False  # slide the loop's phase to just after a steady stream's frames (runtime.phaselock)
+    # wanted time from a locked frame reaching the loop to the cycle that plays it; the loop takes frames between
+    # cycles until spin_us + 0.3 ms before a cycle, so the lead must exceed that for the lock to see the frames
+    stream_phase_lead_s: float = 0.0006
     stream_max_ahead_s: float = 30.0  # frames further in the future are refused
     stream_max_frames: int = 20000  # jitter buffer capacity
     record_dir: str = "recordings"  # where ``record`` writes (relative to the working directory)
@@ -148,6 +151,9 @@ def _check(cfg: DaemonConfig, source: str, head: HeadSpec) -> None:
     need(0 <= rt.spin_us <= 1e6 / rt.rate_hz, "runtime.spin_us", "must lie in [0, one period]", rt.spin_us)
     need(1e-5 <= rt.switch_interval_s <= 0.1, "runtime.switch_interval_s", "must lie in [1e-5, 0.1]",
          rt.switch_interval_s)
+    need(rt.stream_phase_lead_s > 0 and (not rt.stream_phase_lock or rt.stream_phase_lead_s <= 0.5 / rt.rate_hz),
+         "runtime.stream_phase_lead_s", "must be positive and, with stream_phase_lock, at most half a loop period",
+         rt.stream_phase_lead_s)
     need(0 <= rt.stream_delay_s <= 5, "runtime.stream_delay_s", "must lie in [0, 5] s", rt.stream_delay_s)
     need(0 < rt.stream_max_ahead_s <= 3600, "runtime.stream_max_ahead_s", "must lie in (0, 3600] s",
          rt.stream_max_ahead_s)

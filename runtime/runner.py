@@ -46,8 +46,6 @@ class Runner:
         self.links = list(links)
         self.sock = sock  # to the server: replies, events, state
         self.commands = commands  # from the server: ready-made commands
-        self._poll = select.poll()
-        self._poll.register(commands.fileno(), select.POLLIN)
         self.estop = estop
         self.clock = clock
         self.stats = LoopStats(params.period)
@@ -60,7 +58,11 @@ class Runner:
         self._signal_estop: str | None = None
         self.native_id = 0
         rt = params.cfg.runtime
-        self.phase_lock = PhaseLock(params.period) if rt.stream_phase_lock else None
+        self.phase_lock = PhaseLock(params.period, lead=rt.stream_phase_lead_s) if rt.stream_phase_lock else None
+        if self.phase_lock is not None and rt.stream_phase_lead_s <= rt.spin_us * 1e-6 + COMMAND_MARGIN_S:
+            log.warning("runtime.stream_phase_lead_s = %g s is not more than spin_us + %g s: the phase lock cannot see "
+                        "frames arrive that late and will settle earlier than asked", rt.stream_phase_lead_s,
+                        COMMAND_MARGIN_S)
         self._deadline = 0.0  # the deadline the loop is waiting for (commands taken meanwhile are due then)
 
     def stop(self) -> None:
@@ -128,21 +130,21 @@ class Runner:
 
     def _idle(self, until: float) -> None:
         """Until ``until``: wait for commands from the server and take them at once (their replies and stream frames
-        then need not wait for the next cycle), as long as enough time is left before the cycle."""
+        then need not wait for the next cycle), as long as ``COMMAND_MARGIN_S`` is left before the cycle; later
+        ones wait in the link for the cycle. ``select`` times out to the microsecond (``poll`` only to the
+        millisecond, which left the last fraction of a millisecond before each cycle unwatched)."""
+        fd = self.commands.fileno()
         while True:
             left = until - self.clock()
             if left <= 0:
                 return
-            if self.commands.closed or not self._poll.poll(max(0, int(left * 1000))):
-                left = until - self.clock()
-                if left > 0:
-                    time.sleep(left)
+            watch = left - COMMAND_MARGIN_S
+            if self.commands.closed or watch <= 0:
+                time.sleep(left)
                 return
-            if until - self.clock() < COMMAND_MARGIN_S:
-                left = until - self.clock()
-                if left > 0:
-                    time.sleep(left)
-                return
+            ready, _, _ = select.select((fd,), (), (), watch)
+            if not ready:
+                continue
             t = self.clock()
             cmds = self._drain(self._deadline)
             estop = self._estop_now()
@@ -170,9 +172,11 @@ class Runner:
         return tuple(out)
 
     def _drain(self, deadline: float) -> list[Any]:
-        """The commands waiting on the link; stream frames tell the phase lock when this loop took them, for the
-        cycle due at ``deadline`` (the time that matters is when a frame reaches the loop, not the server: the hop
-        between them takes a few hundred microseconds)."""
+        """The commands waiting on the link; stream frames and live values tell the phase lock when this loop took
+        them, for the cycle due at ``deadline``. What matters is when a frame reaches the loop, not the server: the
+        hop between them takes a few hundred microseconds, more on a busy host. The loop watches the link until
+        ``COMMAND_MARGIN_S`` before each cycle (:meth:`_idle`), so a take time is the frame's arrival, or the cycle's
+        start for a frame that came later than that."""
         cmds = []
         taken = self.clock()
         for kind, cmd in self.commands.recv(MAX_COMMANDS_PER_CYCLE):

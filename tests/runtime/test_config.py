@@ -33,6 +33,8 @@ def test_sample_settings_and_overrides() -> None:
         ({"api.command": "tcp://0.0.0.0:5555"}, "api.command"),
         ({"api.curve_secret_key": "nope.key_secret"}, "api.curve_allow_dir"),
         ({"safety.watchdog_neutral_s": 0.1}, "safety.watchdog_neutral_s"),
+        ({"runtime.stream_phase_lead_s": 0.0}, "runtime.stream_phase_lead_s"),
+        ({"runtime.stream_phase_lock": True, "runtime.stream_phase_lead_s": 0.003}, "runtime.stream_phase_lead_s"),
     ],
 )
 def test_bad_settings_name_file_key_and_value(overrides: dict, key: str) -> None:
