@@ -78,6 +78,34 @@ def demote_emulators(nice: int | None) -> str:
     return f"emulators demoted to niceness {nice:+d} (standing in for devices with CPUs of their own)"
 
 
+#: SCHED_FIFO priority of a benchmark's steady sender: above the daemon's helper processes and the emulators, below
+#: the control loop (80).
+SENDER_PRIORITY = 10
+
+
+def external_sender() -> str:
+    """Make the calling process a stand-in for a show-control machine of its own: SCHED_FIFO at
+    ``SENDER_PRIORITY`` (call it first, before any ZeroMQ context exists, so the context's I/O thread inherits it).
+    On a shared 2-core host a normal-priority sender queues behind the emulators (niceness −10) and sends its
+    frames milliseconds off its grid, which is this host's load, not the network a real sender's frames cross.
+    Returns a line for the report."""
+    import os
+
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(SENDER_PRIORITY))
+    except (AttributeError, OSError) as exc:
+        return f"sender at normal priority ({type(exc).__name__}: SCHED_FIFO not permitted)"
+    return f"sender SCHED_FIFO {SENDER_PRIORITY}"
+
+
+def sleep_until(t: float) -> None:
+    """Sleep until monotonic time ``t``, spinning only the last 100 µs (a realtime sender wakes within tens of µs)."""
+    import time
+
+    while (left := t - time.monotonic()) > 0:
+        time.sleep(left - 100e-6 if left > 150e-6 else 0)
+
+
 def pct(values: Any, q: float) -> float:
     import numpy as np
 

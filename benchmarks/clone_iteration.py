@@ -48,6 +48,9 @@ class _Timer:
                 finally:
                     timer.solve_s += time.perf_counter() - t0
 
+            def __getattr__(self, name):  # everything else of the factorization, untimed
+                return getattr(self.fac, name)
+
         class Solver:
             def __init__(self, inner):
                 self.inner = inner
@@ -61,7 +64,10 @@ class _Timer:
                     timer.factor_s += time.perf_counter() - t0
                     timer.factors += 1
 
-        return lambda backend="auto": Solver(make(backend))
+            def __getattr__(self, name):
+                return getattr(self.inner, name)
+
+        return lambda backend="auto", precision="double": Solver(make(backend, precision))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -30,9 +30,9 @@ import numpy as np
 import zmq
 
 try:
-    from benchmarks._daemon import add_emulator_nice, demote_emulators, patient_head, pct
+    from benchmarks._daemon import add_emulator_nice, demote_emulators, external_sender, patient_head, pct, sleep_until
 except ImportError:  # run as a script
-    from _daemon import add_emulator_nice, demote_emulators, patient_head, pct
+    from _daemon import add_emulator_nice, demote_emulators, external_sender, patient_head, pct, sleep_until
 
 FRAGMENT = """
 [inputs.osc]
@@ -121,7 +121,9 @@ def measure(daemon: Any, trials: int, send: Callable[[float], None]) -> list[flo
 def _steady_sender(kind: str, target: str, rate: float, steps: int, seed: int, out: Any) -> None:
     """A live sender in a process of its own: one packet per period on a fixed grid (``kind`` "osc" to host:port
     ``target``, "sacn" unicast to IP ``target``), the jaw stepping between 0° and 4° every 125–175 packets; puts
-    the send times of the step packets on ``out``."""
+    the send times of the step packets on ``out``. It runs as a sender on a machine of its own would
+    (:func:`external_sender`)."""
+    external_sender()
     rng = np.random.default_rng(seed)
     if kind == "osc":
         from pythonosc.udp_client import SimpleUDPClient
@@ -153,8 +155,7 @@ def _steady_sender(kind: str, target: str, rate: float, steps: int, seed: int, o
     t_next = time.monotonic() + period
     give_up = time.monotonic() + 30.0 + 2.0 * steps
     while len(sent) < steps and time.monotonic() < give_up:
-        while (left := t_next - time.monotonic()) > 0:
-            time.sleep(min(left, 0.0005) if left > 0.0006 else 0)  # sleep, then spin the last half-ms
+        sleep_until(t_next)
         t_next += period
         k += 1
         step = k == next_step

@@ -25,9 +25,25 @@ import numpy as np
 import zmq
 
 try:
-    from benchmarks._daemon import add_emulator_nice, demote_emulators, make_daemon, patient_head, pct
+    from benchmarks._daemon import (
+        add_emulator_nice,
+        demote_emulators,
+        external_sender,
+        make_daemon,
+        patient_head,
+        pct,
+        sleep_until,
+    )
 except ImportError:  # run as a script
-    from _daemon import add_emulator_nice, demote_emulators, make_daemon, patient_head, pct
+    from _daemon import (
+        add_emulator_nice,
+        demote_emulators,
+        external_sender,
+        make_daemon,
+        patient_head,
+        pct,
+        sleep_until,
+    )
 
 
 def bare_push_pull(n: int, frame: dict) -> list[float]:
@@ -112,7 +128,9 @@ def stream_latency(daemon, trials: int) -> list[float]:
 def _producer(endpoint: str, rate: float, steps: int, seed: int, out: Any) -> None:
     """A show-control producer in a process of its own: one frame per request at ``rate`` Hz on a fixed grid, sent
     without waiting for replies (a DEALER socket, as a streaming client would), the jaw stepping between 0° and 4°
-    every 0.5–0.7 s; puts the arrival times (``t_recv``) of the step frames on ``out``."""
+    every 0.5–0.7 s; puts the arrival times (``t_recv``) of the step frames on ``out``. It runs as a sender on a
+    machine of its own would (:func:`external_sender`)."""
+    sender = external_sender()
     from runtime.client import Client
 
     with Client(endpoint) as c:
@@ -123,7 +141,7 @@ def _producer(endpoint: str, rate: float, steps: int, seed: int, out: Any) -> No
     sock.connect(endpoint)
     step_ids: set[int] = set()
     recv: list[float] = []
-    counts = {"replies": 0, "late": 0}
+    counts: dict[str, Any] = {"replies": 0, "late": 0, "sender": sender}
     period = 1.0 / rate
     value, k, next_step = 0.0, 0, int(rng.integers(125, 175))
     t_next = time.monotonic() + period
@@ -138,9 +156,8 @@ def _producer(endpoint: str, rate: float, steps: int, seed: int, out: Any) -> No
 
     give_up = time.monotonic() + 30.0 + 2.0 * steps  # a faulted or refusing daemon ends the measurement
     while len(recv) < steps and time.monotonic() < give_up:
-        while (left := t_next - time.monotonic()) > 0:
-            replies()
-            time.sleep(min(left, 0.0005) if left > 0.0006 else 0)  # sleep, then spin the last half-ms
+        replies()
+        sleep_until(t_next)
         t_next += period
         k += 1
         if k == next_step:
@@ -153,7 +170,7 @@ def _producer(endpoint: str, rate: float, steps: int, seed: int, out: Any) -> No
     out.put((recv, counts))
 
 
-def steady_latency(daemon, rate: float, steps: int, seed: int) -> tuple[list[float], dict[str, int]]:
+def steady_latency(daemon, rate: float, steps: int, seed: int) -> tuple[list[float], dict[str, Any]]:
     """For each step frame of a steady producer (:func:`_producer`, its own process), its arrival → the first bus
     write that moved the jaw (seconds); this process watches the bus writes meanwhile."""
     import multiprocessing as mp
@@ -227,7 +244,7 @@ def main(argv: list[str] | None = None) -> int:
     base_rate = bare_router_rate(args.seconds)
     # The jitter buffer's delay is part of the measured latency: 1 ms here (default 50 ms).
     steady: dict[bool, list[float]] = {}
-    late: dict[bool, dict[str, int]] = {}
+    late: dict[bool, dict[str, Any]] = {}
     for lock in (False, True):
         daemon = make_daemon(args.rate, True, head_path=head,
                              **{"runtime.stream_delay_s": 0.001, "runtime.stream_phase_lock": lock})
@@ -253,7 +270,7 @@ def main(argv: list[str] | None = None) -> int:
     u50, u99 = pct(steady[False], 50) * 1e6, pct(steady[False], 99) * 1e6
     print(f"steady {args.rate:g} Hz stream, frame arrival -> bus write, phase lock on ({len(steady[True])} steps): "
           f"p50 {s50:.0f} us, p99 {s99:.0f} us  (goal p99 <= 2000 us); frames late (lost) "
-          f"{late[True]['late']} of {late[True]['replies']}")
+          f"{late[True]['late']} of {late[True]['replies']} ({late[True]['sender']})")
     print(f"  same stream, phase lock off ({len(steady[False])} steps): p50 {u50:.0f} us, p99 {u99:.0f} us  "
           f"(lock on / off: p99 x{s99 / u99:.2f}); frames late {late[False]['late']} of {late[False]['replies']}")
     print(f"single frames at random phases, arrival -> bus write at {args.rate:g} Hz ({len(lat)}/{args.trials} "
