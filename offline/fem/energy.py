@@ -78,6 +78,7 @@ class _MeshData:
     adj_elem: np.ndarray
     adj_local: np.ndarray
     pattern: _Pattern | None = None
+    colors: tuple[np.ndarray, np.ndarray] | None = None  # (color_ptr, elements ordered by colour)
 
 
 _CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
@@ -118,6 +119,46 @@ def _build_mesh_data(mesh: TetMesh) -> _MeshData:
     adj_elem = (order_ // n).astype(np.int64)
     adj_local = (order_ % n).astype(np.int64)
     return _MeshData(dNdX, wdet, Nq, adj_ptr, adj_elem, adj_local)
+
+
+@nb.njit(cache=True)
+def _greedy_colors(tets, n_nodes):
+    """Colour elements so that no two of one colour share a node (greedy, first free colour of 64); returns each
+    element's colour, or -1 for all when 64 colours do not suffice."""
+    M, n = tets.shape
+    used = np.zeros(n_nodes, dtype=np.uint64)
+    color = np.empty(M, dtype=np.int64)
+    for e in range(M):
+        mask = np.uint64(0)
+        for a in range(n):
+            mask |= used[tets[e, a]]
+        c = 0
+        while c < 64 and (mask >> np.uint64(c)) & np.uint64(1):
+            c += 1
+        if c == 64:
+            color[:] = -1
+            return color
+        color[e] = c
+        bit = np.uint64(1) << np.uint64(c)
+        for a in range(n):
+            used[tets[e, a]] |= bit
+    return color
+
+
+def _colors(mesh: TetMesh) -> tuple[np.ndarray, np.ndarray] | None:
+    """Elements grouped into colours that share no node (cached): each colour's element Hessians can be added into
+    the matrix in parallel without two threads touching one row. None if the mesh needs more than 64 colours."""
+    data = _mesh_data(mesh)
+    if data.colors is None:
+        color = _greedy_colors(np.ascontiguousarray(mesh.tets), mesh.n_nodes)
+        if color.size and color[0] < 0:
+            data.colors = (np.zeros(1, dtype=np.int64), np.zeros(0, dtype=np.int64))
+        else:
+            order = np.argsort(color, kind="stable").astype(np.int64)
+            ptr = np.concatenate([[0], np.cumsum(np.bincount(color, minlength=int(color.max(initial=-1)) + 1))])
+            data.colors = (ptr.astype(np.int64), order)
+    ptr, order = data.colors
+    return None if order.size != mesh.n_tets else (ptr, order)
 
 
 def _pattern(mesh: TetMesh) -> _Pattern:
@@ -463,21 +504,62 @@ def _gather_hessians(tets, adj_ptr, adj_elem, adj_local, block_base, row_stride,
                         data[base + i * rs + kk] += Hbuf[e - e0, 3 * a + i, 3 * b + kk]
 
 
-#: Bytes of element-Hessian buffer per assembly batch.
-_HESSIAN_BUFFER_BYTES = 96 * 2**20
+@nb.njit(cache=True, parallel=True)
+def _assemble_colored(x, tets, dNdX, wdet, coef, project, color_ptr, order, block_base, row_stride, data):
+    """Add every element Hessian straight into CSR ``data``, one colour at a time, the elements of a colour in
+    parallel (they share no node, so no two threads write one row); returns how many were PSD-projected."""
+    n = tets.shape[1]
+    nd = 3 * n
+    n_proj = 0
+    for c in range(color_ptr.shape[0] - 1):
+        lo, hi = color_ptr[c], color_ptr[c + 1]
+        count = hi - lo
+        nc = min(count, 64)
+        size = (count + nc - 1) // nc
+        for ch in nb.prange(nc):
+            F = np.empty((3, 3))
+            A = np.empty((9, 9))
+            C = np.empty((3, 3))
+            FC = np.empty((3, 3))
+            cof = np.empty((3, 3))
+            d = np.empty((3, 9))
+            T = np.empty((9, n, 3))
+            He = np.empty((nd, nd))
+            cnt = 0
+            for t in range(lo + ch * size, min(hi, lo + (ch + 1) * size)):
+                e = order[t]
+                _element_hessian(x, tets, dNdX, wdet, coef, e, He, F, A, C, FC, cof, d, T)
+                if project and _project_psd(He):
+                    cnt += 1
+                for a in range(n):
+                    rs = row_stride[tets[e, a]]
+                    for b in range(n):
+                        base = block_base[e, a, b]
+                        for i in range(3):
+                            row = base + i * rs
+                            for k in range(3):
+                                data[row + k] += He[3 * a + i, 3 * b + k]
+            n_proj += cnt
+    return n_proj
+
+
+#: Bytes of element-Hessian buffer per assembly batch (meshes that need more than 64 colours only).
+_HESSIAN_BUFFER_BYTES = 16 * 2**20
 
 
 # ---------------------------------------------------------------------------------------------------------------
 # Public API
 # ---------------------------------------------------------------------------------------------------------------
 def prepare(mesh: TetMesh, stiffness_pattern: bool = True) -> None:
-    """Precompute and cache the per-mesh data (shape-function gradients, adjacency, CSR pattern) now.
+    """Precompute and cache the per-mesh data (shape-function gradients, adjacency, CSR pattern, element colours)
+    now.
 
     Raises ValueError naming the first inverted tet. Later kernel calls on this mesh object reuse the cache.
     """
     _mesh_data(mesh)
     if stiffness_pattern:
         _pattern(mesh)
+        _colors(mesh)
 
 
 def _check_x(mesh: TetMesh, x) -> np.ndarray:
@@ -510,17 +592,23 @@ def _stiffness(mesh: TetMesh, material: Material, x: np.ndarray, project_psd: bo
     d = _mesh_data(mesh)
     pat = _pattern(mesh)
     x = _check_x(mesh, x)
-    nd = 3 * mesh.tets.shape[1]
-    batch = max(1, min(mesh.n_tets, _HESSIAN_BUFFER_BYTES // (8 * nd * nd)))
-    buf = np.empty((batch, nd, nd))
     data = np.zeros(pat.indices.size)
-    n_proj = 0
     coef = material.coefficients
-    for e0 in range(0, mesh.n_tets, batch):
-        b = min(batch, mesh.n_tets - e0)
-        n_proj += _element_hessians(x, mesh.tets, d.dNdX, d.wdet, coef, e0, project_psd, buf[:b], _n_chunks(b))
-        _gather_hessians(mesh.tets, d.adj_ptr, d.adj_elem, d.adj_local, pat.block_base, pat.row_stride,
-                         buf[:b], e0, data)
+    colors = _colors(mesh)
+    if colors is not None:
+        n_proj = _assemble_colored(x, mesh.tets, d.dNdX, d.wdet, coef, project_psd, colors[0], colors[1],
+                                   pat.block_base, pat.row_stride, data)
+    else:  # batches of element Hessians, then gathered by node
+        nd = 3 * mesh.tets.shape[1]
+        batch = max(1, min(mesh.n_tets, _HESSIAN_BUFFER_BYTES // (8 * nd * nd)))
+        buf = np.empty((batch, nd, nd))
+        n_proj = 0
+        for e0 in range(0, mesh.n_tets, batch):
+            b = min(batch, mesh.n_tets - e0)
+            n_proj += _element_hessians(x, mesh.tets, d.dNdX, d.wdet, coef, e0, project_psd, buf[:b],
+                                        _n_chunks(b))
+            _gather_hessians(mesh.tets, d.adj_ptr, d.adj_elem, d.adj_local, pat.block_base, pat.row_stride,
+                             buf[:b], e0, data)
     n = 3 * mesh.n_nodes
     K = sp.csr_matrix((data, pat.indices, pat.indptr), shape=(n, n))
     K.has_sorted_indices = True

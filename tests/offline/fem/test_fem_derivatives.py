@@ -89,3 +89,31 @@ def test_energy_is_infinite_for_inverted_elements() -> None:
     mesh = box_mesh((0.01, 0.01, 0.01), (1, 1, 1))
     x = np.asarray(mesh.nodes) * np.array([1.0, 1.0, -1.0])
     assert total_energy(mesh, MATERIALS["neo_hookean"], x) == np.inf
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_coloured_assembly_matches_the_element_by_element_sum(order: int) -> None:
+    """The stiffness added colour by colour (parallel, straight into the matrix) equals a plain sum of element
+    Hessians; the colours share no node."""
+    from offline.fem import energy as en
+
+    mat = MATERIALS["neo_hookean"]
+    mesh = box_mesh((0.01, 0.01, 0.01), (3, 2, 2), order=order)
+    x = _deformed(mesh, 3)
+    ptr, elems = en._colors(mesh)
+    tets = np.asarray(mesh.tets)
+    assert sorted(elems.tolist()) == list(range(mesh.n_tets))
+    for c in range(len(ptr) - 1):
+        nodes = tets[elems[ptr[c]:ptr[c + 1]]].ravel()
+        assert np.unique(nodes).size == nodes.size  # no node twice within one colour
+    for project in (False, True):
+        K = stiffness(mesh, mat, x, project_psd=project).toarray()
+        nd = 3 * tets.shape[1]
+        He = np.empty((mesh.n_tets, nd, nd))
+        d = _mesh_data(mesh)
+        en._element_hessians(x, mesh.tets, d.dNdX, d.wdet, mat.coefficients, 0, project, He, 1)
+        dofs = (3 * tets[:, :, None] + np.arange(3)).reshape(mesh.n_tets, nd)
+        ref = np.zeros_like(K)
+        for e in range(mesh.n_tets):
+            ref[np.ix_(dofs[e], dofs[e])] += He[e]
+        assert np.allclose(K, ref, rtol=1e-12, atol=1e-9 * np.abs(ref).max())
