@@ -59,6 +59,19 @@ def make_daemon(rate_hz: float, realtime: bool, with_buses: bool = True, head_pa
     return daemon
 
 
+def add_settings(parser: Any) -> None:
+    """The ``--set TABLE.KEY=VALUE`` option of the latency benchmarks (read it with :func:`settings`)."""
+    parser.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE",
+                        help="a daemon config override, e.g. runtime.api_priority=5 (TOML value); repeatable")
+
+
+def settings(args: Any) -> dict[str, Any]:
+    """The ``--set`` overrides as a dict of config keys to values."""
+    import tomllib
+
+    return {k: tomllib.loads(f"v = {v}")["v"] for k, v in (item.split("=", 1) for item in args.set)}
+
+
 def add_emulator_nice(parser: Any) -> None:
     """The ``--emulator-nice`` option of the latency benchmarks (read it with :func:`demote_emulators`)."""
     parser.add_argument("--emulator-nice", type=int, default=None,

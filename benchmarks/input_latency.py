@@ -30,9 +30,27 @@ import numpy as np
 import zmq
 
 try:
-    from benchmarks._daemon import add_emulator_nice, demote_emulators, external_sender, patient_head, pct, sleep_until
+    from benchmarks._daemon import (
+        add_emulator_nice,
+        add_settings,
+        demote_emulators,
+        external_sender,
+        patient_head,
+        pct,
+        settings,
+        sleep_until,
+    )
 except ImportError:  # run as a script
-    from _daemon import add_emulator_nice, demote_emulators, external_sender, patient_head, pct, sleep_until
+    from _daemon import (
+        add_emulator_nice,
+        add_settings,
+        demote_emulators,
+        external_sender,
+        patient_head,
+        pct,
+        settings,
+        sleep_until,
+    )
 
 FRAGMENT = """
 [inputs.osc]
@@ -59,7 +77,7 @@ ramp = "00:00:10:00"
 RAMP = {"name": "ramp", "channels": {"jaw": {"interp": "linear", "keys": [[0, 0], [20, 20]]}}}
 
 
-def start_daemon(rate: float, tmp: Path, phase_lock: bool = False) -> Any:
+def start_daemon(rate: float, tmp: Path, phase_lock: bool = False, extra: dict[str, Any] | None = None) -> Any:
     from models.headspec import load_head
     from runtime.daemon import Daemon
 
@@ -68,7 +86,7 @@ def start_daemon(rate: float, tmp: Path, phase_lock: bool = False) -> Any:
     overrides = {"api.command": "tcp://127.0.0.1:*", "api.telemetry": "tcp://127.0.0.1:*",
                  "runtime.rate_hz": rate, "runtime.telemetry_hz": min(50, rate), "runtime.stream_delay_s": 0.001,
                  "safety.feedback_timeout_s": 0.5, "safety.watchdog_hold_s": 5.0, "safety.watchdog_neutral_s": 10.0,
-                 "runtime.stream_phase_lock": phase_lock}
+                 "runtime.stream_phase_lock": phase_lock, **(extra or {})}
     daemon = Daemon(head, overrides, target_solvers=())
     daemon.start()
     ready(daemon)
@@ -221,11 +239,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rate", type=float, default=250.0)
     parser.add_argument("--steps", type=int, default=40, help="timed steps per steady sender (0: skip)")
     add_emulator_nice(parser)
+    add_settings(parser)
     args = parser.parse_args(argv)
+    extra = settings(args)
     emulators = demote_emulators(args.emulator_nice)
     results: dict[str, list[float]] = {}
     with tempfile.TemporaryDirectory() as tmp:
-        daemon = start_daemon(args.rate, Path(tmp))
+        daemon = start_daemon(args.rate, Path(tmp), extra=extra)
         try:
             with Client(daemon.command_endpoint) as c:
                 hello = c.call("hello")
@@ -277,7 +297,7 @@ def main(argv: list[str] | None = None) -> int:
             daemon.stop()
         steady_results: dict[str, tuple[list[float], Any]] = {}
         if args.steps > 0:
-            daemon = start_daemon(args.rate, Path(tmp) / "locked", phase_lock=True)
+            daemon = start_daemon(args.rate, Path(tmp) / "locked", phase_lock=True, extra=extra)
             try:
                 inputs = daemon.call("hello")["inputs"]
                 time.sleep(0.5)
@@ -290,7 +310,7 @@ def main(argv: list[str] | None = None) -> int:
     period = 1e6 / args.rate
     base = results["zeromq stream"]
     b50, b99 = pct(base, 50) * 1e6, pct(base, 99) * 1e6
-    print(f"{emulators}; load average {os.getloadavg()[0]:.1f} at the end")
+    print(f"{emulators}; settings {extra or 'default'}; load average {os.getloadavg()[0]:.1f} at the end")
     print(f"packet sent -> bus write at {args.rate:g} Hz (loop period {period:.0f} us; goal p99 <= 2000 us) [{state}]")
     for name, lat in results.items():
         l50, l99 = pct(lat, 50) * 1e6, pct(lat, 99) * 1e6

@@ -27,21 +27,25 @@ import zmq
 try:
     from benchmarks._daemon import (
         add_emulator_nice,
+        add_settings,
         demote_emulators,
         external_sender,
         make_daemon,
         patient_head,
         pct,
+        settings,
         sleep_until,
     )
 except ImportError:  # run as a script
     from _daemon import (
         add_emulator_nice,
+        add_settings,
         demote_emulators,
         external_sender,
         make_daemon,
         patient_head,
         pct,
+        settings,
         sleep_until,
     )
 
@@ -235,7 +239,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rate", type=float, default=250.0)
     parser.add_argument("--seconds", type=float, default=3.0)
     add_emulator_nice(parser)
+    add_settings(parser)
     args = parser.parse_args(argv)
+    extra = settings(args)
     emulators = demote_emulators(args.emulator_nice)
     tmp = tempfile.TemporaryDirectory()
     head = patient_head(Path(tmp.name) / "head" / "head.toml")
@@ -247,13 +253,13 @@ def main(argv: list[str] | None = None) -> int:
     late: dict[bool, dict[str, Any]] = {}
     for lock in (False, True):
         daemon = make_daemon(args.rate, True, head_path=head,
-                             **{"runtime.stream_delay_s": 0.001, "runtime.stream_phase_lock": lock})
+                             **{"runtime.stream_delay_s": 0.001, "runtime.stream_phase_lock": lock, **extra})
         try:
             time.sleep(0.5)
             steady[lock], late[lock] = steady_latency(daemon, args.rate, max(20, args.trials // 4), seed=2)
         finally:
             daemon.stop()
-    daemon = make_daemon(args.rate, True, head_path=head, **{"runtime.stream_delay_s": 0.001})
+    daemon = make_daemon(args.rate, True, head_path=head, **{"runtime.stream_delay_s": 0.001, **extra})
     try:
         lat = stream_latency(daemon, args.trials)
         tp1 = throughput(daemon, args.seconds, 1)
@@ -264,7 +270,7 @@ def main(argv: list[str] | None = None) -> int:
     b50, b99 = pct(base, 50) * 1e6, pct(base, 99) * 1e6
     l50, l99 = pct(lat, 50) * 1e6, pct(lat, 99) * 1e6
     period = 1e6 / args.rate
-    print(f"{emulators}; load average {os.getloadavg()[0]:.1f} at the end")
+    print(f"{emulators}; settings {extra or 'default'}; load average {os.getloadavg()[0]:.1f} at the end")
     print(f"baseline PUSH->PULL one way: p50 {b50:.0f} us, p99 {b99:.0f} us")
     s50, s99 = pct(steady[True], 50) * 1e6, pct(steady[True], 99) * 1e6
     u50, u99 = pct(steady[False], 50) * 1e6, pct(steady[False], 99) * 1e6

@@ -112,6 +112,36 @@ def main(spec: ServerSpec) -> None:
         server.close()
 
 
+def _raise_request_threads(priority: int) -> str:
+    """With ``priority`` > 0, put this process's request thread (the calling one) and ZeroMQ's I/O threads under
+    SCHED_FIFO at ``priority``, after every helper process and thread has started (they keep normal scheduling: the
+    telemetry thread, the large-request decoder, the show-control inputs). Returns what happened, for the log."""
+    if priority <= 0:
+        return "API server at normal priority"
+    me = threading.get_native_id()
+    raised, failed = 0, ""
+    try:
+        tids = [int(t) for t in os.listdir("/proc/self/task")]
+    except OSError as exc:
+        return f"API server at normal priority (no thread list: {exc})"
+    for tid in tids:
+        try:
+            with open(f"/proc/self/task/{tid}/comm") as f:
+                name = f.read().strip()
+        except OSError:
+            continue
+        if tid != me and not name.startswith("ZMQbg/IO"):
+            continue
+        try:
+            os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
+            raised += 1
+        except OSError as exc:
+            failed = f"; SCHED_FIFO refused ({exc}): needs CAP_SYS_NICE or an rtprio limit"
+    msg = f"API server request and I/O threads ({raised}) at SCHED_FIFO {priority}{failed}"
+    (log.warning if failed else log.info)("%s", msg)
+    return msg
+
+
 def _die_with_parent() -> None:
     """Ask the kernel to end this process when the daemon dies (Linux), so no server outlives a ``kill -9``."""
     with contextlib.suppress(Exception):
@@ -153,6 +183,7 @@ class Server:
         self._telemetry = _LatestWorker(self._publish_state, "telemetry")
         self.inputs = _start_inputs(self.head, self.channels, self.ctx, self.estop_flag)
         self._start_decoder()
+        self.priority_status = _raise_request_threads(self.cfg.runtime.api_priority)
         ipc.send(self.link, ("ready", self.command_endpoint, self.telemetry_endpoint))
 
     def _start_decoder(self) -> None:

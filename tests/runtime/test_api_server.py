@@ -169,3 +169,32 @@ def test_a_recorded_run_replays_bit_for_bit(tmp_path) -> None:
             assert out.write is None, k
         else:
             assert out.write is not None and out.write.tobytes() == writes[k].tobytes(), k
+
+
+def test_api_priority_raises_only_the_request_and_zeromq_io_threads() -> None:
+    """``runtime.api_priority``: the request thread and ZeroMQ's I/O thread go SCHED_FIFO, other threads stay."""
+    import subprocess
+    import sys
+    import textwrap
+
+    code = textwrap.dedent("""
+        import os, threading, zmq
+        from runtime.server import _raise_request_threads
+        ctx = zmq.Context(); sock = ctx.socket(zmq.PAIR); sock.bind("inproc://x")
+        stop = threading.Event()
+        other = threading.Thread(target=stop.wait, name="telemetry"); other.start()
+        print(_raise_request_threads(3))
+        for tid in sorted(int(t) for t in os.listdir("/proc/self/task")):
+            name = open(f"/proc/self/task/{tid}/comm").read().strip()
+            role = "main" if tid == threading.get_native_id() else "other" if tid == other.native_id else name
+            print(role, os.sched_getscheduler(tid) == os.SCHED_FIFO)
+        stop.set(); other.join()
+    """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True).stdout
+    if "refused" in out:
+        pytest.skip("SCHED_FIFO not permitted here")
+    fifo = [tuple(line.rsplit(" ", 1)) for line in out.splitlines()[1:]]
+    assert ("main", "True") in fifo and ("other", "False") in fifo
+    io = [v for name, v in fifo if name.startswith("ZMQbg/IO")]
+    assert io and all(v == "True" for v in io)
+    assert all(v == "False" for name, v in fifo if name not in ("main", "other") and not name.startswith("ZMQbg/IO"))

@@ -34,6 +34,7 @@ def test_sample_settings_and_overrides() -> None:
         ({"api.curve_secret_key": "nope.key_secret"}, "api.curve_allow_dir"),
         ({"safety.watchdog_neutral_s": 0.1}, "safety.watchdog_neutral_s"),
         ({"runtime.stream_phase_lead_s": 0.0}, "runtime.stream_phase_lead_s"),
+        ({"runtime.api_priority": 99}, "runtime.api_priority"),
         ({"runtime.stream_phase_lock": True, "runtime.stream_phase_lead_s": 0.003}, "runtime.stream_phase_lead_s"),
     ],
 )
