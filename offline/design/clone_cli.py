@@ -177,6 +177,9 @@ def register_mold(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, help="output folder for the STL files and mold_report.json")
     p.add_argument("--margin-mm", type=float, default=12.0, help="mold wall around the skin (default 12)")
     p.add_argument("--plate-mm", type=float, default=5.0, help="base plate thickness (default 5)")
+    p.add_argument("--pour-mm", type=float, default=8.0, help="pour hole diameter at the highest point (default 8)")
+    p.add_argument("--vent-mm", type=float, default=2.0, help="vent diameter (default 2)")
+    p.add_argument("--vents", type=int, default=4, help="vents at the next local high points (default 4)")
     p.set_defaults(func=run_mold)
 
 
@@ -187,10 +190,14 @@ def run_mold(args: argparse.Namespace) -> int:
 
     from .mold import MoldSettings, export_mold
 
-    if args.margin_mm <= 0 or args.plate_mm <= 0:
-        raise CliError("--margin-mm and --plate-mm must be positive")
+    if args.margin_mm <= 0 or args.plate_mm <= 0 or args.pour_mm <= 0 or args.vent_mm <= 0:
+        raise CliError("--margin-mm, --plate-mm, --pour-mm and --vent-mm must be positive")
+    if args.vents < 0:
+        raise CliError("--vents must be 0 or more")
     try:
-        report = export_mold(args.skin, args.out, MoldSettings(margin_mm=args.margin_mm, plate_mm=args.plate_mm))
+        report = export_mold(args.skin, args.out, MoldSettings(margin_mm=args.margin_mm, plate_mm=args.plate_mm,
+                                                               pour_mm=args.pour_mm, vent_mm=args.vent_mm,
+                                                               vents=args.vents))
     except (SpecError, ValueError) as exc:
         raise CliError(str(exc)) from exc
     return _print_mold(report, args.out)
@@ -205,7 +212,11 @@ def _print_mold(report: dict, out) -> int:
         print(f"{name}.stl: {'ok' if c['ok'] else 'FAILED'} (watertight {c['watertight']}, oriented "
               f"{c['consistently_oriented']}, self-intersections {c['self_intersections']}, "
               f"{c['volume'] / 1e3:.2f} cm³, {c['components']} component(s))")
+    for c in report.get("channels", []):
+        x, y, z = c["at_mm"]
+        print(f"{c['kind']} hole {c['diameter_mm']:g} mm at ({x:.1f}, {y:.1f}, {z:.1f}) mm (casting frame)")
     vb = report["volume_balance_from_files"]
-    print(f"shell cavity − core − flash = {vb['skin_from_mold_mm3'] / 1e3:.3f} cm³ vs skin {vb['skin_mm3'] / 1e3:.3f} "
-          f"cm³ (relative difference {vb['relative_difference']:.1e}) -> {Path(out) / 'mold_report.json'}")
+    print(f"shell cavity − core − channels − flash = {vb['skin_from_mold_mm3'] / 1e3:.3f} cm³ vs skin "
+          f"{vb['skin_mm3'] / 1e3:.3f} cm³ (relative difference {vb['relative_difference']:.1e}) -> "
+          f"{Path(out) / 'mold_report.json'}")
     return 0 if ok else 1

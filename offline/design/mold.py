@@ -18,7 +18,14 @@ By construction the shell's cavity is the skin plus the core above the plate plu
 vol(box) − vol(shell halves) − (vol(core) − vol(plate)) = vol(skin): the checker verifies it on the files. The
 regions "below" and "above" the skin are sweeps of the skin along ∓z, built as unions of the convex prisms between
 each boundary triangle and its projection onto the box's bottom or top (``manifold3d``, exact and manifold
-booleans). Pour holes and vents are not cut: drill them where the workshop wants them.
+booleans).
+
+Pour hole and vents: with the face up (as cast), air collects under the local high points of the cavity's roof,
+the skin's outer surface. The highest of them gets the pour hole (``pour_mm`` across), the next ``vents`` highest,
+at least ``vent_spacing_mm`` apart, get vents (``vent_mm`` across); each is a vertical channel from the box's top
+down into the skin by ``channel_overlap_mm`` (so it opens into the cavity), cut from the shell. The channels' volume
+inside the shell is reported and enters the volume balance: cavity − core − channels − flash = skin. Silicone left
+in the channels is a sprue to trim from the cast skin.
 """
 
 from __future__ import annotations
@@ -46,6 +53,12 @@ class MoldSettings:
     sliver_mm3: float = 1.0
     tolerance_mm: float = 0.01
     notch_mm: float = 0.15
+    pour_mm: float = 8.0
+    vent_mm: float = 2.0
+    vents: int = 4
+    vent_spacing_mm: float = 15.0
+    channel_overlap_mm: float = 0.5
+    island_fraction: float = 0.01  # pieces of a part below this fraction of its volume are not printed
 
 
 def _manifold(vertices: np.ndarray, faces: np.ndarray):
@@ -72,6 +85,20 @@ def _clean(m, min_volume: float, tolerance: float):
     if not parts:
         raise ValueError("a mold part vanished: every component is below the sliver volume")
     return Manifold.batch_boolean(parts, OpType.Add).simplify(tolerance)
+
+
+def _drop_islands(m, fraction: float):
+    """The part without the pieces smaller than ``fraction`` of its largest piece (the islands repair notches and
+    channels cut off: loose in the mold, they would float in the silicone), and their volume (mm³)."""
+    from manifold3d import Manifold, OpType
+
+    pieces = m.decompose()
+    if len(pieces) < 2:
+        return m, 0.0
+    largest = max(c.volume() for c in pieces)
+    keep = [c for c in pieces if c.volume() >= fraction * largest]
+    dropped = sum(c.volume() for c in pieces) - sum(c.volume() for c in keep)
+    return Manifold.batch_boolean(keep, OpType.Add), dropped
 
 
 def _notch(segments: np.ndarray, radius: float):
@@ -150,6 +177,44 @@ def _sweep(V: np.ndarray, F: np.ndarray, z_to: float):
     return Manifold.batch_boolean(parts, OpType.Add)
 
 
+def high_points(V: np.ndarray, faces: np.ndarray, radius_mm: float, count: int) -> np.ndarray:
+    """Indices of up to ``count`` local maxima in z of the surface ``faces`` (vertices ``V``, mm), highest first:
+    vertices at least as high as every surface vertex within ``radius_mm`` of them (in plan), and at least
+    ``radius_mm`` apart from a higher one already taken."""
+    from scipy.spatial import cKDTree
+
+    idx = np.unique(faces)
+    P = V[idx]
+    tree = cKDTree(P[:, :2])
+    chosen: list[int] = []
+    for k in np.argsort(-P[:, 2], kind="stable"):
+        if len(chosen) >= count:
+            break
+        near = tree.query_ball_point(P[k, :2], radius_mm)
+        if P[near, 2].max() > P[k, 2]:
+            continue  # not a local maximum
+        if any(np.hypot(*(P[k, :2] - P[j, :2])) < radius_mm for j in chosen):
+            continue
+        chosen.append(int(k))
+    return idx[np.asarray(chosen, dtype=np.int64)]
+
+
+def _channels(V: np.ndarray, outer_faces: np.ndarray, z_top: float, s: MoldSettings):
+    """The pour hole and vents as vertical cylinders (see the module docstring), and where they are (mm)."""
+    from manifold3d import Manifold
+
+    tops = high_points(V, outer_faces, s.vent_spacing_mm, 1 + max(0, s.vents))
+    parts, where = [], []
+    for k, v in enumerate(tops):
+        d = s.pour_mm if k == 0 else s.vent_mm
+        z0 = V[v, 2] - s.channel_overlap_mm
+        height = z_top + 1.0 - z0
+        parts.append(Manifold.cylinder(height, d / 2, d / 2, 32).translate([V[v, 0], V[v, 1], z0]))
+        where.append({"kind": "pour" if k == 0 else "vent", "diameter_mm": d,
+                      "at_mm": [float(V[v, 0]), float(V[v, 1]), float(V[v, 2])]})
+    return parts, where
+
+
 def build_mold(nodes_m: np.ndarray, skin_faces: np.ndarray, outer_faces: np.ndarray, inner_faces: np.ndarray,
                settings: MoldSettings = MoldSettings()) -> dict:
     """All parts as (vertices mm, faces) arrays in the casting frame, plus the frame and the volumes (mm³).
@@ -188,6 +253,14 @@ def build_mold(nodes_m: np.ndarray, skin_faces: np.ndarray, outer_faces: np.ndar
         raise ValueError("registration keys overlap the skin's footprint: raise margin_mm")
     core_body = _clean(core_body, s.sliver_mm3, s.tolerance_mm)
     shell = box - skin - core_body - key_union
+    channels, channel_at = _channels(V, outer_faces, z_t, s)
+    channel_mm3 = 0.0
+    if channels:
+        from manifold3d import OpType
+
+        before = shell.volume()
+        shell = shell - Manifold.batch_boolean(channels, OpType.Add)
+        channel_mm3 = before - shell.volume()  # what the channels took from the shell
     # Pockets the shell cannot reach (closed between the skin and the core, e.g. the slot between overlapping
     # lips) would touch the shell along edges only: they belong to the core.
     pieces = sorted(shell.decompose(), key=lambda c: -c.volume())
@@ -201,25 +274,33 @@ def build_mold(nodes_m: np.ndarray, skin_faces: np.ndarray, outer_faces: np.ndar
     core, notched_core = _repair(core, s)
     left, notched_left = _repair(left, s)
     right, notched_right = _repair(right, s)
+    core, islands_core = _drop_islands(core, s.island_fraction)
+    left, islands_left = _drop_islands(left, s.island_fraction)
+    right, islands_right = _drop_islands(right, s.island_fraction)
     parts = {"skin": _arrays(skin), "mold_core": _arrays(core), "mold_shell_left": _arrays(left),
              "mold_shell_right": _arrays(right)}
     volumes = {"skin_mm3": skin.volume(), "core_mm3": core.volume(), "plate_mm3": plate.volume(),
                "keys_mm3": key_union.volume(), "box_mm3": box.volume(), "shell_left_mm3": left.volume(),
-               "shell_right_mm3": right.volume()}
+               "shell_right_mm3": right.volume(), "channels_mm3": channel_mm3}
     surfaces = {"skin_outer_surface": (V, outer_faces), "skin_inner_surface": (V, inner_faces)}
     return {"parts": parts, "surfaces": surfaces,
             "frame": {"rotation_rows_xyz": R.tolist(), "offset_mm": centre.tolist(), "parting_plane_x_mm": float(xm),
                       "box_mm": [[x0, y0, 0.0], [x1, y1, z_t]], "plate_mm": s.plate_mm},
             "volumes": volumes, "vertices_used": int(used.size), "pockets_to_core": len(pockets),
-            "notched_mm3": {"core": notched_core, "shell_left": notched_left, "shell_right": notched_right}}
+            "channels": channel_at,
+            "notched_mm3": {"core": notched_core, "shell_left": notched_left, "shell_right": notched_right},
+            "islands_mm3": {"core": islands_core, "shell_left": islands_left, "shell_right": islands_right}}
 
 
 def volume_balance(volumes: dict, flash_mm3: float = 0.0) -> dict:
-    """The shell's cavity less the core above the plate less the repair notches (flash), against the skin (mm³)."""
+    """The shell's cavity less the core above the plate, the pour and vent channels and the repair notches (flash),
+    against the skin (mm³)."""
     cavity = volumes["box_mm3"] - volumes["shell_left_mm3"] - volumes["shell_right_mm3"]
     core_above = volumes["core_mm3"] - volumes["plate_mm3"]
-    skin_from_mold = cavity - core_above - flash_mm3
-    return {"shell_cavity_mm3": cavity, "core_above_plate_mm3": core_above, "flash_mm3": flash_mm3,
+    channels = volumes.get("channels_mm3", 0.0)
+    skin_from_mold = cavity - core_above - channels - flash_mm3
+    return {"shell_cavity_mm3": cavity, "core_above_plate_mm3": core_above, "channels_mm3": channels,
+            "flash_mm3": flash_mm3,
             "skin_from_mold_mm3": skin_from_mold, "skin_mm3": volumes["skin_mm3"],
             "relative_difference": abs(skin_from_mold - volumes["skin_mm3"]) / volumes["skin_mm3"]}
 
@@ -254,7 +335,7 @@ def export_mold(skin_dir: str | Path, out_dir: str | Path, settings: MoldSetting
         outer, inner = np.asarray(z["surface_nodes"]), np.asarray(z["inner_nodes"])
     skin_faces, outer_faces, inner_faces = skin_surfaces(mesh, outer, inner)
     result = build_mold(np.asarray(mesh.nodes), skin_faces, outer_faces, inner_faces, settings)
-    flash = float(sum(result["notched_mm3"].values()))
+    flash = float(sum(result["notched_mm3"].values()) + sum(result["islands_mm3"].values()))
     out.mkdir(parents=True, exist_ok=True)
     files = {}
     for name, (v, f) in {**result["parts"], **result["surfaces"]}.items():
@@ -268,6 +349,7 @@ def export_mold(skin_dir: str | Path, out_dir: str | Path, settings: MoldSetting
     report = {"units": "mm", "settings": asdict(settings), "files": files, "frame": result["frame"],
               "volumes": result["volumes"], "volume_balance": volume_balance(result["volumes"], flash),
               "pockets_to_core": result["pockets_to_core"], "notched_mm3": result["notched_mm3"],
+              "islands_mm3": result["islands_mm3"], "channels": result["channels"],
               "open_sheets": ["skin_outer_surface", "skin_inner_surface"]}
     if check:
         report["checks"] = {name: check_stl(out / files[name]).as_dict() for name in result["parts"]}
@@ -275,7 +357,8 @@ def export_mold(skin_dir: str | Path, out_dir: str | Path, settings: MoldSetting
         cavity = report["frame"]["box_mm"]
         box = np.prod(np.subtract(cavity[1], cavity[0]))
         skin_files = (box - files_v["mold_shell_left"] - files_v["mold_shell_right"]
-                      - (files_v["mold_core"] - result["volumes"]["plate_mm3"]) - flash)
+                      - (files_v["mold_core"] - result["volumes"]["plate_mm3"])
+                      - result["volumes"]["channels_mm3"] - flash)
         report["volume_balance_from_files"] = {"skin_from_mold_mm3": float(skin_files),
                                                "skin_mm3": files_v["skin"],
                                                "relative_difference": abs(skin_files - files_v["skin"])
