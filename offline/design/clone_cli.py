@@ -216,7 +216,7 @@ def _print_mold(report: dict, out) -> int:
         x, y, z = c["at_mm"]
         print(f"{c['kind']} hole {c['diameter_mm']:g} mm at ({x:.1f}, {y:.1f}, {z:.1f}) mm (casting frame)")
     vb = report["volume_balance_from_files"]
-    print(f"shell cavity − core − channels − flash = {vb['skin_from_mold_mm3'] / 1e3:.3f} cm³ vs skin "
+    print(f"shell cavity − core − channels − pin clearance − flash = {vb['skin_from_mold_mm3'] / 1e3:.3f} cm³ vs skin "
           f"{vb['skin_mm3'] / 1e3:.3f} cm³ (relative difference {vb['relative_difference']:.1e}) -> "
           f"{Path(out) / 'mold_report.json'}")
     return 0 if ok else 1

@@ -12,7 +12,9 @@ axis made orthogonal to it, the base plate's top at z = 0. Files:
   plate that carries tapered registration keys at its corners.
 - ``mold_shell_left.stl`` / ``mold_shell_right.stl``: the outer shell — the mold box less the skin, the core and
   the keys — split in two along the parting plane x = (the skin's centre). The halves part sideways, which frees
-  regions that overhang along z (under the nose, the lips) without undercuts on the parting direction.
+  regions that overhang along z (under the nose, the lips) without undercuts on the parting direction. Two tapered
+  pins on the left half's parting face, in the side walls half-way up, enter sockets of the right half (with
+  ``pin_clearance_mm`` of clearance) so the halves close in register.
 
 By construction the shell's cavity is the skin plus the core above the plate plus the keys, so
 vol(box) − vol(shell halves) − (vol(core) − vol(plate)) = vol(skin): the checker verifies it on the files. The
@@ -59,6 +61,9 @@ class MoldSettings:
     vent_spacing_mm: float = 15.0
     channel_overlap_mm: float = 0.5
     island_fraction: float = 0.01  # pieces of a part below this fraction of its volume are not printed
+    pin_radius_mm: float = 2.5  # registration pins of the left shell half in sockets of the right half
+    pin_length_mm: float = 5.0
+    pin_clearance_mm: float = 0.15
 
 
 def _manifold(vertices: np.ndarray, faces: np.ndarray):
@@ -85,6 +90,25 @@ def _clean(m, min_volume: float, tolerance: float):
     if not parts:
         raise ValueError("a mold part vanished: every component is below the sliver volume")
     return Manifold.batch_boolean(parts, OpType.Add).simplify(tolerance)
+
+
+def _shell_pins(left, right, xm: float, y_walls: tuple[float, float], z_mid: float, forbidden, s: MoldSettings):
+    """Two tapered pins on the left half's parting face (in the side walls, half-way up) and matching sockets,
+    ``pin_clearance_mm`` larger, in the right half; returns (left, right, the clearance gap's volume in mm³)."""
+    from manifold3d import Manifold
+
+    r, L, c = s.pin_radius_mm, s.pin_length_mm, s.pin_clearance_mm
+    before = left.volume() + right.volume()
+    for y in y_walls:
+        # along +x from 1 mm inside the left half: a cylinder along z, turned onto x
+        pin = Manifold.cylinder(L + 1.0, r, r * 0.8, 48).rotate([0.0, 90.0, 0.0]).translate([xm - 1.0, y, z_mid])
+        socket = (Manifold.cylinder(L + 1.0 + c, r + c, r * 0.8 + c, 48).rotate([0.0, 90.0, 0.0])
+                  .translate([xm - 1.0, y, z_mid]))
+        if not (socket ^ forbidden).is_empty():
+            raise ValueError("a shell registration pin meets the cavity: raise margin_mm")
+        left = left + pin
+        right = right - socket
+    return left, right, before - (left.volume() + right.volume())
 
 
 def _drop_islands(m, fraction: float):
@@ -271,6 +295,8 @@ def build_mold(nodes_m: np.ndarray, skin_faces: np.ndarray, outer_faces: np.ndar
     core = _clean(plate + core_body + key_union, s.sliver_mm3, s.tolerance_mm)
     xm = 0.5 * (lo[0] + hi[0])
     right, left = (_clean(h, s.sliver_mm3, s.tolerance_mm) for h in shell.split_by_plane([1.0, 0.0, 0.0], xm))
+    left, right, pin_gap = _shell_pins(left, right, xm, (y0 + s.margin_mm / 2, y1 - s.margin_mm / 2), 0.5 * z_t,
+                                       skin + core + key_union, s)
     core, notched_core = _repair(core, s)
     left, notched_left = _repair(left, s)
     right, notched_right = _repair(right, s)
@@ -281,7 +307,7 @@ def build_mold(nodes_m: np.ndarray, skin_faces: np.ndarray, outer_faces: np.ndar
              "mold_shell_right": _arrays(right)}
     volumes = {"skin_mm3": skin.volume(), "core_mm3": core.volume(), "plate_mm3": plate.volume(),
                "keys_mm3": key_union.volume(), "box_mm3": box.volume(), "shell_left_mm3": left.volume(),
-               "shell_right_mm3": right.volume(), "channels_mm3": channel_mm3}
+               "shell_right_mm3": right.volume(), "channels_mm3": channel_mm3, "pin_gap_mm3": pin_gap}
     surfaces = {"skin_outer_surface": (V, outer_faces), "skin_inner_surface": (V, inner_faces)}
     return {"parts": parts, "surfaces": surfaces,
             "frame": {"rotation_rows_xyz": R.tolist(), "offset_mm": centre.tolist(), "parting_plane_x_mm": float(xm),
@@ -293,13 +319,15 @@ def build_mold(nodes_m: np.ndarray, skin_faces: np.ndarray, outer_faces: np.ndar
 
 
 def volume_balance(volumes: dict, flash_mm3: float = 0.0) -> dict:
-    """The shell's cavity less the core above the plate, the pour and vent channels and the repair notches (flash),
-    against the skin (mm³)."""
+    """The shell's cavity less the core above the plate, the pour and vent channels, the shell pins' clearance and
+    the repair notches and islands (flash), against the skin (mm³)."""
     cavity = volumes["box_mm3"] - volumes["shell_left_mm3"] - volumes["shell_right_mm3"]
     core_above = volumes["core_mm3"] - volumes["plate_mm3"]
     channels = volumes.get("channels_mm3", 0.0)
-    skin_from_mold = cavity - core_above - channels - flash_mm3
+    pin_gap = volumes.get("pin_gap_mm3", 0.0)
+    skin_from_mold = cavity - core_above - channels - pin_gap - flash_mm3
     return {"shell_cavity_mm3": cavity, "core_above_plate_mm3": core_above, "channels_mm3": channels,
+            "pin_gap_mm3": pin_gap,
             "flash_mm3": flash_mm3,
             "skin_from_mold_mm3": skin_from_mold, "skin_mm3": volumes["skin_mm3"],
             "relative_difference": abs(skin_from_mold - volumes["skin_mm3"]) / volumes["skin_mm3"]}
@@ -358,7 +386,7 @@ def export_mold(skin_dir: str | Path, out_dir: str | Path, settings: MoldSetting
         box = np.prod(np.subtract(cavity[1], cavity[0]))
         skin_files = (box - files_v["mold_shell_left"] - files_v["mold_shell_right"]
                       - (files_v["mold_core"] - result["volumes"]["plate_mm3"])
-                      - result["volumes"]["channels_mm3"] - flash)
+                      - result["volumes"]["channels_mm3"] - result["volumes"]["pin_gap_mm3"] - flash)
         report["volume_balance_from_files"] = {"skin_from_mold_mm3": float(skin_files),
                                                "skin_mm3": files_v["skin"],
                                                "relative_difference": abs(skin_files - files_v["skin"])

@@ -53,7 +53,17 @@ def test_mold_parts_are_clean_solids_whose_cavity_less_core_is_the_skin(tmp_path
 
     left = trimesh.load_mesh(str(tmp_path / "mold" / "mold_shell_left.stl"))
     right = trimesh.load_mesh(str(tmp_path / "mold" / "mold_shell_right.stl"))
-    assert left.vertices[:, 0].max() <= xm + 1e-3 and right.vertices[:, 0].min() >= xm - 1e-3
+    pin = report["settings"]["pin_length_mm"]
+    assert right.vertices[:, 0].min() >= xm - 1e-3
+    beyond = left.vertices[left.vertices[:, 0] > xm + 1e-3]  # only the registration pins cross the plane
+    assert len(beyond) and beyond[:, 0].max() <= xm + pin + 1e-3
+    assert np.all(np.abs(beyond[:, 2] - report["frame"]["box_mm"][1][2] / 2) <= report["settings"]["pin_radius_mm"]
+                  + 1e-3)
+    from offline.design.mold import _manifold
+
+    # the pins sit in their sockets with clearance: the halves do not interfere
+    assert (_manifold(left.vertices, left.faces) ^ _manifold(right.vertices, right.faces)).volume() < 1e-6
+    assert report["volume_balance"]["pin_gap_mm3"] > 0
     assert json.loads((tmp_path / "mold" / "mold_report.json").read_text())["units"] == "mm"
 
 
