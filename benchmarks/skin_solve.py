@@ -3,8 +3,8 @@
 Frames: the sample head's ``blendshapes.json`` performance sampled at 500 Hz (warm-started frame to frame, as the
 daemon solves it) and random sparse face-unit weights. Per frame, interleaved so machine load hits both alike:
 
-* core (new): ``KsnnInverse.solve`` (52 units, 3 iterations) + the guard's reduced check from the solve's hidden
-  activations; the goal is p99 ≤ 0.1 ms;
+* core (new): ``KsnnInverse.solve`` (52 units, 3 iterations) with the guard's reduced measure of the solution in
+  the same compiled call (``measure=``), and its verdict; the goal is p99 ≤ 0.1 ms;
 * ``SkinTargetSolver.solve`` (new), the same plus channel parsing and telemetry;
 * reference: the previous inverse (``benchmarks/_skin_reference.py``) + the previous guard check (a full predictor
   pass and the extreme strain over all triangles), and one predictor forward pass alone.
@@ -90,8 +90,8 @@ def main(argv: list[str] | None = None) -> int:
     clock = time.perf_counter
     for kind, w in fr:
         t0 = clock()
-        res = inv.solve(w, p_prev=p_new, max_iterations=its, tol=tol, xtol=xtol)
-        ok_new = guard.passes(guard.measure_hidden(res.hidden))
+        res = inv.solve(w, p_prev=p_new, max_iterations=its, tol=tol, xtol=xtol, measure=guard)
+        ok_new = guard.passes(res.strain)
         t1 = clock()
         targets = {n: float(x) for n, x in zip(names, w, strict=True) if x > 0}
         t2 = clock()

@@ -34,12 +34,13 @@ def warm(head_path: str) -> None:
     if path is None:
         return
     sp = SkinPredictor(path)
-    StrainGuard.for_head(head, sp)  # compiles the reduced measure
+    guard = StrainGuard.for_head(head, sp)  # compiles the reduced measure
     if sp.face_unit_offsets is not None:
         lo = np.maximum([a.min for a in head.actuators], sp.lo)
         hi = np.minimum([a.max for a in head.actuators], sp.hi)
         inv = KsnnInverse(sp.weights, sp.face_unit_offsets, lo=lo, hi=hi)  # compiles the solve
         inv.solve(np.zeros(inv.n_units), p_prev=0.5 * (lo + hi), max_iterations=2)
+        inv.solve(np.zeros(inv.n_units), p_prev=0.5 * (lo + hi), max_iterations=2, measure=guard)  # and fused
 
 
 if __name__ == "__main__":

@@ -15,6 +15,7 @@ with an active set), a temporal smoothness term towards the previous frame, and 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy.linalg.lapack import dposv as _dposv
@@ -35,6 +36,7 @@ class SolveResult:
     converged: bool
     objective: float
     hidden: np.ndarray | None = None  # hidden activations (3H,) at p, for the strain guard
+    strain: tuple[float, float] | None = None  # the guard's reduced measure at p, when solve() was given the guard
 
 
 class KsnnInverse:
@@ -140,31 +142,40 @@ class KsnnInverse:
         return max(float(h @ (self._G @ h + 2.0 * c)) + kappa, 0.0) * self.scale
 
     def solve(self, unit_weights: np.ndarray, p_prev: np.ndarray | None = None, p0: np.ndarray | None = None,
-              max_iterations: int = 20, tol: float = 1e-9, xtol: float = 0.0) -> SolveResult:
+              max_iterations: int = 20, tol: float = 1e-9, xtol: float = 0.0, measure: Any = None) -> SolveResult:
         """Damped, projected Gauss-Newton from ``p0`` (default ``p_prev``, else mid-range) for face-unit weights.
 
         ``tol`` bounds the relative decrease of the objective that counts as converged; ``xtol`` (normalized
         units, 0 = off) the largest actuator step that does (a warm-started frame whose first step is that small
         is done). Each iteration costs a
         few dozen small array operations (O(H² A) flops) and one 13×13-sized Cholesky solve (LAPACK ``dposv``);
-        variables at a bound whose gradient pushes outward are held (their rows become identity).
+        variables at a bound whose gradient pushes outward are held (their rows become identity). ``measure``, a
+        :class:`models.strain_guard.StrainGuard` on the same predictor, adds its reduced strain measure at the
+        solution (``SolveResult.strain``), computed in the same compiled call when both are compiled.
         """
         wts = np.asarray(unit_weights, dtype=np.float64)
         if wts.shape != (self.n_units,) or not np.isfinite(wts @ wts):
             raise ValueError(f"unit_weights must be {self.n_units} finite numbers, got shape {wts.shape}")
         if self.compiled:
-            from models._skin_kernels import solve_frame
+            from models import _skin_kernels as K
 
             w = self.weights
             none = _EMPTY
-            p, h, fit, f, it, conv = solve_frame(
-                wts, none if p_prev is None else np.asarray(p_prev, dtype=np.float64),
-                none if p0 is None else np.asarray(p0, dtype=np.float64), w.lo, w.hi, self._scale_in, self._const_b,
-                self._e, self._M, self._q0, self._Qd, self.smoothness / self.scale, self._W1, self._b1, self._W1b,
-                self._Rb, self._xlo, self._xhi, self._mid, self._ihalf, self.damping / self.scale, max_iterations,
-                tol, xtol)
+            args = (wts, none if p_prev is None else np.asarray(p_prev, dtype=np.float64),
+                    none if p0 is None else np.asarray(p0, dtype=np.float64), w.lo, w.hi, self._scale_in,
+                    self._const_b, self._e, self._M, self._q0, self._Qd, self.smoothness / self.scale, self._W1,
+                    self._b1, self._W1b, self._Rb, self._xlo, self._xhi, self._mid, self._ihalf,
+                    self.damping / self.scale, max_iterations, tol, xtol)
+            strain = None
+            if measure is not None and measure.compiled:
+                p, h, fit, f, it, conv, s_lo, s_hi = K.solve_frame_measured(*args, *measure.kernel_arrays())
+                strain = (float(s_lo), float(s_hi))
+            else:
+                p, h, fit, f, it, conv = K.solve_frame(*args)
+                if measure is not None:
+                    strain = measure.measure_hidden(h)
             return SolveResult(p=p, residual_rms=float(np.sqrt(fit * self.scale)), iterations=it, converged=conv,
-                               objective=f * self.scale, hidden=h)
+                               objective=f * self.scale, hidden=h, strain=strain)
         kappa = self._const_b - 2.0 * float(wts @ self._e) + float(wts @ (self._M @ wts))
         w = self.weights
         xlo, xhi = self._xlo, self._xhi
@@ -246,4 +257,5 @@ class KsnnInverse:
         p = w.lo + x * (w.hi - w.lo)
         fit = max(float(r @ r) + kq, 0.0) * self.scale
         return SolveResult(p=p, residual_rms=float(np.sqrt(fit)), iterations=it, converged=converged,
-                           objective=f * self.scale, hidden=h)
+                           objective=f * self.scale, hidden=h,
+                           strain=None if measure is None else measure.measure_hidden(h))

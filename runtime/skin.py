@@ -66,6 +66,8 @@ class SkinTargetSolver:
         self.strain_range = strain_guard.strain_range
         self._accepted = self.neutral.copy()
         self._weights = np.zeros(len(self.units))
+        # compile (or load) the fused solve-and-measure kernel now, never in a control cycle
+        self.inverse.solve(self._weights, max_iterations=1, measure=strain_guard)
 
     @classmethod
     def from_head(cls, head: HeadSpec) -> SkinTargetSolver | None:
@@ -129,10 +131,10 @@ class SkinTargetSolver:
             i = self.units.get(ch[len(PREFIX):]) if ch.startswith(PREFIX) else None
             if i is not None and np.isfinite(value):
                 w[i] = min(max(float(value), 0.0), 1.0)
-        res = self.inverse.solve(w, p_prev=self._accepted, max_iterations=self.max_iterations, tol=self.tol,
-                                 xtol=self.xtol)
         g = self.strain_guard
-        strain = g.measure_hidden(res.hidden) if res.hidden is not None else g.measure(res.p)
+        res = self.inverse.solve(w, p_prev=self._accepted, max_iterations=self.max_iterations, tol=self.tol,
+                                 xtol=self.xtol, measure=g)
+        strain = res.strain if res.strain is not None else g.measure(res.p)
         if g.passes(strain):  # the solution lies in the trained range by construction
             p, guard = res.p, "ok"
         else:

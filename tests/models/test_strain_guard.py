@@ -146,3 +146,25 @@ def test_guard_agrees_with_the_fem_measure_on_the_shipped_sample(guard):
     guard_ok = np.array([guard.check(p) for p in P])
     assert np.mean(guard_ok == fem_ok) >= 0.9
     assert np.median(np.abs(full - fem)) < 0.05
+
+
+def test_the_fused_solve_and_measure_is_the_solve_then_the_measure(guard):
+    """``KsnnInverse.solve(..., measure=guard)``: one compiled call gives the solve's answer and the guard's reduced
+    measure of it, as the two separate calls do (and as the numpy path does)."""
+    from models.ksnn_solve import KsnnInverse
+
+    sp = guard.predictor
+    fast = KsnnInverse(sp.weights, sp.face_unit_offsets)
+    ref = KsnnInverse(sp.weights, sp.face_unit_offsets, compiled=False)
+    rng = np.random.default_rng(3)
+    p_prev = None
+    for _ in range(20):
+        u = rng.uniform(0.0, 0.7, fast.n_units) * (rng.random(fast.n_units) < 0.2)
+        a = fast.solve(u, p_prev=p_prev, max_iterations=3, measure=guard)
+        b = fast.solve(u, p_prev=p_prev, max_iterations=3)
+        c = ref.solve(u, p_prev=p_prev, max_iterations=3, measure=guard)
+        np.testing.assert_array_equal(a.p, b.p)
+        assert a.strain == guard.measure_hidden(b.hidden)
+        np.testing.assert_allclose(a.strain, c.strain, rtol=0, atol=1e-6)
+        assert b.strain is None
+        p_prev = a.p
