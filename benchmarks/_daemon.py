@@ -119,6 +119,52 @@ def sleep_until(t: float) -> None:
         time.sleep(left - 100e-6 if left > 150e-6 else 0)
 
 
+def run_sender_watching_jaw(daemon: Any, target: Any, args: tuple, what: str) -> tuple[Any, Any, Any]:
+    """Run ``target(*args, queue)`` in a process of its own (a steady sender that puts its result on the queue) while
+    polling the bus link that carries the jaw; returns (write times, jaw targets written, the sender's result)."""
+    import multiprocessing as mp
+    import time
+
+    import numpy as np
+
+    link = next(lk for lk in daemon.links if "jaw" in lk.actuators)
+    j = link.actuators.index("jaw")
+    writes: list[tuple[float, float]] = [(0.0, float("nan"))]  # (bus write time, jaw target) from the bus process
+    ctx = mp.get_context("spawn")
+    out = ctx.Queue()
+    proc = ctx.Process(target=target, args=(*args, out), daemon=True)
+    proc.start()
+    got: Any = None
+    while got is None:
+        fb = link.feedback()
+        if fb.write_stamp != writes[-1][0]:
+            writes.append((fb.write_stamp, float(fb.written[j])))
+        try:
+            got = out.get_nowait()
+        except Exception:
+            time.sleep(200e-6)
+        if not proc.is_alive() and got is None and out.empty():
+            raise RuntimeError(f"the {what} process ended without a result (exit code {proc.exitcode})")
+    proc.join(5)
+    return np.array([w[0] for w in writes]), np.array([w[1] for w in writes]), got
+
+
+def first_moves(stamps: Any, values: Any, times: Any) -> list[float]:
+    """For each step time, the delay (s) to the first bus write after it that moved the jaw; steps that came while
+    the jaw was still moving cannot be timed and are left out."""
+    import numpy as np
+
+    lat = []
+    for t in times:
+        i = int(np.searchsorted(stamps, t))  # first write after the step
+        if i < 2 or i >= len(stamps) or values[i - 1] != values[i - 2]:
+            continue
+        moved = np.nonzero(values[i:] != values[i - 1])[0]
+        if len(moved):
+            lat.append(float(stamps[i + moved[0]] - t))
+    return lat
+
+
 def pct(values: Any, q: float) -> float:
     import numpy as np
 

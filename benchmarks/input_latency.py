@@ -30,27 +30,9 @@ import numpy as np
 import zmq
 
 try:
-    from benchmarks._daemon import (
-        add_emulator_nice,
-        add_settings,
-        demote_emulators,
-        external_sender,
-        patient_head,
-        pct,
-        settings,
-        sleep_until,
-    )
+    from benchmarks import _daemon as D
 except ImportError:  # run as a script
-    from _daemon import (
-        add_emulator_nice,
-        add_settings,
-        demote_emulators,
-        external_sender,
-        patient_head,
-        pct,
-        settings,
-        sleep_until,
-    )
+    import _daemon as D
 
 FRAGMENT = """
 [inputs.osc]
@@ -82,7 +64,7 @@ def start_daemon(rate: float, tmp: Path, phase_lock: bool = False, extra: dict[s
     from runtime.daemon import Daemon
 
     sacn_ip = f"127.{random.randint(1, 254)}.{random.randint(1, 254)}.{random.randint(1, 254)}"
-    head = load_head(patient_head(tmp / "head" / "head.toml", FRAGMENT.replace("{sacn}", sacn_ip)))
+    head = load_head(D.patient_head(tmp / "head" / "head.toml", FRAGMENT.replace("{sacn}", sacn_ip)))
     overrides = {"api.command": "tcp://127.0.0.1:*", "api.telemetry": "tcp://127.0.0.1:*",
                  "runtime.rate_hz": rate, "runtime.telemetry_hz": min(50, rate), "runtime.stream_delay_s": 0.001,
                  "safety.feedback_timeout_s": 0.5, "safety.watchdog_hold_s": 5.0, "safety.watchdog_neutral_s": 10.0,
@@ -141,7 +123,7 @@ def _steady_sender(kind: str, target: str, rate: float, steps: int, seed: int, o
     ``target``, "sacn" unicast to IP ``target``), the jaw stepping between 0° and 4° every 125–175 packets; puts
     the send times of the step packets on ``out``. It runs as a sender on a machine of its own would
     (:func:`external_sender`)."""
-    external_sender()
+    D.external_sender()
     rng = np.random.default_rng(seed)
     if kind == "osc":
         from pythonosc.udp_client import SimpleUDPClient
@@ -173,7 +155,7 @@ def _steady_sender(kind: str, target: str, rate: float, steps: int, seed: int, o
     t_next = time.monotonic() + period
     give_up = time.monotonic() + 30.0 + 2.0 * steps
     while len(sent) < steps and time.monotonic() < give_up:
-        sleep_until(t_next)
+        D.sleep_until(t_next)
         t_next += period
         k += 1
         step = k == next_step
@@ -191,38 +173,10 @@ def _steady_sender(kind: str, target: str, rate: float, steps: int, seed: int, o
 def steady(daemon: Any, kind: str, target: str, rate: float, steps: int) -> tuple[list[float], Any]:
     """Step packets of a steady sender (:func:`_steady_sender`) → the first bus write that moved the jaw (s), and
     the phase lock's state at the end (``status`` → ``loop.stream_phase_lock``)."""
-    import multiprocessing as mp
-
-    link = next(lk for lk in daemon.links if "jaw" in lk.actuators)
-    j = link.actuators.index("jaw")
-    writes: list[tuple[float, float]] = [(0.0, float("nan"))]
-    ctx = mp.get_context("spawn")
-    out = ctx.Queue()
-    proc = ctx.Process(target=_steady_sender, args=(kind, target, rate, steps, 3, out), daemon=True)
-    proc.start()
-    got: Any = None
-    while got is None:
-        fb = link.feedback()
-        if fb.write_stamp != writes[-1][0]:
-            writes.append((fb.write_stamp, float(fb.written[j])))
-        try:
-            got = out.get_nowait()
-        except Exception:
-            time.sleep(200e-6)
-        if not proc.is_alive() and got is None and out.empty():
-            raise RuntimeError(f"the {kind} sender ended without a result (exit code {proc.exitcode})")
+    stamps, values, sent = D.run_sender_watching_jaw(daemon, _steady_sender, (kind, target, rate, steps, 3),
+                                                     f"{kind} sender")
     lock = daemon.call("status").get("loop", {}).get("stream_phase_lock")
-    proc.join(5)
-    stamps = np.array([w[0] for w in writes])
-    values = np.array([w[1] for w in writes])
-    lat = []
-    for t_send in got:
-        i = int(np.searchsorted(stamps, t_send))
-        if i < 2 or i >= len(stamps) or values[i - 1] != values[i - 2]:
-            continue  # the jaw was still moving: this step cannot be timed
-        moved = np.nonzero(values[i:] != values[i - 1])[0]
-        if len(moved):
-            lat.append(stamps[i + moved[0]] - t_send)
+    lat = D.first_moves(stamps, values, sent)
     return lat, lock
 
 
@@ -238,11 +192,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--trials", type=int, default=100)
     parser.add_argument("--rate", type=float, default=250.0)
     parser.add_argument("--steps", type=int, default=40, help="timed steps per steady sender (0: skip)")
-    add_emulator_nice(parser)
-    add_settings(parser)
+    D.add_emulator_nice(parser)
+    D.add_settings(parser)
     args = parser.parse_args(argv)
-    extra = settings(args)
-    emulators = demote_emulators(args.emulator_nice)
+    extra = D.settings(args)
+    emulators = D.demote_emulators(args.emulator_nice)
     results: dict[str, list[float]] = {}
     with tempfile.TemporaryDirectory() as tmp:
         daemon = start_daemon(args.rate, Path(tmp), extra=extra)
@@ -309,18 +263,18 @@ def main(argv: list[str] | None = None) -> int:
                 daemon.stop()
     period = 1e6 / args.rate
     base = results["zeromq stream"]
-    b50, b99 = pct(base, 50) * 1e6, pct(base, 99) * 1e6
+    b50, b99 = D.pct(base, 50) * 1e6, D.pct(base, 99) * 1e6
     print(f"{emulators}; settings {extra or 'default'}; load average {os.getloadavg()[0]:.1f} at the end")
     print(f"packet sent -> bus write at {args.rate:g} Hz (loop period {period:.0f} us; goal p99 <= 2000 us) [{state}]")
     for name, lat in results.items():
-        l50, l99 = pct(lat, 50) * 1e6, pct(lat, 99) * 1e6
+        l50, l99 = D.pct(lat, 50) * 1e6, D.pct(lat, 99) * 1e6
         ratio = "" if name == "zeromq stream" else f"  (x{l50 / b50:.2f} / x{l99 / b99:.2f} the ZeroMQ stream)"
         print(f"  {name:14s} {len(lat):4d}/{args.trials} trials: p50 {l50:6.0f} us, p99 {l99:6.0f} us{ratio}")
     if steady_results:
         print(f"steady senders at {args.rate:g} Hz, phase lock on, step packet sent -> bus write "
               "(goal p99 <= 2000 us):")
         for name, (lat, lock) in steady_results.items():
-            l50, l99 = pct(lat, 50) * 1e6, pct(lat, 99) * 1e6
+            l50, l99 = D.pct(lat, 50) * 1e6, D.pct(lat, 99) * 1e6
             print(f"  {name:14s} {len(lat):4d}/{args.steps} steps:  p50 {l50:6.0f} us, p99 {l99:6.0f} us  "
                   f"(x{l50 / b50:.2f} / x{l99 / b99:.2f} the single ZeroMQ frames); phase lock at the end: {lock}")
     return 0

@@ -25,29 +25,9 @@ import numpy as np
 import zmq
 
 try:
-    from benchmarks._daemon import (
-        add_emulator_nice,
-        add_settings,
-        demote_emulators,
-        external_sender,
-        make_daemon,
-        patient_head,
-        pct,
-        settings,
-        sleep_until,
-    )
+    from benchmarks import _daemon as D
 except ImportError:  # run as a script
-    from _daemon import (
-        add_emulator_nice,
-        add_settings,
-        demote_emulators,
-        external_sender,
-        make_daemon,
-        patient_head,
-        pct,
-        settings,
-        sleep_until,
-    )
+    import _daemon as D
 
 
 def bare_push_pull(n: int, frame: dict) -> list[float]:
@@ -134,7 +114,7 @@ def _producer(endpoint: str, rate: float, steps: int, seed: int, out: Any) -> No
     without waiting for replies (a DEALER socket, as a streaming client would), the jaw stepping between 0° and 4°
     every 0.5–0.7 s; puts the arrival times (``t_recv``) of the step frames on ``out``. It runs as a sender on a
     machine of its own would (:func:`external_sender`)."""
-    sender = external_sender()
+    sender = D.external_sender()
     from runtime.client import Client
 
     with Client(endpoint) as c:
@@ -161,7 +141,7 @@ def _producer(endpoint: str, rate: float, steps: int, seed: int, out: Any) -> No
     give_up = time.monotonic() + 30.0 + 2.0 * steps  # a faulted or refusing daemon ends the measurement
     while len(recv) < steps and time.monotonic() < give_up:
         replies()
-        sleep_until(t_next)
+        D.sleep_until(t_next)
         t_next += period
         k += 1
         if k == next_step:
@@ -177,38 +157,9 @@ def _producer(endpoint: str, rate: float, steps: int, seed: int, out: Any) -> No
 def steady_latency(daemon, rate: float, steps: int, seed: int) -> tuple[list[float], dict[str, Any]]:
     """For each step frame of a steady producer (:func:`_producer`, its own process), its arrival → the first bus
     write that moved the jaw (seconds); this process watches the bus writes meanwhile."""
-    import multiprocessing as mp
-
-    link = next(lk for lk in daemon.links if "jaw" in lk.actuators)
-    j = link.actuators.index("jaw")
-    writes: list[tuple[float, float]] = [(0.0, float("nan"))]  # (bus write time, jaw target) from the bus process
-    ctx = mp.get_context("spawn")
-    out = ctx.Queue()
-    proc = ctx.Process(target=_producer, args=(daemon.command_endpoint, rate, steps, seed, out), daemon=True)
-    proc.start()
-    got: Any = None
-    while got is None:
-        fb = link.feedback()
-        if fb.write_stamp != writes[-1][0]:
-            writes.append((fb.write_stamp, float(fb.written[j])))
-        try:
-            got = out.get_nowait()
-        except Exception:
-            time.sleep(200e-6)
-        if not proc.is_alive() and got is None and out.empty():
-            raise RuntimeError(f"the producer process ended without a result (exit code {proc.exitcode})")
-    proc.join(5)
-    recv, counts = got
-    stamps = np.array([w[0] for w in writes])
-    values = np.array([w[1] for w in writes])
-    lat = []
-    for t_recv in recv:
-        i = int(np.searchsorted(stamps, t_recv))  # first write after the arrival
-        if i < 2 or i >= len(stamps) or values[i - 1] != values[i - 2]:
-            continue  # the jaw was still moving: this step cannot be timed
-        moved = np.nonzero(values[i:] != values[i - 1])[0]
-        if len(moved):
-            lat.append(stamps[i + moved[0]] - t_recv)
+    stamps, values, (recv, counts) = D.run_sender_watching_jaw(
+        daemon, _producer, (daemon.command_endpoint, rate, steps, seed), "producer")
+    lat = D.first_moves(stamps, values, recv)
     return lat, counts
 
 
@@ -238,13 +189,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--trials", type=int, default=200)
     parser.add_argument("--rate", type=float, default=250.0)
     parser.add_argument("--seconds", type=float, default=3.0)
-    add_emulator_nice(parser)
-    add_settings(parser)
+    D.add_emulator_nice(parser)
+    D.add_settings(parser)
     args = parser.parse_args(argv)
-    extra = settings(args)
-    emulators = demote_emulators(args.emulator_nice)
+    extra = D.settings(args)
+    emulators = D.demote_emulators(args.emulator_nice)
     tmp = tempfile.TemporaryDirectory()
-    head = patient_head(Path(tmp.name) / "head" / "head.toml")
+    head = D.patient_head(Path(tmp.name) / "head" / "head.toml")
     frame = {"op": "stream", "id": 1, "channels": ["jaw"], "frames": [[0.0, 1.0]]}
     base = bare_push_pull(max(200, args.trials), frame)
     base_rate = bare_router_rate(args.seconds)
@@ -252,14 +203,14 @@ def main(argv: list[str] | None = None) -> int:
     steady: dict[bool, list[float]] = {}
     late: dict[bool, dict[str, Any]] = {}
     for lock in (False, True):
-        daemon = make_daemon(args.rate, True, head_path=head,
+        daemon = D.make_daemon(args.rate, True, head_path=head,
                              **{"runtime.stream_delay_s": 0.001, "runtime.stream_phase_lock": lock, **extra})
         try:
             time.sleep(0.5)
             steady[lock], late[lock] = steady_latency(daemon, args.rate, max(20, args.trials // 4), seed=2)
         finally:
             daemon.stop()
-    daemon = make_daemon(args.rate, True, head_path=head, **{"runtime.stream_delay_s": 0.001, **extra})
+    daemon = D.make_daemon(args.rate, True, head_path=head, **{"runtime.stream_delay_s": 0.001, **extra})
     try:
         lat = stream_latency(daemon, args.trials)
         tp1 = throughput(daemon, args.seconds, 1)
@@ -267,13 +218,13 @@ def main(argv: list[str] | None = None) -> int:
         status = daemon.lifecycle
     finally:
         daemon.stop()
-    b50, b99 = pct(base, 50) * 1e6, pct(base, 99) * 1e6
-    l50, l99 = pct(lat, 50) * 1e6, pct(lat, 99) * 1e6
+    b50, b99 = D.pct(base, 50) * 1e6, D.pct(base, 99) * 1e6
+    l50, l99 = D.pct(lat, 50) * 1e6, D.pct(lat, 99) * 1e6
     period = 1e6 / args.rate
     print(f"{emulators}; settings {extra or 'default'}; load average {os.getloadavg()[0]:.1f} at the end")
     print(f"baseline PUSH->PULL one way: p50 {b50:.0f} us, p99 {b99:.0f} us")
-    s50, s99 = pct(steady[True], 50) * 1e6, pct(steady[True], 99) * 1e6
-    u50, u99 = pct(steady[False], 50) * 1e6, pct(steady[False], 99) * 1e6
+    s50, s99 = D.pct(steady[True], 50) * 1e6, D.pct(steady[True], 99) * 1e6
+    u50, u99 = D.pct(steady[False], 50) * 1e6, D.pct(steady[False], 99) * 1e6
     print(f"steady {args.rate:g} Hz stream, frame arrival -> bus write, phase lock on ({len(steady[True])} steps): "
           f"p50 {s50:.0f} us, p99 {s99:.0f} us  (goal p99 <= 2000 us); frames late (lost) "
           f"{late[True]['late']} of {late[True]['replies']} ({late[True]['sender']})")
