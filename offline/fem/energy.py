@@ -446,6 +446,13 @@ def _element_hessian(x, tets, dNdX, wdet, coef, e, He, F, A, C, FC, cof, d, T):
                     He[3 * b + k, 3 * a + i] = He[3 * a + i, 3 * b + k]
 
 
+@nb.njit(cache=True, inline="always")
+def _hessian_scratch(n):
+    """Scratch arrays of :func:`_element_hessian` for elements of ``n`` nodes (one set per worker chunk)."""
+    return (np.empty((3, 3)), np.empty((9, 9)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)),
+            np.empty((3, 9)), np.empty((9, n, 3)))
+
+
 @nb.njit(cache=True)
 def _project_psd(He):
     """Clamp negative eigenvalues of symmetric He to zero in place; return True if any was negative."""
@@ -469,13 +476,7 @@ def _element_hessians(x, tets, dNdX, wdet, coef, e0, project, out, nc):
     size = (B + nc - 1) // nc
     n_proj = 0
     for c in nb.prange(nc):
-        F = np.empty((3, 3))
-        A = np.empty((9, 9))
-        C = np.empty((3, 3))
-        FC = np.empty((3, 3))
-        cof = np.empty((3, 3))
-        d = np.empty((3, 9))
-        T = np.empty((9, n, 3))
+        F, A, C, FC, cof, d, T = _hessian_scratch(n)
         cnt = 0
         for t in range(c * size, min(B, (c + 1) * size)):
             _element_hessian(x, tets, dNdX, wdet, coef, e0 + t, out[t], F, A, C, FC, cof, d, T)
@@ -517,13 +518,7 @@ def _assemble_colored(x, tets, dNdX, wdet, coef, project, color_ptr, order, bloc
         nc = min(count, 64)
         size = (count + nc - 1) // nc
         for ch in nb.prange(nc):
-            F = np.empty((3, 3))
-            A = np.empty((9, 9))
-            C = np.empty((3, 3))
-            FC = np.empty((3, 3))
-            cof = np.empty((3, 3))
-            d = np.empty((3, 9))
-            T = np.empty((9, n, 3))
+            F, A, C, FC, cof, d, T = _hessian_scratch(n)
             He = np.empty((nd, nd))
             cnt = 0
             for t in range(lo + ch * size, min(hi, lo + (ch + 1) * size)):
