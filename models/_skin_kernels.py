@@ -214,7 +214,6 @@ def solve_frame(wts: np.ndarray, p_prev: np.ndarray, p0: np.ndarray, lo: np.ndar
     return p, h, max(r @ r + kq, 0.0), f, it, converged
 
 
-
 @njit(cache=True)
 def solve_frame_measured(wts: np.ndarray, p_prev: np.ndarray, p0: np.ndarray, lo: np.ndarray, hi: np.ndarray,
                          scale_in: np.ndarray, const_b: float, e: np.ndarray, M: np.ndarray, q0: np.ndarray,

@@ -36,8 +36,8 @@ class RuntimeSettings:
     # the API server.)
     bus_priority: int = 0
     # SCHED_FIFO priority of the API server's request thread and its ZeroMQ I/O thread (0: normal scheduling at raised
-    # niceness, the default). Measured on the sample head (benchmarks/stream_latency.py --set runtime.api_priority=5):
-    # a steady stream's frames reach the loop with a p99 of 0.6-0.7 ms instead of 2.2 ms and the phase lock holds, but
+    # niceness, the default). Measured on the sample head (one breakdown of a steady 250 Hz stream each way, in
+    # docs/protocol.md): frames reach the loop with a p99 of 0.6-0.7 ms instead of 2.2 ms and the phase lock holds, but
     # a flood of requests then takes a core ahead of the bus processes (whose stale feedback faults the head: safe,
     # but a stop), so it is opt-in. Telemetry, the large-request decoder and the show-control inputs stay normal.
     api_priority: int = 0

@@ -183,7 +183,7 @@ class Server:
         self._telemetry = _LatestWorker(self._publish_state, "telemetry")
         self.inputs = _start_inputs(self.head, self.channels, self.ctx, self.estop_flag)
         self._start_decoder()
-        self.priority_status = _raise_request_threads(self.cfg.runtime.api_priority)
+        _raise_request_threads(self.cfg.runtime.api_priority)  # logs what it did
         ipc.send(self.link, ("ready", self.command_endpoint, self.telemetry_endpoint))
 
     def _start_decoder(self) -> None:

@@ -315,7 +315,8 @@ def build_mold(nodes_m: np.ndarray, skin_faces: np.ndarray, outer_faces: np.ndar
             "volumes": volumes, "vertices_used": int(used.size), "pockets_to_core": len(pockets),
             "channels": channel_at,
             "notched_mm3": {"core": notched_core, "shell_left": notched_left, "shell_right": notched_right},
-            "islands_mm3": {"core": islands_core, "shell_left": islands_left, "shell_right": islands_right}}
+            "islands_mm3": {"core": islands_core, "shell_left": islands_left, "shell_right": islands_right},
+            "flash_mm3": notched_core + notched_left + notched_right + islands_core + islands_left + islands_right}
 
 
 def volume_balance(volumes: dict, flash_mm3: float = 0.0) -> dict:
@@ -363,7 +364,7 @@ def export_mold(skin_dir: str | Path, out_dir: str | Path, settings: MoldSetting
         outer, inner = np.asarray(z["surface_nodes"]), np.asarray(z["inner_nodes"])
     skin_faces, outer_faces, inner_faces = skin_surfaces(mesh, outer, inner)
     result = build_mold(np.asarray(mesh.nodes), skin_faces, outer_faces, inner_faces, settings)
-    flash = float(sum(result["notched_mm3"].values()) + sum(result["islands_mm3"].values()))
+    flash = float(result["flash_mm3"])
     out.mkdir(parents=True, exist_ok=True)
     files = {}
     for name, (v, f) in {**result["parts"], **result["surfaces"]}.items():
@@ -382,15 +383,10 @@ def export_mold(skin_dir: str | Path, out_dir: str | Path, settings: MoldSetting
     if check:
         report["checks"] = {name: check_stl(out / files[name]).as_dict() for name in result["parts"]}
         files_v = {name: report["checks"][name]["volume"] for name in result["parts"]}
-        cavity = report["frame"]["box_mm"]
-        box = np.prod(np.subtract(cavity[1], cavity[0]))
-        skin_files = (box - files_v["mold_shell_left"] - files_v["mold_shell_right"]
-                      - (files_v["mold_core"] - result["volumes"]["plate_mm3"])
-                      - result["volumes"]["channels_mm3"] - result["volumes"]["pin_gap_mm3"] - flash)
-        report["volume_balance_from_files"] = {"skin_from_mold_mm3": float(skin_files),
-                                               "skin_mm3": files_v["skin"],
-                                               "relative_difference": abs(skin_files - files_v["skin"])
-                                               / files_v["skin"]}
+        # the same balance with the solids' volumes as the written files hold them
+        from_files = {**result["volumes"], "skin_mm3": files_v["skin"], "core_mm3": files_v["mold_core"],
+                      "shell_left_mm3": files_v["mold_shell_left"], "shell_right_mm3": files_v["mold_shell_right"]}
+        report["volume_balance_from_files"] = volume_balance(from_files, flash)
     mold_picture(out / "mold.png", result)
     report["picture"] = "mold.png"
     (out / "mold_report.json").write_text(json.dumps(report, indent=1, default=float))
