@@ -9,6 +9,8 @@ QUICK = {"pool": {"poses": 150, "seed": 11, "synthetic": True, "synthetic_grid":
          "policy": {"n_runs": 2, "init": 6, "batch": 8, "budget": 30, "candidates_per_step": 5, "pseudo_test": 20,
                     "epochs": 8},
          "learner": {"iterations": 25, "fine_tune_iterations": 4}}
+#: The FEM pool shipped beside a head's config (``likeness offline dataset-pack`` of the default pool's dataset).
+PACK_NAME = "al_pool.npz"
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -25,6 +27,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seeds", type=int, default=None, help="seeds per method (default 3; quick 2)")
     p.add_argument("--mesh", default=None, help="skin mesh folder (default: skin/ beside the config)")
     p.add_argument("--pool", default=None, help="use this consolidated pose dataset instead of DIR/pool")
+    p.add_argument("--pool-pack", default=None,
+                   help=f"unpack this dataset pack into DIR/pool instead of simulating the FEM pool (default: "
+                   f"{PACK_NAME} beside the config when it exists and matches the default pool)")
+    p.add_argument("--simulate-pool", action="store_true",
+                   help=f"simulate the FEM pool even when a pack ({PACK_NAME}) is shipped beside the config")
     p.add_argument("--policy", default=None, help="use this learned policy file instead of learning one")
     p.add_argument("--methods", default=None, help="comma-separated subset of the methods (default: all)")
     p.add_argument("--init", type=int, default=None, help="random initial poses per seed (default 10; quick 6)")
@@ -109,7 +116,16 @@ def run(args: argparse.Namespace) -> int:
     if args.synthetic or sheet:
         pool_settings = replace(pool_settings, synthetic=True, **sheet)
     pool_dir = Path(args.pool) if args.pool else out / "pool"
-    if args.pool is None:
+    pack = _pool_pack(args, pool_settings)
+    if args.pool is None and pack is not None:
+        from offline.dataset.pack import unpack_dataset
+
+        log(f"pool: unpacking {pack} into {pool_dir} (made by: {_pack_made_by(pack)})")
+        try:
+            unpack_dataset(pack, pool_dir)
+        except (SpecError, OSError, ValueError) as exc:
+            raise CliError(str(exc)) from exc
+    elif args.pool is None:
         mesh = args.mesh or str(Path(args.config).parent / "skin")
         log(f"pool: {pool_settings.poses} {'analytic' if pool_settings.synthetic else 'FEM'} poses into {pool_dir} "
             "(resumes if present)")
@@ -133,3 +149,43 @@ def run(args: argparse.Namespace) -> int:
         return 130
     log(f"done: {out / 'report.json'}, {out / 'al_benchmark.png'}")
     return 0
+
+
+def _pool_pack(args: argparse.Namespace, settings) -> str | None:
+    """The dataset pack to unpack as the pool: ``--pool-pack``, else the one shipped beside the config when it
+    holds the default FEM pool; None to simulate (or for ``--pool``, ``--quick``, ``--synthetic``)."""
+    from pathlib import Path
+
+    from likeness.cli import CliError
+    from models.errors import SpecError
+    from offline.dataset.pack import read_header
+
+    if args.pool is not None or args.simulate_pool or settings.synthetic:
+        if args.pool_pack and (args.pool is not None or args.simulate_pool):
+            raise CliError("--pool-pack cannot be combined with --pool or --simulate-pool")
+        return None
+    shipped = Path(args.config).parent / PACK_NAME
+    path = Path(args.pool_pack) if args.pool_pack else shipped
+    if not path.is_file():
+        if args.pool_pack:
+            raise CliError(f"--pool-pack: {path} not found")
+        return None
+    try:
+        manifest = read_header(path)["manifest"]
+    except SpecError as exc:
+        raise CliError(str(exc)) from exc
+    want = {"n_poses": settings.poses, "seed": settings.seed,
+            "sampling": {"boundary_prob": settings.boundary_prob, "range_fraction": settings.range_fraction}}
+    got = {k: manifest.get(k) for k in want}
+    if got["sampling"] is not None:
+        got["sampling"] = {k: got["sampling"].get(k) for k in want["sampling"]}
+    if got != want:
+        raise CliError(f"{path}: the pack holds a different pool ({got}) than this run asks for ({want}); "
+                       "pass --simulate-pool to simulate it, or --pool DATASET")
+    return str(path)
+
+
+def _pack_made_by(path: str) -> str:
+    from offline.dataset.pack import read_header
+
+    return read_header(path)["header"].get("made_by") or "not recorded"

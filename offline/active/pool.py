@@ -66,7 +66,8 @@ def load_benchmark_data(dataset_dir: str | Path, policy_fraction: float = 0.35,
     """Open a dataset and cut it into pool, policy pool and test set (converged poses only).
 
     A dataset whose run was stopped early is consolidated with what it holds (poses never simulated count as
-    missing and are left out of every set; the split of the planned poses does not move).
+    missing and are left out of every set; the split of the planned poses does not move). A dataset unpacked from
+    a pack (:mod:`offline.dataset.pack`) is already consolidated and has no pose files.
     """
     if not 0.0 < policy_fraction < 1.0:
         raise ValueError(f"policy fraction must lie in (0, 1), got {policy_fraction}")
@@ -74,7 +75,10 @@ def load_benchmark_data(dataset_dir: str | Path, policy_fraction: float = 0.35,
     n_planned = len(store.samples())
     done = len(store.done())
     status_path = Path(dataset_dir) / "status.npy"
-    if done < n_planned and (not status_path.exists() or int((np.load(status_path) >= 0).sum()) != done):
+    packed = done == 0 and status_path.exists() and (Path(dataset_dir) / "offsets.npy").exists()
+    if packed:  # unpacked from a dataset pack: consolidated, no pose files to gather
+        done = int((np.load(status_path) >= 0).sum())
+    elif done < n_planned and (not status_path.exists() or int((np.load(status_path) >= 0).sum()) != done):
         store.consolidate()
     ds = PoseDataset(dataset_dir)
     test = ds.split("test")

@@ -1,0 +1,109 @@
+"""Dataset packs: lossless round trip, damaged packs refused, the benchmark reads an unpacked pool as the original,
+and the FEM pool shipped with the sample head is the one the default benchmark asks for."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from models.errors import SpecError
+from models.headspec import load_head
+from offline.active.data import PoolSettings
+from offline.active.pool import load_benchmark_data
+from offline.dataset.generate import generate_dataset
+from offline.dataset.pack import pack_dataset, read_header, unpack_dataset
+from offline.dataset.sampling import sample_poses
+from offline.dataset.store import PoseDataset
+from offline.dataset.synthetic import SyntheticSpec
+from offline.engine import SerialEngine
+
+ROOT = Path(__file__).resolve().parents[3]
+HEAD_PATH = ROOT / "heads" / "sample" / "head.toml"
+SHIPPED = ROOT / "heads" / "sample" / "al_pool.npz"
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory) -> Path:
+    head = load_head(HEAD_PATH)
+    lo = np.array([a.min for a in head.actuators])
+    hi = np.array([a.max for a in head.actuators])
+    spec = SyntheticSpec(tuple(lo), tuple(hi), grid=8, nonconverged_if_sum_above=9.0)
+    root = tmp_path_factory.mktemp("packs") / "ds"
+    generate_dataset(root, spec, sample_poses(head, 40, seed=1), head=head.name, names=head.actuator_names,
+                     units=["rad"] * len(lo), lo=lo, hi=hi, engine=SerialEngine(), seed=0,
+                     sampling={"boundary_prob": 0.25}, progress_stream=None)
+    return root
+
+
+def test_a_pack_unpacks_to_the_same_dataset_and_the_benchmark_reads_it_as_the_original(dataset, tmp_path):
+    header = pack_dataset(dataset, tmp_path / "ds.npz", made_by="likeness offline dataset ...")
+    original = PoseDataset(dataset)
+    assert header["content_hash"] == original.content_hash() and header["n_poses"] == 40
+    assert read_header(tmp_path / "ds.npz")["header"]["made_by"] == "likeness offline dataset ..."
+    ds = unpack_dataset(tmp_path / "ds.npz", tmp_path / "out")
+    assert not (tmp_path / "out" / "poses").exists()
+    assert ds.content_hash() == original.content_hash()
+    np.testing.assert_array_equal(np.asarray(ds.offsets), np.asarray(original.offsets))
+    assert (ds.status < 1).any()  # the non-converged poses travel too
+    a = load_benchmark_data(dataset, 0.35)
+    b = load_benchmark_data(tmp_path / "out", 0.35)
+    for name in ("pool", "policy", "test"):
+        assert getattr(a, name).digest() == getattr(b, name).digest()
+    assert b.dataset["n_simulated"] == a.dataset["n_simulated"] == 40
+    # Unpacking again over the same dataset opens it; over a different one refuses.
+    assert unpack_dataset(tmp_path / "ds.npz", tmp_path / "out").content_hash() == original.content_hash()
+    np.save(tmp_path / "out" / "actuators.npy", np.asarray(ds.actuators) + 1.0)
+    with pytest.raises(SpecError, match="different dataset"):
+        unpack_dataset(tmp_path / "ds.npz", tmp_path / "out")
+
+
+def test_a_damaged_pack_is_refused_and_leaves_no_dataset_behind(dataset, tmp_path):
+    pack_dataset(dataset, tmp_path / "ds.npz")
+    with np.load(tmp_path / "ds.npz") as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["offsets"] = arrays["offsets"].copy()
+    arrays["offsets"][3, 5, 1] += 1e-6
+    np.savez_compressed(tmp_path / "bad.npz", **arrays)
+    with pytest.raises(SpecError, match="content_hash"):
+        unpack_dataset(tmp_path / "bad.npz", tmp_path / "out")
+    assert not (tmp_path / "out" / "dataset.json").exists()
+    (tmp_path / "junk.npz").write_bytes(b"not a zip")
+    with pytest.raises(SpecError, match="not a readable dataset pack"):
+        read_header(tmp_path / "junk.npz")
+    with zipfile.ZipFile(tmp_path / "empty.npz", "w"):
+        pass
+    with pytest.raises(SpecError, match="not a readable dataset pack"):
+        read_header(tmp_path / "empty.npz")
+
+
+def test_the_shipped_pool_is_the_default_benchmark_pool_and_unpacks_whole(tmp_path):
+    meta = read_header(SHIPPED)
+    s = PoolSettings()
+    manifest = meta["manifest"]
+    assert (manifest["n_poses"], manifest["seed"]) == (s.poses, s.seed)
+    assert manifest["sampling"] == {"boundary_prob": s.boundary_prob, "range_fraction": s.range_fraction}
+    assert manifest["problem"]["kind"] == "fem" and manifest["head"] == "sample"
+    # The shipped poses are the ones the default pool samples: the pack can stand in for simulating them.
+    head = load_head(HEAD_PATH)
+    ds = unpack_dataset(SHIPPED, tmp_path / "pool")  # checks the content hash
+    np.testing.assert_array_equal(ds.actuators, sample_poses(head, s.poses, seed=s.seed,
+                                                             boundary_prob=s.boundary_prob,
+                                                             range_fraction=s.range_fraction))
+    assert len(ds.usable) >= 0.95 * s.poses
+    assert meta["header"]["made_by"].startswith("likeness offline dataset ")
+
+
+def test_the_benchmark_refuses_a_pack_of_another_pool(dataset, tmp_path):
+    pack_dataset(dataset, tmp_path / "other.npz")
+    cmd = [sys.executable, "-m", "likeness.cli", "offline", "al-benchmark", "--config", str(HEAD_PATH),
+           "--out", str(tmp_path / "bench"), "--pool-pack", str(tmp_path / "other.npz")]
+    r = subprocess.run(cmd, cwd=ROOT, env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"}, capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode != 0
+    assert "holds a different pool" in r.stderr and "--simulate-pool" in r.stderr
+    assert not (tmp_path / "bench" / "pool").exists()
