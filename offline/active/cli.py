@@ -47,6 +47,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="analytic sheet: vertices per side (default 14; quick 12) - a finer or coarser 'mesh'")
     p.add_argument("--sheet-stiffening", type=float, default=None,
                    help="analytic sheet: cubic stiffening of its 'material' (default 2e4)")
+    p.add_argument("--skin-nu", type=float, default=None,
+                   help="simulate the FEM pool with this Poisson ratio instead of the head's skin material's "
+                   "(a changed skin: with --policy, measures a policy learned on one skin selecting for another)")
     p.add_argument("--workers", type=int, default=None, help="FEM worker processes for the pool (default: CPUs)")
     p.add_argument("--engine", default="local", help="engine for the pool's FEM poses: local, dask-local, dask://")
     p.set_defaults(func=run)
@@ -115,6 +118,12 @@ def run(args: argparse.Namespace) -> int:
              if v is not None}
     if args.synthetic or sheet:
         pool_settings = replace(pool_settings, synthetic=True, **sheet)
+    if args.skin_nu is not None:
+        if not 0.0 < args.skin_nu < 0.5:
+            raise CliError(f"--skin-nu must lie in (0, 0.5), got {args.skin_nu}")
+        if pool_settings.synthetic:
+            raise CliError("--skin-nu changes the FEM skin; the analytic sheet (--quick, --synthetic) has none")
+        pool_settings = replace(pool_settings, nu=args.skin_nu)
     pool_dir = Path(args.pool) if args.pool else out / "pool"
     pack = _pool_pack(args, pool_settings)
     if args.pool is None and pack is not None:
@@ -160,9 +169,9 @@ def _pool_pack(args: argparse.Namespace, settings) -> str | None:
     from models.errors import SpecError
     from offline.dataset.pack import read_header
 
-    if args.pool is not None or args.simulate_pool or settings.synthetic:
-        if args.pool_pack and (args.pool is not None or args.simulate_pool):
-            raise CliError("--pool-pack cannot be combined with --pool or --simulate-pool")
+    if args.pool is not None or args.simulate_pool or settings.synthetic or settings.nu is not None:
+        if args.pool_pack and (args.pool is not None or args.simulate_pool or settings.nu is not None):
+            raise CliError("--pool-pack cannot be combined with --pool, --simulate-pool or --skin-nu")
         return None
     shipped = Path(args.config).parent / PACK_NAME
     path = Path(args.pool_pack) if args.pool_pack else shipped

@@ -28,6 +28,8 @@ class PoolSettings:
     synthetic: bool = False
     synthetic_grid: int = 14
     synthetic_stiffening: float = 2.0e4
+    #: Poisson ratio replacing the head's skin material's (a changed skin, for the policy-reuse experiment).
+    nu: float | None = None
 
 
 def ensure_pool(head, config: str, mesh: str | None, out: str | Path, settings: PoolSettings,
@@ -48,8 +50,13 @@ def ensure_pool(head, config: str, mesh: str | None, out: str | Path, settings: 
         linkmap = head.path("linkmap")
         if mesh is None or linkmap is None:
             raise ValueError("the FEM pool needs a skin mesh and the head's paths.linkmap")
-        spec = FemSpec(config=str(config), mesh=str(mesh), linkmap=str(linkmap),
-                       **material_fields(head.skin_material()))
+        material = material_fields(head.skin_material())
+        if settings.nu is not None:
+            if not material:
+                raise ValueError("--skin-nu needs the head's [skin_material] to change")
+            material["poisson_ratio"] = settings.nu
+            material["material_source"] += f"; nu replaced by {settings.nu} for this pool (al-benchmark --skin-nu)"
+        spec = FemSpec(config=str(config), mesh=str(mesh), linkmap=str(linkmap), **material)
         spec.check()
     samples = sample_poses(head, settings.poses, seed=settings.seed, boundary_prob=settings.boundary_prob,
                            range_fraction=settings.range_fraction)

@@ -77,7 +77,7 @@ def train_regressor(features: CandidateFeatures, target: np.ndarray, epochs: int
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
-            total += float(loss) * len(idx)
+            total += loss.item() * len(idx)
         if log and (epoch % 20 == 0 or epoch == epochs - 1):
             log(f"policy regressor epoch {epoch}: train MSE {total / n:.4f}")
     buf = io.BytesIO()
