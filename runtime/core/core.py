@@ -790,6 +790,9 @@ def _on_pose(state: CoreState, params: CoreParams, out: CycleOutputs, t: float, 
     _take_over(state, Mode.POSE, "api")
     state.pose_target = target
     state.pose_speed = cmd.speed
+    # A new pose is judged afresh: the previous pose's "limited" must not make this one look settled before the
+    # guard has seen it (``pose_settled`` reads the verdict of the pose in hand).
+    state.guard_verdict = "ok"
     return {"targets_si": target.copy(), "speed": cmd.speed}
 
 

@@ -268,3 +268,26 @@ def test_target_solvers_declare_channels_and_are_reset_on_fault_estop_and_reset(
     rig.bus_state["can0"] = "fault"
     rig.cycle()
     assert rig.state.lifecycle is K.Lifecycle.FAULT and solver.resets > n
+
+
+def test_a_new_pose_is_not_reported_settled_on_the_previous_poses_guard_verdict() -> None:
+    """The strain guard stops a wide jaw opening short; the next pose starts a new judgement: a status taken as it
+    arrives must not call it settled (the head has not moved yet) because the previous one was limited."""
+    from models.strain_guard import StrainGuard
+
+    rig = Rig()
+    rig.params = replace(rig.params, guard=StrainGuard.for_head(HEAD))
+    rig.call(C.Enable)
+    jaw = np.array([rig.channels.names.index("jaw")])
+    rig.cycle(C.Pose(900, jaw, np.array([28.0]), 1.0))
+    rig.run(2.0)
+    st = rig.call(C.Status)
+    assert st["pose_settled"] and not st["pose_reached"] and st["guard"]["verdict"] != "ok"
+    held = rig.deg("jaw")
+    assert 1.0 < held < 27.0  # the sample skin cannot take the full opening: limited on the way
+    out = rig.cycle(C.Pose(901, jaw, np.array([0.0]), 1.0), C.Status(902))
+    (st,) = [body for tok, body in out.replies if tok == 902]
+    assert not st["pose_settled"] and not st["pose_reached"]
+    rig.run(2.0)
+    st = rig.call(C.Status)
+    assert st["pose_settled"] and st["pose_reached"] and abs(rig.deg("jaw")) < 1e-6
