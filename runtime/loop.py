@@ -33,6 +33,22 @@ def try_realtime(priority: int) -> tuple[bool, str]:
     return True, f"control thread runs SCHED_FIFO priority {priority}"
 
 
+def process_threads() -> dict[int, str]:
+    """This process's threads, native id → name (from ``/proc/self/task``; empty where there is no such list)."""
+    out: dict[int, str] = {}
+    try:
+        tids = os.listdir("/proc/self/task")
+    except OSError:
+        return out
+    for tid in tids:
+        try:
+            with open(f"/proc/self/task/{tid}/comm") as f:
+                out[int(tid)] = f.read().strip()
+        except OSError:  # the thread ended meanwhile
+            continue
+    return out
+
+
 def promote_threads(priority: int, exclude: set[int] | None = None) -> list[int]:
     """Put every other thread of this process under SCHED_RR at ``priority``; returns the thread ids changed.
 
@@ -44,11 +60,7 @@ def promote_threads(priority: int, exclude: set[int] | None = None) -> list[int]
     """
     exclude = exclude or set()
     changed: list[int] = []
-    try:
-        tids = [int(t) for t in os.listdir("/proc/self/task")]
-    except OSError:
-        return changed
-    for tid in tids:
+    for tid in process_threads():
         if tid in exclude:
             continue
         try:

@@ -35,6 +35,7 @@ from runtime import protocol as P
 from runtime.config import DaemonConfig, resolve
 from runtime.core import commands as C
 from runtime.core.channels import ChannelMap
+from runtime.loop import process_threads
 from runtime.requests import LOCAL_OPS, OPS, to_command
 
 log = logging.getLogger(__name__)
@@ -120,16 +121,10 @@ def _raise_request_threads(priority: int) -> str:
         return "API server at normal priority"
     me = threading.get_native_id()
     raised, failed = 0, ""
-    try:
-        tids = [int(t) for t in os.listdir("/proc/self/task")]
-    except OSError as exc:
-        return f"API server at normal priority (no thread list: {exc})"
-    for tid in tids:
-        try:
-            with open(f"/proc/self/task/{tid}/comm") as f:
-                name = f.read().strip()
-        except OSError:
-            continue
+    threads = process_threads()
+    if not threads:
+        return "API server at normal priority (no thread list in /proc/self/task)"
+    for tid, name in threads.items():
         if tid != me and not name.startswith("ZMQbg/IO"):
             continue
         try:
