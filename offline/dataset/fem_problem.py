@@ -74,6 +74,11 @@ class FemSpec(ProblemSpec):
     #: fitted in another head frame: estimate the translation between the frames from the node-set centroids and
     #: express the transforms in the mesh frame. "on" always aligns, "off" never.
     align_frames: str = "auto"
+    #: 1: the mesh file's linear tets as they are; 2: the same tets made quadratic (one mid-edge node per edge,
+    #: :func:`offline.fem.to_quadratic`), which removes most of a one-element-thick skin's bending stiffness error.
+    #: The stored surface is the same outer nodes either way (corner nodes come first), so predictors trained on
+    #: either order have the same vertices.
+    element_order: int = 1
 
     @property
     def token(self) -> str:
@@ -91,7 +96,7 @@ class FemSpec(ProblemSpec):
 
     def describe(self) -> dict[str, Any]:
         return {"kind": "fem", "config": self.config, "mesh": self.mesh, "linkmap": self.linkmap,
-                "backend": self.backend, "align_frames": self.align_frames,
+                "element_order": self.element_order, "backend": self.backend, "align_frames": self.align_frames,
                 "material": self.skin_material().as_dict()}
 
     def check(self) -> None:
@@ -108,9 +113,12 @@ class FemSkin(PoseProblem):
     def __init__(self, spec: FemSpec) -> None:
         from models.headspec import load_head
         from models.linkmap import LinkMap
-        from offline.fem import SolverOptions, load_mesh
+        from offline.fem import SolverOptions, load_mesh, to_quadratic
         from offline.material.models import MaterialParams
 
+        if spec.element_order not in (1, 2):
+            raise SpecError(str(spec.mesh), "element_order", "must be 1 (linear) or 2 (quadratic)",
+                            spec.element_order)
         self.spec = spec
         self.head = load_head(spec.config)
         self.linkmap = LinkMap.load(spec.linkmap)
@@ -132,6 +140,11 @@ class FemSkin(PoseProblem):
         if spec.align_frames == "off" or (spec.align_frames == "auto" and self._misfit(np.zeros(3)) <= 0.02):
             self.frame_offset = np.zeros(3)
         self.outer, self._faces = self._outer_surface(mesh_path)
+        # Frame alignment, outer surface and regions come from the linear mesh, so both orders store the same vertices
+        # with the same labels; the quadratic mesh keeps the linear nodes first and in order.
+        self._linear = self.mesh
+        if spec.element_order == 2:
+            self.mesh = to_quadratic(self.mesh)
         self._fu_names, self._fu = self._face_units(mesh_path.parent)
         mat = spec.skin_material()
         self.material = MaterialParams.from_skin_material(mat).to_fem_material(mat.density)
@@ -215,9 +228,9 @@ class FemSkin(PoseProblem):
     def surface_regions(self) -> tuple[tuple[str, ...], np.ndarray]:
         from offline.dataset.regions import label_surface
 
-        sets = self.mesh.node_sets
+        sets = self._linear.node_sets
         named = {n: sets[n] for n in (self.spec.skull_set, *self.moving.values())}
-        return label_surface(self.base_surface(), self.mesh.nodes, named)
+        return label_surface(self.base_surface(), self._linear.nodes, named)
 
     def mesh_info(self) -> dict[str, Any]:
         return {"kind": "tetrahedral FEM", "file": str(_mesh_file(self.spec.mesh)), "element_order": self.mesh.order,

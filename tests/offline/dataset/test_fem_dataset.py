@@ -139,3 +139,24 @@ def test_head_material_reaches_the_fem_and_E_does_not_change_poses(box_problem):
     a, b, c = (s.build().solve(p, None).surface for s in (soft, stiff, other_nu))
     np.testing.assert_allclose(a, b, atol=1e-9)
     assert np.abs(a - c).max() > 1e-6  # nu does move the skin
+
+
+def test_quadratic_elements_keep_the_surface_and_stay_close_to_the_linear_solution(box_problem):
+    """element_order=2 solves the same skin on 10-node tets: same outer vertices, same patch motion, and the
+    answer moves towards the stiffer-in-bending linear one only by a fraction of the displacement."""
+    from dataclasses import replace
+
+    _root, _head, spec, mesh = box_problem
+    lin = spec.build()
+    quad = replace(spec, element_order=2).build()
+    assert quad.mesh.order == 2 and quad.mesh.n_nodes > mesh.n_nodes
+    assert np.array_equal(quad.outer, lin.outer) and np.array_equal(quad.faces(), lin.faces())
+    assert quad.mesh_info()["element_order"] == 2 and replace(spec, element_order=2).token != spec.token
+    np.testing.assert_array_equal(quad.frame_offset, lin.frame_offset)
+    p = np.array([0.0015, 0.001])
+    a, b = lin.solve(p, None), quad.solve(p, None)
+    assert a.converged and b.converged
+    da, db = a.surface - lin.base_surface(), b.surface - quad.base_surface()
+    assert 0 < np.abs(db - da).max() < 0.5 * np.abs(da).max()
+    with pytest.raises(SpecError, match="element_order"):
+        replace(spec, element_order=3).build()
