@@ -162,6 +162,7 @@ def run(args: argparse.Namespace) -> int:
                 engine=engine, seed=args.seed,
                 sampling={"boundary_prob": args.boundary_prob, "range_fraction": args.range_fraction},
                 progress_stream=None if args.quiet else sys.stderr, max_poses=args.max_poses,
+                rest_pose=None if args.synthetic else [a.neutral for a in head.actuators],
             )
     except SpecError as exc:
         raise CliError(str(exc)) from exc

@@ -86,8 +86,13 @@ def generate_dataset(root: str | Path, spec: ProblemSpec, samples: np.ndarray, *
                      names: Sequence[str], units: Sequence[str], lo: np.ndarray, hi: np.ndarray,
                      engine: Engine, seed: int, sampling: dict[str, Any],
                      progress_stream: TextIO | None = sys.stderr, max_in_flight: int | None = None,
-                     max_poses: int | None = None, indices: Sequence[int] | None = None) -> dict[str, Any]:
+                     max_poses: int | None = None, indices: Sequence[int] | None = None,
+                     rest_pose: Sequence[float] | None = None) -> dict[str, Any]:
     """Create (or resume) the dataset at ``root`` and solve every missing pose; returns a summary.
+
+    ``rest_pose``: actuator values (SI) at which the problem's surface is exactly at rest (the head's neutral pose
+    for the FEM skin, where the link map moves nothing); stored in the manifest so training can pin the predictor
+    to zero offsets there.
 
     ``max_poses`` stops after that many newly solved poses (for tests and partial runs); ``indices`` restricts
     the run to those planned poses (active learning simulates the poses its policy chose, batch by batch).
@@ -103,6 +108,11 @@ def generate_dataset(root: str | Path, spec: ProblemSpec, samples: np.ndarray, *
         "n_poses": len(samples), "seed": int(seed), "sampling": sampling, "problem": spec.describe(),
         "n_vertices": int(problem.base_surface().shape[0]), "mesh": problem.mesh_info(),
     }
+    if rest_pose is not None:
+        rest = [float(x) for x in rest_pose]
+        if len(rest) != len(names) or not all(np.isfinite(rest)):
+            raise ValueError(f"rest_pose: expected {len(names)} finite actuator values, got {rest_pose!r}")
+        manifest["rest_pose"] = rest
     store.create(manifest, samples, problem.base_surface(), problem.faces(), fu_names, fu_offsets,
                  regions=problem.surface_regions())
     samples = store.samples()  # on resume, the stored plan wins

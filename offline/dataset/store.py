@@ -2,7 +2,8 @@
 
 Layout of a dataset folder::
 
-    dataset.json         manifest: format, head, actuators (name, SI unit, min, max), seed, sampling, problem
+    dataset.json         manifest: format, head, actuators (name, SI unit, min, max), seed, sampling, problem,
+                         optional rest_pose (actuator values where every offset is zero by construction)
     samples.npy          (N, A) planned actuator values, SI (fixed when the run starts; resume keeps them)
     base.npz             vertices (V, 3) base surface (m), faces (F, 3), optional face_unit_names/face_unit_offsets
     poses/pose_NNNNNN.npz  one per solved pose: p (A,), surface (V, 3) float32, converged, iterations, state
@@ -94,6 +95,9 @@ class PoseStore:
                     raise SpecError(str(self.root / "dataset.json"), key,
                                     "folder holds a dataset made with different settings; use a new --out",
                                     old.get(key))
+            if "rest_pose" in manifest and "rest_pose" not in old:  # written before rest poses were recorded
+                doc = {**old, "rest_pose": manifest["rest_pose"]}
+                atomic_write_bytes(self.root / "dataset.json", json.dumps(doc, indent=1).encode())
             return
         self.poses_dir.mkdir(parents=True, exist_ok=True)
         extra: dict[str, Any] = {}
@@ -242,6 +246,11 @@ class PoseDataset:
         self.lo = np.array([a["min"] for a in acts], dtype=np.float64)
         self.hi = np.array([a["max"] for a in acts], dtype=np.float64)
         self.head = str(self.manifest.get("head", ""))
+        rest = self.manifest.get("rest_pose")
+        #: Actuator values (SI) where the surface is at rest (zero offsets by construction), or None if unrecorded.
+        self.rest_pose: np.ndarray | None = None if rest is None else np.asarray(rest, dtype=np.float64)
+        if self.rest_pose is not None and self.rest_pose.shape != self.lo.shape:
+            raise SpecError(str(self.root / "dataset.json"), "rest_pose", f"expected {len(self.lo)} values", rest)
         if self.offsets.shape[0] != self.actuators.shape[0]:
             raise SpecError(str(self.root / "offsets.npy"), "shape", "pose count differs from actuators.npy")
         self._store = store

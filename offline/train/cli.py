@@ -24,6 +24,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "for the paper's H = A; default: A 1.5A 2A)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=1, help="torch and onnxruntime threads")
+    p.add_argument("--no-rest-anchor", action="store_true",
+                   help="do not pin the prediction to zero at the dataset's rest pose (the head's neutral)")
     p.add_argument("--int8", action="store_true", help="also export the int8 (MatMulNBits) variant and its error")
     p.set_defaults(func=run)
 
@@ -40,7 +42,7 @@ def run(args: argparse.Namespace) -> int:
     if args.epochs < 1 or args.batch_size < 1:
         raise CliError("--epochs and --batch-size must be positive")
     config = TrainConfig(epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, seed=args.seed,
-                         patience=args.patience, threads=args.threads)
+                         patience=args.patience, threads=args.threads, rest_anchor=not args.no_rest_anchor)
     try:
         report = train_pipeline(args.dataset, args.out, config, hidden=args.hidden, int8=args.int8)
     except (SpecError, ValueError, FileNotFoundError) as exc:

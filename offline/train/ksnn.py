@@ -36,6 +36,9 @@ class TrainConfig:
     patience: int = 60  # epochs without validation improvement before stopping early
     threads: int = 1
     checkpoint_every_s: float = 5.0
+    #: Pin the prediction at the dataset's rest pose to exactly zero (when the dataset records one): the network
+    #: is trained as f(x) - f(x_rest), which is again a KSNN (the output bias becomes -f(x_rest) without it).
+    rest_anchor: bool = True
 
 
 @dataclass
@@ -80,7 +83,8 @@ def resolve_hidden(spec: Sequence[int | str] | None, n_actuators: int) -> list[i
     return sorted(out)
 
 
-def _module(n_in: int, hidden: int, n_out: int):
+def _module(n_in: int, hidden: int, n_out: int, anchor: np.ndarray | None = None):
+    """The KSNN module; with ``anchor`` (a normalized pose) its output is f(x) - f(anchor), zero at the anchor."""
     import torch
 
     class Ksnn(torch.nn.Module):
@@ -96,9 +100,13 @@ def _module(n_in: int, hidden: int, n_out: int):
             torch.nn.init.uniform_(self.W1, -3 * bound1, 3 * bound1)
             torch.nn.init.uniform_(self.b1, -1.0, 1.0)
             torch.nn.init.uniform_(self.W2, -1.0 / math.sqrt(hidden), 1.0 / math.sqrt(hidden))
+            self.anchor = None if anchor is None else torch.from_numpy(
+                np.asarray(anchor, dtype=np.float32).reshape(1, 1, n_in))
 
         def forward(self, x: torch.Tensor) -> torch.Tensor:  # x (B, A) in [0, 1] → (3, B, V)
             h = torch.tanh(torch.matmul(x.unsqueeze(0), self.W1) + self.b1)
+            if self.anchor is not None:  # b2 drops out of f(x) - f(anchor)
+                return torch.matmul(h - torch.tanh(torch.matmul(self.anchor, self.W1) + self.b1), self.W2)
             return torch.matmul(h, self.W2) + self.b2
 
     return Ksnn()
@@ -106,10 +114,12 @@ def _module(n_in: int, hidden: int, n_out: int):
 
 def train_ksnn(x_norm: np.ndarray, offsets: np.ndarray, train_idx: np.ndarray, val_idx: np.ndarray, hidden: int,
                lo: np.ndarray, hi: np.ndarray, config: TrainConfig, checkpoint: Path | None = None,
-               log: Callable[[str], None] | None = None) -> TrainResult:
+               log: Callable[[str], None] | None = None, anchor: np.ndarray | None = None) -> TrainResult:
     """Train one KSNN with ``hidden`` units; ``offsets`` (N, V, 3) may be a memmap (batches are read on demand).
 
-    Resumes from ``checkpoint`` when it exists and matches the problem; returns the best weights in SI-scaled form.
+    ``anchor``: a normalized pose whose offsets are zero by construction (the rest pose); the network is then
+    trained and exported so that it predicts exactly zero there. Resumes from ``checkpoint`` when it exists and
+    matches the problem; returns the best weights in SI-scaled form.
     """
     import torch
 
@@ -127,7 +137,7 @@ def train_ksnn(x_norm: np.ndarray, offsets: np.ndarray, train_idx: np.ndarray, v
     mean /= len(train_idx)
     var = sq / (len(train_idx) * n_vert) - (mean ** 2).mean(axis=1)
     scale = np.sqrt(np.maximum(var, 1e-30))
-    model = _module(n_act, hidden, n_vert)
+    model = _module(n_act, hidden, n_vert, anchor)
     with torch.no_grad():
         model.b2.copy_(torch.from_numpy((mean / scale[:, None])[:, None, :]).float())
     opt = torch.optim.Adam(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
@@ -140,7 +150,7 @@ def train_ksnn(x_norm: np.ndarray, offsets: np.ndarray, train_idx: np.ndarray, v
     split_id = hashlib.sha1(np.asarray(train_idx, np.int64).tobytes() + b"|" +
                             np.asarray(val_idx, np.int64).tobytes()).hexdigest()[:16]
     key = {"n_act": n_act, "n_vert": n_vert, "hidden": hidden, "n_train": len(train_idx), "seed": config.seed,
-           "split": split_id}
+           "split": split_id, "anchor": None if anchor is None else [float(a) for a in anchor]}
     if checkpoint is not None and checkpoint.exists():
         ck = torch.load(checkpoint, weights_only=False)
         if ck.get("key") == key:
@@ -215,16 +225,24 @@ def train_ksnn(x_norm: np.ndarray, offsets: np.ndarray, train_idx: np.ndarray, v
             break
     save(epoch)
     state = best["state"] if best["state"] is not None else model.state_dict()
-    return TrainResult(hidden=hidden, weights=_to_weights(state, scale, lo, hi), best_epoch=int(best["epoch"]),
+    return TrainResult(hidden=hidden, weights=_to_weights(state, scale, lo, hi, anchor), best_epoch=int(best["epoch"]),
                        best_val_mse=float(best["val"]), history=history, seconds=time.perf_counter() - t0)
 
 
-def _to_weights(state: dict[str, Any], scale: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> KsnnWeights:
-    """Fold the per-axis output scale into W2, b2 and return float64 weights in the predictor's layout."""
+def _to_weights(state: dict[str, Any], scale: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                anchor: np.ndarray | None = None) -> KsnnWeights:
+    """Fold the per-axis output scale into W2, b2 and return float64 weights in the predictor's layout.
+
+    With ``anchor`` the bias is -f(anchor) without bias (computed in float64), so the exported KSNN is zero there.
+    """
     W1 = state["W1"].detach().double().numpy()
     b1 = state["b1"].detach().double().numpy()[:, 0, :]
     W2 = state["W2"].detach().double().numpy() * scale[:, None, None]
-    b2 = state["b2"].detach().double().numpy()[:, 0, :] * scale[:, None]
+    if anchor is None:
+        b2 = state["b2"].detach().double().numpy()[:, 0, :] * scale[:, None]
+    else:
+        h = np.tanh(np.einsum("a,kah->kh", np.asarray(anchor, dtype=np.float64), W1) + b1)  # (3, H)
+        b2 = -np.einsum("kh,khv->kv", h, W2)
     return KsnnWeights(np.asarray(lo, float), np.asarray(hi, float), W1, b1, W2, b2)
 
 

@@ -59,12 +59,14 @@ def train_pipeline(dataset_dir: str | Path, out_dir: str | Path, config: TrainCo
         f"vertices, {n_act} actuators; converged train {len(train_idx)} / validation {len(val_idx)} / test "
         f"{len(test_idx)}; hidden sizes {candidates}")
     x_all = (ds.actuators - ds.lo) / (ds.hi - ds.lo)
+    anchor, rest_info = _rest_anchor(ds, config)
+    log(rest_info["note"])
     names, labels = regions(ds)
     results: list[TrainResult] = []
     per_hidden: dict[str, Any] = {}
     for h in candidates:
         res = train_ksnn(x_all, ds.offsets, train_idx, val_idx, h, ds.lo, ds.hi, config,
-                         checkpoint=out / "checkpoints" / f"ksnn_h{h}.pt", log=log)
+                         checkpoint=out / "checkpoints" / f"ksnn_h{h}.pt", log=log, anchor=anchor)
         results.append(res)
         val = surface_errors(_numpy_predict(res.weights), ds.actuators, ds.offsets, val_idx, names, labels)
         per_hidden[str(h)] = {"best_epoch": res.best_epoch, "epochs_run": len(res.history["val"]),
@@ -79,7 +81,7 @@ def train_pipeline(dataset_dir: str | Path, out_dir: str | Path, config: TrainCo
                   "poses": ds.splits.sizes(),
                   "converged": {"train": len(train_idx), "validation": len(val_idx), "test": len(test_idx)}}
     training_info = {"config": asdict(config), "hidden_candidates": candidates, "selected_hidden": best.hidden,
-                     "selection": SELECTION, "per_hidden": per_hidden}
+                     "selection": SELECTION, "per_hidden": per_hidden, "rest_anchor": rest_info}
     meta = predictor_metadata(
         head=ds.head, names=ds.names, units=ds.units, weights=best.weights, base_vertices=ds.base_vertices,
         faces=ds.faces, face_unit_names=ds.face_unit_names, face_unit_offsets=ds.face_unit_offsets,
@@ -108,6 +110,21 @@ def train_pipeline(dataset_dir: str | Path, out_dir: str | Path, config: TrainCo
         f"{test['rms_euclidean_um']:.1f} µm, p99 {test['p99_euclidean_um']:.1f} µm, max "
         f"{test['max_euclidean_um']:.1f} µm in {test['max_at']['region']} (H={best.hidden}) → {model_path}")
     return report
+
+
+def _rest_anchor(ds: PoseDataset, config: TrainConfig) -> tuple[np.ndarray | None, dict[str, Any]]:
+    """The normalized rest pose to pin the predictor at (or None), and what the report says about it."""
+    rest = ds.rest_pose
+    if rest is None:
+        return None, {"anchored": False, "note": "the dataset records no rest pose; the predictor is not pinned"}
+    x = (rest - ds.lo) / (ds.hi - ds.lo)
+    info: dict[str, Any] = {"pose": [float(v) for v in rest]}
+    if not config.rest_anchor:
+        return None, {**info, "anchored": False, "note": "rest anchor switched off (--no-rest-anchor)"}
+    if np.any(x < 0) or np.any(x > 1):
+        return None, {**info, "anchored": False, "note": "the rest pose lies outside the sampled range; not pinned"}
+    return x, {**info, "anchored": True,
+               "note": "predictor pinned to zero offsets at the dataset's rest pose (trained as f(x) - f(x_rest))"}
 
 
 def _brief(m: dict[str, Any]) -> dict[str, Any]:

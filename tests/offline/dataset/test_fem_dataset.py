@@ -160,3 +160,20 @@ def test_quadratic_elements_keep_the_surface_and_stay_close_to_the_linear_soluti
     assert 0 < np.abs(db - da).max() < 0.5 * np.abs(da).max()
     with pytest.raises(SpecError, match="element_order"):
         replace(spec, element_order=3).build()
+
+
+def test_the_neutral_pose_is_the_rest_state_recorded_as_the_dataset_rest_pose(box_problem, tmp_path):
+    """At the head's neutral pose the link map moves nothing, so the FEM surface is the rest surface: that is
+    what the manifest's rest_pose promises training."""
+    _root, head, spec, _mesh = box_problem
+    prob = spec.build()
+    neutral = np.array([a.neutral for a in head.actuators])
+    sol = prob.solve(neutral, None)
+    assert sol.converged
+    np.testing.assert_allclose(sol.surface, prob.base_surface(), atol=1e-12)
+    lo = np.array([a.min for a in head.actuators])
+    hi = np.array([a.max for a in head.actuators])
+    generate_dataset(tmp_path / "ds", spec, np.array([[0.001, 0.0], [0.0005, 0.0005]]), head="box",
+                     names=head.actuator_names, units=["m", "m"], lo=lo, hi=hi, engine=SerialEngine(), seed=0,
+                     sampling={}, progress_stream=None, rest_pose=neutral)
+    np.testing.assert_array_equal(PoseDataset(tmp_path / "ds").rest_pose, neutral)

@@ -220,3 +220,42 @@ def test_training_resumes_from_checkpoint(dataset, tmp_path):
     third = train_ksnn(x, ds.offsets, swapped_tr, swapped_va, 13, ds.lo, ds.hi,
                        TrainConfig(epochs=3, patience=100), checkpoint=ck, log=msgs.append)
     assert not any("resumed" in m for m in msgs) and len(third.history["val"]) == 3
+
+
+def test_rest_anchor_pins_the_exported_predictor_to_zero_at_the_rest_pose(dataset, trained, tmp_path):
+    """A dataset that records its rest pose (zero offsets by construction) gets a predictor that is exactly zero
+    there; a dataset written before rest poses were recorded gains it on resume; without one nothing is pinned."""
+    from scipy.optimize import brentq
+
+    _root, head = dataset
+    assert trained[1]["training"]["rest_anchor"]["anchored"] is False  # the fixture's dataset records no rest pose
+    lo = np.array([a.min for a in head.actuators])
+    hi = np.array([a.max for a in head.actuators])
+    spec = SyntheticSpec(tuple(lo), tuple(hi), grid=8)
+    prob = spec.build()
+    x0 = brentq(lambda x: np.sin(1.4 * (x - 0.3)) + 0.3 * x * x, 0, 0.3)  # the sheet's forcing law, per actuator
+    rest = lo + x0 * (hi - lo)
+    assert np.abs(prob.forcing(rest)).max() < 1e-12  # the sheet is at rest there
+    ds_root = tmp_path / "ds"
+    kw = dict(head=head.name, names=head.actuator_names, units=["rad"] * len(lo), lo=lo, hi=hi,
+              engine=SerialEngine(), seed=0, sampling={}, progress_stream=None)
+    generate_dataset(ds_root, spec, sample_poses(head, 60, seed=1), max_poses=30, **kw)
+    assert PoseDataset(ds_root).rest_pose is None
+    generate_dataset(ds_root, spec, sample_poses(head, 60, seed=1), rest_pose=rest, **kw)  # resume, backfill
+    ds = PoseDataset(ds_root)
+    np.testing.assert_array_equal(ds.rest_pose, rest)
+    with pytest.raises(ValueError, match="rest_pose"):
+        generate_dataset(tmp_path / "bad", spec, sample_poses(head, 10, seed=1), rest_pose=rest[:3], **kw)
+    cfg = TrainConfig(epochs=30, batch_size=16, lr=5e-3, patience=30)
+    report = train_pipeline(ds_root, tmp_path / "out", cfg, hidden=["A"], log=lambda s: None)
+    assert report["training"]["rest_anchor"]["anchored"] is True
+    sp = SkinPredictor(tmp_path / "out" / "predictor.onnx")
+    scale = np.abs(sp.predict_offsets(ds.actuators[:20])).max()
+    assert scale > 0
+    assert np.abs(sp.predict_offsets(rest[None])).max() < 1e-5 * scale  # float32 graph: rounding only
+    assert np.abs(sp.weights.offsets(rest)).max() < 1e-6 * scale  # float32 weights, float64 arithmetic
+    free = train_pipeline(ds_root, tmp_path / "free", TrainConfig(epochs=30, batch_size=16, lr=5e-3, patience=30,
+                                                                 rest_anchor=False), hidden=["A"], log=lambda s: None)
+    assert free["training"]["rest_anchor"]["anchored"] is False
+    unpinned = SkinPredictor(tmp_path / "free" / "predictor.onnx")
+    assert np.abs(unpinned.predict_offsets(rest[None])).max() > 1e-3 * scale
