@@ -36,6 +36,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--out", required=True, help="dataset folder (resumable)")
     q.add_argument("--workers", type=int, default=1)
     q.add_argument("--backend", default="auto")
+    q.add_argument("--element-order", type=int, choices=(1, 2), default=1,
+                   help="1: the mesh's linear tets; 2: the same tets quadratic (as the predictor's dataset)")
     q.set_defaults(func=run_performances)
 
     e = gs.add_parser("evaluate", help="agreement of the guard with the FEM measure on pose datasets (JSON)")
@@ -105,7 +107,7 @@ def run_performances(args: argparse.Namespace) -> int:
     """Sample the clips' poses and solve them with the FEM dataset tools."""
     import numpy as np
 
-    from offline.dataset.fem_problem import FemSpec
+    from offline.dataset.fem_problem import FemSpec, material_fields
     from offline.dataset.generate import generate_dataset
     from offline.engine import make_engine
     from offline.strain_eval import performance_poses
@@ -116,7 +118,8 @@ def run_performances(args: argparse.Namespace) -> int:
     idx = np.sort(idx)
     poses = poses[idx]
     spec = FemSpec(config=str(args.config), mesh=str(args.mesh), linkmap=str(head.path("linkmap")),
-                   backend=args.backend)
+                   backend=args.backend, element_order=args.element_order,
+                   **material_fields(head.skin_material()))
     lo = np.array([a.min for a in head.actuators])
     hi = np.array([a.max for a in head.actuators])
     units = ["rad" if a.kind == "rotary" else "m" for a in head.actuators]
@@ -124,7 +127,8 @@ def run_performances(args: argparse.Namespace) -> int:
         summary = generate_dataset(args.out, spec, poses, head=head.name, names=head.actuator_names, units=units,
                                    lo=lo, hi=hi, engine=engine, seed=0,
                                    sampling={"performances": [str(c) for c in args.clips], "every_s": args.every,
-                                             "labels": [labels[i] for i in idx]})
+                                             "labels": [labels[i] for i in idx]},
+                                   rest_pose=[a.neutral for a in head.actuators])
     print(json.dumps(summary, indent=1))
     return 0 if summary["failed"] == 0 else 1
 
