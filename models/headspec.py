@@ -136,6 +136,11 @@ class HeadSpec:
     def actuator_names(self) -> tuple[str, ...]:
         return tuple(a.name for a in self.actuators)
 
+    @property
+    def neutral_pose(self) -> tuple[float, ...]:
+        """Every actuator's neutral value (SI), in actuator order: the pose at which the skin is at rest."""
+        return tuple(a.neutral for a in self.actuators)
+
     def actuator(self, name: str) -> ActuatorSpec:
         for a in self.actuators:
             if a.name == name:

@@ -332,7 +332,7 @@ class StrainGuard:
             if not Path(fp).is_file():
                 raise SpecError(str(head.source), "paths.skin_guard", "file not found", str(fp))
             rim = load_footprint(fp, len(predictor.faces))
-        neutral = np.clip([a.neutral for a in head.actuators], predictor.lo, predictor.hi)
+        neutral = np.clip(head.neutral_pose, predictor.lo, predictor.hi)
         return cls(predictor, neutral, (lo, hi), rim, radius * 1e-3, band * 1e-3,
                    names=tuple(a.name for a in head.actuators), reference=reference)
 

@@ -128,7 +128,7 @@ def run_performances(args: argparse.Namespace) -> int:
                                    lo=lo, hi=hi, engine=engine, seed=0,
                                    sampling={"performances": [str(c) for c in args.clips], "every_s": args.every,
                                              "labels": [labels[i] for i in idx]},
-                                   rest_pose=[a.neutral for a in head.actuators])
+                                   rest_pose=head.neutral_pose)
     print(json.dumps(summary, indent=1))
     return 0 if summary["failed"] == 0 else 1
 

@@ -94,7 +94,7 @@ def performance_poses(head: HeadSpec, files: Sequence[str | Path], every_s: floa
 
     solver = SkinTargetSolver.from_head(head)
     names = head.actuator_names
-    neutral = np.array([a.neutral for a in head.actuators])
+    neutral = np.array(head.neutral_pose)
     poses, labels = [], []
     for f in files:
         clip = load_clip_file(f)

@@ -56,7 +56,7 @@ class SkinTargetSolver:
         # A frame whose Gauss-Newton step moves no actuator by more than this fraction of its range is done: on the
         # sample performance at 500 Hz most frames then take one iteration, within 0.02° of running all of them.
         self.xtol = xtol
-        self.neutral = np.array([a.neutral for a in head.actuators])
+        self.neutral = np.array(head.neutral_pose)
         if strain_guard is None:
             strain_guard = StrainGuard(sp, np.clip(self.neutral, sp.lo, sp.hi), strain_range,
                                        names=tuple(a.name for a in head.actuators))

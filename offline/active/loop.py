@@ -52,8 +52,12 @@ def grow_dataset(root: str | Path, spec: ProblemSpec, samples: np.ndarray, *, se
                  init: int, policy: Policy | None, head: str, names: Sequence[str], units: Sequence[str],
                  lo: np.ndarray, hi: np.ndarray, engine: Engine, seed: int, sampling: dict[str, Any],
                  config: LearnerConfig | None = None, progress_stream: TextIO | None = sys.stderr,
-                 log: Callable[[str], None] | None = None) -> dict[str, Any]:
-    """Simulate ``budget`` of the planned ``samples`` chosen by ``select``; resumable. Returns a summary."""
+                 log: Callable[[str], None] | None = None,
+                 rest_pose: Sequence[float] | None = None) -> dict[str, Any]:
+    """Simulate ``budget`` of the planned ``samples`` chosen by ``select``; resumable. Returns a summary.
+
+    ``rest_pose`` is recorded in the manifest as by :func:`~offline.dataset.generate.generate_dataset`.
+    """
     if select not in SELECTIONS:
         raise ValueError(f"unknown selection {select!r}; choose from {', '.join(SELECTIONS)}")
     if select == "genlal" and policy is None:
@@ -76,7 +80,7 @@ def grow_dataset(root: str | Path, spec: ProblemSpec, samples: np.ndarray, *, se
     def simulate(indices: Sequence[int]) -> dict[str, Any]:
         return generate_dataset(root, spec, samples, head=head, names=names, units=units, lo=lo, hi=hi,
                                 engine=engine, seed=seed, sampling=sampling, progress_stream=progress_stream,
-                                indices=indices)
+                                indices=indices, rest_pose=rest_pose)
 
     simulate([])  # creates the dataset folder (or checks it holds this run)
     store = PoseStore(root)

@@ -138,6 +138,7 @@ def run(args: argparse.Namespace) -> int:
                 policy = Policy.load(args.policy)
             except ValueError as exc:
                 raise CliError(str(exc)) from exc
+    rest_pose = None if args.synthetic else head.neutral_pose  # the FEM skin is at rest at the head's neutral
     try:
         with engine:
             if args.select is not None:
@@ -152,7 +153,7 @@ def run(args: argparse.Namespace) -> int:
                         init=args.init or args.batch, policy=policy, head=head.name, names=head.actuator_names,
                         units=units, lo=lo, hi=hi, engine=engine, seed=args.seed,
                         sampling={"boundary_prob": args.boundary_prob, "range_fraction": args.range_fraction},
-                        progress_stream=None if args.quiet else sys.stderr)
+                        progress_stream=None if args.quiet else sys.stderr, rest_pose=rest_pose)
                 except ValueError as exc:
                     raise CliError(str(exc)) from exc
                 print(json.dumps(summary, indent=1))
@@ -162,7 +163,7 @@ def run(args: argparse.Namespace) -> int:
                 engine=engine, seed=args.seed,
                 sampling={"boundary_prob": args.boundary_prob, "range_fraction": args.range_fraction},
                 progress_stream=None if args.quiet else sys.stderr, max_poses=args.max_poses,
-                rest_pose=None if args.synthetic else [a.neutral for a in head.actuators],
+                rest_pose=rest_pose,
             )
     except SpecError as exc:
         raise CliError(str(exc)) from exc

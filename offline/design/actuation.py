@@ -182,7 +182,7 @@ class ActuationSpace:
             elif g.kind == "coupled":
                 coupled.append((idx, float(g.max_spread)))
         return cls(names, np.array([a.min for a in head.actuators]), np.array([a.max for a in head.actuators]),
-                   np.array([a.neutral for a in head.actuators]), boundary, tuple(together), tuple(coupled))
+                   np.array(head.neutral_pose), boundary, tuple(together), tuple(coupled))
 
 
 # ------------------------------------------------------------------------------------------------ the problem

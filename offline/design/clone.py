@@ -143,7 +143,7 @@ def predictor_inverse(face: FaceSkin, names: tuple[str, ...], weights: list[np.n
     lo = np.maximum([a.min for a in head.actuators], sp.lo)
     hi = np.minimum([a.max for a in head.actuators], sp.hi)
     inv = KsnnInverse(sp.weights, sp.face_unit_offsets, smoothness=0.0, lo=lo, hi=hi)
-    neutral = np.clip([a.neutral for a in head.actuators], lo, hi)
+    neutral = np.clip(head.neutral_pose, lo, hi)
     return [inv.solve(w, p0=neutral, max_iterations=50, tol=1e-12).p for w in weights]
 
 

@@ -275,7 +275,7 @@ def _finish(
 ) -> CalibrationResult:
     P, obs, holdout = dataset(head, records)
     fit_mask = ~holdout
-    neutral = np.array([a.neutral for a in head.actuators])
+    neutral = np.array(head.neutral_pose)
     scale = np.array([(a.max - a.min) / 2 for a in head.actuators])
     provenance = {
         "created": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),

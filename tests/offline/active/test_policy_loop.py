@@ -82,7 +82,7 @@ def test_selection_in_the_loop_grows_a_dataset_batch_by_batch_and_resumes(tmp_pa
         policy = learn_policy(x, y, skin.base_surface(), SMALL, cfg, tmp_path / "policy", log=lambda m: None)
     kw = dict(select=select, batch=4, init=4, policy=policy, head=head.name, names=head.actuator_names,
               units=["rad"] * len(lo), lo=lo, hi=hi, engine=SerialEngine(), seed=3, sampling={},
-              config=cfg, progress_stream=None, log=lambda m: None)
+              config=cfg, progress_stream=None, log=lambda m: None, rest_pose=head.neutral_pose)
     root = tmp_path / "ds"
     first = grow_dataset(root, spec, samples, budget=12, **kw)
     assert first["simulated"] == 12 and first["batches"] == 3 and first["retrained_this_run"] == 2
@@ -94,6 +94,7 @@ def test_selection_in_the_loop_grows_a_dataset_batch_by_batch_and_resumes(tmp_pa
     assert again[:3] == batches
     ds = PoseDataset(root)
     assert len(ds.usable) == 20 and set(ds.usable.tolist()) == {i for b in again for i in b}
+    np.testing.assert_array_equal(ds.rest_pose, head.neutral_pose)  # training anchors a grown dataset too
 
 
 @pytest.mark.parametrize("extra, message", [
