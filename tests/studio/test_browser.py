@@ -173,10 +173,13 @@ def test_select_a_key_on_the_timeline_and_move_it(page: Any, studio: Any, image_
     assert wait_until(lambda: animate._selected == ("jaw", 1), 30)
     assert wait_until(lambda: animate.time.value == pytest.approx(2.0), 30)  # the playhead goes to the key
     box = page.get_by_role("textbox", name="Key time (s)", exact=True)
+    # The page shows the selected key before it is edited (a late update would overwrite the typed value).
+    assert wait_until(lambda: _number(box.input_value()) == 2.0, 30)
     box.fill("1.5")
     box.press("Enter")
     assert wait_until(lambda: studio.doc.key_times("jaw") == [0.0, 1.5], 30)
     box = page.get_by_role("textbox", name="Key value", exact=True)
+    assert wait_until(lambda: _number(box.input_value()) == 5.0, 30)
     box.fill("4")
     box.press("Enter")
     assert wait_until(lambda: studio.doc.tracks["jaw"].keys[1].value == 4.0, 30)
@@ -211,3 +214,11 @@ def test_the_e_stop_reaches_the_daemon_and_reset_clears_it(page: Any, studio: An
     _tab(page, "Perform")
     page.get_by_role("button", name="Reset", exact=True).click()
     assert wait_until(lambda: _status(daemon)["lifecycle"] == "inactive", 60, interval=0.5)
+
+
+def _number(text: str) -> float | None:
+    """The number a text box shows, or None while it shows none."""
+    try:
+        return float(text)
+    except ValueError:
+        return None
