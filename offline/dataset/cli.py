@@ -53,6 +53,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     k.add_argument("--out", required=True, help="pack file to write (.npz)")
     k.add_argument("--made-by", default="", help="the command that simulated the dataset (recorded in the pack)")
     k.set_defaults(func=run_pack)
+    u = sub.add_parser("dataset-unpack", help="unpack a dataset pack into a dataset folder (hash-checked)",
+                       description="Write a pack from `likeness offline dataset-pack` back as a consolidated dataset "
+                       "folder (no per-pose files) and check its content hash, so training and evaluation read "
+                       "exactly the packed dataset. Refuses a folder that holds another dataset.")
+    u.add_argument("pack", help="pack file (.npz)")
+    u.add_argument("--out", required=True, help="dataset folder to write")
+    u.set_defaults(func=run_unpack)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -189,4 +196,20 @@ def run_pack(args: argparse.Namespace) -> int:
     size = Path(args.out).stat().st_size
     print(f"packed {header['n_poses']} poses ({header['converged']} converged, {header['n_vertices']} vertices) "
           f"into {args.out} ({size / 1e6:.1f} MB); content {header['content_hash']}")
+    return 0
+
+
+def run_unpack(args: argparse.Namespace) -> int:
+    """Unpack a pack into a dataset folder and say what it holds and who made it."""
+    from likeness.cli import CliError
+    from models.errors import SpecError
+    from offline.dataset.pack import read_header, unpack_dataset
+
+    try:
+        header = read_header(args.pack)["header"]
+        ds = unpack_dataset(args.pack, args.out)
+    except (SpecError, OSError, ValueError) as exc:
+        raise CliError(str(exc)) from exc
+    print(f"unpacked {header['n_poses']} poses ({len(ds.usable)} converged, {header['n_vertices']} vertices) into "
+          f"{args.out}; content {ds.content_hash()}; made by: {header['made_by'] or 'not recorded'}")
     return 0

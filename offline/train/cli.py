@@ -26,6 +26,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--threads", type=int, default=1, help="torch and onnxruntime threads")
     p.add_argument("--no-rest-anchor", action="store_true",
                    help="do not pin the prediction to zero at the dataset's rest pose (the head's neutral)")
+    p.add_argument("--edge-weight", type=float, default=0.0,
+                   help="weight of a surface-strain term in the loss (squared error of each surface edge's vector "
+                   "over its rest length) beside the offsets' scaled MSE; it also enters the validation objective "
+                   "(default 0: offsets only)")
     p.add_argument("--int8", action="store_true", help="also export the int8 (MatMulNBits) variant and its error")
     p.set_defaults(func=run)
 
@@ -41,8 +45,11 @@ def run(args: argparse.Namespace) -> int:
 
     if args.epochs < 1 or args.batch_size < 1:
         raise CliError("--epochs and --batch-size must be positive")
+    if not args.edge_weight >= 0:
+        raise CliError(f"--edge-weight must be zero or positive, got {args.edge_weight}")
     config = TrainConfig(epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, seed=args.seed,
-                         patience=args.patience, threads=args.threads, rest_anchor=not args.no_rest_anchor)
+                         patience=args.patience, threads=args.threads, rest_anchor=not args.no_rest_anchor,
+                         edge_weight=args.edge_weight)
     try:
         report = train_pipeline(args.dataset, args.out, config, hidden=args.hidden, int8=args.int8)
     except (SpecError, ValueError, FileNotFoundError) as exc:

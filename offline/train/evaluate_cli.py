@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
+from typing import Any
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -13,7 +15,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                        "errors) and compare with predictor_report.json (beside the predictor unless --report is "
                        "given). Exit status 1 when the report does not match.")
     p.add_argument("--predictor", required=True, help="predictor ONNX file")
-    p.add_argument("--dataset", required=True, help="pose dataset folder the predictor was trained on")
+    p.add_argument("--dataset", required=True, help="pose dataset the predictor was trained on: its folder, or a "
+                   "dataset pack (.npz from `likeness offline dataset-pack`; unpacked to a temporary folder and "
+                   "hash-checked)")
     p.add_argument("--report", default=None, help="report to check (default: predictor_report.json beside the "
                    "predictor; no check if there is none)")
     p.add_argument("--split", default="test", choices=("train", "validation", "test", "all"),
@@ -26,22 +30,40 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     """Evaluate, compare, print JSON."""
     import json
-    from pathlib import Path
+    import tempfile
 
     from likeness.cli import CliError
     from models.errors import SpecError
-    from offline.train.evaluate import REPORT_NAME, check_report, evaluate_predictor
+    from offline.train.evaluate import REPORT_NAME
 
     report = Path(args.report) if args.report else Path(args.predictor).with_name(REPORT_NAME)
-    try:
-        if args.report or (report.exists() and args.split == "test"):
-            if args.split != "test":
-                raise CliError("--report checks the test split; leave out --split")
-            result = check_report(report, args.predictor, args.dataset, args.threads)
-        else:
-            result = {"split": args.split, args.split: evaluate_predictor(args.predictor, args.dataset, args.split,
-                                                                         args.threads)}
-    except (SpecError, ValueError, FileNotFoundError) as exc:
-        raise CliError(str(exc)) from exc
+    with tempfile.TemporaryDirectory(prefix="likeness-eval-") as tmp:
+        try:
+            dataset = _dataset_folder(Path(args.dataset), Path(tmp))
+            result = _evaluate(args, report, dataset)
+        except (SpecError, ValueError, FileNotFoundError) as exc:
+            raise CliError(str(exc)) from exc
     print(json.dumps(result, indent=1))
     return 0 if result.get("matches", True) else 1
+
+
+def _dataset_folder(path: Path, tmp: Path) -> Path:
+    """``path`` itself when it is a dataset folder; a pack file is unpacked (hash-checked) under ``tmp``."""
+    if not path.is_file():
+        return path
+    from offline.dataset.pack import unpack_dataset
+
+    unpack_dataset(path, tmp / "dataset")
+    return tmp / "dataset"
+
+
+def _evaluate(args: argparse.Namespace, report: Path, dataset: Path) -> dict[str, Any]:
+    """Check ``report`` when one applies, else the metrics of the asked split."""
+    from likeness.cli import CliError
+    from offline.train.evaluate import check_report, evaluate_predictor
+
+    if args.report or (report.exists() and args.split == "test"):
+        if args.split != "test":
+            raise CliError("--report checks the test split; leave out --split")
+        return check_report(report, args.predictor, dataset, args.threads)
+    return {"split": args.split, args.split: evaluate_predictor(args.predictor, dataset, args.split, args.threads)}

@@ -39,6 +39,9 @@ class TrainConfig:
     #: Pin the prediction at the dataset's rest pose to exactly zero (when the dataset records one): the network
     #: is trained as f(x) - f(x_rest), which is again a KSNN (the output bias becomes -f(x_rest) without it).
     rest_anchor: bool = True
+    #: Weight of the surface-strain term beside the offsets' scaled MSE: the mean squared error of every surface
+    #: edge's vector divided by its rest length (a strain, dimensionless). 0 trains on offsets alone.
+    edge_weight: float = 0.0
 
 
 @dataclass
@@ -112,14 +115,37 @@ def _module(n_in: int, hidden: int, n_out: int, anchor: np.ndarray | None = None
     return Ksnn()
 
 
+def make_objective(scale: np.ndarray, edges: tuple[np.ndarray, np.ndarray] | None, edge_weight: float
+                   ) -> Callable[[Any, Any], Any]:
+    """The training loss on (3, B, V) tensors of per-axis scaled offsets: their MSE, plus ``edge_weight`` × the mean
+    squared edge strain error, (Δu_i − Δu_j) / |x_i − x_j| per surface edge and axis, in metres over metres."""
+    import torch
+
+    if edges is None or edge_weight <= 0:
+        return lambda pred, target: torch.mean((pred - target) ** 2)
+    e_i = torch.from_numpy(np.asarray(edges[0][:, 0], np.int64))
+    e_j = torch.from_numpy(np.asarray(edges[0][:, 1], np.int64))
+    inv_len = (torch.from_numpy(np.asarray(scale, np.float32)).view(3, 1, 1)
+               / torch.from_numpy(np.asarray(edges[1], np.float32)).view(1, 1, -1))  # scaled units → strain
+
+    def objective(pred: Any, target: Any) -> Any:
+        diff = pred - target
+        return torch.mean(diff ** 2) + edge_weight * torch.mean(((diff[:, :, e_i] - diff[:, :, e_j]) * inv_len) ** 2)
+
+    return objective
+
+
 def train_ksnn(x_norm: np.ndarray, offsets: np.ndarray, train_idx: np.ndarray, val_idx: np.ndarray, hidden: int,
                lo: np.ndarray, hi: np.ndarray, config: TrainConfig, checkpoint: Path | None = None,
-               log: Callable[[str], None] | None = None, anchor: np.ndarray | None = None) -> TrainResult:
+               log: Callable[[str], None] | None = None, anchor: np.ndarray | None = None,
+               edges: tuple[np.ndarray, np.ndarray] | None = None) -> TrainResult:
     """Train one KSNN with ``hidden`` units; ``offsets`` (N, V, 3) may be a memmap (batches are read on demand).
 
     ``anchor``: a normalized pose whose offsets are zero by construction (the rest pose); the network is then
-    trained and exported so that it predicts exactly zero there. Resumes from ``checkpoint`` when it exists and
-    matches the problem; returns the best weights in SI-scaled form.
+    trained and exported so that it predicts exactly zero there. ``edges``: the surface's edges (E, 2) and their
+    rest lengths (E,), needed when ``config.edge_weight`` > 0. Resumes from ``checkpoint`` when it exists and
+    matches the problem; returns the best weights in SI-scaled form. The validation objective (early stopping,
+    the best epoch) is the training loss: scaled MSE plus ``edge_weight`` × edge-strain MSE.
     """
     import torch
 
@@ -143,6 +169,10 @@ def train_ksnn(x_norm: np.ndarray, offsets: np.ndarray, train_idx: np.ndarray, v
     opt = torch.optim.Adam(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
     sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, factor=0.5, patience=max(5, config.patience // 4))
     scale_t = torch.from_numpy(scale).float().view(3, 1, 1)
+    lam = float(config.edge_weight)
+    if lam > 0 and edges is None:
+        raise ValueError("edge_weight > 0 needs the surface's edges and rest lengths")
+    objective = make_objective(scale, edges if lam > 0 else None, lam)
     history: dict[str, list[float]] = {"train": [], "val": [], "lr": []}
     start_epoch = 0
     best = {"val": math.inf, "epoch": -1, "state": None}
@@ -151,6 +181,8 @@ def train_ksnn(x_norm: np.ndarray, offsets: np.ndarray, train_idx: np.ndarray, v
                             np.asarray(val_idx, np.int64).tobytes()).hexdigest()[:16]
     key = {"n_act": n_act, "n_vert": n_vert, "hidden": hidden, "n_train": len(train_idx), "seed": config.seed,
            "split": split_id, "anchor": None if anchor is None else [float(a) for a in anchor]}
+    if lam > 0:  # (absent at 0, so checkpoints written before the edge term still resume)
+        key["edge_weight"] = lam
     if checkpoint is not None and checkpoint.exists():
         ck = torch.load(checkpoint, weights_only=False)
         if ck.get("key") == key:
@@ -192,7 +224,7 @@ def train_ksnn(x_norm: np.ndarray, offsets: np.ndarray, train_idx: np.ndarray, v
         for s in range(0, len(perm), config.batch_size):
             idx = perm[s:s + config.batch_size]
             pred = model(x_t[idx])
-            loss = torch.mean((pred - batch_targets(idx)) ** 2)
+            loss = objective(pred, batch_targets(idx))
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
@@ -201,13 +233,13 @@ def train_ksnn(x_norm: np.ndarray, offsets: np.ndarray, train_idx: np.ndarray, v
         model.eval()
         with torch.no_grad():
             if val_targets is not None:
-                val_mse = float(torch.mean((model(x_t[val_idx]) - val_targets) ** 2))
+                val_mse = float(objective(model(x_t[val_idx]), val_targets))
             else:
                 acc = 0.0
                 for s in range(0, len(val_idx), 256):
                     idx = val_idx[s:s + 256]
-                    acc += float(torch.sum((model(x_t[idx]) - batch_targets(idx)) ** 2))
-                val_mse = acc / (len(val_idx) * n_vert * 3)
+                    acc += float(objective(model(x_t[idx]), batch_targets(idx))) * len(idx)
+                val_mse = acc / len(val_idx)
         sched.step(val_mse)
         history["train"].append(train_mse)
         history["val"].append(val_mse)

@@ -27,8 +27,9 @@ from offline.train.ksnn import TrainConfig, TrainResult, resolve_hidden, train_k
 from offline.train.metrics import surface_errors
 
 REPORT_VERSION = 1
-SELECTION = ("hidden size: lowest validation MSE (per-axis scaled offsets); epoch: best validation MSE with early "
-             "stopping on validation; the test split plays no part in either")
+SELECTION = ("hidden size: lowest validation objective (MSE of per-axis scaled offsets, plus edge_weight x the "
+             "edge-strain MSE when edge_weight > 0); epoch: best validation objective with early stopping on "
+             "validation; the test split plays no part in either")
 
 
 def _numpy_predict(weights) -> Callable[[np.ndarray], np.ndarray]:
@@ -62,17 +63,19 @@ def train_pipeline(dataset_dir: str | Path, out_dir: str | Path, config: TrainCo
     anchor, rest_info = _rest_anchor(ds, config)
     log(rest_info["note"])
     names, labels = regions(ds)
+    edges = surface_edges(ds.base_vertices, ds.faces) if config.edge_weight > 0 else None
     results: list[TrainResult] = []
     per_hidden: dict[str, Any] = {}
     for h in candidates:
         res = train_ksnn(x_all, ds.offsets, train_idx, val_idx, h, ds.lo, ds.hi, config,
-                         checkpoint=out / "checkpoints" / f"ksnn_h{h}.pt", log=log, anchor=anchor)
+                         checkpoint=out / "checkpoints" / f"ksnn_h{h}.pt", log=log, anchor=anchor, edges=edges)
         results.append(res)
-        val = surface_errors(_numpy_predict(res.weights), ds.actuators, ds.offsets, val_idx, names, labels)
+        val = surface_errors(_numpy_predict(res.weights), ds.actuators, ds.offsets, val_idx, names, labels,
+                             base=ds.base_vertices, faces=ds.faces)
         per_hidden[str(h)] = {"best_epoch": res.best_epoch, "epochs_run": len(res.history["val"]),
-                              "best_val_mse_scaled": res.best_val_mse, "train_seconds": round(res.seconds, 2),
+                              "best_val_objective": res.best_val_mse, "train_seconds": round(res.seconds, 2),
                               "validation": _brief(val)}
-        log(f"H={h}: best validation MSE {res.best_val_mse:.4g} (scaled) at epoch {res.best_epoch}; validation mean "
+        log(f"H={h}: best validation objective {res.best_val_mse:.4g} at epoch {res.best_epoch}; validation mean "
             f"{val['mean_euclidean_um']:.1f} µm, max {val['max_euclidean_um']:.1f} µm")
     best = min(results, key=lambda r: r.best_val_mse)
     dataset_info = {"id": ds.id, "hash": ds.content_hash(), "path": str(dataset_dir), "head": ds.head,
@@ -112,6 +115,18 @@ def train_pipeline(dataset_dir: str | Path, out_dir: str | Path, config: TrainCo
     return report
 
 
+def surface_edges(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The unique edges (E, 2) of a triangle surface and their rest lengths (E,), for the edge-strain loss."""
+    f = np.asarray(faces, dtype=np.int64)
+    pairs = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    pairs = np.unique(pairs, axis=0)
+    length = np.linalg.norm(vertices[pairs[:, 1]] - vertices[pairs[:, 0]], axis=1)
+    if len(pairs) == 0 or not np.all(length > 0):
+        raise ValueError("the surface has no edges, or an edge of zero length: the edge-strain loss needs a "
+                         "triangle surface without degenerate edges")
+    return pairs, length
+
+
 def _rest_anchor(ds: PoseDataset, config: TrainConfig) -> tuple[np.ndarray | None, dict[str, Any]]:
     """The normalized rest pose to pin the predictor at (or None), and what the report says about it."""
     rest = ds.rest_pose
@@ -143,8 +158,8 @@ def _compare_h_equals_a(results: Sequence[TrainResult], best: TrainResult, n_act
     val = {r.hidden: r.best_val_mse for r in results}
     out: dict[str, Any] = {
         "note": "selection used validation only; test figures are reported for comparison, never used to choose",
-        "h_equals_a": {"hidden": n_act, "best_val_mse_scaled": val[n_act]},
-        "selected": {"hidden": best.hidden, "best_val_mse_scaled": val[best.hidden], "test": _brief(test)},
+        "h_equals_a": {"hidden": n_act, "best_val_objective": val[n_act]},
+        "selected": {"hidden": best.hidden, "best_val_objective": val[best.hidden], "test": _brief(test)},
     }
     if h_a is best:
         out["h_equals_a"]["test"] = _brief(test)

@@ -130,7 +130,7 @@ def test_hidden_size_is_chosen_on_validation_and_compared_with_h_equals_a(traine
     _, report, _ = trained
     per = report["training"]["per_hidden"]
     assert set(per) == {"13", "26"}
-    chosen = min(per, key=lambda h: per[h]["best_val_mse_scaled"])
+    chosen = min(per, key=lambda h: per[h]["best_val_objective"])
     assert report["training"]["selected_hidden"] == int(chosen)
     cmp = report["hidden_comparison"]
     assert cmp["h_equals_a"]["hidden"] == 13 and cmp["selected"]["hidden"] == int(chosen)
@@ -259,3 +259,40 @@ def test_rest_anchor_pins_the_exported_predictor_to_zero_at_the_rest_pose(datase
     assert free["training"]["rest_anchor"]["anchored"] is False
     unpinned = SkinPredictor(tmp_path / "free" / "predictor.onnx")
     assert np.abs(unpinned.predict_offsets(rest[None])).max() > 1e-3 * scale
+
+
+def test_surface_edges_are_unique_with_their_rest_lengths():
+    from offline.train.pipeline import surface_edges
+
+    v = np.array([[0.0, 0, 0], [1, 0, 0], [0, 2, 0], [1, 2, 0]])
+    edges, length = surface_edges(v, np.array([[0, 1, 2], [1, 3, 2]]))
+    assert edges.tolist() == [[0, 1], [0, 2], [1, 2], [1, 3], [2, 3]]
+    np.testing.assert_allclose(length, [1, 2, np.sqrt(5), 2, 1])
+    with pytest.raises(ValueError, match="zero length"):
+        surface_edges(np.zeros((3, 3)), np.array([[0, 1, 2]]))
+
+
+def test_the_edge_strain_term_weighs_each_edge_error_over_its_rest_length_and_keeps_its_own_checkpoints(
+        dataset, tmp_path):
+    from offline.train.ksnn import make_objective
+
+    edges = (np.array([[0, 1], [1, 2]]), np.array([0.5, 2.0]))
+    scale = np.array([2.0, 1.0, 1.0])
+    pred = torch.zeros(3, 1, 3)
+    target = torch.zeros(3, 1, 3)
+    pred[0, 0, 1] = 0.01  # x offset of vertex 1 off by 0.01 scaled = 0.02 m
+    plain = float(make_objective(scale, None, 0.0)(pred, target))
+    edged = float(make_objective(scale, edges, 3.0)(pred, target))
+    assert plain == pytest.approx(0.01 ** 2 / 9)
+    # Edge strain errors: 0.02 / 0.5 and 0.02 / 2.0 on the x axis, zero elsewhere; mean over 3 axes x 2 edges.
+    assert edged - plain == pytest.approx(3.0 * ((0.02 / 0.5) ** 2 + (0.02 / 2.0) ** 2) / 6, rel=1e-5)
+    root, _ = dataset
+    cfg = TrainConfig(epochs=6, batch_size=32, patience=30)
+    a = train_pipeline(root, tmp_path / "out", cfg, hidden=["A"], log=lambda s: None)
+    logs: list[str] = []
+    b = train_pipeline(root, tmp_path / "out", TrainConfig(epochs=6, batch_size=32, patience=30, edge_weight=10.0),
+                       hidden=["A"], log=logs.append)  # the same folder: the offsets-only checkpoint is not resumed
+    assert not any("resumed" in line for line in logs)
+    assert b["training"]["config"]["edge_weight"] == 10.0
+    assert "surface_strain" in b["training"]["per_hidden"]["13"]["validation"]
+    assert a["test"]["mean_euclidean_um"] != b["test"]["mean_euclidean_um"]  # the term changed what was learned
