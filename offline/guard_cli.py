@@ -15,6 +15,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from models.atomic import write_bytes
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``guard`` tool and its subcommands."""
@@ -46,6 +48,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     e.add_argument("--out", required=True, help="report .json")
     e.add_argument("--sample-out", help="also write a small test sample (.npz): evenly spaced poses of each dataset")
     e.add_argument("--sample-size", type=int, default=12, help="poses per dataset in --sample-out (default 12)")
+    e.add_argument("--fresh", type=int, default=10000,
+                   help="also compare the in-cycle check with the full measure on this many fresh seeded poses over "
+                   "the full ranges (seed 1001) and as many within a quarter of each span around neutral (seed "
+                   "1002); predictor only, no FEM (default 10000; 0: skip)")
     e.set_defaults(func=run_evaluate)
 
     r = gs.add_parser("refine", help="the strain measure on the coarse skin and its 1:8 refinement (JSON)")
@@ -137,9 +143,11 @@ def run_evaluate(args: argparse.Namespace) -> int:
     """Write the agreement report."""
     from likeness.cli import CliError
     from models.strain_guard import StrainGuard
-    from offline.strain_eval import agreement_report, file_hash
+    from offline.strain_eval import agreement_report, file_hash, reduced_agreement
 
     head = _head(args.config)
+    if args.fresh < 0:
+        raise CliError(f"--fresh must be zero or positive, got {args.fresh}")
     t0 = time.perf_counter()
     guard = StrainGuard.for_head(head)
     if guard is None:
@@ -154,6 +162,9 @@ def run_evaluate(args: argparse.Namespace) -> int:
         ref: {"guard_vs_fem": rep["guard_vs_fem"],
               "median_abs_error_vs_fem": {k: d["median_abs_error_vs_fem"] for k, d in rep["per_dataset"].items()}}
         for ref, rep in ((guard.reference_kind, report), (other, alt_report))}
+    if args.fresh:
+        report["reduced_vs_full_fresh"] = [reduced_agreement(guard, head, args.fresh, 1001, 1.0),
+                                           reduced_agreement(guard, head, args.fresh, 1002, 0.25)]
     cal = guard.calibration
     report.update({
         "command": " ".join(["likeness", *sys.argv[1:]]),
@@ -169,7 +180,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
         "seconds": time.perf_counter() - t0,
     })
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(report, indent=1) + "\n")
+    write_bytes(Path(args.out), (json.dumps(report, indent=1) + "\n").encode())
     if args.sample_out:
         write_sample(args.sample_out, args.dataset, args.sample_size)
     print(f"{report['poses']} poses: guard vs FEM {report['guard_vs_fem']:.4f}, reduced vs full "
@@ -200,7 +211,7 @@ def run_refine(args: argparse.Namespace) -> int:
                    "dataset_indices": [int(i) for i in pick],
                    "mesh_sha256": file_hash(Path(args.mesh) / "skin.vtu"), "seconds": time.perf_counter() - t0})
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(report, indent=1) + "\n")
+    write_bytes(Path(args.out), (json.dumps(report, indent=1) + "\n").encode())
     for row in report["poses"]:
         c, f = row["coarse"], row["fine"]
         fc = row["fine_on_coarse_triangles"]["measure"]
@@ -214,7 +225,6 @@ def write_sample(path: str, datasets: list[str], per_dataset: int) -> None:
     """Evenly spaced converged poses of each dataset: p, surface offsets (float32), base surface, faces."""
     import numpy as np
 
-    from models.atomic import write_bytes
     from offline.dataset.store import PoseDataset
 
     P, off, src = [], [], []

@@ -179,6 +179,23 @@ def agreement_report(guard: StrainGuard, datasets: Iterable[str | Path]) -> dict
     }
 
 
+def reduced_agreement(guard: StrainGuard, head: HeadSpec, n: int, seed: int, range_fraction: float = 1.0,
+                      boundary_prob: float = 0.15) -> dict[str, Any]:
+    """The in-cycle check (``guard.check``) against the full measure on ``n`` fresh seeded poses of the head's
+    sampler (no FEM needed: both read the predictor), over ``range_fraction`` of each range around neutral."""
+    from offline.dataset.sampling import sample_poses
+
+    P = sample_poses(head, n, seed=seed, boundary_prob=boundary_prob, range_fraction=range_fraction)
+    lo, hi = guard.strain_range
+    ok_full = _ok(guard.full_batch(P), lo, hi)
+    ok_chk = np.array([guard.check(p) for p in P], dtype=bool)
+    return {"poses": int(n), "seed": int(seed), "range_fraction": float(range_fraction),
+            "boundary_prob": float(boundary_prob), "full_ok_fraction": float(ok_full.mean()),
+            "check_vs_full": float((ok_chk == ok_full).mean()),
+            "check_accepts_full_refuses": int((ok_chk & ~ok_full).sum()),
+            "check_refuses_full_accepts": int((~ok_chk & ok_full).sum())}
+
+
 def _dataset_hash(root: Path) -> str:
     """SHA-256 over the dataset's planned poses and every pose file's bytes (sorted by name)."""
     h = hashlib.sha256()

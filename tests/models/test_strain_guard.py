@@ -168,3 +168,16 @@ def test_the_fused_solve_and_measure_is_the_solve_then_the_measure(guard):
         np.testing.assert_allclose(a.strain, c.strain, rtol=0, atol=1e-6)
         assert b.strain is None
         p_prev = a.p
+
+
+def test_the_fresh_pose_agreement_of_the_report_counts_what_the_check_and_the_full_measure_decide(guard):
+    from offline.strain_eval import reduced_agreement
+
+    head = load_head(SAMPLE)
+    wide = reduced_agreement(guard, head, 400, seed=1001)
+    near = reduced_agreement(guard, head, 400, seed=1002, range_fraction=0.25)
+    for rep in (wide, near):
+        wrong = rep["check_accepts_full_refuses"] + rep["check_refuses_full_accepts"]
+        assert rep["check_vs_full"] == pytest.approx(1 - wrong / 400) and rep["check_vs_full"] >= 0.99
+    assert near["full_ok_fraction"] > wide["full_ok_fraction"]  # poses near neutral pass more often
+    assert reduced_agreement(guard, head, 400, seed=1001) == wide  # seeded: a rerun measures the same poses
