@@ -3,6 +3,7 @@ and the FEM pool shipped with the sample head is the one the default benchmark a
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 import zipfile
@@ -107,3 +108,32 @@ def test_the_benchmark_refuses_a_pack_of_another_pool(dataset, tmp_path):
     assert r.returncode != 0
     assert "holds a different pool" in r.stderr and "--simulate-pool" in r.stderr
     assert not (tmp_path / "bench" / "pool").exists()
+
+
+def test_the_shipped_predictor_report_is_reproduced_from_the_shipped_dataset_pack(tmp_path):
+    """``likeness offline evaluate`` on the pack shipped beside the sample predictor recomputes its report exactly."""
+    sample = ROOT / "heads" / "sample"
+    meta = read_header(sample / "predictor_dataset.npz")
+    report = json.loads((sample / "predictor_report.json").read_text())
+    assert report["dataset"]["hash"] == meta["header"]["content_hash"]
+    assert meta["manifest"]["problem"]["element_order"] == report["mesh"]["element_order"]
+    cmd = [sys.executable, "-m", "likeness.cli", "offline", "evaluate", "--predictor",
+           str(sample / "predictor.onnx"), "--dataset", str(sample / "predictor_dataset.npz")]
+    r = subprocess.run(cmd, cwd=ROOT, env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin",
+                                           "TMPDIR": str(tmp_path)}, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr + r.stdout
+    result = json.loads(r.stdout)
+    assert result["matches"] and result["test"]["n_poses"] == report["test"]["n_poses"]
+    assert not list(tmp_path.glob("likeness-eval-*"))  # the temporary unpacked dataset is removed
+
+
+def test_the_unpack_command_writes_the_dataset_and_refuses_another_in_its_folder(dataset, tmp_path, capsys):
+    from likeness.cli import main
+
+    pack_dataset(dataset, tmp_path / "ds.npz", made_by="likeness offline dataset --seed 1")
+    assert main(["offline", "dataset-unpack", str(tmp_path / "ds.npz"), "--out", str(tmp_path / "out")]) == 0
+    out = capsys.readouterr().out
+    assert PoseDataset(tmp_path / "out").content_hash() == PoseDataset(dataset).content_hash()
+    assert "40 poses" in out and "made by: likeness offline dataset --seed 1" in out
+    assert main(["offline", "dataset-unpack", str(SHIPPED), "--out", str(tmp_path / "out")]) == 2
+    assert "holds a different dataset" in capsys.readouterr().err
