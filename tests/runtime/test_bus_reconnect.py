@@ -53,7 +53,7 @@ def test_a_lost_bus_reconnects_after_its_emulator_restarts(make_daemon, bus: str
         # fault naming the bus; the other bus is torqued off; telemetry keeps coming
         assert ev[1]["bus"] == bus and f"bus {bus}" in ev[1]["message"], ev[1]
         st = wait_until(lambda: (s := _status(c))["buses"][other] == "inactive" and s["connected"][bus] is False
-                        and s, 5.0)
+                        and s, 15.0)
         # (on a loaded host, stale feedback or the driver's missed replies may be noticed before the lost port)
         assert st and st["lifecycle"] == "fault" and st["fault"]["bus"] == bus
         assert st["fault"]["source"] in ("bus", "driver", "timeout")
