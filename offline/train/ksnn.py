@@ -172,7 +172,7 @@ def train_ksnn(x_norm: np.ndarray, offsets: np.ndarray, train_idx: np.ndarray, v
     lam = float(config.edge_weight)
     if lam > 0 and edges is None:
         raise ValueError("edge_weight > 0 needs the surface's edges and rest lengths")
-    objective = make_objective(scale, edges if lam > 0 else None, lam)
+    objective = make_objective(scale, edges, lam)
     history: dict[str, list[float]] = {"train": [], "val": [], "lr": []}
     start_epoch = 0
     best = {"val": math.inf, "epoch": -1, "state": None}

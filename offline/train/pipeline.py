@@ -117,9 +117,9 @@ def train_pipeline(dataset_dir: str | Path, out_dir: str | Path, config: TrainCo
 
 def surface_edges(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The unique edges (E, 2) of a triangle surface and their rest lengths (E,), for the edge-strain loss."""
-    f = np.asarray(faces, dtype=np.int64)
-    pairs = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-    pairs = np.unique(pairs, axis=0)
+    from offline.mesh.surface import directed_edges
+
+    pairs = np.unique(np.sort(directed_edges(np.asarray(faces, dtype=np.int64)), axis=1), axis=0)
     length = np.linalg.norm(vertices[pairs[:, 1]] - vertices[pairs[:, 0]], axis=1)
     if len(pairs) == 0 or not np.all(length > 0):
         raise ValueError("the surface has no edges, or an edge of zero length: the edge-strain loss needs a "
