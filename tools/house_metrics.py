@@ -1,0 +1,278 @@
+"""Measure how readable the house is: the figures ``docs/architecture.md`` quotes, computed from the source.
+
+Figures: annotations spelled ``Any`` (in the whole runtime and on the stream frame's path), the largest runtime
+module, functions over 80 lines in ``runtime/`` and ``offline/fem/``, command-line modules and whether they follow
+the one pattern (a module per command inside a pillar's ``cli`` package), and import cycles between the project's
+modules (every import statement counts, those under ``if TYPE_CHECKING:`` aside).
+
+    python -m tools.house_metrics                 # print the table
+    python -m tools.house_metrics --write docs/house_metrics.md
+
+The file it writes names the commit it measured; it is never edited by hand.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import subprocess
+import sys
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("likeness", "models", "drivers", "runtime", "sim_hardware", "offline", "studio")
+#: Modules a stream frame passes from the socket to ``MotorBus.write`` (the path docs/architecture.md draws).
+FRAME_PATH_PREFIXES = (
+    "runtime/server", "runtime/api", "runtime/messages", "runtime/requests", "runtime/ipc", "runtime/channel",
+    "runtime/runner", "runtime/daemon.py", "runtime/core/", "runtime/solve", "runtime/skin", "runtime/buslink",
+    "runtime/bus", "runtime/shaper", "drivers/base.py",
+)
+LONG_FUNCTION = 80
+
+
+@dataclass(frozen=True)
+class Figures:
+    any_runtime: int
+    any_frame_path: int
+    largest_runtime: tuple[str, int]
+    runtime_over_500: list[tuple[str, int]]
+    long_functions: list[tuple[str, str, int]]
+    cli_modules: list[str]
+    cli_off_pattern: list[str]
+    cycles: list[list[str]]
+
+
+def _sources(package: str) -> Iterator[Path]:
+    yield from sorted((ROOT / package).rglob("*.py"))
+
+
+def _rel(path: Path) -> str:
+    return path.relative_to(ROOT).as_posix()
+
+
+def _module_name(path: Path) -> str:
+    parts = list(path.relative_to(ROOT).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+def _is_any(node: ast.expr | None) -> bool:
+    """Whether an annotation mentions ``Any`` anywhere (``Any``, ``list[Any]``, ``dict[str, Any]``...)."""
+    if node is None:
+        return False
+    if isinstance(node, ast.Constant) and isinstance(node.value, str):
+        try:
+            node = ast.parse(node.value, mode="eval").body
+        except SyntaxError:
+            return False
+    return any(isinstance(n, ast.Name) and n.id == "Any" or isinstance(n, ast.Attribute) and n.attr == "Any"
+               for n in ast.walk(node))
+
+
+def count_any(tree: ast.AST) -> int:
+    """Parameters, returns and annotated attributes or variables whose annotation mentions ``Any``
+    (``*args: Any`` and ``**kwargs: Any`` count too)."""
+    n = 0
+    for node in ast.walk(tree):
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+            args = node.args
+            params = [*args.posonlyargs, *args.args, *args.kwonlyargs]
+            params += [a for a in (args.vararg, args.kwarg) if a is not None]
+            n += sum(_is_any(a.annotation) for a in params)
+            n += _is_any(node.returns)
+        elif isinstance(node, ast.AnnAssign):
+            n += _is_any(node.annotation)
+    return n
+
+
+def long_functions(tree: ast.AST, rel: str) -> list[tuple[str, str, int]]:
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+            length = (node.end_lineno or node.lineno) - node.lineno + 1
+            if length > LONG_FUNCTION:
+                out.append((rel, node.name, length))
+    return out
+
+
+def _type_checking_block(node: ast.stmt) -> bool:
+    return isinstance(node, ast.If) and (
+        isinstance(node.test, ast.Name) and node.test.id == "TYPE_CHECKING"
+        or isinstance(node.test, ast.Attribute) and node.test.attr == "TYPE_CHECKING")
+
+
+def imports(tree: ast.Module, module: str, is_package: bool) -> set[str]:
+    """Project modules ``module`` imports anywhere in its body (functions included, TYPE_CHECKING blocks not)."""
+    found: set[str] = set()
+
+    def visit(body: list[ast.stmt]) -> None:
+        for stmt in body:
+            if _type_checking_block(stmt):
+                visit(stmt.orelse)  # type: ignore[attr-defined]
+                continue
+            for node in ast.walk(stmt):
+                if isinstance(node, ast.Import):
+                    found.update(alias.name for alias in node.names)
+                elif isinstance(node, ast.ImportFrom):
+                    base = node.module or ""
+                    if node.level:
+                        pkg = module.split(".") if is_package else module.split(".")[:-1]
+                        pkg = pkg[: len(pkg) - (node.level - 1)]
+                        base = ".".join([*pkg, base] if base else pkg)
+                    found.add(base)
+                    found.update(f"{base}.{alias.name}" for alias in node.names)
+
+    visit(tree.body)
+    return {m for m in found if m.split(".")[0] in PACKAGES}
+
+
+def import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected components of more than one module (Tarjan), each sorted."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    out: list[list[str]] = []
+    counter = [0]
+    sys.setrecursionlimit(10_000)
+
+    def strong(v: str) -> None:
+        index[v] = low[v] = counter[0]
+        counter[0] += 1
+        stack.append(v)
+        on_stack.add(v)
+        for w in graph.get(v, ()):
+            if w not in index:
+                strong(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            strong(v)
+    return sorted(out)
+
+
+def _cli_module(rel: str) -> bool:
+    name = Path(rel).name
+    return (name == "cli.py" or name.endswith("_cli.py") or "/cli/" in rel or "/commands/" in rel) and (
+        not rel.startswith("tests/"))
+
+
+def _follows_pattern(rel: str) -> bool:
+    """A command module lives in a pillar's one ``cli`` package (``runtime/cli/NAME.py``...)."""
+    parts = rel.split("/")
+    return len(parts) == 3 and parts[1] == "cli" or rel == "likeness/cli.py"
+
+
+def measure() -> Figures:
+    any_runtime = any_path = 0
+    sizes: list[tuple[str, int]] = []
+    longs: list[tuple[str, str, int]] = []
+    clis: list[str] = []
+    graph: dict[str, set[str]] = {}
+    for package in PACKAGES:
+        for path in _sources(package):
+            rel = _rel(path)
+            text = path.read_text(encoding="utf-8")
+            tree = ast.parse(text, filename=rel)
+            module = _module_name(path)
+            graph[module] = imports(tree, module, path.name == "__init__.py")
+            if _cli_module(rel):
+                clis.append(rel)
+            if package == "runtime":
+                n_any = count_any(tree)
+                any_runtime += n_any
+                sizes.append((rel, len(text.splitlines())))
+            if rel.startswith(FRAME_PATH_PREFIXES):
+                any_path += count_any(tree)
+            if package == "runtime" or rel.startswith("offline/fem/"):
+                longs += long_functions(tree, rel)
+    known = set(graph)
+    resolved = {m: {t if t in known else t.rsplit(".", 1)[0] for t in targets} & known - {m}
+                for m, targets in graph.items()}
+    # ``import a.b.c`` also runs a/__init__ and a/b/__init__, but a package's own __init__ is not a cycle partner
+    # through that alone: only the modules named count.
+    sizes.sort(key=lambda x: -x[1])
+    return Figures(
+        any_runtime=any_runtime,
+        any_frame_path=any_path,
+        largest_runtime=sizes[0],
+        runtime_over_500=[s for s in sizes if s[1] > 500],
+        long_functions=sorted(longs, key=lambda x: -x[2]),
+        cli_modules=sorted(clis),
+        cli_off_pattern=sorted(c for c in clis if not _follows_pattern(c)),
+        cycles=import_cycles(resolved),
+    )
+
+
+def _commit() -> str:
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True,
+                              check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def render(f: Figures, target: str = "docs/house_metrics.md") -> str:
+    lines = [
+        "# House figures",
+        "",
+        f"Written by `python -m tools.house_metrics --write {target}` at commit {_commit()}; not edited "
+        "by hand.",
+        "",
+        "| figure | value |",
+        "|---|---|",
+        f"| annotations spelled `Any` in `runtime/` | {f.any_runtime} |",
+        f"| annotations spelled `Any` on the stream frame's path | {f.any_frame_path} |",
+        f"| largest runtime module | `{f.largest_runtime[0]}`, {f.largest_runtime[1]} lines |",
+        f"| runtime modules over 500 lines | {len(f.runtime_over_500)} |",
+        f"| functions over {LONG_FUNCTION} lines in `runtime/` and `offline/fem/` | {len(f.long_functions)} |",
+        f"| command-line modules | {len(f.cli_modules)} |",
+        f"| command-line modules outside the one pattern (`PILLAR/cli/COMMAND.py`) | {len(f.cli_off_pattern)} |",
+        f"| import cycles between modules (TYPE_CHECKING imports aside) | {len(f.cycles)} |",
+        "",
+    ]
+    if f.runtime_over_500:
+        lines += ["Runtime modules over 500 lines: " + ", ".join(f"`{p}` ({n})" for p, n in f.runtime_over_500), ""]
+    if f.long_functions:
+        lines += ["Functions over 80 lines: " + ", ".join(f"`{p}:{name}` ({n})" for p, name, n in f.long_functions),
+                  ""]
+    if f.cli_off_pattern:
+        lines += ["Command-line modules outside the pattern: " + ", ".join(f"`{p}`" for p in f.cli_off_pattern), ""]
+    if f.cycles:
+        lines += ["Import cycles:", ""] + [f"- {' ↔ '.join(c)}" for c in f.cycles] + [""]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--write", type=Path, default=None, help="write the table to this markdown file")
+    args = parser.parse_args(argv)
+    if args.write is None:
+        print(render(measure()))
+        return 0
+    text = render(measure(), args.write.as_posix())
+    from models.atomic import write_text
+
+    write_text(args.write, text)
+    print(f"wrote {args.write}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
