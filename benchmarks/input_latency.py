@@ -185,7 +185,7 @@ def main(argv: list[str] | None = None) -> int:
     import sacn
     from pythonosc.udp_client import SimpleUDPClient
 
-    from runtime.client import Client
+    from models.client import Client
     from runtime.inputs.mtc import frame_of, full_frame
 
     parser = argparse.ArgumentParser(description=__doc__)

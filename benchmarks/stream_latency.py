@@ -80,7 +80,7 @@ def bare_router_rate(seconds: float) -> float:
 
 def stream_latency(daemon, trials: int) -> list[float]:
     """Arrival of a frame stamped "now" → the first bus write whose jaw target moved (seconds)."""
-    from runtime.client import Client
+    from models.client import Client
 
     link = next(lk for lk in daemon.links if "jaw" in lk.actuators)
     j = link.actuators.index("jaw")
@@ -115,7 +115,7 @@ def _producer(endpoint: str, rate: float, steps: int, seed: int, out: Any) -> No
     every 0.5–0.7 s; puts the arrival times (``t_recv``) of the step frames on ``out``. It runs as a sender on a
     machine of its own would (:func:`external_sender`)."""
     sender = D.external_sender()
-    from runtime.client import Client
+    from models.client import Client
 
     with Client(endpoint) as c:
         offset, _ = c.clock_offset()
@@ -165,7 +165,7 @@ def steady_latency(daemon, rate: float, steps: int, seed: int) -> tuple[list[flo
 
 def throughput(daemon, seconds: float, batch: int) -> tuple[float, float]:
     """Frames per second accepted (and late) with ``batch`` frames per request, as fast as replies allow."""
-    from runtime.client import Client
+    from models.client import Client
 
     names = list(daemon.names)
     accepted = late = 0

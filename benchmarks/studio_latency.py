@@ -243,7 +243,7 @@ def _free_port() -> int:
 
 def _start_daemon() -> tuple[subprocess.Popen, str, str]:
     """``likeness daemon`` on the sample head in a process of its own (as in a show), on free loopback ports."""
-    from runtime.client import Client, DaemonTimeout
+    from models.client import Client, DaemonTimeout
 
     cmd_ep, tel_ep = f"tcp://127.0.0.1:{_free_port()}", f"tcp://127.0.0.1:{_free_port()}"
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
@@ -387,7 +387,7 @@ def main(argv: list[str] | None = None) -> int:
                     trip.append(ms)
             estop_ms = None
             if daemon is not None:
-                from runtime.client import Telemetry
+                from models.client import Telemetry
 
                 with Telemetry(daemon[2]) as tel:
                     time.sleep(0.5)

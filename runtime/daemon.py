@@ -28,6 +28,7 @@ from typing import Any
 
 import zmq
 
+from models.errors import StartError
 from models.headspec import HeadSpec
 from runtime import ipc
 from runtime import server as server_mod
@@ -35,7 +36,6 @@ from runtime.config import DaemonConfig, daemon_config
 from runtime.core import core as K
 from runtime.core.channels import ChannelMap
 from runtime.core.solvers import as_array_solvers, channel_sets
-from runtime.errors import StartError
 from runtime.hardware import LinkedHardware
 from runtime.runner import Runner
 
@@ -112,7 +112,7 @@ class Daemon:
             self.stop()
             raise
         if self.cfg.runtime.auto_enable:
-            from runtime.client import Client
+            from models.client import Client
 
             with Client(self.command_endpoint, timeout=30.0) as c:
                 c.call("enable")
@@ -235,7 +235,7 @@ class Daemon:
 
     def call(self, op: str, **fields: Any) -> dict[str, Any]:
         """One request through the public protocol (for tools and tests in the daemon's process)."""
-        from runtime.client import Client
+        from models.client import Client
 
         with Client(self.command_endpoint, timeout=30.0) as c:
             return c.call(op, **fields)

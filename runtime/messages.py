@@ -1,7 +1,7 @@
 """Typed protocol requests: one msgspec ``Struct`` per op, decoded from msgpack and validated in one pass.
 
 :func:`decode_request` turns the bytes of one request into a :class:`Request` (a tagged union on ``op``) or raises
-:class:`RequestError` (a :class:`~runtime.protocol.ProtocolError`) with the codes of ``docs/protocol.md`` and the
+:class:`RequestError` (a :class:`~models.protocol.ProtocolError`) with the codes of ``docs/protocol.md`` and the
 request id to echo. msgspec checks types, required and unknown fields, ranges and lengths while it decodes; what it
 cannot express (finite numbers, frame widths, key order, duplicate channels) is checked in ``__post_init__`` with
 numpy over whole arrays. The bulk of big requests, stream frames and clip keys, is kept by msgspec as raw msgpack
@@ -21,8 +21,8 @@ import msgspec
 import numpy as np
 from msgspec import Meta, Struct, field
 
-from runtime import errors as E
-from runtime.protocol import ProtocolError, code_of, error_for
+from models import errors as E
+from models.protocol import ProtocolError, code_of, error_for
 
 MAX_NAME = 128  # clip, channel and string-id length
 MAX_CHANNELS = 256  # per clip, per stream request, per pose

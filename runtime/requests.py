@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from runtime import errors as E
+from models import errors as E
 from runtime import messages as M
 from runtime.core import commands as C
 from runtime.core.channels import ChannelMap, UnknownChannel

@@ -28,10 +28,10 @@ from typing import Any
 import numpy as np
 import zmq
 
-from runtime import errors as E
+from models import errors as E
+from models import protocol as P
 from runtime import ipc
 from runtime import messages as M
-from runtime import protocol as P
 from runtime.config import DaemonConfig, resolve
 from runtime.core import commands as C
 from runtime.core.channels import ChannelMap

@@ -65,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(problem)
     if not 0 <= args.port <= 65535:
         raise CliError(f"--port must be 0..65535, got {args.port}")
-    from runtime.client import DaemonError, DaemonTimeout
+    from models.client import DaemonError, DaemonTimeout
     from studio.app import Studio, StudioOptions
     from studio.head import StudioHead
 

@@ -1,4 +1,4 @@
-"""The studio as a client of the daemon, through the public protocol only (:mod:`runtime.client`).
+"""The studio as a client of the daemon, through the public protocol only (:mod:`models.client`).
 
 One DEALER socket carries ordinary requests (under a lock: the page's callbacks run on several threads); the E-stop
 has a DEALER socket of its own, so it never waits behind another request. A background thread reads telemetry
@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from runtime.client import Client, DaemonError, DaemonTimeout, Telemetry
+from models.client import Client, DaemonError, DaemonTimeout, Telemetry
 
 #: Seconds of telemetry kept for the traces.
 HISTORY_S = 12.0
@@ -64,7 +64,7 @@ class DaemonLink:
 
     # ------------------------------------------------------------------ requests
     def call(self, op: str, **fields: Any) -> dict[str, Any]:
-        """One request; raises :class:`runtime.client.DaemonError` (with the protocol's code) on an error reply."""
+        """One request; raises :class:`models.client.DaemonError` (with the protocol's code) on an error reply."""
         with self._lock:
             return self._client.call(op, **fields)
 

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import viser
 
-from runtime.client import DaemonError, DaemonTimeout
+from models.client import DaemonError, DaemonTimeout
 from studio.clipdoc import ClipError
 
 if TYPE_CHECKING:

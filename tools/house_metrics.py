@@ -68,7 +68,7 @@ def _is_any(node: ast.expr | None) -> bool:
             node = ast.parse(node.value, mode="eval").body
         except SyntaxError:
             return False
-    return any(isinstance(n, ast.Name) and n.id == "Any" or isinstance(n, ast.Attribute) and n.attr == "Any"
+    return any((isinstance(n, ast.Name) and n.id == "Any") or (isinstance(n, ast.Attribute) and n.attr == "Any")
                for n in ast.walk(node))
 
 
@@ -100,8 +100,8 @@ def long_functions(tree: ast.AST, rel: str) -> list[tuple[str, str, int]]:
 
 def _type_checking_block(node: ast.stmt) -> bool:
     return isinstance(node, ast.If) and (
-        isinstance(node.test, ast.Name) and node.test.id == "TYPE_CHECKING"
-        or isinstance(node.test, ast.Attribute) and node.test.attr == "TYPE_CHECKING")
+        (isinstance(node.test, ast.Name) and node.test.id == "TYPE_CHECKING")
+        or (isinstance(node.test, ast.Attribute) and node.test.attr == "TYPE_CHECKING"))
 
 
 def imports(tree: ast.Module, module: str, is_package: bool) -> set[str]:
@@ -176,7 +176,7 @@ def _cli_module(rel: str) -> bool:
 def _follows_pattern(rel: str) -> bool:
     """A command module lives in a pillar's one ``cli`` package (``runtime/cli/NAME.py``...)."""
     parts = rel.split("/")
-    return len(parts) == 3 and parts[1] == "cli" or rel == "likeness/cli.py"
+    return (len(parts) == 3 and parts[1] == "cli") or rel == "likeness/cli.py"
 
 
 def measure() -> Figures:

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import mido.sockets
 
-from runtime.client import Client
+from models.client import Client
 from runtime.curves import clip_file_as_dict
 from runtime.inputs.mtcgen import MtcGenerator
 

@@ -236,7 +236,7 @@ class DaemonHead:
         tolerance: float = math.radians(0.3),
         settle_s: float = 0.05,
     ) -> None:
-        from runtime.client import Client, DaemonError
+        from models.client import Client, DaemonError
 
         self.tolerance = tolerance
         self.settle_s = settle_s

@@ -25,9 +25,9 @@ def add_client_options(parser: argparse.ArgumentParser, telemetry: bool = False)
 
 
 def connect(args: argparse.Namespace) -> Any:
-    """A :class:`runtime.client.Client` from the parsed options; CliError on bad key files."""
+    """A :class:`models.client.Client` from the parsed options; CliError on bad key files."""
     from likeness.cli import CliError
-    from runtime.client import Client
+    from models.client import Client
 
     try:
         return Client(args.endpoint, timeout=args.timeout, client_key=args.client_key, server_key=args.server_key)
@@ -42,17 +42,17 @@ def connect(args: argparse.Namespace) -> Any:
 EXIT_STATUS: dict[str, int] = {
     "models.errors.SpecError": 2,
     "drivers.errors.ConfigError": 2,
-    "runtime.errors.ConfigError": 2,
-    "runtime.errors.BadRequest": 2,
-    "runtime.errors.BadValue": 2,
-    "runtime.errors.NotFound": 2,
-    "runtime.errors.TooLarge": 2,
-    "runtime.errors.HardwareError": 3,
-    "runtime.errors.StartError": 3,
+    "models.errors.ConfigError": 2,
+    "models.errors.BadRequest": 2,
+    "models.errors.BadValue": 2,
+    "models.errors.NotFound": 2,
+    "models.errors.TooLarge": 2,
+    "models.errors.HardwareError": 3,
+    "models.errors.StartError": 3,
     "drivers.errors.BusError": 3,
-    "runtime.client.DaemonTimeout": 4,
-    "runtime.errors.BadState": 5,
-    "runtime.errors.InternalError": 70,
+    "models.client.DaemonTimeout": 4,
+    "models.errors.BadState": 5,
+    "models.errors.InternalError": 70,
 }
 
 
@@ -69,7 +69,7 @@ def cli_error(exc: BaseException, prefix: str = "") -> Exception:
     """The :class:`likeness.cli.CliError` to raise for ``exc``: its one-line message and exit status. A daemon's
     error reply counts as the typed error its code stands for."""
     from likeness.cli import CliError
-    from runtime.client import DaemonError
+    from models.client import DaemonError
 
     kind = exc.error if isinstance(exc, DaemonError) else exc
     return CliError(f"{prefix}{exc}", exit_status(kind))
@@ -77,7 +77,7 @@ def cli_error(exc: BaseException, prefix: str = "") -> Exception:
 
 def call(client: Any, op: str, **fields: Any) -> dict[str, Any]:
     """One request; daemon errors and timeouts become CliError with the exit status of their kind."""
-    from runtime.client import DaemonError, DaemonTimeout
+    from models.client import DaemonError, DaemonTimeout
 
     try:
         return client.call(op, **fields)

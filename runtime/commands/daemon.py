@@ -58,11 +58,10 @@ def run(args: argparse.Namespace) -> int:
     import threading
 
     from drivers.errors import BusError
-    from models.errors import SpecError
+    from models.errors import LikenessError, SpecError
     from models.headspec import load_head
     from runtime.commands._common import cli_error
     from runtime.daemon import Daemon, DaemonStartError
-    from runtime.errors import LikenessError
 
     tmp = None
     try:

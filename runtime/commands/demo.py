@@ -29,9 +29,9 @@ def run(args: argparse.Namespace) -> int:
 
     from drivers.errors import BusError
     from likeness.cli import CliError
+    from models.client import Client, Telemetry
     from models.errors import SpecError
     from models.headspec import load_head
-    from runtime.client import Client, Telemetry
     from runtime.commands.plot import print_errors
     from runtime.curves import ClipError, clip_file_as_dict, clip_from_dict
     from runtime.daemon import Daemon, DaemonStartError

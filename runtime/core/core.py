@@ -25,8 +25,9 @@ from typing import Any
 
 import numpy as np
 
+from models import errors as E
 from models.headspec import HeadSpec
-from runtime import errors as E
+from models.protocol import error_body
 from runtime.config import DaemonConfig
 from runtime.core import commands as C
 from runtime.core.channels import ChannelMap
@@ -34,7 +35,6 @@ from runtime.core.chase import HOLD as CHASE_HOLD
 from runtime.core.chase import Chase, ChaseParams
 from runtime.core.live import LiveValues
 from runtime.core.stream import StreamBuffer
-from runtime.protocol import error_body
 from runtime.safety import VELOCITY_MARGIN, SafetyFilter
 from runtime.shaper import Shaper
 from runtime.timeline import Timeline
@@ -272,7 +272,7 @@ def _commands(state: CoreState, params: CoreParams, inputs: CycleInputs, out: Cy
     for cmd in cmds:
         try:
             body = _HANDLERS[type(cmd)](state, params, out, t, cmd)
-        except Exception as exc:  # refused (a runtime.errors kind: its protocol code) or a bug (internal): answered,
+        except Exception as exc:  # refused (a models.errors kind: its protocol code) or a bug (internal): answered,
             out.replies.append((cmd.token, {"error": error_body(exc)}))  # and the other commands still run
         else:
             if body is not None:

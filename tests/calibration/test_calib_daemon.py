@@ -39,7 +39,7 @@ def daemon(tmp_path, sample_head):
 
 
 def test_calibration_through_the_daemon(tmp_path, daemon, sample_head, sample_mech) -> None:
-    from runtime.client import Client
+    from models.client import Client
 
     s = CalibrationSettings(samples=4, sweep_levels=2, frames_per_pose=4, discover=False, progress=False,
                             tie_groups=True)  # the daemon moves the lids (a "together" group) as one

@@ -66,7 +66,7 @@ def wait_until(predicate: Callable[[], Any], timeout: float, interval: float = 0
 def enable_retrying(client: Any, tries: int = 3) -> None:
     """Enable the head; an emulator starved of CPU on a loaded host can miss a heartbeat or a reply window on the
     way up (a fault), so reset and try again. For tests whose subject comes after the enable."""
-    from runtime.client import DaemonError
+    from models.client import DaemonError
 
     for attempt in range(tries):
         try:

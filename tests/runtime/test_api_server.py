@@ -10,8 +10,8 @@ import msgpack
 import pytest
 import zmq
 
+from models.client import Client, DaemonError, Telemetry
 from models.headspec import load_head
-from runtime.client import Client, DaemonError, Telemetry
 from runtime.daemon import Daemon
 from runtime.hardware import LinkedHardware
 

@@ -9,7 +9,7 @@ import math
 
 import pytest
 
-from runtime.client import Client, DaemonError, Telemetry
+from models.client import Client, DaemonError, Telemetry
 from tests.runtime.conftest import enable_retrying, wait_until
 
 

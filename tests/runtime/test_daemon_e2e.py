@@ -12,7 +12,7 @@ import time
 import numpy as np
 import pytest
 
-from runtime.client import Client, DaemonError, Telemetry
+from models.client import Client, DaemonError, Telemetry
 from runtime.recording import load_recording, tracking_errors
 from tests.runtime.conftest import wait_until
 

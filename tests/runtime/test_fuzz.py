@@ -23,8 +23,8 @@ import numpy as np
 import pytest
 import zmq
 
-from runtime.client import Client
-from runtime.protocol import ERROR_CODES
+from models.client import Client
+from models.protocol import ERROR_CODES
 from runtime.requests import OPS
 
 SEED = int(os.environ.get("LIKENESS_FUZZ_SEED", str(random.SystemRandom().randrange(1 << 31))))

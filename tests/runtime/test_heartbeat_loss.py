@@ -17,7 +17,7 @@ from pathlib import Path
 
 import can
 
-from runtime.client import Client, Telemetry
+from models.client import Client, Telemetry
 from tests.runtime.conftest import SAMPLE, enable_retrying
 
 PERIOD_S = 0.2

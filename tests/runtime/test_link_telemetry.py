@@ -6,8 +6,8 @@ import math
 
 import numpy as np
 
+from models.client import Client, Telemetry
 from models.headspec import load_head
-from runtime.client import Client, Telemetry
 from sim_hardware.mechanism import sample_mechanism
 from tests.runtime.conftest import SAMPLE, wait_until
 

@@ -12,10 +12,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from models.protocol import ProtocolError
 from runtime import messages as M
 from runtime.curves import clip_from_dict
 from runtime.messages import RequestError, decode_request
-from runtime.protocol import ProtocolError
 
 CLIP = {"name": "hi", "channels": {
     "jaw": {"interp": "linear", "keys": [[0, 0], [0.5, 15], [1.0, 0]]},

@@ -12,7 +12,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from runtime.client import Client
+from models.client import Client
 from runtime.daemon import Daemon
 from runtime.requests import OPS as KNOWN_OPS
 

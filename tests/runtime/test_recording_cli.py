@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from likeness.cli import main
-from runtime.client import Client
+from models.client import Client
 from runtime.commands.recording import replay_clip
 from runtime.recording import Recorder, RecordingWriter, load_recording
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from likeness.cli import main
-from runtime.client import Client, DaemonTimeout, Telemetry
+from models.client import Client, DaemonTimeout, Telemetry
 from tests.runtime.conftest import ROOT, wait_until
 
 PY = sys.executable

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from runtime.client import Client, DaemonError, Telemetry
+from models.client import Client, DaemonError, Telemetry
 from tests.studio.conftest import wait_until
 
 pytestmark = pytest.mark.timeout(600)

@@ -38,7 +38,7 @@ def started(make: Callable[[], Any], tries: int = 3) -> Any:
 
 def enable(c: Any, tries: int = 3) -> None:
     """Enable the head, resetting a bus fault an emulator stalled by a loaded host caused (a few tries)."""
-    from runtime.client import DaemonError
+    from models.client import DaemonError
 
     for k in range(tries):
         s = c.call("status")
@@ -76,7 +76,7 @@ class Events:
     """Telemetry events collected on a thread while a test runs."""
 
     def __init__(self, endpoint: str) -> None:
-        from runtime.client import Telemetry
+        from models.client import Telemetry
 
         self.items: list[dict[str, Any]] = []
         self._tel = Telemetry(endpoint, topics=(b"event",))

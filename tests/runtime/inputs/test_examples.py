@@ -13,7 +13,7 @@ from typing import Any
 
 import pytest
 
-from runtime.client import Client, Telemetry
+from models.client import Client, Telemetry
 from tests.runtime.conftest import ROOT, daemon_overrides, wait_until
 from tests.runtime.inputs.conftest import Events, enable, loopback_address, show_head, started
 

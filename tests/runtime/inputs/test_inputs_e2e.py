@@ -11,7 +11,7 @@ from typing import Any
 
 import pytest
 
-from runtime.client import Client
+from models.client import Client
 from tests.runtime.conftest import wait_until
 from tests.runtime.inputs.conftest import Events, enable, loopback_address, show_head, started
 

@@ -1,6 +1,6 @@
 """The wire protocol (see ``docs/protocol.md``): msgpack maps over ZeroMQ, version, error codes, replies.
 
-Requests are decoded and validated by the typed schemas of :mod:`runtime.messages`.
+Requests are decoded and validated by the typed schemas of :mod:`runtime.messages` (the daemon side).
 
 Requests are ``{"op": str, "id": int | str, ...}``; replies are ``{"id": same, "ok": true, ...}`` or
 ``{"id": same, "ok": false, "error": {"code": str, "message": str}}``. Telemetry is published as two frames,
@@ -13,13 +13,13 @@ from typing import Any
 
 import msgpack
 
-from runtime import errors as E
+from models import errors as E
 
 PROTOCOL_VERSION = 1
 TOPIC_STATE = b"state"
 TOPIC_EVENT = b"event"
 
-#: Error codes a reply may carry (docs/protocol.md), one per kind of :mod:`runtime.errors` error.
+#: Error codes a reply may carry (docs/protocol.md), one per kind of :mod:`models.errors` error.
 ERROR_CODES = (
     "bad_request",  # not a map, missing/mistyped fields, unknown fields
     "unknown_op",
@@ -53,7 +53,7 @@ _ERROR_OF_CODE = {code: cls for cls, code in ERROR_CODE_OF.items()}
 
 class ProtocolError(E.LikenessError):
     """An error whose protocol code was decided where it was found (the request schema's checks); prefer raising
-    the typed errors of :mod:`runtime.errors`."""
+    the typed errors of :mod:`models.errors`."""
 
     def __init__(self, code: str, message: str) -> None:
         super().__init__(message)

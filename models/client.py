@@ -1,4 +1,5 @@
-"""A small client of the daemon's protocol (DEALER for commands, SUB for telemetry), used by the CLI and tests.
+"""The daemon's protocol client (DEALER for commands, SUB for telemetry), shared by every client: the CLI, the
+studio, calibration and tests.
 
 It speaks only what ``docs/protocol.md`` documents: msgpack maps with ``op`` and ``id``; optional CURVE keys.
 """
@@ -17,10 +18,10 @@ import zmq
 
 class DaemonError(Exception):
     """The daemon answered ``ok: false``; ``code`` is the protocol error code, ``error`` the typed error it stands
-    for (:mod:`runtime.errors`)."""
+    for (:mod:`models.errors`)."""
 
     def __init__(self, op: str, code: str, message: str) -> None:
-        from runtime.protocol import error_for
+        from models.protocol import error_for
 
         super().__init__(f"{op}: {code}: {message}")
         self.op = op
