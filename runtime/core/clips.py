@@ -7,11 +7,10 @@ only calls :meth:`BoundClip.sample_into` once per cycle.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
-from runtime.compiled import compile_clip
+from runtime.compiled import CompiledClip, compile_clip
 from runtime.core.channels import ChannelMap
 from runtime.curves import Clip
 from runtime.messages import ClipSpec
@@ -25,7 +24,7 @@ class BoundClip:
     duration: float
     channel_names: tuple[str, ...]
     channels: np.ndarray  # channel-vector index per clip channel
-    compiled: Any  # has sample(t, out) writing one value per clip channel
+    compiled: CompiledClip  # sample(t, out) writes one value per clip channel
     nbytes: int
     key_count: int
     scratch: np.ndarray

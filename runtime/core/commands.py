@@ -1,61 +1,74 @@
 """Commands the API server hands the control core, already decoded, validated and compiled (plain picklable data).
 
 Every command carries the ``token`` its reply is matched by. Values are SI or channel-vector indices; nothing here
-needs parsing in the loop.
+needs parsing in the loop. :data:`Command` is the union of them all: the core dispatches over it with ``match``.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, TypeAlias
 
 import numpy as np
 
+if TYPE_CHECKING:
+    from runtime.core.clips import BoundClip
+
 
 @dataclass(frozen=True)
-class Command:
+class _Tokened:
+    """What every command carries: the token its reply is matched by."""
+
     token: int
 
 
 @dataclass(frozen=True)
-class Enable(Command):
-    pass
+class Enable(_Tokened):
+    """Request every bus active (torque on); answered when all are."""
 
 
 @dataclass(frozen=True)
-class Disable(Command):
-    pass
+class Disable(_Tokened):
+    """Torque off: every active bus to inactive; answered when they are."""
 
 
 @dataclass(frozen=True)
-class EStop(Command):
+class EStop(_Tokened):
+    """Latch the e-stop (preempts whatever else is queued with it)."""
+
     reason: str = "api"
 
 
 @dataclass(frozen=True)
-class Reset(Command):
-    pass
+class Reset(_Tokened):
+    """Leave FAULT or e-stop for inactive: resets the buses that need it."""
 
 
 @dataclass(frozen=True)
-class Status(Command):
-    pass
+class Status(_Tokened):
+    """A snapshot of the core (lifecycle, sources, guard, recording)."""
 
 
 @dataclass(frozen=True)
-class LoadClip(Command):
-    clip: Any = None  # a compiled clip: name, duration, channels (indices), sample_into(t, out)
+class LoadClip(_Tokened):
+    """Add or replace a clip on the timeline, within the clip memory budget."""
+
+    clip: BoundClip  # compiled and bound to the channel vector by the API server
     key_count: int = 0
     nbytes: int = 0
 
 
 @dataclass(frozen=True)
-class UnloadClip(Command):
+class UnloadClip(_Tokened):
+    """Remove a loaded clip (stopping it if it plays)."""
+
     name: str = ""
 
 
 @dataclass(frozen=True)
-class Play(Command):
+class Play(_Tokened):
+    """Play a loaded clip from clip time ``offset`` at daemon time ``at`` (now if None)."""
+
     name: str = ""
     at: float | None = None
     offset: float = 0.0
@@ -65,27 +78,31 @@ class Play(Command):
 
 
 @dataclass(frozen=True)
-class Pause(Command):
-    pass
+class Pause(_Tokened):
+    """Pause the playing clip where it is."""
 
 
 @dataclass(frozen=True)
-class Resume(Command):
-    pass
+class Resume(_Tokened):
+    """Resume the paused clip."""
 
 
 @dataclass(frozen=True)
-class StopMotion(Command):
-    pass
+class StopMotion(_Tokened):
+    """Stop every source: the head holds where it is."""
 
 
 @dataclass(frozen=True)
-class Seek(Command):
+class Seek(_Tokened):
+    """Move the playing clip to clip time ``time``."""
+
     time: float = 0.0
 
 
 @dataclass(frozen=True)
-class Stream(Command):
+class Stream(_Tokened):
+    """Timestamped frames for the jitter buffer (rows of channel values)."""
+
     times: np.ndarray = field(default_factory=lambda: np.empty(0))
     channels: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=np.intp))  # channel indices
     rows: np.ndarray = field(default_factory=lambda: np.empty((0, 0)))  # frames × channels, config units
@@ -93,20 +110,24 @@ class Stream(Command):
 
 
 @dataclass(frozen=True)
-class Pose(Command):
+class Pose(_Tokened):
+    """Move to a pose (channel values) at a fraction ``speed`` of the limits."""
+
     channels: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=np.intp))
     values: np.ndarray = field(default_factory=lambda: np.empty(0))
     speed: float = 0.25
 
 
 @dataclass(frozen=True)
-class Record(Command):
+class Record(_Tokened):
+    """Start or stop recording commanded and measured positions."""
+
     action: str = "start"  # "start" | "stop"
     name: str = "recording"
 
 
 @dataclass(frozen=True)
-class Live(Command):
+class Live(_Tokened):
     """Values from a show-control input (OSC, sACN): set ``channels`` to ``values`` (config units) now, or at daemon
     time ``at`` (an OSC bundle's timetag), all in the same cycle."""
 
@@ -120,7 +141,7 @@ class Live(Command):
 
 
 @dataclass(frozen=True)
-class Timecode(Command):
+class Timecode(_Tokened):
     """A timecode sample: ``seconds`` of timecode as of daemon time ``received``; ``full``: a full-frame locate."""
 
     seconds: float = 0.0
@@ -129,3 +150,8 @@ class Timecode(Command):
     label: str = ""
     received: float = 0.0
     full: bool = False
+
+
+#: Every command the core takes (annotate with this; the core's dispatch covers each kind).
+Command: TypeAlias = (Enable | Disable | EStop | Reset | Status | LoadClip | UnloadClip | Play | Pause | Resume
+                      | StopMotion | Seek | Stream | Pose | Record | Live | Timecode)

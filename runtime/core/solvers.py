@@ -1,19 +1,38 @@
 """Target solvers in the core's array form: a solver declares its channels and solves a block of the channel vector.
 
-Solvers written against the mapping protocol of :mod:`runtime.solve` (``channels()``, ``solve(targets, current)``,
-optional ``reset(positions)``) are wrapped by :class:`ArraySolver`; a solver that already has ``solve_array`` and
-``reset_array`` is used as it is.
+:class:`ArrayTargetSolver` is what the core calls. Solvers written against the mapping protocol of
+:mod:`runtime.solve` (``channels()``, ``solve(targets, current)``, optional ``reset(positions)``) are wrapped by
+:class:`ArraySolver`; a solver that already has ``solve_array`` and ``reset_array`` is used as it is.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import Protocol
 
 import numpy as np
 
+from runtime.solve import TargetSolver
 
-def declared_channels(solver: Any) -> dict[str, str]:
+
+class ArrayTargetSolver(Protocol):
+    """A target solver as the core calls it: the channels it declares, a solve on arrays, a reset of warm starts."""
+
+    def channels(self) -> Mapping[str, str]:
+        """The channels it solves (name → unit), listed by ``hello``; its block of the channel vector, in order."""
+        ...
+
+    def solve_array(self, block: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, Mapping[str, object]]:
+        """Actuator targets (SI, NaN: not addressed) for its block of channel values (NaN: not set), from the
+        present command ``q``; plus extra telemetry fields (residual, predicted poses)."""
+        ...
+
+    def reset_array(self, q: np.ndarray) -> None:
+        """Forget warm starts: the next solve starts from the command ``q`` (enable, fault, e-stop, reset)."""
+        ...
+
+
+def declared_channels(solver: object) -> dict[str, str]:
     """The channels a target solver declares (``channels()``: name → unit); a solver must declare them."""
     chans = getattr(solver, "channels", None)
     if chans is None:
@@ -28,15 +47,20 @@ def declared_channels(solver: Any) -> dict[str, str]:
 class ArraySolver:
     """Adapts a mapping-protocol target solver to ``solve_array(block, q) -> (targets SI | NaN, extra)``."""
 
-    def __init__(self, solver: Any, channels: Sequence[str], actuators: Sequence[str]) -> None:
+    def __init__(self, solver: TargetSolver, channels: Sequence[str], actuators: Sequence[str]) -> None:
         self.solver = solver
-        self.channels = tuple(channels)
+        self.names = tuple(channels)
         self.actuators = tuple(actuators)
         self._index = {n: i for i, n in enumerate(self.actuators)}
         self._out = np.full(len(self.actuators), np.nan)
 
-    def solve_array(self, block: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, dict[str, Any]]:
-        targets = {ch: float(v) for ch, v in zip(self.channels, block.tolist(), strict=True) if v == v}
+    def channels(self) -> Mapping[str, str]:
+        """The wrapped solver's channels."""
+        return self.solver.channels()
+
+    def solve_array(self, block: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, Mapping[str, object]]:
+        """The wrapped solver on the set values of ``block``, its result as an actuator vector."""
+        targets = {ch: float(v) for ch, v in zip(self.names, block.tolist(), strict=True) if v == v}
         current = dict(zip(self.actuators, q.tolist(), strict=True))
         res = self.solver.solve(targets, current)
         out = self._out
@@ -48,23 +72,25 @@ class ArraySolver:
         return out, res.extra
 
     def reset_array(self, q: np.ndarray) -> None:
+        """The wrapped solver's ``reset`` (when it has one) at the command ``q``."""
         reset = getattr(self.solver, "reset", None)
         if reset is not None:
             reset(dict(zip(self.actuators, q.tolist(), strict=True)))
 
 
-def as_array_solvers(solvers: Sequence[Any], blocks: Sequence[tuple[int, int, int]], names: Sequence[str],
-                     actuators: Sequence[str]) -> list[Any]:
+def as_array_solvers(solvers: Sequence[TargetSolver | ArrayTargetSolver], blocks: Sequence[tuple[int, int, int]],
+                     names: Sequence[str], actuators: Sequence[str]) -> list[ArrayTargetSolver]:
     """One array solver per target solver, each given the channel names of its block of the channel vector."""
-    out = []
+    out: list[ArrayTargetSolver] = []
     for s, a, b in blocks:
         solver = solvers[s]
         if hasattr(solver, "solve_array") and hasattr(solver, "reset_array"):
-            out.append(solver)
+            out.append(solver)  # has the array form already
         else:
             out.append(ArraySolver(solver, names[a:b], actuators))
     return out
 
 
-def channel_sets(solvers: Sequence[Any]) -> list[Mapping[str, str]]:
+def channel_sets(solvers: Sequence[object]) -> list[Mapping[str, str]]:
+    """The channels each target solver declares, in order (the channel map's target blocks)."""
     return [declared_channels(s) for s in solvers]

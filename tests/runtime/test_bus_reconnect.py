@@ -91,6 +91,7 @@ def test_the_core_faults_on_a_lost_bus_even_inactive_and_reports_each_connection
     """The core alone, stepped with bus feedback as the bus processes publish it."""
     from runtime.core import commands as C
     from runtime.core import core as K
+    from runtime.core.lifecycle import Lifecycle
     from tests.runtime.test_core import Rig
 
     rig = Rig()
@@ -107,10 +108,10 @@ def test_the_core_faults_on_a_lost_bus_even_inactive_and_reports_each_connection
 
     rig.bus_inputs = inputs  # type: ignore[method-assign]
     rig.cycle()
-    assert rig.state.lifecycle is K.Lifecycle.INACTIVE
+    assert rig.state.lifecycle is Lifecycle.INACTIVE
     link["can0"] = ("lost", 0, rig.t + 0.25)
     out = rig.cycle()
-    assert rig.state.lifecycle is K.Lifecycle.FAULT
+    assert rig.state.lifecycle is Lifecycle.FAULT
     fault = next(e for e in out.events if e["event"] == "fault")
     assert fault["source"] == "bus" and fault["bus"] == "can0"
     assert fault["message"].startswith("bus can0: connection lost")

@@ -94,7 +94,7 @@ def test_solve_stage_units_groups_and_target_channels() -> None:
     res = solve(blink=30.0, brow_l=10.0, expr__open=0.5)
     assert res["lid_l"] == pytest.approx(math.radians(30)) == res["lid_r"]
     assert res["brow_l"] == pytest.approx(math.radians(10))
-    assert res["jaw"] == pytest.approx(math.radians(10)) and state.extra == {"residual": 0.0}
+    assert res["jaw"] == pytest.approx(math.radians(10)) and state.solve.extra == {"residual": 0.0}
     assert solve(jaw=5.0, expr__open=1.0)["jaw"] == pytest.approx(math.radians(5))
     with pytest.raises(UnknownChannel):
         cm.indices(["jaw", "arkit.jawOpen"])

@@ -19,6 +19,8 @@ from runtime.core import commands as C
 from runtime.core import core as K
 from runtime.core.channels import ChannelMap
 from runtime.core.clips import bind_clip
+from runtime.core.lifecycle import Lifecycle
+from runtime.core.sources import Mode
 from runtime.curves import clip_from_dict
 
 SAMPLE = Path(__file__).resolve().parents[2] / "heads" / "sample" / "head.toml"
@@ -90,10 +92,10 @@ def test_enable_waits_for_every_bus_then_goes_active() -> None:
     rig = Rig()
     out = rig.cycle(C.Enable(1))
     assert sorted(out.bus_requests) == sorted((b, "enable") for b, _ in rig.params.buses)
-    assert not out.replies and rig.state.lifecycle is K.Lifecycle.INACTIVE and out.write is None
+    assert not out.replies and rig.state.lifecycle is Lifecycle.INACTIVE and out.write is None
     out = rig.cycle()
     assert out.replies == [(1, {"lifecycle": "active"})]
-    assert rig.state.lifecycle is K.Lifecycle.ACTIVE
+    assert rig.state.lifecycle is Lifecycle.ACTIVE
 
 
 def test_clip_plays_through_groups_and_limits() -> None:
@@ -135,7 +137,7 @@ def test_estop_preempts_queued_commands_and_latches() -> None:
     rig.call(C.Enable)
     rig.call(C.Pose, channels=np.array([0]), values=np.array([20.0]), speed=1.0)
     out = rig.cycle(C.Pose(50, np.array([0]), np.array([25.0]), 1.0), C.EStop(51, "test"))
-    assert rig.state.lifecycle is K.Lifecycle.ESTOP and out.write is None
+    assert rig.state.lifecycle is Lifecycle.ESTOP and out.write is None
     replies = dict(out.replies)
     assert replies[51] == {"lifecycle": "estop"} and replies[50]["error"]["code"] == "estop"
     assert sorted(out.bus_requests) == sorted((b, "disable") for b, _ in rig.params.buses)
@@ -148,7 +150,7 @@ def test_out_of_band_estop_flag_acts_within_the_cycle() -> None:
     rig = Rig()
     rig.call(C.Enable)
     out = rig.cycle(estop="signal SIGUSR1")
-    assert out.write is None and rig.state.estop_reason == "signal SIGUSR1"
+    assert out.write is None and rig.state.life.estop_reason == "signal SIGUSR1"
 
 
 def test_a_faulted_or_lost_bus_faults_the_head_and_torques_off_the_others() -> None:
@@ -156,8 +158,8 @@ def test_a_faulted_or_lost_bus_faults_the_head_and_torques_off_the_others() -> N
     rig.call(C.Enable)
     rig.bus_state["dxl"] = "fault"
     out = rig.cycle()
-    assert rig.state.lifecycle is K.Lifecycle.FAULT and out.write is None
-    assert rig.state.fault_info["bus"] == "dxl"
+    assert rig.state.lifecycle is Lifecycle.FAULT and out.write is None
+    assert rig.state.life.fault.bus == "dxl"
     assert out.bus_requests == [("can0", "disable")]
     assert [e for e in out.events if e["event"] == "fault"]
     assert rig.call(C.Reset) == {"lifecycle": "inactive"}
@@ -171,8 +173,8 @@ def test_stale_feedback_faults() -> None:
     rig.bus_inputs = lambda: tuple(K.BusInput(b, rig.bus_state[b], True, rig.q[idx].copy(),  # type: ignore[method-assign]
                                               stale if b == "can0" else rig.t) for b, idx in rig.params.buses)
     rig.run(rig.cfg.safety.feedback_timeout_s + 0.05)
-    assert rig.state.lifecycle is K.Lifecycle.FAULT and rig.state.fault_info["source"] == "timeout"
-    assert rig.state.fault_info["bus"] == "can0" and rig.state.fault_info["message"].startswith("bus can0: ")
+    assert rig.state.lifecycle is Lifecycle.FAULT and rig.state.life.fault.source == "timeout"
+    assert rig.state.life.fault.bus == "can0" and rig.state.life.fault.message.startswith("bus can0: ")
 
 
 def test_stream_watchdog_holds_then_eases_to_neutral() -> None:
@@ -182,12 +184,12 @@ def test_stream_watchdog_holds_then_eases_to_neutral() -> None:
     times = rig.t + np.arange(5) * 0.02
     rig.call(C.Stream, times=times, channels=np.array([jaw]), rows=np.full((5, 1), 10.0))
     rig.run(0.2)
-    assert rig.state.mode is K.Mode.STREAM and rig.deg("jaw") > 1.0
+    assert rig.state.mode is Mode.STREAM and rig.deg("jaw") > 1.0
     # a frame far in the future does not postpone the watchdog
     rig.call(C.Stream, times=np.array([rig.t + 20.0]), channels=np.array([jaw]), rows=np.array([[10.0]]))
     rig.run(rig.cfg.safety.watchdog_neutral_s + 0.1)
     stages = [e["stage"] for o in rig.outputs for e in o.events if e["event"] == "watchdog"]
-    assert stages == ["hold", "neutral"] and rig.state.mode is K.Mode.NEUTRAL
+    assert stages == ["hold", "neutral"] and rig.state.mode is Mode.NEUTRAL
 
 
 def test_replay_reproduces_the_commands_bit_for_bit() -> None:
@@ -221,9 +223,9 @@ def test_clip_budget_and_unload() -> None:
     big = replace(clip, nbytes=70000)
     assert rig.call(C.LoadClip, clip=big, key_count=1, nbytes=big.nbytes)["error"]["code"] == "too_large"
     assert rig.call(C.LoadClip, clip=clip, key_count=1, nbytes=clip.nbytes)["clip"] == "probe"
-    assert rig.state.clip_bytes == clip.nbytes
+    assert rig.state.sources.clip_bytes == clip.nbytes
     assert rig.call(C.UnloadClip, name="probe")["clips"] == []
-    assert rig.state.clip_bytes == 0
+    assert rig.state.sources.clip_bytes == 0
     assert rig.call(C.UnloadClip, name="probe")["error"]["code"] == "not_found"
 
 
@@ -267,7 +269,7 @@ def test_target_solvers_declare_channels_and_are_reset_on_fault_estop_and_reset(
     n = solver.resets
     rig.bus_state["can0"] = "fault"
     rig.cycle()
-    assert rig.state.lifecycle is K.Lifecycle.FAULT and solver.resets > n
+    assert rig.state.lifecycle is Lifecycle.FAULT and solver.resets > n
 
 
 def test_a_new_pose_is_not_reported_settled_on_the_previous_poses_guard_verdict() -> None:

@@ -10,6 +10,7 @@ from runtime.core import commands as C
 from runtime.core import core as K
 from runtime.core.chase import ChaseParams
 from runtime.core.clips import bind_clip
+from runtime.core.sources import Mode
 from runtime.curves import clip_from_dict
 from tests.runtime.test_core import HEAD, Rig
 
@@ -41,7 +42,7 @@ def test_live_values_drive_until_another_source_takes_over() -> None:
     r.call(C.Enable)
     for _ in range(100):
         r.cycle(_live(r, "osc", jaw=5.0))
-    assert r.state.mode is K.Mode.LIVE and r.state.source == "osc"
+    assert r.state.mode is Mode.LIVE and r.state.source == "osc"
     assert _deg(r, "jaw") == pytest.approx(5.0, abs=1e-6)
     # sACN repeats do not take over; a change does
     r.cycle(C.Live(0, "sacn", r.channels.indices(["jaw"]), np.array([9.0]), None, r.t, takeover=False))
@@ -52,7 +53,7 @@ def test_live_values_drive_until_another_source_takes_over() -> None:
     assert _deg(r, "jaw") == pytest.approx(5.0, abs=1e-6)  # channels the new source does not send hold
     # a protocol pose takes over from the live input
     r.call(C.Pose, channels=r.channels.indices(["jaw"]), values=np.array([0.0]), speed=1.0)
-    assert r.state.mode is K.Mode.POSE and r.state.source == "api"
+    assert r.state.mode is Mode.POSE and r.state.source == "api"
     snap = r.call(C.Status)
     assert snap["source"] == "api"
 
@@ -67,7 +68,7 @@ def test_live_watchdog_holds_then_eases_to_neutral() -> None:
         events += [e for e in r.cycle().events if e["event"] == "watchdog"]
     assert [e["stage"] for e in events] == ["hold", "neutral"]
     assert all(e["source"] == "sacn" for e in events)
-    assert r.state.mode is K.Mode.NEUTRAL
+    assert r.state.mode is Mode.NEUTRAL
 
 
 def test_bundle_with_a_timetag_applies_whole_at_its_time() -> None:
@@ -77,10 +78,10 @@ def test_bundle_with_a_timetag_applies_whole_at_its_time() -> None:
     at = r.t + 0.1
     r.cycle(C.Live(0, "osc", idx, np.array([6.0, 6.0]), at, r.t))
     while r.t < at - 1e-9:
-        assert np.isnan(r.state.live.values[idx]).all()
+        assert np.isnan(r.state.sources.live.values[idx]).all()
         r.cycle()
     r.cycle()
-    assert r.state.live.values[idx].tolist() == [6.0, 6.0]
+    assert r.state.sources.live.values[idx].tolist() == [6.0, 6.0]
 
 
 def _mtc(r: Rig, tc: float, full: bool = False) -> C.Timecode:
@@ -98,7 +99,7 @@ def test_chase_plays_the_clip_at_the_timecode_freewheels_holds_and_relocates() -
         cmds = (_mtc(r, tc0 + r.t - t0),) if round((r.t - t0) / r.params.period) % 20 == 0 else ()
         events += [e for e in r.cycle(*cmds).events if e["event"] == "timecode"]
     assert events[0]["change"] == "lock"
-    assert r.state.mode is K.Mode.CLIP and r.state.source == "timecode"
+    assert r.state.mode is Mode.CLIP and r.state.source == "timecode"
     ct = r.state.timeline.clip_time(r.t)
     assert ct == pytest.approx(tc0 + (r.t - t0) - 100.0, abs=0.01)
     # dropout: freewheel for 0.5 s, then hold
@@ -130,6 +131,6 @@ def test_stop_hands_the_head_back_until_the_timecode_relocks_or_jumps() -> None:
     assert r.state.source == "timecode"
     r.call(C.StopMotion)
     r.cycle(_mtc(r, 1.0 + 0.08 * 3 + 0.02))
-    assert r.state.source is None and r.state.mode is K.Mode.HOLD  # running timecode does not steal it back
+    assert r.state.source is None and r.state.mode is Mode.HOLD  # running timecode does not steal it back
     r.cycle(_mtc(r, 5.0))  # a jump does
-    assert r.state.source == "timecode" and r.state.mode is K.Mode.CLIP
+    assert r.state.source == "timecode" and r.state.mode is Mode.CLIP

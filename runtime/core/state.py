@@ -1,0 +1,71 @@
+"""The core's state: one part per system, each changed only by its own stage (after Drake's Context).
+
+:class:`CoreState` composes them; the loop runner, the daemon and tests read the lifecycle, mode, source, timeline,
+shaper and safety filter under those names.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from models.headspec import HeadSpec
+from runtime.core.buses import BusFeedback
+from runtime.core.chase import Chase
+from runtime.core.guard import GuardState
+from runtime.core.lifecycle import Lifecycle, LifecycleState
+from runtime.core.params import CoreParams
+from runtime.core.recorder import RecorderState
+from runtime.core.shape import make_shaper
+from runtime.core.solve import SolveState
+from runtime.core.solvers import ArrayTargetSolver
+from runtime.core.sources import Mode, SourcesState
+from runtime.safety import SafetyFilter
+from runtime.shaper import Shaper
+from runtime.timeline import Timeline
+
+
+@dataclass
+class CoreState:
+    """All mutable state of the control core (the daemon's only state that changes at loop rate), by system."""
+
+    life: LifecycleState  # lifecycle, bus transition under way, fault, e-stop
+    feedback: BusFeedback  # the buses' latest feedback
+    sources: SourcesState  # what drives the head: clips, stream, live values, pose
+    solve: SolveState  # target solvers (warm starts) and their extra telemetry
+    guard: GuardState  # the skin-strain guard's last accepted target and verdict
+    recorder: RecorderState
+    safety: SafetyFilter  # limits, groups, neutral (stateless use: constrain against the shaper's command)
+    shaper: Shaper  # commanded position, velocity and acceleration (jerk-limited, ruckig)
+    chase: Chase | None = None  # timecode chase, when a timecode input is configured
+    cycle: int = 0
+
+    @classmethod
+    def initial(cls, head: HeadSpec, params: CoreParams, solvers: Sequence[ArrayTargetSolver] = ()) -> CoreState:
+        """The state at start-up: inactive, holding at neutral, nothing loaded; ``solvers`` one per target block."""
+        return cls(
+            life=LifecycleState(), feedback=BusFeedback.initial(params), sources=SourcesState.initial(params),
+            solve=SolveState(list(solvers)), guard=GuardState(), recorder=RecorderState(),
+            safety=SafetyFilter(head), shaper=make_shaper(head, params.period),
+            chase=None if params.chase is None else Chase(params.chase),
+        )
+
+    @property
+    def lifecycle(self) -> Lifecycle:
+        """The head's lifecycle."""
+        return self.life.lifecycle
+
+    @property
+    def mode(self) -> Mode:
+        """Which source drives the head."""
+        return self.sources.mode
+
+    @property
+    def source(self) -> str | None:
+        """The input driving the head ("api", "osc", "sacn", "timecode"; None: nothing)."""
+        return self.sources.source
+
+    @property
+    def timeline(self) -> Timeline:
+        """The loaded clips and the one playing."""
+        return self.sources.timeline
