@@ -105,7 +105,7 @@ class Runner:
                     except Exception as exc:  # a bug or a failing solver: safe state, the loop lives on
                         log.exception("control cycle failed")
                         out = K.CycleOutputs()
-                        K._fault(self.state, self.params, out, t, "control loop",
+                        K.fault(self.state, self.params, out, t, "control loop",
                                  f"control cycle failed: {type(exc).__name__}: {exc}")
                     self._write(out, t)
                     if missed:
@@ -158,7 +158,7 @@ class Runner:
             except Exception as exc:
                 log.exception("taking commands failed")
                 out = K.CycleOutputs()
-                K._fault(self.state, self.params, out, t, "control loop",
+                K.fault(self.state, self.params, out, t, "control loop",
                          f"taking commands failed: {type(exc).__name__}: {exc}")
             self._write(out, t)
             self._outbox(out)
