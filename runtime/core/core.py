@@ -178,9 +178,7 @@ def _pose(state: CoreState, params: CoreParams, out: CycleOutputs, cmd: C.Pose) 
     base = src.pose_target if src.mode is sources.Mode.POSE and src.pose_target is not None else state.shaper.q
     target = state.safety.constrain(np.where(np.isfinite(x), x, base), state.shaper.q)
     sources.hold_pose(src, target, cmd.speed)
-    # A new pose is judged afresh: the previous pose's "limited" must not make this one look settled before the
-    # guard has seen it (``pose_settled`` reads the verdict of the pose in hand).
-    state.guard.verdict = "ok"
+    guard.judge_afresh(state.guard)
     return {"targets_si": target.copy(), "speed": cmd.speed}
 
 

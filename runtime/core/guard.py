@@ -54,6 +54,12 @@ def guarded(g: GuardState, limiter: StrainLimiter, safety: SafetyFilter, q: np.n
     return p
 
 
+def judge_afresh(g: GuardState) -> None:
+    """A new pose is judged afresh: the previous pose's "limited" must not make this one look settled before the
+    guard has seen it (``pose_settled`` reads the verdict of the pose in hand)."""
+    g.verdict = "ok"
+
+
 def forget(g: GuardState) -> None:
     """Start afresh from the command (enable, fault, e-stop, reset)."""
     g.ok = None

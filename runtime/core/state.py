@@ -1,7 +1,8 @@
-"""The core's state: one part per system, each changed only by its own stage (after Drake's Context).
+"""The core's state: one part per system, kept apart from the code that steps it (after Drake's Context).
 
-:class:`CoreState` composes them; the loop runner, the daemon and tests read the lifecycle, mode, source, timeline,
-shaper and safety filter under those names.
+Each stage changes its own part; the composition (:mod:`runtime.core.core`) carries what one stage's outcome means
+for another (a fault stops the sources and resets the solvers). :class:`CoreState` composes the parts; the loop
+runner, the daemon and tests read the lifecycle, mode, source, timeline, shaper and safety filter under those names.
 """
 
 from __future__ import annotations

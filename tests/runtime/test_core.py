@@ -293,3 +293,16 @@ def test_a_new_pose_is_not_reported_settled_on_the_previous_poses_guard_verdict(
     rig.run(2.0)
     st = rig.call(C.Status)
     assert st["pose_settled"] and st["pose_reached"] and abs(rig.deg("jaw")) < 1e-6
+
+
+def test_every_command_kind_is_dispatched() -> None:
+    """Each kind in the command union reaches a handler: refused for its own reason at worst, never an internal
+    error."""
+    from typing import get_args
+
+    rig = Rig()
+    clip = bind_clip(clip_from_dict(CLIP), rig.channels)
+    cmds = [C.LoadClip(k, clip) if kind is C.LoadClip else kind(k) for k, kind in enumerate(get_args(C.Command))]
+    out = rig.cycle(*cmds)
+    codes = {tok: body["error"]["code"] for tok, body in out.replies if "error" in body}
+    assert "internal" not in codes.values(), codes
