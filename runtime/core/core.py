@@ -44,7 +44,8 @@ __all__ = ["BusInput", "CoreParams", "CoreState", "CycleInputs", "CycleOutputs",
 # ====================================================================== the step
 def step(state: CoreState, params: CoreParams, inputs: CycleInputs) -> CycleOutputs:
     """Advance the core by one cycle at time ``inputs.t``; with ``inputs.between_cycles`` only take the commands
-    (and e-stop) that arrived between two cycles. The only functions that change ``state``."""
+    (and e-stop) that arrived between two cycles. With :func:`take_commands` and :func:`fault` (which the runner
+    calls when a step raised), the only functions that change ``state``."""
     if inputs.between_cycles:
         return take_commands(state, params, inputs)
     out = CycleOutputs()
