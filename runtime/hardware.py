@@ -21,7 +21,6 @@ from models.headspec import ActuatorSpec, HeadSpec
 from runtime import simhw
 from runtime.bus import BusFeedback, BusProxy
 from runtime.bus.config import DriverOptions
-from runtime.simhw import SimProcess
 
 log = logging.getLogger(__name__)
 
@@ -50,13 +49,13 @@ def motor_config(act: ActuatorSpec) -> MotorConfig:
 
 def start_emulators(
     head: HeadSpec, *, nice: int | None = None
-) -> tuple[dict[str, list[MotorConfig]], dict[str, DriverOptions], dict[str, SimProcess]]:
+) -> tuple[dict[str, list[MotorConfig]], dict[str, DriverOptions], dict[str, simhw.SimProcess]]:
     """Motor configs and driver options per bus of ``head``, with an emulator process started (at its actuators'
     neutral positions) for each simulated bus; returns (motors, options, emulators) keyed by bus name.
     Buses without actuators are skipped with a warning. On failure the emulators already started are stopped."""
     motors: dict[str, list[MotorConfig]] = {}
     options: dict[str, DriverOptions] = {}
-    sims: dict[str, SimProcess] = {}
+    sims: dict[str, simhw.SimProcess] = {}
     try:
         for bus_name, spec in head.buses.items():
             acts = head.actuators_on(bus_name)
@@ -97,11 +96,11 @@ class Hardware:
     SIMULATED_OPEN_ATTEMPTS = 3
 
     def __init__(
-        self, head: HeadSpec, proxies: Mapping[str, BusProxy], simulators: Mapping[str, SimProcess] | None = None
+        self, head: HeadSpec, proxies: Mapping[str, BusProxy], simulators: Mapping[str, simhw.SimProcess] | None = None
     ) -> None:
         self.head = head
         self.proxies: dict[str, BusProxy] = dict(proxies)
-        self._sims: dict[str, SimProcess] = dict(simulators or {})
+        self._sims: dict[str, simhw.SimProcess] = dict(simulators or {})
         self._bus_of = {name: bus for bus, proxy in self.proxies.items() for name in proxy.actuators}
         self.configs: dict[str, MotorConfig] = {
             name: cfg for proxy in self.proxies.values() for name, cfg in proxy.motors.items()
@@ -228,7 +227,7 @@ class Hardware:
                     out[name] = cfg.from_counts(c)
         return out
 
-    def emulator(self, bus: str) -> SimProcess:
+    def emulator(self, bus: str) -> simhw.SimProcess:
         """The emulator of a simulated bus, for fault injection and ground truth; KeyError if ``bus`` is not
         simulated."""
         try:

@@ -6,7 +6,7 @@ dynamixel`` (a pseudo-terminal) with ``sys.executable -m likeness.cli``, waits f
 id and fault injection, both over the emulator's control endpoint (:func:`control_request`: msgpack maps over
 ZeroMQ, the wire format ``sim_hardware/control.py`` serves; the runtime never imports the emulators). The emulator
 exits with this process (``--watch-parent``); a supervising thread logs its output and notices when it dies.
-:meth:`SimProcess.restart` brings a dead emulator back on the same socketcand port or pseudo-terminal link path, as a
+:meth:`SimProcess.restart` brings a dead emulator back on the same socketcand port or pseudo-terminal path, as a
 device server or a replugged adapter comes back, so the daemon's bus can reconnect to it.
 """
 
@@ -143,7 +143,7 @@ class SimProcess:
 
     def restart(self, timeout_s: float = READY_TIMEOUT_S) -> str:
         """Start the emulator again after it died or was killed, reachable where it was before (same socketcand port,
-        same pseudo-terminal link path); its devices boot afresh at their initial positions. Returns the ready line;
+        same pseudo-terminal path); its devices boot afresh at their initial positions. Returns the ready line;
         RuntimeError while it still runs, BusInitError if it does not come up."""
         if self.alive:
             raise RuntimeError(f"emulator of bus {self.bus_name} is still running (pid {self.pid})")
@@ -241,14 +241,14 @@ def start(
     start_at = ",".join(f"{k}={v}" for k, v in counts.items())
     control = f"tcp://127.0.0.1:{_free_port()}"
     # a fresh path in the temp directory; the Dynamixel emulator makes it a symlink to its pty and removes it on exit
-    link = os.path.join(tempfile.gettempdir(), f"likeness-{bus_name}-{os.getpid()}-{secrets.token_hex(6)}")
-    args = _ARGS[driver](ids, start_at, control, link, dict(options))
+    pty_path = os.path.join(tempfile.gettempdir(), f"likeness-{bus_name}-{os.getpid()}-{secrets.token_hex(6)}")
+    args = _ARGS[driver](ids, start_at, control, pty_path, dict(options))
     cmd = [sys.executable, "-m", "likeness.cli", "sim", *args, "--watch-parent"]
     proc = _spawn(cmd, bus_name, nice)
-    sim = SimProcess(driver, bus_name, proc, control, lambda: _remove_link(link), cmd, nice)
+    sim = SimProcess(driver, bus_name, proc, control, lambda: _remove_symlink(pty_path), cmd, nice)
     try:
         line = sim.wait_ready(ready_timeout_s)
-        sim.options = _OPTIONS[driver](line, dict(options), link)
+        sim.options = _OPTIONS[driver](line, dict(options), pty_path)
         if "--port" in cmd:  # a restart listens where the driver already connects
             sim._command[cmd.index("--port") + 1] = str(sim.options["port"])
     except BaseException:
@@ -276,7 +276,7 @@ def _spawn(cmd: Sequence[str], bus_name: str, nice: int) -> subprocess.Popen[str
     return proc
 
 
-def _remove_link(path: str) -> None:
+def _remove_symlink(path: str) -> None:
     with contextlib.suppress(FileNotFoundError):
         if os.path.islink(path):
             os.unlink(path)
@@ -288,7 +288,7 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def _canopen_args(ids: str, start_at: str, control: str, link: str, options: dict[str, object]) -> list[str]:
+def _canopen_args(ids: str, start_at: str, control: str, pty_path: str, options: dict[str, object]) -> list[str]:
     channel = str(options.get("channel") or "can0")
     if options.get("interface") not in (None, "virtual", "socketcand"):
         log.info("simulated bus: interface %r replaced by socketcand to reach the emulator", options["interface"])
@@ -296,7 +296,7 @@ def _canopen_args(ids: str, start_at: str, control: str, link: str, options: dic
             "--control", control]
 
 
-def _canopen_options(line: str, options: dict[str, object], link: str) -> dict[str, object]:
+def _canopen_options(line: str, options: dict[str, object], pty_path: str) -> dict[str, object]:
     match = re.search(r"on socketcand (\S+):(\d+) channel (\S+?)(?:,|$)", line)
     if match is None:
         raise BusInitError(f"cannot parse the canopen emulator's ready line: {line!r}")
@@ -304,14 +304,14 @@ def _canopen_options(line: str, options: dict[str, object], link: str) -> dict[s
     return options
 
 
-def _dynamixel_args(ids: str, start_at: str, control: str, link: str, options: dict[str, object]) -> list[str]:
+def _dynamixel_args(ids: str, start_at: str, control: str, pty_path: str, options: dict[str, object]) -> list[str]:
     model = str(options.get("model", "XM430-W350"))
     return ["dynamixel", "--ids", ids, "--model", model, "--initial-positions", start_at,
-            "--link", link, "--control", control]
+            "--link", pty_path, "--control", control]
 
 
-def _dynamixel_options(line: str, options: dict[str, object], link: str) -> dict[str, object]:
-    options["port"] = link
+def _dynamixel_options(line: str, options: dict[str, object], pty_path: str) -> dict[str, object]:
+    options["port"] = pty_path
     return options
 
 

@@ -26,10 +26,10 @@ from multiprocessing.shared_memory import SharedMemory
 
 import numpy as np
 
+import runtime.bus.layout as L
 from drivers import errors as bus_errors
 from drivers.base import LifecycleState, MotorState
 from drivers.errors import BusConnectionLost
-from runtime.bus import layout as L
 from runtime.bus.config import BusProcessConfig
 from runtime.bus.layout import ConnectionState, Faults
 from runtime.bus.messages import BusOp, ErrorInfo, Opened, OpRequest, OpResult, ToBusProcess

@@ -25,10 +25,10 @@ from multiprocessing.shared_memory import SharedMemory
 
 import numpy as np
 
+import runtime.bus.layout as L
 from drivers import errors as bus_errors
 from drivers.base import LifecycleState, MotorConfig
 from drivers.errors import BusInitError
-from runtime.bus import layout as L
 from runtime.bus.config import BusProcessConfig, DriverOptions
 from runtime.bus.layout import CONNECTION_STATES, ConnectionState, Faults
 from runtime.bus.messages import BUS_OPS, BusOp, FromBusProcess, Opened, OpRequest, OpResult, StopRequest
