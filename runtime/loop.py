@@ -86,6 +86,7 @@ class LoopStats:
         self.n += 1
 
     def reset(self) -> None:
+        """Forget the cycles counted so far (the ring buffers are overwritten from the start)."""
         self.n = self.missed = self.skipped = 0
         self._last_start = None
 

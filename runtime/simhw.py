@@ -111,6 +111,7 @@ class SimProcess:
     # ------------------------------------------------------------------ process
     @property
     def pid(self) -> int:
+        """Process id of the emulator (of the latest one after a restart)."""
         return self._proc.pid
 
     @property

@@ -66,14 +66,17 @@ class Layout:
 
     @property
     def off_fb(self) -> int:
+        """Byte offset of the first feedback buffer."""
         return N_COUNTERS * 8
 
     @property
     def off_tg(self) -> int:
+        """Byte offset of the first target buffer."""
         return self.off_fb + 2 * self.fb_len * 8
 
     @property
     def off_fa(self) -> int:
+        """Byte offset of the fault block."""
         return self.off_tg + 2 * self.tg_len * 8
 
     @property
