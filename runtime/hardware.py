@@ -88,8 +88,8 @@ class Hardware:
     """All buses of a head, each in its own process behind a :class:`~runtime.bus.BusProxy`.
 
     Build with :meth:`from_head` (emulators start there), then :meth:`start` (spawn and open every bus, torque off).
-    The loop side uses :meth:`post` and :meth:`feedback` per bus (non-blocking, in ``proxies[bus].actuators``
-    order); lifecycle goes through :meth:`request`/:meth:`results`, or :meth:`call` where blocking is fine.
+    The loop side uses each bus's proxy (``proxies``: non-blocking ``post``/``feedback``, lifecycle through
+    ``request``/``result``); :meth:`call` carries out a lifecycle operation on every bus where blocking is fine.
     """
 
     #: Opening an emulated bus is retried this often (real buses: once).
@@ -102,9 +102,6 @@ class Hardware:
         self.proxies: dict[str, BusProxy] = dict(proxies)
         self._sims: dict[str, simhw.SimProcess] = dict(simulators or {})
         self._bus_of = {name: bus for bus, proxy in self.proxies.items() for name in proxy.actuators}
-        self.configs: dict[str, MotorConfig] = {
-            name: cfg for proxy in self.proxies.values() for name, cfg in proxy.motors.items()
-        }
 
     @classmethod
     def from_head(
@@ -149,13 +146,6 @@ class Hardware:
             _quiet(sim.close)
         self._sims.clear()
 
-    def __enter__(self) -> Hardware:
-        self.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
-
     # ------------------------------------------------------------------ loop side
     def post(self, bus: str, targets: np.ndarray) -> None:
         """Latest SI targets of one bus, in ``proxies[bus].actuators`` order; never blocks."""
@@ -165,25 +155,11 @@ class Hardware:
         """Latest feedback of every bus; never blocks."""
         return {bus: proxy.feedback() for bus, proxy in self.proxies.items()}
 
-    def request(self, op: str) -> dict[str, int]:
-        """Ask every bus for ``op`` (``enable``, ``disable``, ``reset``); tickets by bus."""
-        return {bus: proxy.request(op) for bus, proxy in self.proxies.items()}
-
-    def results(self, tickets: Mapping[str, int]) -> dict[str, tuple[bool, str]] | None:
-        """Outcome per bus once every request of ``tickets`` is done; None while any is pending."""
-        out: dict[str, tuple[bool, str]] = {}
-        for bus, ticket in tickets.items():
-            res = self.proxies[bus].result(ticket)
-            if res is None:
-                return None
-            out[bus] = res
-        return out
-
     def call(self, op: str, timeout_s: float = 10.0) -> None:
-        """Carry out ``op`` on every bus and wait; raises BusError naming the buses that failed."""
-        tickets = self.request(op)
+        """Carry out ``op`` (``enable``, ``disable``, ``reset``) on every bus and wait (for start-up and tests; the
+        loop runner requests per bus without waiting); raises BusError naming the buses that failed."""
+        pending = {bus: proxy.request(op) for bus, proxy in self.proxies.items()}
         deadline = time.monotonic() + timeout_s
-        pending = dict(tickets)
         failed: list[str] = []
         while pending:
             for bus, ticket in list(pending.items()):

@@ -78,7 +78,6 @@ class SimProcess:
         self.bus_name = bus_name
         self.options: dict[str, object] = {}
         self.control = control
-        self.ready_line: str | None = None
         self._proc = proc
         self._command = list(command)
         self._nice = nice
@@ -104,7 +103,6 @@ class SimProcess:
                     else f"did not report ready in {timeout_s} s"
                 raise BusInitError(f"bus {self.bus_name}: emulator {why}; output: {' | '.join(seen[-8:]) or 'none'}")
             if line.startswith("ready:"):
-                self.ready_line = line
                 return line
             seen.append(line)
 
@@ -213,10 +211,6 @@ class SimProcess:
         if device is not None:
             msg["device"] = device
         return self._request(msg)
-
-    def status(self) -> ControlReply:
-        """The emulator's own status map (per-device state, bus faults)."""
-        return self._request({"op": "status"})
 
 
 def start(

@@ -330,13 +330,6 @@ class BusProxy:
                 if isinstance(msg, OpResult):
                     self._results[msg.ticket] = (msg.ok, msg.message)
 
-    def __enter__(self) -> BusProxy:
-        self.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
-
 
 def _bus_op(op: str) -> BusOp | None:
     """``op`` as a :data:`BusOp`, or None if it names no operation."""
