@@ -46,13 +46,13 @@ def make_daemon(rate_hz: float, realtime: bool, with_buses: bool = True, head_pa
     """A started, enabled daemon on free loopback ports; ``with_buses=False`` runs the loop without bus I/O."""
     from models.headspec import load_head
     from runtime.daemon import Daemon
-    from runtime.hardware import LinkedHardware
+    from runtime.hardware import Hardware
 
     head = load_head(SAMPLE if head_path is None else head_path)
     overrides = {"api.command": "tcp://127.0.0.1:*", "api.telemetry": "tcp://127.0.0.1:*",
                  "runtime.rate_hz": rate_hz, "runtime.realtime": realtime, "runtime.telemetry_hz": min(50, rate_hz),
                  "safety.feedback_timeout_s": 0.5, **extra}
-    hardware = None if with_buses else LinkedHardware(head, {})
+    hardware = None if with_buses else Hardware(head, {})
     daemon = Daemon(head, overrides, hardware=hardware)
     daemon.start()
     daemon.enable()

@@ -3,7 +3,7 @@ over socketcand, Dynamixel over a pseudo-terminal; both emulators in child proce
 measured in the same run:
 
 (a) ``sync``: the drivers are called in the loop thread (read both buses, write both buses), as today's daemon does;
-(b) ``linked``: each bus runs in its own process behind a ``BusLink``; the loop only takes the latest feedback and
+(b) ``linked``: each bus runs in its own process behind a ``BusProxy``; the loop only takes the latest feedback and
     posts targets.
 A third, ``bare``, runs the same loop with no bus at all: what the machine itself costs (other load, stalls).
 
@@ -150,12 +150,12 @@ def measure_sync(head, motors, options, rate_hz: float, seconds: float, priority
 
 def measure_linked(head, motors, options, rate_hz: float, seconds: float, priority: int, bus_priority: int | None
                    ) -> dict:
-    """Configuration (b): each bus in its own process behind a BusLink."""
+    """Configuration (b): each bus in its own process behind a BusProxy."""
     from drivers.base import LifecycleState
-    from runtime.buslink import BusLink
+    from runtime.bus import BusProxy
 
-    links = {b: BusLink(head.buses[b].driver, b, options[b], motors[b], open_attempts=3,
-                        realtime_priority=bus_priority) for b in motors}
+    links = {b: BusProxy(head.buses[b].driver, b, options[b], motors[b], open_attempts=3,
+                         realtime_priority=bus_priority) for b in motors}
     try:
         for link in links.values():
             link.start(60)
@@ -264,7 +264,7 @@ def main(argv: list[str] | None = None) -> int:
           f"jitter p99 {ratio(s.get('jitter_p99_us', 0), li.get('jitter_p99_us', 0))}, "
           f"work p99 {ratio(s.get('work_p99_us', 0), li.get('work_p99_us', 0))}, "
           f"feedback age p99 {ratio(sync['age_p99_ms'], linked['age_p99_ms'])}")
-    print(f"loop-side calls (median): BusLink.feedback {linked['feedback_us']:.1f} us, BusLink.post "
+    print(f"loop-side calls (median): BusProxy.feedback {linked['feedback_us']:.1f} us, BusProxy.post "
           f"{linked['post_us']:.1f} us")
     print(f"bus transaction in the bus processes (last, mean of buses) {linked['io_p50_us']:.0f} us; "
           f"reads per bus {linked.get('reads')}; sync I/O per cycle p50 {sync['io_p50_us']:.0f} us")

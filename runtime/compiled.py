@@ -1,4 +1,4 @@
-"""Clips and stream frames compiled to flat numpy arrays, for the control core to evaluate every cycle.
+"""Clips compiled to flat numpy arrays, for the control core to evaluate every cycle.
 
 :class:`CompiledClip` holds every channel's keys as *slots* in flat arrays, so :meth:`CompiledClip.sample` evaluates
 every channel with a fixed number of numpy calls (no per-channel Python loop). The per-channel key search is one
@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from runtime.curves import Clip, ClipError
-from runtime.messages import ClipSpec, Stream
+from runtime.messages import ClipSpec
 
 _NEWTON_STEPS = 24  # as runtime.curves._bezier_eval
 _NEWTON_TOL = 1e-10
@@ -231,22 +231,3 @@ def _bezier_segments(keys: np.ndarray) -> np.ndarray:
         out[:, 4 * k + 2] = -3 * p0 + 3 * p1
         out[:, 4 * k + 3] = p0
     return out
-
-
-@dataclass(frozen=True, eq=False)
-class FrameBatch:
-    """Streamed frames as arrays: ``times`` (frames,) on the daemon clock, ``values`` (frames, channels) in the
-    columns ``channel_index``; frames in the order they were sent (the jitter buffer sorts)."""
-
-    times: np.ndarray
-    values: np.ndarray
-    channel_index: tuple[str, ...]
-
-    @classmethod
-    def from_request(cls, req: Stream) -> FrameBatch:
-        """The frames of a decoded (and so validated) ``stream`` request; no copy of the decoded array."""
-        arr = req.array()
-        return cls(arr[:, 0], arr[:, 1:], tuple(req.channels))
-
-    def __len__(self) -> int:
-        return len(self.times)

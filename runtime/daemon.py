@@ -36,7 +36,7 @@ from runtime.config import DaemonConfig, daemon_config
 from runtime.core import core as K
 from runtime.core.channels import ChannelMap
 from runtime.core.solvers import as_array_solvers, channel_sets
-from runtime.hardware import LinkedHardware
+from runtime.hardware import Hardware
 from runtime.runner import Runner
 
 log = logging.getLogger(__name__)
@@ -58,7 +58,7 @@ class Daemon:
     """One head's daemon. ``start()`` opens the buses and serves; ``stop()`` disables torque and closes everything."""
 
     def __init__(self, head: HeadSpec, overrides: Mapping[str, Any] | None = None,
-                 hardware: LinkedHardware | None = None, target_solvers: Iterable[Any] | None = None,
+                 hardware: Hardware | None = None, target_solvers: Iterable[Any] | None = None,
                  record_inputs: bool = False, strain_guard: bool = True) -> None:
         self.head = head
         self.overrides = dict(overrides or {})
@@ -121,10 +121,10 @@ class Daemon:
         """Every bus in a process of its own (emulators first, as processes too, for simulated buses)."""
         if self.hw is None:
             rt = self.cfg.runtime
-            self.hw = LinkedHardware.from_head(self.head, bus_nice=BUS_NICE,
-                                               realtime_priority=(rt.bus_priority or None) if rt.realtime else None)
+            self.hw = Hardware.from_head(self.head, bus_nice=BUS_NICE,
+                                     realtime_priority=(rt.bus_priority or None) if rt.realtime else None)
         self.hw.start()
-        self.links = list(self.hw.links.values())
+        self.links = list(self.hw.proxies.values())
 
     def _start_link(self) -> None:
         self._tmp = tempfile.mkdtemp(prefix="likeness-")

@@ -49,37 +49,6 @@ def process_threads() -> dict[int, str]:
     return out
 
 
-def promote_threads(priority: int, exclude: set[int] | None = None) -> list[int]:
-    """Put every other thread of this process under SCHED_RR at ``priority``; returns the thread ids changed.
-
-    With a GIL, the control thread waits for whichever thread holds it: if that thread runs at normal priority,
-    any busy process on the machine delays the control loop. Raising the daemon's helper threads (API, bus
-    notifiers, in-process emulators standing in for hardware) to a realtime priority below the control thread's
-    removes that inversion. Round-robin, so equal-priority helpers still share the CPU. Threads already realtime
-    and those in ``exclude`` are left alone. Linux only; best effort.
-    """
-    exclude = exclude or set()
-    changed: list[int] = []
-    for tid in process_threads():
-        if tid in exclude:
-            continue
-        try:
-            if os.sched_getscheduler(tid) != os.SCHED_OTHER:
-                continue
-            os.sched_setscheduler(tid, os.SCHED_RR, os.sched_param(priority))
-            changed.append(tid)
-        except OSError:
-            continue
-    return changed
-
-
-def demote_threads(tids: list[int]) -> None:
-    """Back to normal scheduling for those of ``tids`` still alive (best effort)."""
-    for tid in tids:
-        with contextlib.suppress(OSError):
-            os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
-
-
 def drop_realtime() -> None:
     """Back to normal scheduling for the calling thread (best effort)."""
     with contextlib.suppress(AttributeError, OSError):
@@ -117,6 +86,7 @@ class LoopStats:
         self.n += 1
 
     def reset(self) -> None:
+        """Forget the cycles counted so far (the ring buffers are overwritten from the start)."""
         self.n = self.missed = self.skipped = 0
         self._last_start = None
 
@@ -145,10 +115,6 @@ class RateScheduler:
         self.spin = spin
         self.clock = clock
         self.next = clock() + period
-
-    def rearm(self) -> None:
-        """Restart the schedule from now (after a deliberate pause, e.g. a lifecycle transition)."""
-        self.next = self.clock() + self.period
 
     def wait(self, idle: Callable[[float], None] | None = None) -> tuple[float, int]:
         """Block until the next deadline; returns (lateness in s, deadlines missed since the previous call).

@@ -168,7 +168,7 @@ class Runner:
         for link in self.links:
             fb = link.feedback()
             out.append(K.BusInput(link.name, fb.state.value, fb.connected, fb.positions, fb.stamp, fb.faults,
-                                  fb.link, fb.attempts, fb.retry_at))
+                                  fb.connection, fb.attempts, fb.retry_at))
         return tuple(out)
 
     def _drain(self, deadline: float) -> list[Any]:

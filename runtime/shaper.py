@@ -18,10 +18,10 @@ Jerk limit: per actuator, or by default ``amax / DEFAULT_JERK_TIME`` (full accel
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 from ruckig import ControlInterface, InputParameter, OutputParameter, Result, Ruckig, Synchronization
+
+from models.headspec import HeadSpec
 
 #: Default time to ramp from zero to full acceleration, seconds: jmax = amax / DEFAULT_JERK_TIME.
 DEFAULT_JERK_TIME = 0.02
@@ -83,8 +83,8 @@ class Shaper:
         self.reset(np.zeros(n) if self.lo is None else np.clip(np.zeros(n), self.lo, self.hi))
 
     @classmethod
-    def from_head(cls, head: Any, dt: float, velocity_margin: float = 1.0) -> Shaper:
-        """A shaper for a ``models.headspec.HeadSpec``: its actuators' limits, in actuator order.
+    def from_head(cls, head: HeadSpec, dt: float, velocity_margin: float = 1.0) -> Shaper:
+        """A shaper for a head: its actuators' limits, in actuator order.
 
         An actuator's ``options.max_jerk`` (config units per s³, e.g. deg/s³) sets its jerk limit; without it the
         default applies. ``velocity_margin`` scales the max velocities (the drivers refuse commands above them).

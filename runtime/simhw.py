@@ -3,10 +3,11 @@
 :func:`start` launches ``likeness sim canopen`` (a socketcand server on a free loopback port) or ``likeness sim
 dynamixel`` (a pseudo-terminal) with ``sys.executable -m likeness.cli``, waits for its ``ready:`` line, and returns a
 :class:`SimProcess`: the bus options the real driver must use to reach it, ground truth in encoder counts by device
-id and fault injection, both over the emulator's ZeroMQ control endpoint. The emulator exits with this process
-(``--watch-parent``); a supervising thread logs its output and notices when it dies. :meth:`SimProcess.restart`
-brings a dead emulator back on the same socketcand port or pseudo-terminal link path, as a device server or a
-replugged adapter comes back, so the daemon's bus can reconnect to it.
+id and fault injection, both over the emulator's control endpoint (:func:`control_request`: msgpack maps over
+ZeroMQ, the wire format ``sim_hardware/control.py`` serves; the runtime never imports the emulators). The emulator
+exits with this process (``--watch-parent``); a supervising thread logs its output and notices when it dies.
+:meth:`SimProcess.restart` brings a dead emulator back on the same socketcand port or pseudo-terminal path, as a
+device server or a replugged adapter comes back, so the daemon's bus can reconnect to it.
 """
 
 from __future__ import annotations
@@ -26,7 +27,9 @@ import threading
 import time
 import weakref
 from collections.abc import Callable, Mapping, Sequence
-from typing import Any
+
+import msgpack
+import zmq
 
 from drivers.base import MotorConfig
 from drivers.errors import BusInitError, ConfigError
@@ -40,6 +43,9 @@ READY_TIMEOUT_S = 20.0
 #: emulator queues behind ordinary processes. A SCHED_FIFO control thread still preempts it. Needs CAP_SYS_NICE;
 #: without it the emulator keeps the parent's niceness.
 EMULATOR_NICE = -10
+
+#: An emulator's reply on its control endpoint: ``{"ok": true, ...}`` or ``{"ok": false, "error": "..."}``.
+ControlReply = dict[str, object]
 
 #: Emulators still running, stopped at interpreter exit if their owner did not close them.
 _RUNNING: weakref.WeakSet[SimProcess] = weakref.WeakSet()
@@ -70,9 +76,8 @@ class SimProcess:
     ) -> None:
         self.driver = driver
         self.bus_name = bus_name
-        self.options: dict[str, Any] = {}
+        self.options: dict[str, object] = {}
         self.control = control
-        self.ready_line: str | None = None
         self._proc = proc
         self._command = list(command)
         self._nice = nice
@@ -98,13 +103,13 @@ class SimProcess:
                     else f"did not report ready in {timeout_s} s"
                 raise BusInitError(f"bus {self.bus_name}: emulator {why}; output: {' | '.join(seen[-8:]) or 'none'}")
             if line.startswith("ready:"):
-                self.ready_line = line
                 return line
             seen.append(line)
 
     # ------------------------------------------------------------------ process
     @property
     def pid(self) -> int:
+        """Process id of the emulator (of the latest one after a restart)."""
         return self._proc.pid
 
     @property
@@ -137,7 +142,7 @@ class SimProcess:
 
     def restart(self, timeout_s: float = READY_TIMEOUT_S) -> str:
         """Start the emulator again after it died or was killed, reachable where it was before (same socketcand port,
-        same pseudo-terminal link path); its devices boot afresh at their initial positions. Returns the ready line;
+        same pseudo-terminal path); its devices boot afresh at their initial positions. Returns the ready line;
         RuntimeError while it still runs, BusInitError if it does not come up."""
         if self.alive:
             raise RuntimeError(f"emulator of bus {self.bus_name} is still running (pid {self.pid})")
@@ -174,48 +179,44 @@ class SimProcess:
                 cleanup()
 
     # ------------------------------------------------------------------ control channel
-    def _request(self, message: Mapping[str, Any], timeout_s: float = 2.0) -> dict[str, Any]:
-        from sim_hardware.control import request
-
-        reply = request(self.control, message, timeout_s=timeout_s)
+    def _request(self, message: Mapping[str, object], timeout_s: float = 2.0) -> ControlReply:
+        reply = control_request(self.control, message, timeout_s=timeout_s)
         if not reply.get("ok"):
             raise RuntimeError(f"emulator of bus {self.bus_name}: {reply.get('error', 'request failed')}")
         return reply
 
     def positions_counts(self) -> dict[int, float]:
         """Ground-truth positions in encoder counts by device id, from the emulator (not through the driver)."""
-        reply = self._request({"op": "positions"})
-        return {int(k): float(v) for k, v in reply["positions"].items()}
+        positions = self._request({"op": "positions"}).get("positions")
+        if not isinstance(positions, dict):
+            raise RuntimeError(f"emulator of bus {self.bus_name}: no positions in its reply")
+        return {int(k): float(v) for k, v in positions.items()}
 
-    def inject(self, fault: str, device: int | None = None, **params: Any) -> dict[str, Any]:
+    def inject(self, fault: str, device: int | None = None, **params: object) -> ControlReply:
         """Start a fault by the emulator's name for it (canopen: ``stop_heartbeat``, ``drive_fault``, ``jam``...;
         dynamixel: ``overheat``, ``disconnect``, ``drop``...) on ``device`` (an id) with its parameters."""
         if device is not None:
             params["device"] = int(device)
         return self._request({"op": "inject", "fault": fault, **params})
 
-    def clear(self, fault: str | None = None, device: int | None = None) -> dict[str, Any]:
+    def clear(self, fault: str | None = None, device: int | None = None) -> ControlReply:
         """End injected faults: all of them, or (dynamixel) one kind or one device's."""
         if self.driver == "canopen402":
             if fault is not None or device is not None:
                 return self.inject(fault or "resume_heartbeat", device=device)
             return self.inject("clear")
-        msg: dict[str, Any] = {"op": "clear"}
+        msg: dict[str, object] = {"op": "clear"}
         if fault is not None:
             msg["fault"] = fault
         if device is not None:
             msg["device"] = device
         return self._request(msg)
 
-    def status(self) -> dict[str, Any]:
-        """The emulator's own status map (per-device state, bus faults)."""
-        return self._request({"op": "status"})
-
 
 def start(
     driver: str,
     bus_name: str,
-    options: Mapping[str, Any],
+    options: Mapping[str, object],
     motors: Sequence[MotorConfig],
     initial: Mapping[str, float] | None = None,
     *,
@@ -235,14 +236,14 @@ def start(
     start_at = ",".join(f"{k}={v}" for k, v in counts.items())
     control = f"tcp://127.0.0.1:{_free_port()}"
     # a fresh path in the temp directory; the Dynamixel emulator makes it a symlink to its pty and removes it on exit
-    link = os.path.join(tempfile.gettempdir(), f"likeness-{bus_name}-{os.getpid()}-{secrets.token_hex(6)}")
-    args = _ARGS[driver](ids, start_at, control, link, dict(options))
+    pty_path = os.path.join(tempfile.gettempdir(), f"likeness-{bus_name}-{os.getpid()}-{secrets.token_hex(6)}")
+    args = _ARGS[driver](ids, start_at, control, pty_path, dict(options))
     cmd = [sys.executable, "-m", "likeness.cli", "sim", *args, "--watch-parent"]
     proc = _spawn(cmd, bus_name, nice)
-    sim = SimProcess(driver, bus_name, proc, control, lambda: _remove_link(link), cmd, nice)
+    sim = SimProcess(driver, bus_name, proc, control, lambda: _remove_symlink(pty_path), cmd, nice)
     try:
         line = sim.wait_ready(ready_timeout_s)
-        sim.options = _OPTIONS[driver](line, dict(options), link)
+        sim.options = _OPTIONS[driver](line, dict(options), pty_path)
         if "--port" in cmd:  # a restart listens where the driver already connects
             sim._command[cmd.index("--port") + 1] = str(sim.options["port"])
     except BaseException:
@@ -270,7 +271,7 @@ def _spawn(cmd: Sequence[str], bus_name: str, nice: int) -> subprocess.Popen[str
     return proc
 
 
-def _remove_link(path: str) -> None:
+def _remove_symlink(path: str) -> None:
     with contextlib.suppress(FileNotFoundError):
         if os.path.islink(path):
             os.unlink(path)
@@ -282,7 +283,7 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def _canopen_args(ids: str, start_at: str, control: str, link: str, options: dict[str, Any]) -> list[str]:
+def _canopen_args(ids: str, start_at: str, control: str, pty_path: str, options: dict[str, object]) -> list[str]:
     channel = str(options.get("channel") or "can0")
     if options.get("interface") not in (None, "virtual", "socketcand"):
         log.info("simulated bus: interface %r replaced by socketcand to reach the emulator", options["interface"])
@@ -290,7 +291,7 @@ def _canopen_args(ids: str, start_at: str, control: str, link: str, options: dic
             "--control", control]
 
 
-def _canopen_options(line: str, options: dict[str, Any], link: str) -> dict[str, Any]:
+def _canopen_options(line: str, options: dict[str, object], pty_path: str) -> dict[str, object]:
     match = re.search(r"on socketcand (\S+):(\d+) channel (\S+?)(?:,|$)", line)
     if match is None:
         raise BusInitError(f"cannot parse the canopen emulator's ready line: {line!r}")
@@ -298,22 +299,42 @@ def _canopen_options(line: str, options: dict[str, Any], link: str) -> dict[str,
     return options
 
 
-def _dynamixel_args(ids: str, start_at: str, control: str, link: str, options: dict[str, Any]) -> list[str]:
+def _dynamixel_args(ids: str, start_at: str, control: str, pty_path: str, options: dict[str, object]) -> list[str]:
     model = str(options.get("model", "XM430-W350"))
     return ["dynamixel", "--ids", ids, "--model", model, "--initial-positions", start_at,
-            "--link", link, "--control", control]
+            "--link", pty_path, "--control", control]
 
 
-def _dynamixel_options(line: str, options: dict[str, Any], link: str) -> dict[str, Any]:
-    options["port"] = link
+def _dynamixel_options(line: str, options: dict[str, object], pty_path: str) -> dict[str, object]:
+    options["port"] = pty_path
     return options
 
 
-_ARGS: dict[str, Callable[[str, str, str, str, dict[str, Any]], list[str]]] = {
+_ARGS: dict[str, Callable[[str, str, str, str, dict[str, object]], list[str]]] = {
     "canopen402": _canopen_args,
     "dynamixel": _dynamixel_args,
 }
-_OPTIONS: dict[str, Callable[[str, dict[str, Any], str], dict[str, Any]]] = {
+_OPTIONS: dict[str, Callable[[str, dict[str, object], str], dict[str, object]]] = {
     "canopen402": _canopen_options,
     "dynamixel": _dynamixel_options,
 }
+
+
+def control_request(endpoint: str, message: Mapping[str, object], timeout_s: float = 2.0) -> ControlReply:
+    """Send one request to an emulator's control endpoint and return its reply map; TimeoutError if nobody answers.
+
+    The emulator serves a ZeroMQ REP socket taking and answering msgpack maps (``sim_hardware/control.py``).
+    """
+    sock = zmq.Context.instance().socket(zmq.REQ)
+    sock.setsockopt(zmq.LINGER, 0)
+    try:
+        sock.connect(endpoint)
+        sock.send(msgpack.packb(dict(message), use_bin_type=True))
+        if not sock.poll(int(timeout_s * 1000)):
+            raise TimeoutError(f"no answer from emulator control endpoint {endpoint} in {timeout_s} s")
+        reply = msgpack.unpackb(sock.recv(), raw=False)
+    finally:
+        sock.close(0)
+    if not isinstance(reply, dict):
+        raise RuntimeError(f"emulator control endpoint {endpoint} answered {type(reply).__name__}, not a map")
+    return reply

@@ -13,7 +13,7 @@ import zmq
 from models.client import Client, DaemonError, Telemetry
 from models.headspec import load_head
 from runtime.daemon import Daemon
-from runtime.hardware import LinkedHardware
+from runtime.hardware import Hardware
 
 SAMPLE = Path(__file__).resolve().parents[2] / "heads" / "sample" / "head.toml"
 
@@ -25,7 +25,7 @@ def busless(tmp_path_factory: pytest.TempPathFactory):
     d = Daemon(head, {"api.command": "tcp://127.0.0.1:*", "api.telemetry": "tcp://127.0.0.1:*",
                       "runtime.record_dir": str(tmp), "runtime.rate_hz": 500.0,
                       "runtime.clip_memory_bytes": 8 << 20},
-               hardware=LinkedHardware(head, {}), target_solvers=())
+               hardware=Hardware(head, {}), target_solvers=())
     d.start()
     yield d
     d.stop()
@@ -142,7 +142,7 @@ def test_a_recorded_run_replays_bit_for_bit(tmp_path) -> None:
     head = load_head(SAMPLE)
     d = Daemon(head, {"api.command": "tcp://127.0.0.1:*", "api.telemetry": "tcp://127.0.0.1:*",
                       "runtime.record_dir": str(tmp_path), "runtime.rate_hz": 500.0},
-               hardware=LinkedHardware(head, {}), target_solvers=(), record_inputs=True)
+               hardware=Hardware(head, {}), target_solvers=(), record_inputs=True)
     d.start()
     try:
         with Client(d.command_endpoint, timeout=5) as c:

@@ -1,4 +1,4 @@
-"""Bus links: each bus of the sample head in its own process, driving emulators that run in child processes.
+"""Bus processes: each bus of the sample head in its own process, driving emulators that run in child processes.
 
 Measured positions come back through the real drivers (CiA 402 over socketcand, Dynamixel over a pseudo-terminal);
 ground truth comes from the emulator processes over their control channel. Waits poll feedback with generous
@@ -19,8 +19,8 @@ import pytest
 from drivers.base import LifecycleState
 from drivers.errors import BusInitError, ConfigError
 from models.headspec import HeadSpec, load_head
-from runtime.buslink import BusFeedback, BusLink
-from runtime.hardware import LinkedHardware, motor_config
+from runtime.bus import BusFeedback, BusProxy
+from runtime.hardware import Hardware, motor_config
 
 SAMPLE = Path(__file__).resolve().parents[2] / "heads" / "sample" / "head.toml"
 DEG = math.pi / 180
@@ -43,18 +43,18 @@ def _wait(what: str, check: Callable[[], bool], timeout_s: float = 10.0) -> None
         time.sleep(0.01)
 
 
-def _ramp(hw: LinkedHardware, goals: dict[str, float], duration: float = 0.4) -> None:
+def _ramp(hw: Hardware, goals: dict[str, float], duration: float = 0.4) -> None:
     """Post a smooth ramp from the measured positions to ``goals`` on every bus, as a control loop would."""
-    start = {bus: link.feedback().positions.copy() for bus, link in hw.links.items()}
+    start = {bus: link.feedback().positions.copy() for bus, link in hw.proxies.items()}
     end = {bus: s.copy() for bus, s in start.items()}
     for name, value in goals.items():
         bus = hw.bus_of(name)
-        end[bus][hw.links[bus].actuators.index(name)] = value
+        end[bus][hw.proxies[bus].actuators.index(name)] = value
     t0 = time.monotonic()
     while True:
         s = min((time.monotonic() - t0) / duration, 1.0)
         s = s * s * (3 - 2 * s)
-        for bus, link in hw.links.items():
+        for bus, link in hw.proxies.items():
             link.post(start[bus] + (end[bus] - start[bus]) * s)
         if s >= 1.0:
             return
@@ -67,9 +67,9 @@ def head() -> HeadSpec:
 
 
 @pytest.fixture(scope="module")
-def hw(head: HeadSpec) -> Iterator[LinkedHardware]:
+def hw(head: HeadSpec) -> Iterator[Hardware]:
     """The sample head's two buses in bus processes, their emulators in child processes; left inactive, no faults."""
-    linked = LinkedHardware.from_head(head)
+    linked = Hardware.from_head(head)
     try:
         linked.start()
         yield linked
@@ -77,18 +77,18 @@ def hw(head: HeadSpec) -> Iterator[LinkedHardware]:
         linked.stop()
 
 
-def test_posted_targets_reach_the_motors_and_feedback_follows(hw: LinkedHardware) -> None:
+def test_posted_targets_reach_the_motors_and_feedback_follows(hw: Hardware) -> None:
     fb = hw.feedback()
     assert {b: f.state for b, f in fb.items()} == {"can0": LifecycleState.INACTIVE, "dxl": LifecycleState.INACTIVE}
     assert all(f.connected and f.seq >= 1 and np.all(np.isfinite(f.positions)) for f in fb.values())
     seq0 = fb["dxl"].seq
-    _wait("idle reads keep feedback fresh", lambda: hw.links["dxl"].feedback().seq > seq0 + 2)
+    _wait("idle reads keep feedback fresh", lambda: hw.proxies["dxl"].feedback().seq > seq0 + 2)
 
     hw.call("enable")
     assert all(f.state is LifecycleState.ACTIVE for f in hw.feedback().values())
     goals = {"jaw": 8 * DEG, "lip_corner_r_back": -6 * DEG, "brow_l": 7 * DEG, "lid_r": -5 * DEG}
     _ramp(hw, goals)
-    posted = {bus: link.feedback() for bus, link in hw.links.items()}
+    posted = {bus: link.feedback() for bus, link in hw.proxies.items()}
 
     def arrived() -> bool:
         pos = hw.positions()
@@ -100,27 +100,27 @@ def test_posted_targets_reach_the_motors_and_feedback_follows(hw: LinkedHardware
     for name, value in goals.items():
         assert truth[name] == pytest.approx(value, abs=0.5 * DEG), name  # the emulator agrees with the driver
         assert pos[name] == pytest.approx(truth[name], abs=0.3 * DEG), name
-    for bus, link in hw.links.items():
+    for bus, link in hw.proxies.items():
         f = link.feedback()
         assert f.write_stamp > 0 and f.io_us > 0 and f.stamp > 0
         for name, value in goals.items():
             if name in link.actuators:
                 assert f.written[link.actuators.index(name)] == pytest.approx(value), name
         _wait(f"{bus}: feedback keeps coming after the targets",
-              lambda b=bus: hw.links[b].feedback().seq > posted[b].seq)
+              lambda b=bus: hw.proxies[b].feedback().seq > posted[b].seq)
     hw.call("disable")
     assert all(f.state is LifecycleState.INACTIVE for f in hw.feedback().values())
     # inactive: posted targets are not written
-    before = hw.links["dxl"].feedback()
+    before = hw.proxies["dxl"].feedback()
     hw.post("dxl", before.positions + 3 * DEG)
-    _wait("another read", lambda: hw.links["dxl"].feedback().seq > before.seq + 2)
-    after = hw.links["dxl"].feedback()
+    _wait("another read", lambda: hw.proxies["dxl"].feedback().seq > before.seq + 2)
+    after = hw.proxies["dxl"].feedback()
     assert after.write_stamp == before.write_stamp
     assert np.allclose(after.positions, before.positions, atol=0.3 * DEG)
 
 
-def test_targets_posted_before_enable_are_never_written(hw: LinkedHardware) -> None:
-    link = hw.links["dxl"]
+def test_targets_posted_before_enable_are_never_written(hw: Hardware) -> None:
+    link = hw.proxies["dxl"]
     fb = link.feedback()
     link.post(fb.positions + 20 * DEG)  # stale: posted while inactive
     link.call("enable")
@@ -133,8 +133,8 @@ def test_targets_posted_before_enable_are_never_written(hw: LinkedHardware) -> N
         link.call("disable")
 
 
-def test_canopen_heartbeat_loss_faults_the_bus_naming_the_drive_and_reset_recovers(hw: LinkedHardware) -> None:
-    link = hw.links["can0"]
+def test_canopen_heartbeat_loss_faults_the_bus_naming_the_drive_and_reset_recovers(hw: Hardware) -> None:
+    link = hw.proxies["can0"]
     hw.call("enable")
     hold = link.feedback().positions.copy()
     hw.emulator("can0").inject("stop_heartbeat", device=3)
@@ -145,7 +145,7 @@ def test_canopen_heartbeat_loss_faults_the_bus_naming_the_drive_and_reset_recove
     fb = link.feedback()
     assert fb.state is LifecycleState.FAULT
     assert "lip_corner_l_back" in fb.faults, fb.faults
-    assert hw.links["dxl"].feedback().state is LifecycleState.ACTIVE  # the other bus is unaffected
+    assert hw.proxies["dxl"].feedback().state is LifecycleState.ACTIVE  # the other bus is unaffected
     hw.emulator("can0").inject("resume_heartbeat", device=3)
     hw.call("disable")  # dxl: active -> inactive; can0 is in fault and stays there
     assert link.feedback().state is LifecycleState.FAULT
@@ -154,8 +154,8 @@ def test_canopen_heartbeat_loss_faults_the_bus_naming_the_drive_and_reset_recove
     assert fb.state is LifecycleState.INACTIVE and fb.faults == {} and fb.connected
 
 
-def test_dynamixel_overheat_faults_the_bus_naming_the_servo_and_reset_recovers(hw: LinkedHardware) -> None:
-    link = hw.links["dxl"]
+def test_dynamixel_overheat_faults_the_bus_naming_the_servo_and_reset_recovers(hw: Hardware) -> None:
+    link = hw.proxies["dxl"]
     link.call("enable")
     hw.emulator("dxl").inject("overheat", device=3)
     _wait("overheat fault", lambda: link.feedback().state is LifecycleState.FAULT)
@@ -171,8 +171,8 @@ def test_dynamixel_overheat_faults_the_bus_naming_the_servo_and_reset_recovers(h
     assert link.feedback().state is LifecycleState.INACTIVE
 
 
-def test_bad_requests_and_targets_are_refused(hw: LinkedHardware) -> None:
-    link = hw.links["can0"]
+def test_bad_requests_and_targets_are_refused(hw: Hardware) -> None:
+    link = hw.proxies["can0"]
     with pytest.raises(ValueError, match="unknown operation 'arm'"):
         link.request("arm")
     with pytest.raises(ValueError, match="3 targets for 7 actuators"):
@@ -186,14 +186,14 @@ def test_bad_requests_and_targets_are_refused(hw: LinkedHardware) -> None:
     assert link.feedback().state is LifecycleState.INACTIVE
 
 
-def _single_link(head: HeadSpec, bus: str) -> tuple[BusLink, object]:
+def _single_link(head: HeadSpec, bus: str) -> tuple[BusProxy, object]:
     from runtime import simhw
 
     acts = head.actuators_on(bus)
     motors = [motor_config(a) for a in acts]
     sim = simhw.start(head.buses[bus].driver, bus, head.buses[bus].driver_options(), motors,
                       {a.name: a.neutral for a in acts})
-    link = BusLink(head.buses[bus].driver, bus, sim.options, motors, open_attempts=3)
+    link = BusProxy(head.buses[bus].driver, bus, sim.options, motors, open_attempts=3)
     try:
         link.start(60)
     except BaseException:
@@ -216,8 +216,8 @@ def test_a_dead_emulator_faults_the_bus_and_the_loop_side_keeps_going(head: Head
         assert fb.state is LifecycleState.FAULT, fb
         assert not fb.connected or fb.faults, fb
         assert _alive(link.pid)  # the driver's errors did not kill the bus process
-        published = int(link._c[1])  # feedback publications: the bus process keeps publishing at the idle rate
-        _wait("feedback still published", lambda: int(link._c[1]) > published + 2)
+        published = link.feedback_published  # the bus process keeps publishing at the idle rate
+        _wait("feedback still published", lambda: link.feedback_published > published + 2)
         for _ in range(20):
             link.post(hold)
             assert link.feedback().state is LifecycleState.FAULT
@@ -250,7 +250,7 @@ def test_a_dead_bus_process_is_noticed_and_stop_leaves_no_process(head: HeadSpec
 def test_an_unreachable_bus_raises_the_drivers_typed_error(head: HeadSpec, tmp_path: Path) -> None:
     acts = head.actuators_on("dxl")
     options = dict(head.buses["dxl"].options, port=str(tmp_path / "no-such-port"))
-    link = BusLink("dynamixel", "dxl", options, [motor_config(a) for a in acts])
+    link = BusProxy("dynamixel", "dxl", options, [motor_config(a) for a in acts])
     with pytest.raises(BusInitError, match="no-such-port"):
         link.start(60)
     assert link.pid is None
@@ -266,15 +266,15 @@ def test_bus_and_emulator_processes_die_with_a_killed_parent() -> None:
     code = (  # the CAN bus only: the point is the process tree, and one bus starts fastest
         "import sys, time, tomllib\n"
         "from models.headspec import head_from_dict\n"
-        "from runtime.hardware import LinkedHardware\n"
+        "from runtime.hardware import Hardware\n"
         "data = tomllib.loads(open(sys.argv[1]).read())\n"
         "data['buses'] = {'can0': data['buses']['can0']}\n"
         "data['actuators'] = [a for a in data['actuators'] if a['bus'] == 'can0']\n"
         "data['links'] = {}\n"
         "data.pop('groups', None)\n"
-        "hw = LinkedHardware.from_head(head_from_dict(data, source=sys.argv[1]))\n"
+        "hw = Hardware.from_head(head_from_dict(data, source=sys.argv[1]))\n"
         "hw.start()\n"
-        "print(' '.join(str(p) for b in hw.links for p in (hw.links[b].pid, hw.emulator(b).pid)), flush=True)\n"
+        "print(' '.join(str(p) for b in hw.proxies for p in (hw.proxies[b].pid, hw.emulator(b).pid)), flush=True)\n"
         "time.sleep(120)\n"
     )
     env = dict(os.environ, PYTHONPATH=str(SAMPLE.parents[2]))

@@ -12,7 +12,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from runtime.compiled import CompiledClip, FrameBatch, compile_clip
+from runtime.compiled import CompiledClip, compile_clip
 from runtime.curves import Clip, ClipError, clip_from_dict
 from runtime.messages import decode_request
 
@@ -132,15 +132,3 @@ def test_a_megabyte_clip_compiles_to_a_few_megabytes() -> None:
     assert cc.key_count == 52_000
     assert cc.nbytes / cc.key_count <= 56
     assert cc.nbytes <= 3 * len(raw)
-
-
-def test_frame_batch_from_a_stream_request() -> None:
-    req = decode_request(msgpack.packb({"op": "stream", "channels": ["jaw", "blink"],
-                                        "frames": [[10.0, 1.0, 2.0], [9.5, 3.0, 4.0]]}))
-    batch = FrameBatch.from_request(req)
-    assert batch.channel_index == ("jaw", "blink") and len(batch) == 2
-    assert batch.times.tolist() == [10.0, 9.5]
-    assert batch.values.shape == (2, 2) and batch.values[1].tolist() == [3.0, 4.0]
-    assert not batch.values.flags.writeable
-    empty = FrameBatch.from_request(decode_request(msgpack.packb({"op": "stream", "channels": ["jaw"], "frames": []})))
-    assert len(empty) == 0 and empty.values.shape == (0, 1)
