@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from runtime.curves import Clip, ClipError
-from runtime.messages import ClipSpec, Stream
+from runtime.messages import ClipSpec, StreamRequest
 
 _NEWTON_STEPS = 24  # as runtime.curves._bezier_eval
 _NEWTON_TOL = 1e-10
@@ -243,7 +243,7 @@ class FrameBatch:
     channel_index: tuple[str, ...]
 
     @classmethod
-    def from_request(cls, req: Stream) -> FrameBatch:
+    def from_request(cls, req: StreamRequest) -> FrameBatch:
         """The frames of a decoded (and so validated) ``stream`` request; no copy of the decoded array."""
         arr = req.array()
         return cls(arr[:, 0], arr[:, 1:], tuple(req.channels))

@@ -37,6 +37,7 @@ from runtime.core import commands as C
 from runtime.core.channels import ChannelMap
 from runtime.loop import process_threads
 from runtime.requests import LOCAL_OPS, OPS, to_command
+from runtime.wire_scan import request_id_of
 
 log = logging.getLogger(__name__)
 
@@ -314,7 +315,7 @@ class Server:
         envelope, payload = frames[:-1], frames[-1]
         limit = self.cfg.api.max_message_bytes
         if len(payload) > limit:
-            rid = M.request_id_of(payload)  # when it can be read cheaply
+            rid = request_id_of(payload)  # when it can be read cheaply
             too_large = E.TooLarge(f"request of {len(payload)} bytes exceeds {limit} bytes")
             self._reply(envelope, P.reply_for(rid, too_large))
             return
@@ -383,7 +384,7 @@ class Server:
 
     # ------------------------------------------------------------------ local ops
     def _local(self, req: Any, received: float) -> dict[str, Any]:
-        if isinstance(req, M.Clock):
+        if isinstance(req, M.ClockRequest):
             out: dict[str, Any] = {"t_recv": received, "clock": "monotonic"}
             if req.t_client is not None:
                 out["t_client"] = req.t_client
