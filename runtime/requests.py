@@ -19,7 +19,6 @@ from runtime.core.clips import bind_clip
 
 #: Requests the API server answers itself, never handed to the core.
 LocalRequest = M.HelloRequest | M.ClockRequest
-LOCAL_OPS = ("hello", "clock")
 OPS = M.OPS
 
 

@@ -237,7 +237,7 @@ def test_fuzzed_requests_are_all_answered_within_limits_and_memory(make_daemon) 
 def _run(make_daemon: Any, seed: int) -> None:
     t_start = time.monotonic()
     d = make_daemon()
-    checks = [PostCheck(link, d.period) for link in d.links]
+    checks = [PostCheck(link, d.period) for link in d.buses]
     server_pid = d._server.pid
     fuzz = Fuzzer(seed)
     sock = zmq.Context.instance().socket(zmq.DEALER)
