@@ -32,7 +32,7 @@ from models import protocol as P
 from runtime import ipc
 from runtime import loop_messages as L
 from runtime import messages as M
-from runtime.client_sockets import bind_client_sockets
+from runtime.client_sockets import ClientSockets, bind_client_sockets
 from runtime.config import DaemonConfig
 from runtime.core import commands as C
 from runtime.core.channels import ChannelMap
@@ -136,6 +136,14 @@ class PendingRequests:
 class Server:
     """Serves one head's clients: requests in, commands to the loop, replies and telemetry out."""
 
+    to_loop: ipc.PipeWriter[L.ToLoop]  # the command pipe (server → loop)
+    from_loop: zmq.Socket  # PAIR: runtime.loop_messages.FromLoop (loop → server)
+    clients: ClientSockets  # ROUTER (requests) and PUB (telemetry)
+    decoder: DecoderProcess  # large requests
+    telemetry: Telemetry
+    pending: PendingRequests  # commands on their way to the core, by token
+    recording: RecordingSession | None  # the open recording file
+
     def __init__(self, spec: ServerSpec) -> None:
         from models.headspec import load_head
         from runtime.config import daemon_config
@@ -152,7 +160,7 @@ class Server:
         self.from_loop.connect(spec.loop_endpoint)
         self.to_loop = ipc.PipeWriter[L.ToLoop](spec.command_pipe)
         self.pending = PendingRequests()
-        self.recording: RecordingSession | None = None
+        self.recording = None
         self.clients = bind_client_sockets(self.ctx, self.head, self.cfg)
         self.telemetry = Telemetry(self.clients.pub, self.head, self.units)
         self.inputs = _start_inputs(self.head, self.channels, self.ctx, self.estop_flag)
