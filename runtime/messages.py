@@ -1,13 +1,16 @@
 """Typed protocol requests: one msgspec ``Struct`` per op, decoded from msgpack and validated in one pass.
 
+Each request is named after the core command it becomes (``EStopRequest`` → :class:`runtime.core.commands.EStop`,
+``StopMotionRequest`` → ``StopMotion``; ``HelloRequest`` and ``ClockRequest`` the server answers itself).
 :func:`decode_request` turns the bytes of one request into a :class:`Request` (a tagged union on ``op``) or raises
 :class:`RequestError` (a :class:`~models.protocol.ProtocolError`) with the codes of ``docs/protocol.md`` and the
 request id to echo. msgspec checks types, required and unknown fields, ranges and lengths while it decodes; what it
 cannot express (finite numbers, frame widths, key order, duplicate channels) is checked in ``__post_init__`` with
 numpy over whole arrays. The bulk of big requests, stream frames and clip keys, is kept by msgspec as raw msgpack
-and read into float64 arrays by numpy (rows of float64 values straight from the bytes, anything else through a
-typed msgspec decode), so no Python float is made for them. Checks that need the daemon's state (``play.at``
-against its clock, channel names against the head, clip count) are left to the caller.
+and read into float64 arrays by numpy (:func:`runtime.wire_scan.float_rows`), so no Python float is made for them;
+a failed decode's message is rewritten in the protocol's words by :func:`runtime.wire_scan.translate`. Checks that
+need the daemon's state (``play.at`` against its clock, channel names against the head, clip count) are left to the
+caller.
 """
 
 from __future__ import annotations

@@ -19,7 +19,6 @@ from runtime.core.clips import bind_clip
 
 #: Requests the API server answers itself, never handed to the core.
 LocalRequest = M.HelloRequest | M.ClockRequest
-OPS = M.OPS
 
 
 def check_channels(channels: ChannelMap, names: list[str] | tuple[str, ...]) -> np.ndarray:

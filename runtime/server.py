@@ -39,7 +39,7 @@ from runtime.core.channels import ChannelMap
 from runtime.decoder import DecodeJob, DecoderProcess, DecoderSpec, ReplyMap, die_with_parent
 from runtime.loop import process_threads
 from runtime.recording_session import RecordingSession
-from runtime.requests import OPS, LocalRequest, to_command
+from runtime.requests import LocalRequest, to_command
 from runtime.telemetry import ActuatorUnits, Telemetry
 from runtime.wire_scan import RequestId, request_id_of
 
@@ -327,7 +327,7 @@ class Server:
             "protocol": P.PROTOCOL_VERSION, "daemon": f"likeness {__version__}",
             "head": {"name": self.head.name, "description": self.head.description, "actuators": acts,
                      "groups": groups, "channels": self.channels.described()},
-            "rate_hz": rt.rate_hz, "telemetry": self.clients.telemetry_endpoint, "ops": sorted(OPS),
+            "rate_hz": rt.rate_hz, "telemetry": self.clients.telemetry_endpoint, "ops": sorted(M.OPS),
             "max_message_bytes": self.cfg.api.max_message_bytes, "stream_delay_s": rt.stream_delay_s,
             "clip_memory_bytes": rt.clip_memory_bytes,
             "inputs": {} if self.inputs is None else self.inputs.described(),

@@ -25,7 +25,7 @@ import zmq
 
 from models.client import Client
 from models.protocol import ERROR_CODES
-from runtime.requests import OPS
+from runtime.messages import OPS
 
 SEED = int(os.environ.get("LIKENESS_FUZZ_SEED", str(random.SystemRandom().randrange(1 << 31))))
 REQUESTS = 3000
