@@ -348,7 +348,7 @@ class Server:
                     self._core_reply(token, body)
                 case L.Event(body):
                     self.telemetry.event(body)
-                case L.StateSnapshot(body):  # link poses and the full strain check take ms: off the request thread
+                case L.StateSnapshot(body):  # attachment-link poses and the full strain check take ms: off this thread
                     self.telemetry.state(body)
                 case L.LoopStatistics():
                     self.telemetry.loop = msg.summary()

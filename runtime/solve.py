@@ -1,4 +1,4 @@
-"""The target-solver protocol: target-space channels (``arkit.jawOpen``, link poses) → actuator targets (SI).
+"""The target-solver protocol: target-space channels (``arkit.jawOpen``, attachment-link poses) → actuator targets (SI).
 
 A solver declares its channels; the daemon takes solvers of this type (``Daemon(target_solvers=...)``,
 :func:`runtime.skin.default_target_solvers`), the core adapts them to its array form

@@ -2,8 +2,8 @@
 
 Each input's I/O runs on threads of its own (python-osc's server, the sACN receiver, the timecode port server);
 they hand commands to one in-process ZeroMQ PUSH socket (under a lock), and the server's thread, which polls the
-PULL end beside its ROUTER, gives each a token and sends it to the control core on the same link as the protocol's
-commands. Nothing here runs in the control loop's process.
+PULL end beside its ROUTER, gives each a token and sends it to the control core on the same command pipe as the
+protocol's commands. Nothing here runs in the control loop's process.
 """
 
 from __future__ import annotations
