@@ -1,8 +1,8 @@
 """The loop process ⇄ API server process pipe: pickled messages, and a shared e-stop flag.
 
 Commands (server → loop) travel over a named pipe (:class:`PipeWriter` → :class:`PipeReader`): a write from the
-server's thread wakes the loop's realtime thread directly, without ZeroMQ's I/O threads in between (two thread hand-
-offs at normal priority, which cost 0.1–1 ms per command on a busy two-core machine). Everything else (loop →
+server's thread wakes the loop's realtime thread directly, without ZeroMQ's I/O threads in between (two thread
+hand-offs at normal priority, which cost 0.1–1 ms per command on a busy two-core machine). Everything else (loop →
 server: replies, events, state snapshots) uses a ZeroMQ PAIR socket (:func:`send`, :func:`recv`). This module moves
 bytes; what the messages are is :mod:`runtime.loop_messages` (the pipe is typed by its message type:
 ``PipeWriter[Command]``). Messages are pickled with protocol 5 and their large buffers (compiled clips, frame
