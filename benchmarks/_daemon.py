@@ -127,7 +127,7 @@ def run_sender_watching_jaw(daemon: Any, target: Any, args: tuple, what: str) ->
 
     import numpy as np
 
-    link = next(lk for lk in daemon.links if "jaw" in lk.actuators)
+    link = next(lk for lk in daemon.buses if "jaw" in lk.actuators)
     j = link.actuators.index("jaw")
     writes: list[tuple[float, float]] = [(0.0, float("nan"))]  # (bus write time, jaw target) from the bus process
     ctx = mp.get_context("spawn")

@@ -91,7 +91,7 @@ def ready(daemon: Any) -> None:
 
 def measure(daemon: Any, trials: int, send: Callable[[float], None]) -> list[float]:
     """Latencies (s) of ``send(jaw_degrees)`` → the first bus write whose jaw target moved."""
-    link = next(lk for lk in daemon.links if "jaw" in lk.actuators)
+    link = next(lk for lk in daemon.buses if "jaw" in lk.actuators)
     j = link.actuators.index("jaw")
     lat: list[float] = []
     rng = np.random.default_rng(1)

@@ -82,7 +82,7 @@ def stream_latency(daemon, trials: int) -> list[float]:
     """Arrival of a frame stamped "now" → the first bus write whose jaw target moved (seconds)."""
     from models.client import Client
 
-    link = next(lk for lk in daemon.links if "jaw" in lk.actuators)
+    link = next(lk for lk in daemon.buses if "jaw" in lk.actuators)
     j = link.actuators.index("jaw")
     lat: list[float] = []
     with Client(daemon.command_endpoint) as c:

@@ -16,11 +16,14 @@ import threading
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Literal
+from typing import ClassVar, Literal, TypeAlias
 
 from drivers.errors import CommandRejected, ConfigError, DeviceFault, LifecycleError
 
 log = logging.getLogger(__name__)
+
+#: A value of a bus's driver options as the head config gives it (a TOML value).
+OptionValue: TypeAlias = "str | int | float | bool | Sequence[OptionValue] | Mapping[str, OptionValue]"
 
 
 class LifecycleState(enum.Enum):
@@ -48,7 +51,7 @@ class MotorConfig:
     max_velocity: float
     zero_count: int = 0
     kind: Literal["rotary", "linear"] = "rotary"
-    options: Mapping[str, Any] = field(default_factory=dict)
+    options: Mapping[str, OptionValue] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         where = f"motor {self.name!r}"
@@ -85,7 +88,7 @@ class MotorConfig:
         gear_ratio: float = 1.0,
         direction: int = 1,
         zero_count: int = 0,
-        options: Mapping[str, Any] | None = None,
+        options: Mapping[str, OptionValue] | None = None,
     ) -> MotorConfig:
         """A rotary axis: ``counts_per_rev`` at the motor, ``gear_ratio`` motor turns per output turn."""
         if direction not in (1, -1):
@@ -151,7 +154,7 @@ class MotorBus(abc.ABC):
     #: Factor of slack on the velocity guard, to absorb loop jitter.
     RATE_TOLERANCE: ClassVar[float] = 1.5
 
-    def __init__(self, name: str, options: Mapping[str, Any], motors: Sequence[MotorConfig]) -> None:
+    def __init__(self, name: str, options: Mapping[str, OptionValue], motors: Sequence[MotorConfig]) -> None:
         self.name = name
         self.options = dict(options)
         self._motors: dict[str, MotorConfig] = {}

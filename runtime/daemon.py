@@ -5,7 +5,8 @@ Processes and threads (``docs/architecture.md`` draws them):
 - this process: the loop runner's thread (the only realtime thread) stepping :mod:`runtime.core`, and the caller's
   thread, which only starts and stops things and forwards signals;
 - the API server process (:mod:`runtime.server`): ZeroMQ command and telemetry sockets, decoding and validation,
-  clip compilation, telemetry formatting, recording files; linked to the loop by :mod:`runtime.ipc`;
+  clip compilation, telemetry formatting, recording files; it hands the loop commands over the command pipe and
+  hears back over a PAIR socket (:mod:`runtime.ipc` moves the bytes, :mod:`runtime.loop_messages` types them);
 - the buses: each driver runs off the loop's critical path (the loop posts targets and takes the latest feedback);
 - emulated hardware (``simulated = true``): the emulators, started by :mod:`runtime.hardware`.
 """
@@ -24,20 +25,29 @@ import threading
 import time
 from collections.abc import Iterable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import zmq
 
 from models.errors import StartError
 from models.headspec import HeadSpec
 from runtime import ipc
+from runtime import loop_messages as L
 from runtime import server as server_mod
+from runtime.bus import BusProxy
 from runtime.config import DaemonConfig, daemon_config
-from runtime.core import core as K
 from runtime.core.channels import ChannelMap
+from runtime.core.commands import Command
+from runtime.core.cycle import CycleInputs
+from runtime.core.params import CoreParams
 from runtime.core.solvers import as_array_solvers, channel_sets
+from runtime.core.state import CoreState
 from runtime.hardware import Hardware
 from runtime.runner import Runner
+from runtime.solve import TargetSolver
+
+if TYPE_CHECKING:
+    from models.strain_guard import StrainGuard
 
 log = logging.getLogger(__name__)
 
@@ -57,8 +67,8 @@ class DaemonStartError(StartError, RuntimeError):
 class Daemon:
     """One head's daemon. ``start()`` opens the buses and serves; ``stop()`` disables torque and closes everything."""
 
-    def __init__(self, head: HeadSpec, overrides: Mapping[str, Any] | None = None,
-                 hardware: Hardware | None = None, target_solvers: Iterable[Any] | None = None,
+    def __init__(self, head: HeadSpec, overrides: Mapping[str, object] | None = None,
+                 hardware: Hardware | None = None, target_solvers: Iterable[TargetSolver] | None = None,
                  record_inputs: bool = False, strain_guard: bool = True) -> None:
         self.head = head
         self.overrides = dict(overrides or {})
@@ -69,7 +79,7 @@ class Daemon:
             from runtime.skin import default_target_solvers
 
             target_solvers = default_target_solvers(head)
-        self.target_solvers = list(target_solvers)
+        self.target_solvers: list[TargetSolver] = list(target_solvers)
         self.channels = ChannelMap.build(head, channel_sets(self.target_solvers))
         self.guard = _strain_guard(head, self.target_solvers) if strain_guard else None
         from runtime.inputs.config import inputs_config
@@ -77,20 +87,20 @@ class Daemon:
         self.inputs = inputs_config(head, self.channels)  # [inputs]: checked here, served by the API server
         self.hw = hardware
         self._own_hw = hardware is None
-        self.links: list[Any] = []
-        self.params: K.CoreParams | None = None
-        self.state: K.CoreState | None = None
+        self.buses: list[BusProxy] = []
+        self.params: CoreParams | None = None
+        self.state: CoreState | None = None
         self.runner: Runner | None = None
-        self.input_log: list[K.CycleInputs] | None = [] if record_inputs else None
+        self.input_log: list[CycleInputs] | None = [] if record_inputs else None
         self.command_endpoint = ""
         self.telemetry_endpoint = ""
         self._thread: threading.Thread | None = None
-        self._server: Any = None
+        self._server: subprocess.Popen[bytes] | None = None
         self._ctx: zmq.Context | None = None
         self._sock: zmq.Socket | None = None
         self._estop: ipc.EStopFlag | None = None
         self._tmp: str | None = None
-        self._commands: ipc.PipeReader | None = None
+        self._commands: ipc.PipeReader[Command] | None = None
 
     @property
     def realtime_status(self) -> str:
@@ -105,7 +115,7 @@ class Daemon:
         """Open the buses, start the API server process and the control loop; raises :class:`DaemonStartError`."""
         try:
             self._start_buses()
-            self._start_link()
+            self._start_pipes()
             self._start_server()
             self._start_loop()
         except BaseException:
@@ -124,22 +134,23 @@ class Daemon:
             self.hw = Hardware.from_head(self.head, bus_nice=BUS_NICE,
                                      realtime_priority=(rt.bus_priority or None) if rt.realtime else None)
         self.hw.start()
-        self.links = list(self.hw.proxies.values())
+        self.buses = list(self.hw.proxies.values())
 
-    def _start_link(self) -> None:
+    def _start_pipes(self) -> None:
+        """The PAIR socket the server hears the loop on, the command pipe the loop reads, the shared e-stop flag."""
         self._tmp = tempfile.mkdtemp(prefix="likeness-")
         self._ctx = zmq.Context()
         self._sock = self._ctx.socket(zmq.PAIR)
         self._sock.setsockopt(zmq.LINGER, 0)
         self._sock.setsockopt(zmq.SNDHWM, 10000)
-        self._sock.bind(f"ipc://{self._tmp}/link")
+        self._sock.bind(f"ipc://{self._tmp}/loop")
         ipc.make_pipe(f"{self._tmp}/commands")
-        self._commands = ipc.PipeReader(f"{self._tmp}/commands")  # opened before the server opens its end
+        self._commands = ipc.PipeReader[Command](f"{self._tmp}/commands")  # opened before the server opens its end
         self._estop = ipc.EStopFlag()
 
     def _start_server(self) -> None:
         assert self._sock is not None and self._estop is not None and self._tmp is not None
-        spec = server_mod.ServerSpec(str(self.head.source), self.overrides, self.channels, f"ipc://{self._tmp}/link",
+        spec = server_mod.ServerSpec(str(self.head.source), self.overrides, self.channels, f"ipc://{self._tmp}/loop",
                                      f"{self._tmp}/commands",
                                      self._estop.name, self.cfg.safety.safe_speed,
                                      logging.getLogger().getEffectiveLevel())
@@ -154,9 +165,9 @@ class Daemon:
         deadline = time.monotonic() + SERVER_START_TIMEOUT_S
         while True:
             if self._sock.poll(100):
-                kind, *rest = ipc.recv(self._sock)
-                if kind == "ready":
-                    self.command_endpoint, self.telemetry_endpoint = rest
+                ready = L.recv_ready(self._sock)
+                if ready is not None:
+                    self.command_endpoint, self.telemetry_endpoint = ready.command_endpoint, ready.telemetry_endpoint
                     break
             if self._server.poll() is not None:
                 raise DaemonStartError(f"the API server process exited with code {self._server.returncode} "
@@ -167,13 +178,13 @@ class Daemon:
 
     def _start_loop(self) -> None:
         assert self._sock is not None and self._estop is not None and self._commands is not None
-        self.params = K.CoreParams.build(self.head, self.cfg, self.channels,
-                                         [(link.name, link.actuators) for link in self.links], guard=self.guard,
+        self.params = CoreParams.build(self.head, self.cfg, self.channels,
+                                         [(bus.name, bus.actuators) for bus in self.buses], guard=self.guard,
                                          chase=None if self.inputs.timecode is None else self.inputs.timecode.chase)
         solvers = as_array_solvers(self.target_solvers, self.channels.target_blocks, self.channels.names,
                                    self.names)
-        self.state = K.CoreState.initial(self.head, self.params, solvers)
-        self.runner = Runner(self.params, self.state, self.links, self._sock, self._commands, self._estop,
+        self.state = CoreState.initial(self.head, self.params, solvers)
+        self.runner = Runner(self.params, self.state, self.buses, self._sock, self._commands, self._estop,
                              input_log=self.input_log)
         self._thread = threading.Thread(target=self.runner.run, name="likeness-control", daemon=True)
         self._thread.start()
@@ -189,7 +200,7 @@ class Daemon:
             self._thread = None
         if self._sock is not None:
             with contextlib.suppress(zmq.ZMQError):
-                ipc.send(self._sock, ("stop",), zmq.NOBLOCK)
+                L.send_to_server(self._sock, L.StopServer(), zmq.NOBLOCK)
         if self._server is not None:
             try:
                 self._server.wait(timeout=3.0)
@@ -203,7 +214,7 @@ class Daemon:
             self._server = None
         if self.hw is not None and self._own_hw:
             self.hw.stop()  # torque off, close every bus, stop the emulators
-        self.links = []
+        self.buses = []
         if self._sock is not None:
             self._sock.close(0)
             self._sock = None
@@ -233,7 +244,7 @@ class Daemon:
         if self.runner is not None:
             self.runner.trip_estop(reason)
 
-    def call(self, op: str, **fields: Any) -> dict[str, Any]:
+    def call(self, op: str, **fields: object) -> dict[str, object]:
         """One request through the public protocol (for tools and tests in the daemon's process)."""
         from models.client import Client
 
@@ -264,7 +275,7 @@ def _renice(pid: int, delta: int) -> None:
         log.debug("process %d keeps its niceness (%s)", pid, exc)
 
 
-def _strain_guard(head: HeadSpec, solvers: list[Any]) -> Any:
+def _strain_guard(head: HeadSpec, solvers: list[TargetSolver]) -> StrainGuard | None:
     """The skin-strain guard of the safety stage: the skin solver's own (one build), else the head's predictor's,
     else None (a head without a skin predictor has no strain guard)."""
     for solver in solvers:

@@ -1,13 +1,14 @@
-"""The loop process ⇄ API server process link: pickled messages, and a shared e-stop flag.
+"""The loop process ⇄ API server process pipe: pickled messages, and a shared e-stop flag.
 
 Commands (server → loop) travel over a named pipe (:class:`PipeWriter` → :class:`PipeReader`): a write from the
 server's thread wakes the loop's realtime thread directly, without ZeroMQ's I/O threads in between (two thread
 hand-offs at normal priority, which cost 0.1–1 ms per command on a busy two-core machine). Everything else (loop →
-server: replies, events, state snapshots) uses a ZeroMQ PAIR socket (:func:`send`, :func:`recv`). Messages are
-pickled with protocol 5 and their large buffers (compiled clips, frame arrays) travel out of band, so unpickling in
-the loop process copies nothing big. The e-stop flag is a counter in shared memory: the API server (and a signal
-handler) increment it, the control loop compares it with the last value it saw every cycle, so an e-stop reaches
-the core within one cycle whatever is queued on the link.
+server: replies, events, state snapshots) uses a ZeroMQ PAIR socket (:func:`send`, :func:`recv`). This module moves
+bytes; what the messages are is :mod:`runtime.loop_messages` (the pipe is typed by its message type:
+``PipeWriter[Command]``). Messages are pickled with protocol 5 and their large buffers (compiled clips, frame
+arrays) travel out of band, so unpickling in the loop process copies nothing big. The e-stop flag is a counter in
+shared memory: the API server (and a signal handler) increment it, the control loop compares it with the last value
+it saw every cycle, so an e-stop reaches the core within one cycle whatever is queued on the command pipe.
 """
 
 from __future__ import annotations
@@ -19,8 +20,9 @@ import itertools
 import os
 import pickle
 import struct
+from collections.abc import Callable
 from multiprocessing import shared_memory
-from typing import Any
+from typing import Generic, TypeVar, cast
 
 import zmq
 
@@ -31,9 +33,11 @@ _LEN = struct.Struct("<Q")
 OUT_OF_BAND_BYTES = 64 * 1024
 _F_SETPIPE_SZ = 1031  # Linux: the pipe's kernel buffer size
 _REASON = struct.Struct("<B63s")  # length, then the reason of the latest trip (UTF-8, truncated)
+#: The type of the messages a command pipe carries.
+T = TypeVar("T")
 
 
-def _out_of_band(buffers: list[pickle.PickleBuffer]) -> Any:
+def _out_of_band(buffers: list[pickle.PickleBuffer]) -> Callable[[pickle.PickleBuffer], bool]:
     """A pickle ``buffer_callback``: buffers of ``OUT_OF_BAND_BYTES`` or more travel out of band (appended to
     ``buffers``), smaller ones in the pickle (a separate buffer costs more than copying it)."""
 
@@ -46,7 +50,7 @@ def _out_of_band(buffers: list[pickle.PickleBuffer]) -> Any:
     return callback
 
 
-def send(sock: zmq.Socket, obj: Any, flags: int = 0) -> None:
+def send(sock: zmq.Socket, obj: object, flags: int = 0) -> None:
     """Pickle ``obj`` (protocol 5, large buffers out of band as extra frames, sent without copying) and send it."""
     buffers: list[pickle.PickleBuffer] = []
     head = pickle.dumps(obj, protocol=5, buffer_callback=_out_of_band(buffers))
@@ -56,7 +60,7 @@ def send(sock: zmq.Socket, obj: Any, flags: int = 0) -> None:
         sock.send(head, flags)
 
 
-def recv(sock: zmq.Socket, flags: int = 0) -> Any:
+def recv(sock: zmq.Socket, flags: int = 0) -> object:
     """Receive one message sent by :func:`send` (``zmq.Again`` with NOBLOCK and nothing waiting)."""
     frames = sock.recv_multipart(flags, copy=False)
     if len(frames) == 1:
@@ -126,9 +130,10 @@ def make_pipe(path: str) -> None:
     os.mkfifo(path, 0o600)
 
 
-class PipeWriter:
-    """The sending end of a command pipe. :meth:`send` never blocks: what the pipe cannot take now waits in a queue
-    (in order) until :meth:`flush`, which the owner calls when :meth:`fileno` is writable (``wants_write``)."""
+class PipeWriter(Generic[T]):
+    """The sending end of a command pipe, for messages of type ``T``. :meth:`send` never blocks: what the pipe
+    cannot take now waits in a queue (in order) until :meth:`flush`, which the owner calls when :meth:`fileno` is
+    writable (``wants_write``)."""
 
     def __init__(self, path: str) -> None:
         self.fd = os.open(path, os.O_WRONLY | os.O_NONBLOCK)
@@ -144,7 +149,7 @@ class PipeWriter:
     def wants_write(self) -> bool:
         return bool(self._queue)
 
-    def send(self, obj: Any) -> None:
+    def send(self, obj: T) -> None:
         """Queue ``obj`` (pickled, large buffers out of band) and write as much as the pipe takes now."""
         buffers: list[pickle.PickleBuffer] = []
         head = pickle.dumps(obj, protocol=5, buffer_callback=_out_of_band(buffers))
@@ -180,9 +185,10 @@ class PipeWriter:
             os.close(self.fd)
 
 
-class PipeReader:
-    """The receiving end of a command pipe: :meth:`recv` returns the messages complete so far without blocking,
-    reading at most ``max_bytes`` per call so a large message costs several short calls rather than one long one."""
+class PipeReader(Generic[T]):
+    """The receiving end of a command pipe (messages of type ``T``): :meth:`recv` returns the messages complete so
+    far without blocking, reading at most ``max_bytes`` per call so a large message costs several short calls rather
+    than one long one."""
 
     def __init__(self, path: str) -> None:
         self.fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
@@ -198,8 +204,9 @@ class PipeReader:
     def fileno(self) -> int:
         return self.fd
 
-    def recv(self, max_messages: int = 64, max_bytes: int = 256 * 1024) -> list[Any]:
-        out: list[Any] = []
+    def recv(self, max_messages: int = 64, max_bytes: int = 256 * 1024) -> list[T]:
+        """The messages complete so far, at most ``max_messages``, reading at most ``max_bytes``."""
+        out: list[T] = []
         budget = max_bytes
         while len(out) < max_messages and budget > 0:
             if self._body is None:
@@ -242,7 +249,7 @@ class PipeReader:
             out.append(self._finish())
         return out
 
-    def _finish(self) -> Any:
+    def _finish(self) -> T:
         assert self._body is not None
         mv = memoryview(self._body)
         offsets = [0]
@@ -250,7 +257,7 @@ class PipeReader:
             offsets.append(offsets[-1] + n)
         parts = [mv[a:b] for a, b in itertools.pairwise(offsets)]
         self._body, self._head, self._need = None, bytearray(), _HEADER.size
-        return pickle.loads(parts[0], buffers=parts[1:])
+        return cast(T, pickle.loads(parts[0], buffers=parts[1:]))
 
     def close(self) -> None:
         with contextlib.suppress(OSError):

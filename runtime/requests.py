@@ -1,8 +1,10 @@
 """Typed requests → ready-made core commands: channel lookup and clip compilation (API server side).
 
-Requests are decoded and validated in one pass by :func:`runtime.messages.decode_request` (msgspec Structs);
+Requests are decoded and validated in one pass by :func:`runtime.messages.decode_request` (msgspec Structs, each
+named after the core command it becomes: ``EStopRequest`` → :class:`runtime.core.commands.EStop`);
 :func:`to_command` binds their channels to the head's channel vector and compiles clips to arrays, so the control
-core receives nothing it has to parse. ``hello`` and ``clock`` are answered by the server itself.
+core receives nothing it has to parse. ``hello`` and ``clock`` (:data:`LocalRequest`) are answered by the server
+itself.
 """
 
 from __future__ import annotations
@@ -15,8 +17,8 @@ from runtime.core import commands as C
 from runtime.core.channels import ChannelMap, UnknownChannel
 from runtime.core.clips import bind_clip
 
-LOCAL_OPS = ("hello", "clock")
-OPS = M.OPS
+#: Requests the API server answers itself, never handed to the core.
+LocalRequest = M.HelloRequest | M.ClockRequest
 
 
 def check_channels(channels: ChannelMap, names: list[str] | tuple[str, ...]) -> np.ndarray:
@@ -25,36 +27,50 @@ def check_channels(channels: ChannelMap, names: list[str] | tuple[str, ...]) -> 
         return channels.indices(names)
     except UnknownChannel as exc:
         raise E.UnknownChannel(f"unknown channel {str(exc.args[0])[:128]!r}; known: "
-                            f"{', '.join(channels.names)}") from None
+                               f"{', '.join(channels.names)}") from None
 
 
 def to_command(req: M.Request, token: int, channels: ChannelMap, safe_speed: float,
                received: float | None = None) -> C.Command:
     """The core command for a decoded request (not a local op); ``received``: when it reached the daemon."""
-    simple = _SIMPLE.get(type(req))
-    if simple is not None:
-        return simple(token)
-    if isinstance(req, M.Estop):
-        return C.EStop(token, req.reason or "api")
-    if isinstance(req, M.LoadClip):
-        return _load_clip(req.clip, token, channels)
-    if isinstance(req, M.UnloadClip):
-        return C.UnloadClip(token, req.clip)
-    if isinstance(req, M.Play):
-        return C.Play(token, req.clip, req.at, float(req.from_ or 0.0), float(req.speed or 1.0), bool(req.loop))
-    if isinstance(req, M.Seek):
-        return C.Seek(token, req.time)
-    if isinstance(req, M.Stream):
-        idx = check_channels(channels, req.channels)
-        arr = req.array()
-        return C.Stream(token, np.ascontiguousarray(arr[:, 0]), idx, np.ascontiguousarray(arr[:, 1:]), received)
-    if isinstance(req, M.Pose):
-        names = list(req.pose)
-        idx = check_channels(channels, names)
-        speed = safe_speed if req.speed is None else req.speed
-        return C.Pose(token, idx, np.array([req.pose[n] for n in names], dtype=float), speed)
-    if isinstance(req, M.Record):
-        return C.Record(token, req.action, req.name or "recording")
+    match req:
+        case M.EnableRequest():
+            return C.Enable(token)
+        case M.DisableRequest():
+            return C.Disable(token)
+        case M.ResetRequest():
+            return C.Reset(token)
+        case M.StatusRequest():
+            return C.Status(token)
+        case M.PauseRequest():
+            return C.Pause(token)
+        case M.ResumeRequest():
+            return C.Resume(token)
+        case M.StopMotionRequest():
+            return C.StopMotion(token)
+        case M.EStopRequest():
+            return C.EStop(token, req.reason or "api")
+        case M.LoadClipRequest():
+            return _load_clip(req.clip, token, channels)
+        case M.UnloadClipRequest():
+            return C.UnloadClip(token, req.clip)
+        case M.PlayRequest():
+            return C.Play(token, req.clip, req.at, float(req.from_ or 0.0), float(req.speed or 1.0), bool(req.loop))
+        case M.SeekRequest():
+            return C.Seek(token, req.time)
+        case M.StreamRequest():
+            idx = check_channels(channels, req.channels)
+            arr = req.array()
+            return C.Stream(token, np.ascontiguousarray(arr[:, 0]), idx, np.ascontiguousarray(arr[:, 1:]), received)
+        case M.PoseRequest():
+            names = list(req.pose)
+            idx = check_channels(channels, names)
+            speed = safe_speed if req.speed is None else req.speed
+            return C.Pose(token, idx, np.array([req.pose[n] for n in names], dtype=float), speed)
+        case M.RecordRequest():
+            return C.Record(token, req.action, req.name or "recording")
+        case M.HelloRequest() | M.ClockRequest():
+            pass
     raise E.UnknownOp(f"op {type(req).__name__} is not served by the core")
 
 
@@ -62,7 +78,3 @@ def _load_clip(spec: M.ClipSpec, token: int, channels: ChannelMap) -> C.LoadClip
     check_channels(channels, tuple(spec.channels))
     bound = bind_clip(spec, channels)
     return C.LoadClip(token, bound, bound.key_count, bound.nbytes)
-
-
-_SIMPLE = {M.Enable: C.Enable, M.Disable: C.Disable, M.Reset: C.Reset, M.Status: C.Status, M.Pause: C.Pause,
-           M.Resume: C.Resume, M.Stop: C.StopMotion}

@@ -1,9 +1,10 @@
 """The loop runner: the one realtime thread. It owns time, and each cycle it reads → steps the core → writes.
 
 Per cycle: sleep (then spin) to the next absolute deadline; take every bus's latest feedback and the commands that
-arrived on the link (never waiting for either); run :func:`runtime.core.core.step`; post the commanded positions to
-the buses and their lifecycle requests; hand replies, events, telemetry snapshots and recorded rows to the API
-server. Only this thread runs under SCHED_FIFO (and pinned to a CPU where allowed); deadline misses, wake-up jitter
+arrived on the command pipe (never waiting for either); run :func:`runtime.core.core.step`; post the commanded
+positions to the buses (:class:`runtime.bus.BusProxy`) and their lifecycle requests; hand replies, events,
+telemetry snapshots and recorded rows to the API server (:data:`runtime.loop_messages.FromLoop`).
+Only this thread runs under SCHED_FIFO (and pinned to a CPU where allowed); deadline misses, wake-up jitter
 and work time are measured every cycle. Overrun policy: a cycle that starts more than a period late skips the
 missed deadlines instead of bursting to catch up, and the misses are counted and reported once a second.
 """
@@ -16,19 +17,24 @@ import select
 import threading
 import time
 from collections.abc import Callable, Sequence
-from typing import Any
 
+import numpy as np
 import zmq
 
 from runtime import ipc
+from runtime import loop_messages as L
+from runtime.bus import BusProxy
 from runtime.core import core as K
-from runtime.core.commands import Live, Stream
+from runtime.core.commands import Command, Live, Stream
+from runtime.core.cycle import BusInput, CycleInputs, CycleOutputs
+from runtime.core.params import CoreParams
+from runtime.core.state import CoreState
 from runtime.loop import LoopStats, RateScheduler, SwitchInterval, drop_realtime, freeze_heap, try_realtime
 from runtime.phaselock import PhaseLock
 
 log = logging.getLogger(__name__)
 
-#: Commands taken from the link per cycle at most (the rest wait for the next cycle).
+#: Commands taken from the command pipe per cycle at most (the rest wait for the next cycle).
 MAX_COMMANDS_PER_CYCLE = 64
 STATS_EVERY_S = 0.5
 #: Commands arriving between cycles are taken at once unless the next cycle is closer than this.
@@ -38,23 +44,23 @@ COMMAND_MARGIN_S = 300e-6
 class Runner:
     """Runs the core at the configured rate on the calling thread until :meth:`stop`."""
 
-    def __init__(self, params: K.CoreParams, state: K.CoreState, links: Sequence[Any], sock: zmq.Socket,
-                 commands: ipc.PipeReader, estop: ipc.EStopFlag, clock: Callable[[], float] = time.monotonic,
-                 input_log: list[K.CycleInputs] | None = None) -> None:
+    def __init__(self, params: CoreParams, state: CoreState, buses: Sequence[BusProxy], sock: zmq.Socket,
+                 commands: ipc.PipeReader[Command], estop: ipc.EStopFlag, clock: Callable[[], float] = time.monotonic,
+                 input_log: list[CycleInputs] | None = None) -> None:
         self.params = params
         self.state = state
-        self.links = list(links)
-        self.sock = sock  # to the server: replies, events, state
+        self.buses = list(buses)
+        self.sock = sock  # to the server: replies, events, state (runtime.loop_messages.FromLoop)
         self.commands = commands  # from the server: ready-made commands
         self.estop = estop
         self.clock = clock
         self.stats = LoopStats(params.period)
         self.input_log = input_log
-        self.output_log: list[Any] | None = [] if input_log is not None else None  # writes, beside the inputs
+        self.output_log: list[np.ndarray | None] | None = [] if input_log is not None else None  # writes, beside inputs
         self.realtime_status = "not started"
         self.ready = threading.Event()
         self._stop = threading.Event()
-        self._tickets: dict[tuple[int, int], str] = {}  # (link index, ticket) → op
+        self._tickets: dict[tuple[int, int], str] = {}  # (bus index, ticket) → op
         self._signal_estop: str | None = None
         self.native_id = 0
         rt = params.cfg.runtime
@@ -84,7 +90,7 @@ class Runner:
             ok, msg = False, "realtime priority disabled in config ([runtime] realtime = false)"
         self.realtime_status = msg
         (log.info if ok else log.warning)("%s", msg)
-        self._send(("realtime", msg))
+        self._send(L.RealtimeStatus(msg))
         freeze_heap()
         sched = RateScheduler(self.params.period, rt.spin_us * 1e-6, self.clock)
         next_stats = 0.0
@@ -104,16 +110,16 @@ class Runner:
                         out = K.step(self.state, self.params, inputs)
                     except Exception as exc:  # a bug or a failing solver: safe state, the loop lives on
                         log.exception("control cycle failed")
-                        out = K.CycleOutputs()
+                        out = CycleOutputs()
                         K.fault(self.state, self.params, out, t, "control loop",
-                                 f"control cycle failed: {type(exc).__name__}: {exc}")
+                              f"control cycle failed: {type(exc).__name__}: {exc}")
                     self._write(out, t)
                     if missed:
                         self.stats.missed += missed
                         pending_misses += missed
                     if pending_misses and t - last_miss_event >= 1.0:
-                        self._send(("event", {"event": "deadline_miss", "t": t, "count": pending_misses,
-                                              "total": self.stats.missed}))
+                        self._send(L.Event({"event": "deadline_miss", "t": t, "count": pending_misses,
+                                            "total": self.stats.missed}))
                         pending_misses = 0
                         last_miss_event = t
                     self._outbox(out)
@@ -131,7 +137,7 @@ class Runner:
     def _idle(self, until: float) -> None:
         """Until ``until``: wait for commands from the server and take them at once (their replies and stream frames
         then need not wait for the next cycle), as long as ``COMMAND_MARGIN_S`` is left before the cycle; later
-        ones wait in the link for the cycle. ``select`` times out to the microsecond (``poll`` only to the
+        ones wait in the pipe for the cycle. ``select`` times out to the microsecond (``poll`` only to the
         millisecond, which left the last fraction of a millisecond before each cycle unwatched)."""
         fd = self.commands.fileno()
         while True:
@@ -150,39 +156,38 @@ class Runner:
             estop = self._estop_now()
             if not cmds and estop is None:
                 continue
-            inputs = K.CycleInputs(t, self._bus_inputs(), tuple(cmds), (), estop, between_cycles=True)
+            inputs = CycleInputs(t, self._bus_inputs(), tuple(cmds), (), estop, between_cycles=True)
             if self.input_log is not None:
                 self.input_log.append(inputs)
             try:
                 out = K.step(self.state, self.params, inputs)
             except Exception as exc:
                 log.exception("taking commands failed")
-                out = K.CycleOutputs()
+                out = CycleOutputs()
                 K.fault(self.state, self.params, out, t, "control loop",
-                         f"taking commands failed: {type(exc).__name__}: {exc}")
+                      f"taking commands failed: {type(exc).__name__}: {exc}")
             self._write(out, t)
             self._outbox(out)
 
-    def _bus_inputs(self) -> tuple[K.BusInput, ...]:
+    def _bus_inputs(self) -> tuple[BusInput, ...]:
         out = []
-        for link in self.links:
-            fb = link.feedback()
-            out.append(K.BusInput(link.name, fb.state.value, fb.connected, fb.positions, fb.stamp, fb.faults,
+        for bus in self.buses:
+            fb = bus.feedback()
+            out.append(BusInput(bus.name, fb.state.value, fb.connected, fb.positions, fb.stamp, fb.faults,
                                   fb.connection, fb.attempts, fb.retry_at))
         return tuple(out)
 
-    def _drain(self, deadline: float) -> list[Any]:
-        """The commands waiting on the link; stream frames and live values tell the phase lock when this loop took
-        them, for the cycle due at ``deadline``. What matters is when a frame reaches the loop, not the server: the
-        hop between them takes a few hundred microseconds, more on a busy host. The loop watches the link until
-        ``COMMAND_MARGIN_S`` before each cycle (:meth:`_idle`), so a take time is the frame's arrival, or the cycle's
-        start for a frame that came later than that."""
-        cmds = []
+    def _drain(self, deadline: float) -> list[Command]:
+        """The commands waiting on the command pipe; stream frames and live values tell the phase lock when this
+        loop took them, for the cycle due at ``deadline``. What matters is when a frame reaches the loop, not the
+        server: the hop between them takes a few hundred microseconds, more on a busy host. The loop watches the pipe
+        until ``COMMAND_MARGIN_S`` before each cycle (:meth:`_idle`), so a take time is the frame's arrival, or the
+        cycle's start for a frame that came later than that."""
         taken = self.clock()
-        for kind, cmd in self.commands.recv(MAX_COMMANDS_PER_CYCLE):
-            if kind == "cmd":
-                cmds.append(cmd)
-                if self.phase_lock is not None and isinstance(cmd, (Stream, Live)):
+        cmds = self.commands.recv(MAX_COMMANDS_PER_CYCLE)
+        if self.phase_lock is not None:
+            for cmd in cmds:
+                if isinstance(cmd, (Stream, Live)):
                     self.phase_lock.arrival(taken, deadline)
         return cmds
 
@@ -194,44 +199,44 @@ class Runner:
             estop, self._signal_estop = self._signal_estop, None
         return estop
 
-    def _inputs(self, t: float) -> K.CycleInputs:
+    def _inputs(self, t: float) -> CycleInputs:
         buses = self._bus_inputs()
         cmds = self._drain(t)
         results = []
         if self._tickets:
             for (i, ticket), op in list(self._tickets.items()):
-                res = self.links[i].result(ticket)
+                res = self.buses[i].result(ticket)
                 if res is not None:
                     del self._tickets[i, ticket]
-                    results.append((self.links[i].name, op, res[0], res[1]))
-        inputs = K.CycleInputs(t, buses, tuple(cmds), tuple(results), self._estop_now())
+                    results.append((self.buses[i].name, op, res[0], res[1]))
+        inputs = CycleInputs(t, buses, tuple(cmds), tuple(results), self._estop_now())
         if self.input_log is not None:
             self.input_log.append(inputs)
         return inputs
 
-    def _write(self, out: K.CycleOutputs, t: float) -> None:
+    def _write(self, out: CycleOutputs, t: float) -> None:
         """Post the commands (stamped with the cycle's time, which the drivers' rate guard measures against) and
         the lifecycle requests."""
         if self.output_log is not None:
             self.output_log.append(None if out.write is None else out.write.copy())
         if out.write is not None:
             q = out.write
-            for link, (_, idx) in zip(self.links, self.params.buses, strict=True):
-                link.post(q[idx], t)
-        for bus, op in out.bus_requests:
-            for i, link in enumerate(self.links):
-                if link.name == bus:
-                    self._tickets[i, link.request(op)] = op
+            for bus, (_, idx) in zip(self.buses, self.params.buses, strict=True):
+                bus.post(q[idx], t)
+        for name, op in out.bus_requests:
+            for i, bus in enumerate(self.buses):
+                if bus.name == name:
+                    self._tickets[i, bus.request(op)] = op
 
-    def _outbox(self, out: K.CycleOutputs) -> None:
+    def _outbox(self, out: CycleOutputs) -> None:
         if out.record is not None:
-            self._send(("record", out.record))
+            self._send(L.RecordedRows(out.record))
         for token, body in out.replies:
-            self._send(("reply", token, body))
+            self._send(L.Reply(token, body))
         for event in out.events:
-            self._send(("event", event))
+            self._send(L.Event(event))
         if out.telemetry is not None:
-            self._send(("state", out.telemetry))
+            self._send(L.StateSnapshot(out.telemetry))
 
     def _send_stats(self) -> None:
         s = self.stats
@@ -239,17 +244,17 @@ class Runner:
         lock = None
         if self.phase_lock is not None:
             err = self.phase_lock.last_error
-            lock = {"locked": self.phase_lock.locked, "error_us": None if err is None else err * 1e6}
-        self._send(("stats", s.period, s.n, s.missed, s.skipped, s.lateness[:k].copy(), s.work[:k].copy(),
-                    s.periods[:k].copy(), lock))
+            lock = L.PhaseLockReport(self.phase_lock.locked, None if err is None else err * 1e6)
+        self._send(L.LoopStatistics(s.period, s.n, s.missed, s.skipped, s.lateness[:k].copy(), s.work[:k].copy(),
+                                    s.periods[:k].copy(), lock))
 
-    def _send(self, msg: Any) -> None:
+    def _send(self, msg: L.FromLoop) -> None:
         try:
-            ipc.send(self.sock, msg, zmq.NOBLOCK)
+            L.send_to_server(self.sock, msg, zmq.NOBLOCK)
         except zmq.Again:
             pass  # the server is not keeping up: telemetry is dropped, the loop never waits
         except zmq.ZMQError as exc:
-            log.debug("link send failed: %s", exc)
+            log.debug("send to the server failed: %s", exc)
 
 
 def _pin_cpu(cpu: int) -> str:

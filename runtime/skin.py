@@ -15,7 +15,6 @@ import logging
 import time
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -24,7 +23,7 @@ from models.headspec import HeadSpec
 from models.ksnn_solve import KsnnInverse
 from models.predictor import DEFAULT_STRAIN_RANGE, SkinPredictor
 from models.strain_guard import StrainGuard, skin_number, skin_strain_range
-from runtime.solve import SolveResult
+from runtime.solve import SolveExtra, SolveResult, TargetSolver
 
 log = logging.getLogger(__name__)
 
@@ -140,7 +139,7 @@ class SkinTargetSolver:
         else:
             p, guard, strain = self.guard(res.p)
         self._accepted = p
-        extra: dict[str, Any] = {
+        extra: SolveExtra = {
             "skin_residual_mm": res.residual_rms * 1e3,
             "skin_iterations": res.iterations,
             "skin_solve_us": (time.perf_counter() - t0) * 1e6,
@@ -169,7 +168,7 @@ class SkinTargetSolver:
                     self._accepted[i] = min(max(float(positions[n]), self.lo[i]), self.hi[i])
 
 
-def default_target_solvers(head: HeadSpec) -> list[Any]:
+def default_target_solvers(head: HeadSpec) -> list[TargetSolver]:
     """Target solvers a head's config asks for: the skin solver when ``paths.predictor`` exists."""
     skin = SkinTargetSolver.from_head(head)
     return [skin] if skin is not None else []

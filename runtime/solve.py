@@ -1,7 +1,9 @@
-"""The target-solver protocol: target-space channels (``arkit.jawOpen``, link poses) → actuator targets (SI).
+"""The target-solver protocol: target-space channels (``arkit.jawOpen``, attachment-link poses) → actuator targets (SI).
 
-A solver declares its channels; the control core's solve stage (``runtime.core.core.solve_channels``) hands it the
-values of those channels each cycle, and takes actuator targets plus optional telemetry fields (residual,
+A solver declares its channels; the daemon takes solvers of this type (``Daemon(target_solvers=...)``,
+:func:`runtime.skin.default_target_solvers`), the core adapts them to its array form
+(:mod:`runtime.core.solvers`), and its solve stage (``runtime.core.core.solve_channels``) hands each the values of
+its channels each cycle, and takes actuator targets plus optional telemetry fields (residual,
 predicted poses). Explicit actuator channels win over group channels, which win over solved targets.
 """
 
@@ -9,7 +11,10 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Protocol, runtime_checkable
+from typing import Protocol, runtime_checkable
+
+#: Telemetry fields a solve adds (residual, iterations, guard verdict...): plain numbers, strings, number lists.
+SolveExtra = dict[str, float | int | str | list[float]]
 
 
 @runtime_checkable
@@ -34,4 +39,4 @@ class SolveResult:
     """Actuator targets (SI, by actuator name) and optional extra telemetry fields."""
 
     actuators: dict[str, float]
-    extra: dict[str, Any] = field(default_factory=dict)
+    extra: SolveExtra = field(default_factory=dict)

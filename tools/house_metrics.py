@@ -25,9 +25,10 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("likeness", "models", "drivers", "runtime", "sim_hardware", "offline", "studio")
 #: Modules a stream frame passes from the socket to ``MotorBus.write`` (the path docs/architecture.md draws).
 FRAME_PATH_PREFIXES = (
-    "runtime/server", "runtime/api", "runtime/messages", "runtime/requests", "runtime/ipc", "runtime/channel",
-    "runtime/runner", "runtime/daemon.py", "runtime/core/", "runtime/solve", "runtime/skin", "runtime/buslink",
-    "runtime/bus", "runtime/shaper", "drivers/base.py",
+    "runtime/client_sockets.py", "runtime/server.py", "runtime/decoder.py", "runtime/messages.py",
+    "runtime/wire_scan.py", "runtime/requests.py", "runtime/ipc.py", "runtime/loop_messages.py", "runtime/runner.py",
+    "runtime/daemon.py", "runtime/core/", "runtime/solve.py", "runtime/skin.py", "runtime/safety.py",
+    "runtime/shaper.py", "runtime/bus/", "drivers/base.py",
 )
 LONG_FUNCTION = 80
 

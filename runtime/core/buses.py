@@ -1,7 +1,8 @@
 """The read stage: every bus's latest feedback (a snapshot the runner took without blocking) taken into the core.
 
-:class:`BusFeedback` keeps the measured positions with their stamps and, per bus, its lifecycle state, connection
-and device faults; :func:`read` takes a cycle's feedback in and :func:`announce_links` publishes connection changes.
+:class:`BusesState` keeps the measured positions with their stamps and, per bus, its lifecycle state, connection
+and device faults; :func:`read` takes a cycle's feedback in and :func:`announce_connections` publishes connection
+changes.
 The lifecycle's supervision judges this feedback (:func:`runtime.core.lifecycle.supervise`).
 """
 
@@ -12,12 +13,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from runtime.core.cycle import BusInput, CycleOutputs
-from runtime.core.events import Body, BusLinkChanged
+from runtime.core.events import Body, BusConnectionChanged
 from runtime.core.params import CoreParams
 
 
 @dataclass(frozen=True)
-class LinkInfo:
+class ConnectionInfo:
     """A bus's connection as telemetry reports it: state, reconnect attempts, seconds to the next (None: none due)."""
 
     state: str
@@ -30,7 +31,7 @@ class LinkInfo:
 
 
 @dataclass
-class BusFeedback:
+class BusesState:
     """The latest feedback: measured positions (SI, NaN before any) and when each was sampled; per bus its state,
     connection, device faults, connection details and the connection state already announced."""
 
@@ -39,11 +40,11 @@ class BusFeedback:
     states: dict[str, str]
     connected: dict[str, bool]
     faults: dict[str, dict[str, tuple[int, str]]]
-    links: dict[str, LinkInfo] = field(default_factory=dict)
+    connections: dict[str, ConnectionInfo] = field(default_factory=dict)
     announced: dict[str, str] = field(default_factory=dict)
 
     @classmethod
-    def initial(cls, params: CoreParams) -> BusFeedback:
+    def initial(cls, params: CoreParams) -> BusesState:
         """Nothing measured yet; every bus unconfigured and not connected."""
         n = len(params.names)
         return cls(measured=np.full(n, np.nan), stamps=np.full(n, -np.inf),
@@ -60,7 +61,7 @@ class BusFeedback:
         return "; ".join(f"{d}: 0x{c:04X} {m}" for d, (c, m) in faults.items()) or f"bus state {self.states[bus]}"
 
 
-def read(fb: BusFeedback, params: CoreParams, buses: tuple[BusInput, ...], t: float) -> None:
+def read(fb: BusesState, params: CoreParams, buses: tuple[BusInput, ...], t: float) -> None:
     """Take each bus's feedback in (``buses`` in the order of ``params.buses``)."""
     for (name, idx), bus in zip(params.buses, buses, strict=True):
         fb.measured[idx] = bus.positions
@@ -68,15 +69,16 @@ def read(fb: BusFeedback, params: CoreParams, buses: tuple[BusInput, ...], t: fl
         fb.states[name] = bus.state
         fb.connected[name] = bus.connected
         fb.faults[name] = bus.faults
-        link = bus.link or ("connected" if bus.connected else "closed")
-        fb.links[name] = LinkInfo(link, bus.attempts, max(0.0, bus.retry_at - t) if bus.retry_at < 1e300 else None)
+        connection = bus.connection or ("connected" if bus.connected else "closed")
+        retry_in = max(0.0, bus.retry_at - t) if bus.retry_at < 1e300 else None
+        fb.connections[name] = ConnectionInfo(connection, bus.attempts, retry_in)
 
 
-def announce_links(fb: BusFeedback, out: CycleOutputs, t: float) -> None:
+def announce_connections(fb: BusesState, out: CycleOutputs, t: float) -> None:
     """A ``bus_link`` event whenever a bus's connection state changes (lost, reconnecting, connected)."""
-    for name, info in fb.links.items():
+    for name, info in fb.connections.items():
         previous = fb.announced.get(name)
         if info.state != previous:
             fb.announced[name] = info.state
             if previous is not None and previous != "closed":
-                out.emit(BusLinkChanged(t, name, info.state, previous, info.attempts, info.retry_in_s))
+                out.emit(BusConnectionChanged(t, name, info.state, previous, info.attempts, info.retry_in_s))

@@ -31,14 +31,13 @@ import numpy as np
 
 from runtime.core import buses, chasing, guard, lifecycle, recorder, shape, solve, sources, status
 from runtime.core import commands as C
-from runtime.core.cycle import BusInput, CycleInputs, CycleOutputs
+from runtime.core.cycle import CycleInputs, CycleOutputs
 from runtime.core.events import Body
 from runtime.core.params import CoreParams
 from runtime.core.state import CoreState
 
 #: What the loop runner integrates against: the core's ports, parameters and state, and the functions that step it.
-__all__ = ["BusInput", "CoreParams", "CoreState", "CycleInputs", "CycleOutputs", "estop", "fault", "solve_channels",
-           "step", "take_commands"]
+__all__ = ["estop", "fault", "solve_channels", "step", "take_commands"]
 
 
 # ====================================================================== the step
@@ -51,7 +50,7 @@ def step(state: CoreState, params: CoreParams, inputs: CycleInputs) -> CycleOutp
     out = CycleOutputs()
     t = inputs.t
     buses.read(state.feedback, params, inputs.buses, t)
-    buses.announce_links(state.feedback, out, t)
+    buses.announce_connections(state.feedback, out, t)
     _commands(state, params, inputs, out)
     for result in inputs.results:
         lifecycle.bus_result(state.life, out, t, *result)

@@ -32,7 +32,8 @@ class BusInput:
     positions: np.ndarray
     stamp: float  # when the sample was taken (monotonic)
     faults: dict[str, tuple[int, str]] = field(default_factory=dict)
-    link: str = ""  # runtime.buslink.LINK_STATES ("" when the source does not say: taken from ``connected``)
+    #: one of runtime.bus.layout.CONNECTION_STATES ("" when the source does not say: taken from ``connected``)
+    connection: str = ""
     attempts: int = 0  # reconnect attempts since the connection was lost
     retry_at: float = float("inf")  # when the bus process tries to reconnect next (monotonic)
 

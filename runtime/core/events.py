@@ -59,7 +59,7 @@ class EStopped:
 
 
 @dataclass(frozen=True)
-class BusLinkChanged:
+class BusConnectionChanged:
     """A bus's connection changed (``lost``, ``reconnecting``, ``connected``...)."""
 
     t: float
@@ -187,5 +187,5 @@ class RecordStopped:
 
 
 #: Every event the core publishes.
-Event: TypeAlias = (LifecycleChanged | Fault | EStopped | BusLinkChanged | BusRequestFailed | ClipPlaying
+Event: TypeAlias = (LifecycleChanged | Fault | EStopped | BusConnectionChanged | BusRequestFailed | ClipPlaying
                     | ClipFinished | Watchdog | DroppedFrames | TimecodeChanged | RecordStarted | RecordStopped)

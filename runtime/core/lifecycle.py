@@ -17,7 +17,7 @@ import numpy as np
 
 from models import errors as E
 from runtime.core import commands as C
-from runtime.core.buses import BusFeedback
+from runtime.core.buses import BusesState
 from runtime.core.cycle import BusOp, CycleOutputs
 from runtime.core.events import Body, BusRequestFailed, EStopped, Fault, LifecycleChanged
 from runtime.core.params import CoreParams
@@ -111,7 +111,7 @@ def require_active(life: LifecycleState, op: str) -> None:
         raise E.BadState(f"{op} needs lifecycle active (is {life.lifecycle.value}); send enable")
 
 
-def torque_off(fb: BusFeedback, params: CoreParams, out: CycleOutputs) -> None:
+def torque_off(fb: BusesState, params: CoreParams, out: CycleOutputs) -> None:
     """Ask every active bus to disable."""
     for name, _ in params.buses:
         if fb.states.get(name) == "active":
@@ -119,7 +119,7 @@ def torque_off(fb: BusFeedback, params: CoreParams, out: CycleOutputs) -> None:
 
 
 # ---------------------------------------------------------------------- fault, e-stop, supervision
-def enter_fault(life: LifecycleState, fb: BusFeedback, params: CoreParams, out: CycleOutputs, t: float,
+def enter_fault(life: LifecycleState, fb: BusesState, params: CoreParams, out: CycleOutputs, t: float,
                 trouble: Trouble) -> bool:
     """Enter FAULT (torque off as configured, the event published); False when already stopped (fault, e-stop) or
     unconfigured."""
@@ -134,7 +134,7 @@ def enter_fault(life: LifecycleState, fb: BusFeedback, params: CoreParams, out: 
     return True
 
 
-def enter_estop(life: LifecycleState, fb: BusFeedback, params: CoreParams, out: CycleOutputs, t: float,
+def enter_estop(life: LifecycleState, fb: BusesState, params: CoreParams, out: CycleOutputs, t: float,
                 reason: str) -> bool:
     """Latch the e-stop (torque off as configured); False when unconfigured."""
     if life.lifecycle is Lifecycle.UNCONFIGURED:
@@ -149,7 +149,7 @@ def enter_estop(life: LifecycleState, fb: BusFeedback, params: CoreParams, out: 
     return True
 
 
-def supervise(life: LifecycleState, fb: BusFeedback, params: CoreParams, t: float) -> Trouble | None:
+def supervise(life: LifecycleState, fb: BusesState, params: CoreParams, t: float) -> Trouble | None:
     """Judge the feedback of an active or inactive head with no transition under way: every bus connected (a lost
     bus faults, naming it); a device fault with torque off faults too; when active, every bus active and feedback
     fresh."""
@@ -157,7 +157,7 @@ def supervise(life: LifecycleState, fb: BusFeedback, params: CoreParams, t: floa
         return None
     active = life.lifecycle is Lifecycle.ACTIVE
     for name, _ in params.buses:
-        info = fb.links.get(name)
+        info = fb.connections.get(name)
         lost = info is not None and info.state in ("lost", "reconnecting")
         if not fb.connected[name] and (lost or active):
             why = "; ".join(m for _, m in fb.faults[name].values())
@@ -181,7 +181,7 @@ def supervise(life: LifecycleState, fb: BusFeedback, params: CoreParams, t: floa
 
 
 # ---------------------------------------------------------------------- transitions
-def on_enable(life: LifecycleState, fb: BusFeedback, params: CoreParams, out: CycleOutputs, t: float,
+def on_enable(life: LifecycleState, fb: BusesState, params: CoreParams, out: CycleOutputs, t: float,
               cmd: C.Enable) -> Body | None:
     """Ask every bus not yet active to enable; answered when all are (:func:`conclude`)."""
     if life.commanding:
@@ -202,7 +202,7 @@ def on_enable(life: LifecycleState, fb: BusFeedback, params: CoreParams, out: Cy
     return None  # answered when the buses are active
 
 
-def on_disable(life: LifecycleState, fb: BusFeedback, params: CoreParams, out: CycleOutputs, t: float,
+def on_disable(life: LifecycleState, fb: BusesState, params: CoreParams, out: CycleOutputs, t: float,
                cmd: C.Disable) -> Body | None:
     """Cancel an enable under way; ask every active bus to disable (answered when they have)."""
     if life.transition is not None and life.transition.op == "enable":
@@ -221,7 +221,7 @@ def on_disable(life: LifecycleState, fb: BusFeedback, params: CoreParams, out: C
     return {"lifecycle": life.lifecycle.value}
 
 
-def begin_reset(life: LifecycleState, fb: BusFeedback, params: CoreParams, out: CycleOutputs, t: float,
+def begin_reset(life: LifecycleState, fb: BusesState, params: CoreParams, out: CycleOutputs, t: float,
                 cmd: C.Reset) -> None:
     """Cancel any transition; reset every bus that is active, faulted or lost; answered when they have (at once
     when none needs it: :func:`settle`)."""
@@ -250,7 +250,7 @@ def bus_result(life: LifecycleState, out: CycleOutputs, t: float, bus: str, op: 
         tr.failed.append(f"bus {bus}: {message}")
 
 
-def settle(life: LifecycleState, fb: BusFeedback, t: float) -> Transition | None:
+def settle(life: LifecycleState, fb: BusesState, t: float) -> Transition | None:
     """The transition under way, taken off once it is over: every bus answered (or the wait timed out) and their
     feedback shows the new state (or had its time to). None while it is still under way."""
     tr = life.transition
@@ -276,7 +276,7 @@ def settle(life: LifecycleState, fb: BusFeedback, t: float) -> Transition | None
     return tr
 
 
-def conclude(life: LifecycleState, fb: BusFeedback, params: CoreParams, out: CycleOutputs, t: float,
+def conclude(life: LifecycleState, fb: BusesState, params: CoreParams, out: CycleOutputs, t: float,
              tr: Transition) -> None:
     """Carry out the end of a settled transition and answer its request: an enable goes active (or torques off
     again), a reset leaves FAULT and e-stop for inactive unless a bus is still faulted."""

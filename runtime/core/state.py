@@ -11,7 +11,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from models.headspec import HeadSpec
-from runtime.core.buses import BusFeedback
+from runtime.core.buses import BusesState
 from runtime.core.chase import Chase
 from runtime.core.guard import GuardState
 from runtime.core.lifecycle import Lifecycle, LifecycleState
@@ -31,7 +31,7 @@ class CoreState:
     """All mutable state of the control core (the daemon's only state that changes at loop rate), by system."""
 
     life: LifecycleState  # lifecycle, bus transition under way, fault, e-stop
-    feedback: BusFeedback  # the buses' latest feedback
+    feedback: BusesState  # the buses' latest feedback
     sources: SourcesState  # what drives the head: clips, stream, live values, pose
     solve: SolveState  # target solvers (warm starts) and their extra telemetry
     guard: GuardState  # the skin-strain guard's last accepted target and verdict
@@ -45,7 +45,7 @@ class CoreState:
     def initial(cls, head: HeadSpec, params: CoreParams, solvers: Sequence[ArrayTargetSolver] = ()) -> CoreState:
         """The state at start-up: inactive, holding at neutral, nothing loaded; ``solvers`` one per target block."""
         return cls(
-            life=LifecycleState(), feedback=BusFeedback.initial(params), sources=SourcesState.initial(params),
+            life=LifecycleState(), feedback=BusesState.initial(params), sources=SourcesState.initial(params),
             solve=SolveState(list(solvers)), guard=GuardState(), recorder=RecorderState(),
             safety=SafetyFilter(head), shaper=make_shaper(head, params.period),
             chase=None if params.chase is None else Chase(params.chase),

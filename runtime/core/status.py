@@ -20,7 +20,7 @@ def snapshot(state: CoreState, params: CoreParams, t: float) -> Body:
         "t": t, "lifecycle": state.life.lifecycle.value, "mode": src.mode.value,
         "commanded_si": state.shaper.q.copy(), "measured_si": fb.measured.copy(),
         "buses": dict(fb.states), "connected": dict(fb.connected),
-        "connection": {name: info.as_dict() for name, info in fb.links.items()},
+        "connection": {name: info.as_dict() for name, info in fb.connections.items()},
         "guard": {"verdict": state.guard.verdict, "refused": state.guard.refused},
         "feedback_age": {name: float(t - fb.stamps[idx].max()) if idx.size else 0.0
                          for name, idx in params.buses},

@@ -2,16 +2,16 @@
 
 Each input's I/O runs on threads of its own (python-osc's server, the sACN receiver, the timecode port server);
 they hand commands to one in-process ZeroMQ PUSH socket (under a lock), and the server's thread, which polls the
-PULL end beside its ROUTER, gives each a token and sends it to the control core on the same link as the protocol's
-commands. Nothing here runs in the control loop's process.
+PULL end beside its ROUTER, gives each a token and sends it to the control core on the same command pipe as the
+protocol's commands. Nothing here runs in the control loop's process.
 """
 
 from __future__ import annotations
 
 import itertools
 import threading
-from collections.abc import Callable
-from typing import Any
+from collections.abc import Callable, Mapping
+from typing import Protocol, cast
 
 import zmq
 
@@ -22,6 +22,23 @@ from runtime.inputs.config import InputsConfig
 from runtime.inputs.refusals import Refusals
 
 _ENDPOINTS = itertools.count(1)
+
+
+class ShowInput(Protocol):
+    """What the hub needs of an input (OSC, sACN, timecode): its name and refusal counter, start and close, where it
+    listens (``bound``, for ``hello``) and its counters (``stats``, for ``status``)."""
+
+    name: str
+    refusals: Refusals
+
+    @property
+    def bound(self) -> Mapping[str, object]: ...
+
+    def start(self) -> None: ...
+
+    def close(self) -> None: ...
+
+    def stats(self) -> Mapping[str, object]: ...
 
 
 class InputHub:
@@ -40,7 +57,7 @@ class InputHub:
         self._push.connect(endpoint)
         self._lock = threading.Lock()
         self.refusals: dict[str, Refusals] = {}
-        self.inputs: list[Any] = []
+        self.inputs: list[ShowInput] = []
         if cfg.osc is not None:
             from runtime.inputs.osc import OscInput
 
@@ -71,10 +88,10 @@ class InputHub:
 
     def drain(self, limit: int = 256) -> list[C.Command]:
         """The commands waiting (server thread)."""
-        out = []
+        out: list[C.Command] = []
         for _ in range(limit):
             try:
-                out.append(ipc.recv(self.pull, zmq.NOBLOCK))
+                out.append(cast(C.Command, ipc.recv(self.pull, zmq.NOBLOCK)))
             except zmq.Again:
                 break
         return out
@@ -83,11 +100,12 @@ class InputHub:
         """The core refused an input's command (head not active, ...): logged, rate-limited."""
         self.refusals.setdefault(source, Refusals(source)).refuse(code, message)
 
-    def described(self) -> dict[str, Any]:
+    def described(self) -> dict[str, dict[str, object]]:
         """Where each input listens (ports as bound), for ``hello``."""
         return {inp.name: dict(inp.bound) for inp in self.inputs}
 
-    def stats(self) -> dict[str, Any]:
+    def stats(self) -> dict[str, Mapping[str, object]]:
+        """Each input's counters (packets, refusals...), for ``status``."""
         return {inp.name: inp.stats() for inp in self.inputs}
 
     def close(self) -> None:

@@ -12,6 +12,7 @@ import zmq
 
 from models.client import Client, DaemonError, Telemetry
 from models.headspec import load_head
+from runtime.core.state import CoreState
 from runtime.daemon import Daemon
 from runtime.hardware import Hardware
 
@@ -162,7 +163,7 @@ def test_a_recorded_run_replays_bit_for_bit(tmp_path) -> None:
     inputs, writes = d.input_log, d.runner.output_log
     assert inputs and len(inputs) == len(writes)
     assert any(i.between_cycles for i in inputs) and sum(w is not None for w in writes) > 100
-    fresh = K.CoreState.initial(head, d.params, [])
+    fresh = CoreState.initial(head, d.params, [])
     for k, inp in enumerate(inputs):
         out = K.step(fresh, d.params, inp)
         if writes[k] is None:

@@ -90,7 +90,7 @@ def test_a_lost_bus_reconnects_after_its_emulator_restarts(make_daemon, bus: str
 def test_the_core_faults_on_a_lost_bus_even_inactive_and_reports_each_connection_change() -> None:
     """The core alone, stepped with bus feedback as the bus processes publish it."""
     from runtime.core import commands as C
-    from runtime.core import core as K
+    from runtime.core.cycle import BusInput
     from runtime.core.lifecycle import Lifecycle
     from tests.runtime.test_core import Rig
 
@@ -98,11 +98,11 @@ def test_the_core_faults_on_a_lost_bus_even_inactive_and_reports_each_connection
     rig.cycle()
     link = {"can0": ("connected", 0, math.inf)}
 
-    def inputs() -> tuple[K.BusInput, ...]:
+    def inputs() -> tuple[BusInput, ...]:
         out = []
         for b, idx in rig.params.buses:
             state, attempts, retry_at = link.get(b, ("connected", 0, math.inf))
-            out.append(K.BusInput(b, "fault" if state != "connected" else rig.bus_state[b], state == "connected",
+            out.append(BusInput(b, "fault" if state != "connected" else rig.bus_state[b], state == "connected",
                                   rig.q[idx].copy(), rig.t, {}, state, attempts, retry_at))
         return tuple(out)
 

@@ -72,17 +72,20 @@ def test_solve_stage_units_groups_and_target_channels() -> None:
     from runtime.config import daemon_config
     from runtime.core import core as K
     from runtime.core.channels import ChannelMap, UnknownChannel
+    from runtime.core.cycle import CycleOutputs
+    from runtime.core.params import CoreParams
     from runtime.core.solvers import as_array_solvers, channel_sets
+    from runtime.core.state import CoreState
 
     solvers = [_Weights()]
     assert isinstance(solvers[0], TargetSolver)
     cm = ChannelMap.build(HEAD, channel_sets(solvers))
     assert cm.kind("blink") == "group" and cm.kind("expr.open") == "target" and cm.kind("jaw") == "actuator"
-    params = K.CoreParams.build(HEAD, daemon_config(HEAD), cm, [(b, [a.name for a in HEAD.actuators_on(b)])
+    params = CoreParams.build(HEAD, daemon_config(HEAD), cm, [(b, [a.name for a in HEAD.actuators_on(b)])
                                                                for b in HEAD.buses])
-    state = K.CoreState.initial(HEAD, params, as_array_solvers(solvers, cm.target_blocks, cm.names,
+    state = CoreState.initial(HEAD, params, as_array_solvers(solvers, cm.target_blocks, cm.names,
                                                                HEAD.actuator_names))
-    out = K.CycleOutputs()
+    out = CycleOutputs()
 
     def solve(**values: float) -> dict[str, float]:
         vec = np.full(cm.n, np.nan)

@@ -19,8 +19,11 @@ from runtime.core import commands as C
 from runtime.core import core as K
 from runtime.core.channels import ChannelMap
 from runtime.core.clips import bind_clip
+from runtime.core.cycle import BusInput, CycleInputs, CycleOutputs
 from runtime.core.lifecycle import Lifecycle
+from runtime.core.params import CoreParams
 from runtime.core.sources import Mode
+from runtime.core.state import CoreState
 from runtime.curves import clip_from_dict
 
 SAMPLE = Path(__file__).resolve().parents[2] / "heads" / "sample" / "head.toml"
@@ -39,26 +42,26 @@ class Rig:
         self.cfg = daemon_config(HEAD, {"runtime.rate_hz": rate_hz, **overrides})
         self.channels = ChannelMap.build(HEAD)
         buses = [(b, [a.name for a in HEAD.actuators_on(b)]) for b in HEAD.buses]
-        self.params = K.CoreParams.build(HEAD, self.cfg, self.channels, buses)
-        self.state = K.CoreState.initial(HEAD, self.params)
+        self.params = CoreParams.build(HEAD, self.cfg, self.channels, buses)
+        self.state = CoreState.initial(HEAD, self.params)
         self.t = 100.0
         self.q = np.array([a.neutral for a in HEAD.actuators])
         self.bus_state = {b: "inactive" for b, _ in self.params.buses}
         self.requests: list[tuple[str, str]] = []
         self.token = 0
-        self.log: list[K.CycleInputs] = []
-        self.outputs: list[K.CycleOutputs] = []
+        self.log: list[CycleInputs] = []
+        self.outputs: list[CycleOutputs] = []
 
-    def bus_inputs(self) -> tuple[K.BusInput, ...]:
-        return tuple(K.BusInput(b, self.bus_state[b], True, self.q[idx].copy(), self.t)
+    def bus_inputs(self) -> tuple[BusInput, ...]:
+        return tuple(BusInput(b, self.bus_state[b], True, self.q[idx].copy(), self.t)
                      for b, idx in self.params.buses)
 
-    def cycle(self, *cmds: C.Command, estop: str | None = None) -> K.CycleOutputs:
+    def cycle(self, *cmds: C.Command, estop: str | None = None) -> CycleOutputs:
         results = tuple((b, op, True, "") for b, op in self.requests)
         for b, op in self.requests:  # ideal buses carry out every request within a cycle
             self.bus_state[b] = {"enable": "active", "disable": "inactive", "reset": "inactive"}[op]
         self.requests = []
-        inputs = K.CycleInputs(self.t, self.bus_inputs(), cmds, results, estop)
+        inputs = CycleInputs(self.t, self.bus_inputs(), cmds, results, estop)
         self.log.append(inputs)
         out = K.step(self.state, self.params, inputs)
         self.outputs.append(out)
@@ -170,7 +173,7 @@ def test_stale_feedback_faults() -> None:
     rig.call(C.Enable)
     stale = rig.t
     rig.run(0.1)
-    rig.bus_inputs = lambda: tuple(K.BusInput(b, rig.bus_state[b], True, rig.q[idx].copy(),  # type: ignore[method-assign]
+    rig.bus_inputs = lambda: tuple(BusInput(b, rig.bus_state[b], True, rig.q[idx].copy(),  # type: ignore[method-assign]
                                               stale if b == "can0" else rig.t) for b, idx in rig.params.buses)
     rig.run(rig.cfg.safety.feedback_timeout_s + 0.05)
     assert rig.state.lifecycle is Lifecycle.FAULT and rig.state.life.fault.source == "timeout"
@@ -206,7 +209,7 @@ def test_replay_reproduces_the_commands_bit_for_bit() -> None:
     writes = [None if o.write is None else o.write.copy() for o in rig.outputs]
     replies = [o.replies for o in rig.outputs]
     # replay the recorded inputs on a fresh core
-    fresh = K.CoreState.initial(HEAD, rig.params)
+    fresh = CoreState.initial(HEAD, rig.params)
     for k, inputs in enumerate(rig.log):
         out = K.step(fresh, rig.params, inputs)
         if writes[k] is None:
@@ -252,8 +255,8 @@ def test_target_solvers_declare_channels_and_are_reset_on_fault_estop_and_reset(
     rig = Rig()
     rig.channels = ChannelMap.build(HEAD, [solver.channels()])
     buses = [(b, [a.name for a in HEAD.actuators_on(b)]) for b in HEAD.buses]
-    rig.params = K.CoreParams.build(HEAD, rig.cfg, rig.channels, buses)
-    rig.state = K.CoreState.initial(HEAD, rig.params, [solver])
+    rig.params = CoreParams.build(HEAD, rig.cfg, rig.channels, buses)
+    rig.state = CoreState.initial(HEAD, rig.params, [solver])
     assert rig.channels.kind("expr.open") == "target"
     rig.call(C.Enable)
     after_enable = solver.resets

@@ -25,7 +25,7 @@ import zmq
 
 from models.client import Client
 from models.protocol import ERROR_CODES
-from runtime.requests import OPS
+from runtime.messages import OPS
 
 SEED = int(os.environ.get("LIKENESS_FUZZ_SEED", str(random.SystemRandom().randrange(1 << 31))))
 REQUESTS = 3000
@@ -237,7 +237,7 @@ def test_fuzzed_requests_are_all_answered_within_limits_and_memory(make_daemon) 
 def _run(make_daemon: Any, seed: int) -> None:
     t_start = time.monotonic()
     d = make_daemon()
-    checks = [PostCheck(link, d.period) for link in d.links]
+    checks = [PostCheck(link, d.period) for link in d.buses]
     server_pid = d._server.pid
     fuzz = Fuzzer(seed)
     sock = zmq.Context.instance().socket(zmq.DEALER)

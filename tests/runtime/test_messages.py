@@ -23,27 +23,27 @@ CLIP = {"name": "hi", "channels": {
     "brow_l": {"interp": "bezier", "keys": [[0, 0, 0, 0, 0.3, 0], [1.0, 20, -0.3, 0, 0, 0]]}}}
 
 VALID = [
-    ({"op": "hello", "id": 1}, M.Hello),
-    ({"op": "hello", "id": "a", "client": "studio"}, M.Hello),
-    ({"op": "hello", "client": 5}, M.Hello),  # never checked: kept so
-    ({"op": "status", "id": 2}, M.Status),
-    ({"op": "enable", "id": 3}, M.Enable),
-    ({"op": "disable"}, M.Disable),
-    ({"op": "estop", "id": 9, "reason": "stage manager"}, M.Estop),
-    ({"op": "reset", "id": 10}, M.Reset),
-    ({"op": "clock", "id": 11, "t_client": 5021.25}, M.Clock),
-    ({"op": "load_clip", "id": 4, "clip": CLIP}, M.LoadClip),
-    ({"op": "unload_clip", "id": 4, "clip": "hi"}, M.UnloadClip),
-    ({"op": "play", "id": 5, "clip": "hi", "at": 1240.0, "loop": False, "speed": 1.0, "from": 0.5}, M.Play),
-    ({"op": "pause"}, M.Pause),
-    ({"op": "resume"}, M.Resume),
-    ({"op": "stop"}, M.Stop),
-    ({"op": "seek", "id": 6, "time": 0.25}, M.Seek),
+    ({"op": "hello", "id": 1}, M.HelloRequest),
+    ({"op": "hello", "id": "a", "client": "studio"}, M.HelloRequest),
+    ({"op": "hello", "client": 5}, M.HelloRequest),  # never checked: kept so
+    ({"op": "status", "id": 2}, M.StatusRequest),
+    ({"op": "enable", "id": 3}, M.EnableRequest),
+    ({"op": "disable"}, M.DisableRequest),
+    ({"op": "estop", "id": 9, "reason": "stage manager"}, M.EStopRequest),
+    ({"op": "reset", "id": 10}, M.ResetRequest),
+    ({"op": "clock", "id": 11, "t_client": 5021.25}, M.ClockRequest),
+    ({"op": "load_clip", "id": 4, "clip": CLIP}, M.LoadClipRequest),
+    ({"op": "unload_clip", "id": 4, "clip": "hi"}, M.UnloadClipRequest),
+    ({"op": "play", "id": 5, "clip": "hi", "at": 1240.0, "loop": False, "speed": 1.0, "from": 0.5}, M.PlayRequest),
+    ({"op": "pause"}, M.PauseRequest),
+    ({"op": "resume"}, M.ResumeRequest),
+    ({"op": "stop"}, M.StopMotionRequest),
+    ({"op": "seek", "id": 6, "time": 0.25}, M.SeekRequest),
     ({"op": "stream", "id": 7, "channels": ["jaw", "blink"], "frames": [[1250.0, 5.0, 0.0], [1250.01, 5.4, 0]]},
-     M.Stream),
-    ({"op": "pose", "id": 8, "pose": {"jaw": 10.0, "blink": 20}}, M.Pose),
-    ({"op": "record", "id": 12, "action": "start", "name": "take1"}, M.Record),
-    ({"op": "record", "id": 13, "action": "stop"}, M.Record),
+     M.StreamRequest),
+    ({"op": "pose", "id": 8, "pose": {"jaw": 10.0, "blink": 20}}, M.PoseRequest),
+    ({"op": "record", "id": 12, "action": "start", "name": "take1"}, M.RecordRequest),
+    ({"op": "record", "id": 13, "action": "stop"}, M.RecordRequest),
 ]
 
 

@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 
 from models.client import Client
 from runtime.daemon import Daemon
-from runtime.requests import OPS as KNOWN_OPS
+from runtime.messages import OPS as KNOWN_OPS
 
 OPS = sorted(KNOWN_OPS)
 CHANNELS = ["jaw", "blink", "brow_l", "lid_r", "lip_corner_l", "cheek_r", "nose", "", "arkit.jawOpen"]

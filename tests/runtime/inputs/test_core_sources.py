@@ -7,10 +7,11 @@ import numpy as np
 import pytest
 
 from runtime.core import commands as C
-from runtime.core import core as K
 from runtime.core.chase import ChaseParams
 from runtime.core.clips import bind_clip
+from runtime.core.params import CoreParams
 from runtime.core.sources import Mode
+from runtime.core.state import CoreState
 from runtime.curves import clip_from_dict
 from tests.runtime.test_core import HEAD, Rig
 
@@ -20,10 +21,10 @@ RAMP = {"name": "ramp", "channels": {"jaw": {"interp": "linear", "keys": [[0, 0]
 class ChaseRig(Rig):
     def __init__(self, **chase: object) -> None:
         super().__init__()
-        self.params = K.CoreParams.build(HEAD, self.cfg, self.channels, [(b, [a.name for a in HEAD.actuators_on(b)])
+        self.params = CoreParams.build(HEAD, self.cfg, self.channels, [(b, [a.name for a in HEAD.actuators_on(b)])
                                                                          for b in HEAD.buses],
                                          chase=ChaseParams(**chase))
-        self.state = K.CoreState.initial(HEAD, self.params)
+        self.state = CoreState.initial(HEAD, self.params)
 
 
 def _deg(rig: Rig, name: str) -> float:
