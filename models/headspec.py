@@ -2,7 +2,8 @@
 
 Configs use operator units (degrees for rotary actuators, millimetres for linear ones); the loaded
 :class:`HeadSpec` is in SI (radians, metres, seconds). Every validation error names the file, the
-key and the bad value.
+key and the bad value. The file's keys, value types and defaults are declared once, in :mod:`models.headschema`;
+this module checks the values of those typed tables and builds the SI spec types from them.
 """
 
 from __future__ import annotations
@@ -41,7 +42,8 @@ GROUP_KINDS = ("together", "mirror", "coupled")
 
 @dataclass(frozen=True)
 class ActuatorSpec:
-    """One actuator, in SI. ``unit`` is the config unit the operator sees (deg or mm)."""
+    """One actuator, in SI, from an ``[[actuators]]`` table (:class:`models.headschema.ActuatorTable`; its ``id`` is
+    ``device_id`` here). ``unit`` is the config unit the operator sees (deg or mm); ``kind`` follows from it."""
 
     name: str
     bus: str
