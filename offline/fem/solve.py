@@ -258,6 +258,7 @@ class FactorCache:
 
 
 def _mean_edge_length(mesh: TetMesh) -> float:
+    """Mean length of the corner tets' edges (m): the scale of ``load_steps="auto"``."""
     p = np.asarray(mesh.nodes)[np.asarray(mesh.tets)[:, :4]]
     return float(np.mean([np.linalg.norm(p[:, i] - p[:, j], axis=1).mean() for i, j in QUADRATIC_EDGES]))
 
