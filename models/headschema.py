@@ -1,15 +1,18 @@
-"""The typed shape of a head spec TOML file: which tables and keys exist and the type of each value.
+"""The typed shape of a head spec TOML file: which tables and keys exist, the type of each value and its default.
 
-Checked (with msgspec) before the values are validated in :mod:`models.headspec`, so a misspelled table
-(``[saftey]``) or key (``max_velocty``) is refused, naming the file, the table or key and what is allowed, instead of
-being silently ignored. Value ranges and cross-references (a bus that exists, min below max) are checked there. The
-keys of ``[runtime]``, ``[safety]`` and ``[api]`` belong to the daemon (``runtime.config``) and are checked by it.
+This is the one declaration of a head file's keys. :func:`check_head_file` converts the file's tables (with msgspec)
+into these types before :mod:`models.headspec` checks their values and builds the :class:`~models.headspec.HeadSpec`
+from them, so a misspelled table (``[saftey]``) or key (``max_velocty``) is refused, naming the file, the table or key
+and what is allowed, instead of being silently ignored. Value ranges and cross-references (a bus that exists, min
+below max) are checked there. The keys of ``[runtime]``, ``[safety]`` and ``[api]`` belong to the daemon
+(``runtime.config``) and are checked by it.
 """
 
 from __future__ import annotations
 
 import re
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import msgspec
@@ -66,7 +69,7 @@ class GroupTable(_Table, kw_only=True):
 
 
 class LinkTable(_Table, kw_only=True):
-    actuators: list[str] = []
+    actuators: list[str] | msgspec.UnsetType = msgspec.UNSET  # required unless the link is rigid
     node_set: str | None = None
     rigid: bool = False
 
@@ -203,33 +206,63 @@ def _convert(raw: Any, cls: type, source: str, key: str) -> Any:
         raise _spec_error(exc, source, key, cls) from None
 
 
-def check_head_file(data: Mapping[str, Any], source: str) -> None:
-    """Check the tables, keys and value types of a parsed head file; SpecError naming the file and key."""
+#: The tables :class:`~models.headspec.HeadSpec` is built from; every other table belongs to another layer.
+SPEC_TABLES = frozenset({"head", "buses", "actuators", "groups", "links", "paths", "skin_material"})
+
+
+@dataclass(frozen=True)
+class HeadTables:
+    """A head file's tables converted to their types (file units, defaults filled in).
+
+    ``head`` and ``buses`` are None when missing and ``actuators`` when not an array: :mod:`models.headspec` names
+    them. ``sections`` holds the tables other layers own (``runtime``, ``safety``, ``api``, ``inputs``, ``skin``), as
+    parsed.
+    """
+
+    head: HeadTable | None
+    buses: dict[str, BusTable] | None
+    actuators: list[ActuatorTable] | None
+    groups: dict[str, GroupTable]
+    links: dict[str, LinkTable]
+    paths: PathsTable
+    skin_material: dict[str, Any] | None
+    sections: dict[str, dict[str, Any]]
+
+
+def check_head_file(data: Mapping[str, Any], source: str) -> HeadTables:
+    """Check the tables, keys and value types of a parsed head file and convert them; SpecError naming the file
+    and key."""
     if not isinstance(data, Mapping):
         raise SpecError(source, "(file)", "a head spec must be a TOML table")
     top = _convert(dict(data), HeadFile, source, "")
-    if top.head is not None:
-        _convert(top.head, HeadTable, source, "head")
-    for name, raw in (top.buses or {}).items():
-        _convert(raw, BusTable, source, f"buses.{name}")
+    head = _convert(top.head, HeadTable, source, "head") if top.head is not None else None
+    buses = None if top.buses is None else {
+        name: _convert(raw, BusTable, source, f"buses.{name}") for name, raw in top.buses.items()}
+    actuators = None
     if isinstance(top.actuators, list):
+        actuators = []
         for i, raw in enumerate(top.actuators):
             label = f"actuators[{i}]"
             if isinstance(raw, Mapping) and isinstance(raw.get("name"), str):
                 label += f" ({raw['name']})"
-            _convert(raw, ActuatorTable, source, label)
-    for name, raw in top.groups.items():
-        _convert(raw, GroupTable, source, f"groups.{name}")
-    for name, raw in top.links.items():
-        _convert(raw, LinkTable, source, f"links.{name}")
-    _convert(top.paths, PathsTable, source, "paths")
+            actuators.append(_convert(raw, ActuatorTable, source, label))
+    groups = {name: _convert(raw, GroupTable, source, f"groups.{name}") for name, raw in top.groups.items()}
+    links = {name: _convert(raw, LinkTable, source, f"links.{name}") for name, raw in top.links.items()}
+    paths = _convert(top.paths, PathsTable, source, "paths")
     if top.skin is not None:
         _convert(top.skin, SkinTable, source, "skin")
-    inputs = _convert(top.inputs, InputsTable, source, "inputs")
+    _check_inputs(top.inputs, source)
+    return HeadTables(head, buses, actuators, groups, links, paths, top.skin_material,
+                      {key: value for key, value in data.items() if key not in SPEC_TABLES})
+
+
+def _check_inputs(raw: dict[str, Any], source: str) -> None:
+    """The ``[inputs]`` tables' keys and types (their values are checked by ``runtime.inputs.config``)."""
+    inputs = _convert(raw, InputsTable, source, "inputs")
     for key, cls in (("osc", OscTable), ("sacn", SacnTable), ("timecode", TimecodeTable)):
-        raw = getattr(inputs, key)
-        if raw is not None:
-            table = _convert(raw, cls, source, f"inputs.{key}")
+        sub = getattr(inputs, key)
+        if sub is not None:
+            table = _convert(sub, cls, source, f"inputs.{key}")
             if key == "sacn":
                 for i, slot in enumerate(table.slots):
                     _convert(slot, SacnSlotTable, source, f"inputs.sacn.slots[{i}]")

@@ -1,21 +1,14 @@
-"""The compiled in-cycle kernels (:mod:`models._skin_kernels`): whether they can run (they need numba), and
-compiling them ahead of the first daemon start (``python -m models.kernels [HEAD]``, run by ``make install``).
+"""Compiling the in-cycle kernels (:mod:`models._skin_kernels`) ahead of the first daemon start
+(``python -m models.kernels [HEAD]``, run by ``make install``).
 
-numba comes with the ``offline`` extra. A runtime-only install without it runs the numpy versions of the same
-computations (the same results, a few times slower per frame), so ``models`` imports numba only where it exists.
+Whether they can run at all (they need numba) is :func:`models.kernel_support.kernels_available`.
 """
 
 from __future__ import annotations
 
-import functools
-import importlib.util
-
 import numpy as np
 
-
-@functools.cache
-def kernels_available() -> bool:
-    return importlib.util.find_spec("numba") is not None
+from models.kernel_support import kernels_available
 
 
 def warm(head_path: str) -> None:

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 from scipy.linalg.lapack import dposv as _dposv
 
-from models.kernels import kernels_available
+from models.kernel_support import kernels_available
 from models.predictor import KsnnWeights
 
 _EMPTY = np.empty(0)

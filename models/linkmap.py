@@ -280,7 +280,7 @@ class LinkMap:
         }
 
     def save(self, path: str | Path) -> Path:
-        """Write the map as JSON atomically (temp file in the same directory, then ``os.replace``)."""
+        """Write the map as JSON atomically (:func:`models.atomic.write_text`)."""
         path = Path(path)
         write_text(path, json.dumps(self.to_dict(), indent=1, allow_nan=False) + "\n")
         return path

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from models.errors import SpecError
-from models.kernels import kernels_available
+from models.kernel_support import kernels_available
 from models.predictor import DEFAULT_STRAIN_RANGE, KsnnWeights, SkinPredictor
 
 #: Default neighbourhood radius (m) of the area-weighted average: above the coarse sample mesh's 5.6 mm edges,

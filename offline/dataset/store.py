@@ -24,7 +24,6 @@ import functools
 import hashlib
 import io
 import json
-import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from models.atomic import write_bytes
+from models.atomic import atomic_path, write_bytes
 from models.errors import SpecError
 from offline.dataset.splits import SPLIT_NAMES, Splits, load_or_assign
 
@@ -204,20 +203,20 @@ class PoseStore:
         n, v = samples.shape[0], base.shape[0]
         done = self.done()
         status = np.full(n, STATUS_FAILED, dtype=np.int8)
-        tmp_off = self.root / ".offsets.npy.tmp"
-        offsets = np.lib.format.open_memmap(tmp_off, mode="w+", dtype=np.float32, shape=(n, v, 3))
-        for i in range(n):
-            if i not in done:
-                offsets[i] = np.nan
-                continue
-            rec = self.read_pose(i)
-            if rec.surface.shape != (v, 3):
-                raise SpecError(str(self.pose_path(i)), "surface", f"expected shape {(v, 3)}", rec.surface.shape)
-            offsets[i] = rec.surface - base
-            status[i] = STATUS_CONVERGED if rec.converged else STATUS_NOT_CONVERGED
-        offsets.flush()
-        del offsets
-        os.replace(tmp_off, self.root / "offsets.npy")
+        with atomic_path(self.root / "offsets.npy") as tmp_off:
+            offsets = np.lib.format.open_memmap(tmp_off, mode="w+", dtype=np.float32, shape=(n, v, 3))
+            for i in range(n):
+                if i not in done:
+                    offsets[i] = np.nan
+                    continue
+                rec = self.read_pose(i)
+                if rec.surface.shape != (v, 3):
+                    raise SpecError(str(self.pose_path(i)), "surface", f"expected shape {(v, 3)}",
+                                    rec.surface.shape)
+                offsets[i] = rec.surface - base
+                status[i] = STATUS_CONVERGED if rec.converged else STATUS_NOT_CONVERGED
+            offsets.flush()
+            del offsets
         atomic_save_npy(self.root / "actuators.npy", samples)
         atomic_save_npy(self.root / "status.npy", status)
         return self.root

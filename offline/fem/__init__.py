@@ -5,6 +5,7 @@
 - :mod:`offline.fem.energy`: numba kernels for energy, internal forces and the CSR tangent stiffness.
 - :mod:`offline.fem.linsolve`: CHOLMOD / PARDISO / SuperLU factorizations reusable for adjoint solves.
 - :mod:`offline.fem.solve`: Dirichlet conditions and the load-stepped Newton solver :func:`solve_static`.
+- :mod:`offline.fem.newton`: one load step of it (Newton iterations, directions, line search).
 - :mod:`offline.fem.rest_shape`: derivatives with respect to the rest positions (∂W/∂X, ∂f/∂X) for design.
 - :mod:`offline.fem.closed_form`: analytic reference answers (homogeneous uniaxial stretch).
 """

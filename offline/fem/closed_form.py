@@ -30,8 +30,3 @@ def uniaxial_neo_hookean(mu: float, kappa: float, stretch: float) -> tuple[float
     """(nominal stress, lateral stretch) of the compressible neo-Hookean Ψ = μ/2 (Ī1 − 3) + κ/2 (J − 1)²."""
     return uniaxial(neo_hookean(mu, kappa), stretch)
 
-
-def uniaxial_curve(material: Material, stretches) -> tuple[np.ndarray, np.ndarray]:
-    """Vectorised :func:`uniaxial` over an array of stretches: (nominal stresses, lateral stretches)."""
-    out = np.array([uniaxial(material, s) for s in np.atleast_1d(np.asarray(stretches, dtype=np.float64))])
-    return out[:, 0], out[:, 1]

@@ -22,7 +22,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .materials import Material
-from .mesh import TetMesh
+from .mesh import QUADRATIC_EDGES, TetMesh
 
 # ---------------------------------------------------------------------------------------------------------------
 # Reference element and quadrature
@@ -45,8 +45,6 @@ def shape_functions(order: int, bary: np.ndarray) -> tuple[np.ndarray, np.ndarra
     L = np.asarray(bary, dtype=np.float64)
     if order == 1:
         return L.copy(), _DL.copy()
-    from .mesh import QUADRATIC_EDGES
-
     N = np.empty(10)
     dN = np.empty((10, 3))
     for i in range(4):

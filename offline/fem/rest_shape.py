@@ -16,7 +16,7 @@ import numba as nb
 import numpy as np
 import scipy.sparse as sp
 
-from . import energy as _en
+from .energy import _check_x, _det3, _gather_hessians, _mesh_data, _pattern, _stress, _tangent
 from .materials import Material
 from .mesh import TetMesh
 
@@ -25,7 +25,7 @@ def _check(mesh: TetMesh, x) -> np.ndarray:
     if mesh.order != 1:
         raise ValueError("rest-shape derivatives are implemented for linear (4-node) tets only; "
                          f"this mesh has order {mesh.order}")
-    return _en._check_x(mesh, x)
+    return _check_x(mesh, x)
 
 
 @nb.njit(cache=True)
@@ -33,7 +33,7 @@ def _edge_inverse(X, tets, e, Dm, Dminv):
     for i in range(3):
         for j in range(3):
             Dm[i, j] = X[tets[e, j + 1], i] - X[tets[e, 0], i]
-    det = _en._det3(Dm)
+    det = _det3(Dm)
     Dminv[0, 0] = (Dm[1, 1] * Dm[2, 2] - Dm[1, 2] * Dm[2, 1]) / det
     Dminv[0, 1] = (Dm[0, 2] * Dm[2, 1] - Dm[0, 1] * Dm[2, 2]) / det
     Dminv[0, 2] = (Dm[0, 1] * Dm[1, 2] - Dm[0, 2] * Dm[1, 1]) / det
@@ -71,7 +71,7 @@ def _rest_gradient_kernel(X, x, tets, coef):
     for e in range(M):
         V = _edge_inverse(X, tets, e, Dm, Dminv)
         _deformation(x, tets, e, Dminv, F)
-        psi = _en._stress(F, coef, P, C, FC, cof)[0]
+        psi = _stress(F, coef, P, C, FC, cof)[0]
         for i in range(3):  # S = Ψ I − Fᵀ P
             for j in range(3):
                 s = -(F[0, i] * P[0, j] + F[1, i] * P[1, j] + F[2, i] * P[2, j])
@@ -103,8 +103,8 @@ def _mixed_blocks_kernel(X, x, tets, coef, out):
     for e in range(M):
         V = _edge_inverse(X, tets, e, Dm, Dminv)
         _deformation(x, tets, e, Dminv, F)
-        _en._stress(F, coef, P, C, FC, cof)
-        _en._tangent(F, coef, A, C, FC, cof, d)
+        _stress(F, coef, P, C, FC, cof)
+        _tangent(F, coef, A, C, FC, cof, d)
         for k in range(3):  # perturbed entry (k, l) of D_m: coordinate k of node l+1
             for l in range(3):
                 dV = V * Dminv[l, k]
@@ -156,12 +156,12 @@ def mixed_stiffness(mesh: TetMesh, material: Material, x: np.ndarray) -> sp.csr_
     forward sensitivities (K dx = −∂f/∂X dX) of rest-shape design.
     """
     x = _check(mesh, x)
-    d = _en._mesh_data(mesh)
-    pat = _en._pattern(mesh)
+    d = _mesh_data(mesh)
+    pat = _pattern(mesh)
     buf = np.empty((mesh.n_tets, 12, 12))
     _mixed_blocks_kernel(np.asarray(mesh.nodes), x, np.asarray(mesh.tets), material.coefficients, buf)
     data = np.zeros(pat.indices.size)
-    _en._gather_hessians(mesh.tets, d.adj_ptr, d.adj_elem, d.adj_local, pat.block_base, pat.row_stride, buf, 0,
+    _gather_hessians(mesh.tets, d.adj_ptr, d.adj_elem, d.adj_local, pat.block_base, pat.row_stride, buf, 0,
                          data)
     n = 3 * mesh.n_nodes
     B = sp.csr_matrix((data, pat.indices, pat.indptr), shape=(n, n))

@@ -9,14 +9,14 @@ step lets the boundary increment in without inverting an element, the load step 
 Hessians are projected to PSD only when the factorization reports an indefinite matrix or the Newton direction is
 not a descent direction. The symbolic factorization is reused across iterations; on failure the load step is
 halved (and grows back after a success); after ``max_load_step_halvings`` successive halvings a
-:class:`NotConverged` is raised with the last state saved to disk.
+:class:`NotConverged` is raised with the last state saved to disk. Here: the boundary conditions, the options and
+result, the load stepping; one load step's Newton iterations are :mod:`offline.fem.newton`.
 """
 
 from __future__ import annotations
 
 import hashlib
 import math
-import os
 import tempfile
 import time
 import uuid
@@ -28,11 +28,13 @@ from types import MappingProxyType
 import numpy as np
 import scipy.sparse as sp
 
-from . import energy as _en
-from .krylov import pcg
-from .linsolve import Factorization, NotPositiveDefinite, SparseSolver, make_solver, resolve_backend
+from models.atomic import atomic_path
+
+from .energy import gravity_forces, internal_forces, min_jacobian, stiffness
+from .linsolve import Factorization, SparseSolver, make_solver, resolve_backend
 from .materials import Material
-from .mesh import TetMesh
+from .mesh import QUADRATIC_EDGES, TetMesh
+from .newton import NewtonProblem, NewtonWork, StepFailed, solve_load_step
 
 # ------------------------------------------------------------------------------------------------ boundary data
 
@@ -232,18 +234,6 @@ class NotConverged(RuntimeError):
 # ------------------------------------------------------------------------------------------------ solver
 
 
-class _StepFailed(Exception):
-    pass
-
-
-#: Line-search halvings allowed in the iteration that moves the boundary in (smallest free-DoF scale 1/16).
-_BOUNDARY_HALVINGS = 4
-#: A load step has stalled after this many Newton steps in a row with a line-search scale below _STALL_ALPHA (a
-#: nearly inverted state can take 100 such steps without progress; a smaller load step recovers sooner).
-_STALL_ITERATIONS = 3
-_STALL_ALPHA = 1e-4
-
-
 class FactorCache:
     """A sparse solver and its last numeric factorization, kept between :func:`solve_static` calls.
 
@@ -268,35 +258,60 @@ class FactorCache:
 
 
 def _mean_edge_length(mesh: TetMesh) -> float:
+    """Mean length of the corner tets' edges (m): the scale of ``load_steps="auto"``."""
     p = np.asarray(mesh.nodes)[np.asarray(mesh.tets)[:, :4]]
-    from .mesh import QUADRATIC_EDGES
-
     return float(np.mean([np.linalg.norm(p[:, i] - p[:, j], axis=1).mean() for i, j in QUADRATIC_EDGES]))
-
-
-def _reduced_selector(K: sp.csr_matrix, free: np.ndarray) -> tuple[np.ndarray, sp.csr_matrix]:
-    """Indices into K.data of the free-free block, and that block's CSR skeleton."""
-    tag = sp.csr_matrix((np.arange(1, K.nnz + 1, dtype=np.float64), K.indices, K.indptr), shape=K.shape)
-    sub = tag[free][:, free].tocsr()
-    sub.sort_indices()
-    sel = sub.data.astype(np.int64) - 1
-    return sel, sub
 
 
 def _save_failure(directory: Path | None, mesh: TetMesh, x: np.ndarray, dirichlet: Dirichlet, lam: float,
                   log: list[dict]) -> Path | None:
+    """Save the state of a failed solve as ``.npz`` in ``directory`` (default: the temp dir); None if it cannot."""
     try:
         d = Path(directory) if directory is not None else Path(tempfile.gettempdir()) / "likeness_fem_failures"
-        d.mkdir(parents=True, exist_ok=True)
         path = d / f"not_converged_{time.strftime('%Y%m%dT%H%M%S')}_{uuid.uuid4().hex[:8]}.npz"
-        tmp = path.with_suffix(".tmp.npz")
-        np.savez_compressed(tmp, x=x, rest=np.asarray(mesh.nodes), tets=np.asarray(mesh.tets),
-                            dirichlet_nodes=dirichlet.nodes, dirichlet_positions=dirichlet.positions,
-                            load_factor=lam, residuals=np.array([r["residual"] for r in log]))
-        os.replace(tmp, path)
+        with atomic_path(path, suffix=".npz") as tmp:
+            np.savez_compressed(tmp, x=x, rest=np.asarray(mesh.nodes), tets=np.asarray(mesh.tets),
+                                dirichlet_nodes=dirichlet.nodes, dirichlet_positions=dirichlet.positions,
+                                load_factor=lam, residuals=np.array([r["residual"] for r in log]))
         return path
     except OSError:
         return None
+
+
+def _problem(mesh: TetMesh, material: Material, dirichlet: Dirichlet, x0: np.ndarray | None, opts: SolverOptions,
+             cache: FactorCache | None) -> tuple[NewtonProblem, np.ndarray]:
+    """Check the inputs and gather the solve's constants; returns them and the starting positions (N, 3)."""
+    resolve_backend(opts.backend)
+    N = mesh.n_nodes
+    nodes = dirichlet.nodes
+    if nodes.size and nodes.max() >= N:
+        raise ValueError(f"Dirichlet node index {nodes.max()} out of range for a mesh with {N} nodes")
+    x = np.array(mesh.nodes if x0 is None else x0, dtype=np.float64)
+    if x.shape != (N, 3):
+        raise ValueError(f"x0 must have shape ({N}, 3), got {x.shape}")
+    if min_jacobian(mesh, x) <= 0:
+        raise ValueError("initial positions invert at least one element (J <= 0)")
+    cdofs = dirichlet.dofs
+    free = np.ones(3 * N, dtype=bool)
+    free[cdofs] = False
+    free_idx = np.flatnonzero(free)
+    if free_idx.size == 0:
+        raise ValueError("every DoF is constrained; nothing to solve")
+    if cdofs.size < 6:
+        raise ValueError(f"only {cdofs.size} prescribed coordinates: at least 6 are needed to remove rigid motions")
+    f_grav = (gravity_forces(mesh, material, opts.gravity) if opts.gravity is not None else np.zeros((N, 3)))
+    cache = FactorCache() if cache is None else cache
+    problem = NewtonProblem(mesh, material, dirichlet, opts, cache, cdofs, free_idx, x.ravel()[cdofs].copy(),
+                       dirichlet.dof_values, f_grav)
+    return problem, x
+
+
+def _load_step_count(p: NewtonProblem) -> int:
+    """The planned number of load steps: the option, or for ``"auto"`` one per mean edge length of boundary travel."""
+    if p.opts.load_steps != "auto":
+        return int(p.opts.load_steps)
+    disp = float(np.abs(p.c_goal - p.c_start).max()) if p.cdofs.size else 0.0
+    return int(min(50, max(1, math.ceil(disp / _mean_edge_length(p.mesh)))))
 
 
 def solve_static(mesh: TetMesh, material: Material, dirichlet: Dirichlet, *, x0: np.ndarray | None = None,
@@ -308,230 +323,61 @@ def solve_static(mesh: TetMesh, material: Material, dirichlet: Dirichlet, *, x0:
     the next solve (with ``options.reuse_factorization``).
     """
     t_total = time.perf_counter()
-    opts = options
-    resolve_backend(opts.backend)
-    N = mesh.n_nodes
-    nodes = dirichlet.nodes
-    if nodes.size and nodes.max() >= N:
-        raise ValueError(f"Dirichlet node index {nodes.max()} out of range for a mesh with {N} nodes")
-    x = np.array(mesh.nodes if x0 is None else x0, dtype=np.float64)
-    if x.shape != (N, 3):
-        raise ValueError(f"x0 must have shape ({N}, 3), got {x.shape}")
-    if _en.min_jacobian(mesh, x) <= 0:
-        raise ValueError("initial positions invert at least one element (J <= 0)")
-    cdofs = dirichlet.dofs
-    free = np.ones(3 * N, dtype=bool)
-    free[cdofs] = False
-    free_idx = np.flatnonzero(free)
-    if free_idx.size == 0:
-        raise ValueError("every DoF is constrained; nothing to solve")
-    if cdofs.size < 6:
-        raise ValueError(f"only {cdofs.size} prescribed coordinates: at least 6 are needed to remove rigid motions")
-    c_start = x.ravel()[cdofs].copy()
-    c_goal = dirichlet.dof_values
-    f_grav = (_en.gravity_forces(mesh, material, opts.gravity) if opts.gravity is not None else np.zeros((N, 3)))
+    p, x = _problem(mesh, material, dirichlet, x0, options, cache)
+    n_steps = _load_step_count(p)
+    p.cache.bind(mesh, p.free_idx, options.backend, options.factor_precision)
+    w = NewtonWork()
+    x, steps_done = _load_stepping(p, w, x, n_steps, t_total)
+    return _result(p, w, x, True, steps_done, 1.0, t_total)
 
-    if opts.load_steps == "auto":
-        disp = float(np.abs(c_goal - c_start).max()) if cdofs.size else 0.0
-        n_steps = int(min(50, max(1, math.ceil(disp / _mean_edge_length(mesh)))))
-    else:
-        n_steps = int(opts.load_steps)
 
-    if cache is None:
-        cache = FactorCache()
-    cache.bind(mesh, free_idx, opts.backend, opts.factor_precision)
-    timings = {"assemble": 0.0, "factor": 0.0, "solve": 0.0, "krylov": 0.0, "line_search": 0.0, "total": 0.0}
-    counts = {"factor": 0, "krylov": 0}
-    log: list[dict] = []
-    sel_cache: dict = {}
-    iterations = 0
+def _result(p: NewtonProblem, w: NewtonWork, x: np.ndarray, converged: bool, steps_done: int, lam: float,
+            t_total: float) -> StaticResult:
+    """The :class:`StaticResult` of the state ``x`` reached at load factor ``lam``."""
+    w.timings["total"] = time.perf_counter() - t_total
+    fext = p.f_grav if converged else p.f_grav * lam
+    return StaticResult(x, converged, w.iterations, steps_done, tuple(w.log), MappingProxyType(dict(w.timings)),
+                        _reactions(p.mesh, p.material, x, p.dirichlet.nodes, fext), w.factorizations,
+                        w.krylov_iterations)
 
-    def assemble_reduced(xc: np.ndarray, project: bool):
-        t = time.perf_counter()
-        K, n_proj = _en._stiffness(mesh, material, xc, project)
-        if "sel" not in sel_cache:
-            sel_cache["sel"], sel_cache["sub"] = _reduced_selector(K, free_idx)
-        sub = sel_cache["sub"]
-        Kff = sp.csr_matrix((K.data[sel_cache["sel"]], sub.indices, sub.indptr), shape=sub.shape)
-        timings["assemble"] += time.perf_counter() - t
-        return K, Kff, n_proj
 
-    def potential(xc: np.ndarray, fext: np.ndarray) -> float:
-        return _en.total_energy(mesh, material, xc) - float(np.sum(fext * xc))
+def _load_stepping(p: NewtonProblem, w: NewtonWork, x: np.ndarray, n_steps: int, t_total: float
+                   ) -> tuple[np.ndarray, int]:
+    """Apply the load in steps of planned size 1/n_steps from ``x``: a failed step is halved (and the step size
+    grows back after a success); returns the equilibrium at full load and the number of steps taken.
 
-    def newton(x_in: np.ndarray, lam: float, step: int) -> np.ndarray:
-        nonlocal iterations
-        xk = x_in.copy()
-        tiny = 0
-        e_known = None  # the potential at xk when the line search already evaluated it
-        # the last step's target is the goal itself (c + 1.0 * (g - c) may differ from g by round-off)
-        target = c_goal if lam >= 1.0 else c_start + lam * (c_goal - c_start)
-        fext = lam * f_grav
-        for it in range(opts.max_iterations):
-            t = time.perf_counter()
-            r = (_en.internal_forces(mesh, material, xk) - fext).ravel()
-            timings["assemble"] += time.perf_counter() - t
-            dc = target - xk.ravel()[cdofs]
-            rf = r[free_idx]
-            res = float(np.linalg.norm(rf))
-            f_ref = max(float(np.linalg.norm(fext)), float(np.linalg.norm(r[cdofs])) if cdofs.size else 0.0)
-            boundary_done = not np.any(dc)
-            t = time.perf_counter()
-            e_now = potential(xk, fext) if e_known is None else e_known  # the line search's reference value
-            timings["line_search"] += time.perf_counter() - t
-            if boundary_done and res <= opts.tol_force * max(1.0, f_ref):
-                log.append({"step": step, "iteration": it, "energy": e_now, "residual": res, "alpha": 0.0,
-                            "projected": 0, "factor_s": 0.0, "tolerance": opts.tol_force * max(1.0, f_ref),
-                            "factorized": False, "krylov": 0})
-                if opts.verbose:
-                    print(f"  step {step} it {it}: converged |r|={res:.3e} (ref {f_ref:.3e})")
-                return xk
-            project = False
-            direct = not opts.reuse_factorization
-            factor_s, n_kry, factored = 0.0, 0, False
-            while True:
-                K, Kff, n_proj = assemble_reduced(xk, project)
-                rhs = -rf
-                if not boundary_done:
-                    dfull = np.zeros(3 * N)
-                    dfull[cdofs] = dc
-                    rhs = rhs - (K @ dfull)[free_idx]
-                du = None
-                # forcing term ∝ the residual keeps Newton's quadratic convergence (and the final state as
-                # accurate as an exact Newton step leaves it)
-                rtol = max(1e-14, min(opts.krylov_rtol, res / max(1.0, f_ref)))
-                if not direct and not project and cache.factorization is not None:
-                    t = time.perf_counter()
-                    kr = pcg(Kff, rhs, cache.factorization.solve, rtol, opts.krylov_max_iterations)
-                    timings["krylov"] += time.perf_counter() - t
-                    n_kry += kr.iterations
-                    counts["krylov"] += kr.iterations
-                    du = kr.x
-                    direct = True  # if this direction is refused, factor the current tangent
-                if du is None:
-                    t = time.perf_counter()
-                    counts["factor"] += 1
-                    try:
-                        fac = cache.solver.factor(Kff)
-                    except NotPositiveDefinite:
-                        cache.factorization = None  # the backend's state was reset
-                        timings["factor"] += time.perf_counter() - t
-                        if project:
-                            raise _StepFailed("projected stiffness still not positive definite") from None
-                        project = True
-                        continue
-                    cache.factorization = fac
-                    factored = True
-                    factor_s = time.perf_counter() - t
-                    timings["factor"] += factor_s
-                    t = time.perf_counter()
-                    if cache.solver.precision == "single":  # a preconditioner, not an exact solve
-                        kr = pcg(Kff, rhs, fac.solve, rtol, opts.krylov_max_iterations)
-                        n_kry += kr.iterations
-                        counts["krylov"] += kr.iterations
-                        du = np.full(rhs.shape, np.nan) if kr.x is None else kr.x
-                    else:
-                        du = fac.solve(rhs)
-                    timings["solve"] += time.perf_counter() - t
-                if not np.all(np.isfinite(du)):
-                    if project:
-                        raise _StepFailed("non-finite Newton direction")
-                    project = project or factored
-                    direct = True
-                    continue
-                slope = float(rf @ du)
-                if boundary_done and slope >= 0.0:
-                    if project:
-                        raise _StepFailed("no descent direction even with PSD projection")
-                    project = project or factored
-                    direct = True
-                    continue
-                break
-            d = np.zeros(3 * N)
-            d[free_idx] = du
-            d = d.reshape(N, 3)
-            # The boundary goes all the way to this step's target at once; only the free DoFs are scaled by the
-            # line search, so after one iteration every step is plain Newton on the free DoFs with a fixed
-            # boundary and monotone (Armijo) energy decrease. A boundary increment that no free-DoF step can
-            # follow without inverting an element fails the load step, which is then halved.
-            base = xk.copy()
-            base.reshape(-1)[cdofs] = target
-            t = time.perf_counter()
-            alpha = 1.0
-            accepted = False
-            # While the boundary moves in, the free DoFs must take a fair share of the predicted step: a start
-            # with the boundary in place and the free nodes barely moved is nearly inverted (forces of 1e9 N and
-            # more were seen) and Newton stalls from there, so a smaller load step is the better answer.
-            for _ in range(30 if boundary_done else _BOUNDARY_HALVINGS + 1):
-                xt = base + alpha * d
-                e_t = _en.total_energy(mesh, material, xt)
-                if np.isfinite(e_t):
-                    if not boundary_done:
-                        accepted = True
-                        break
-                    e_t -= float(np.sum(fext * xt))
-                    if e_t <= e_now + opts.armijo * alpha * slope:
-                        accepted = True
-                        break
-                    # Near convergence energy differences drown in round-off: accept a full step that reduces r.
-                    if alpha == 1.0 and abs(e_t - e_now) <= 1e-12 * max(1.0, abs(e_now)):
-                        r_t = (_en.internal_forces(mesh, material, xt) - fext).ravel()[free_idx]
-                        if np.linalg.norm(r_t) < res:
-                            accepted = True
-                            break
-                alpha *= 0.5
-            timings["line_search"] += time.perf_counter() - t
-            iterations += 1
-            log.append({"step": step, "iteration": it, "energy": e_now, "residual": res,
-                        "alpha": alpha if accepted else 0.0, "projected": int(n_proj), "factor_s": factor_s,
-                        "tolerance": opts.tol_force * max(1.0, f_ref), "factorized": factored, "krylov": n_kry})
-            if opts.verbose:
-                print(f"  step {step} it {it}: |r|={res:.3e} (ref {f_ref:.3e}) E={e_now:.6e} alpha={alpha:.3g} "
-                      f"projected={n_proj} factor={factor_s:.3f}s cg={n_kry}")
-            if not accepted:
-                raise _StepFailed("line search found no admissible step")
-            tiny = tiny + 1 if boundary_done and alpha < _STALL_ALPHA else 0
-            if tiny >= _STALL_ITERATIONS:
-                raise _StepFailed(f"Newton stalled ({tiny} steps in a row with alpha < {_STALL_ALPHA:g})")
-            xk = xt
-            e_known = e_t if boundary_done else e_t - float(np.sum(fext * xt))
-        raise _StepFailed(f"no convergence in {opts.max_iterations} iterations")
-
+    Raises :class:`NotConverged` (with the last state saved) after ``max_load_step_halvings`` halvings in a row.
+    """
+    opts = p.opts
     dlam0 = 1.0 / n_steps
     lam, dlam, halvings, steps_done = 0.0, dlam0, 0, 0
-    state_lam = 0.0
     while lam < 1.0 - 1e-12:
         lam1 = min(1.0, lam + dlam)
         if 1.0 - lam1 < 1e-9:
             lam1 = 1.0
         try:
-            x = newton(x, lam1, steps_done)
-            lam, state_lam = lam1, lam1
-            steps_done += 1
-            # a step that went through lets the next one grow back towards the planned size
-            halvings, dlam = 0, min(dlam0, 2.0 * dlam)
-        except _StepFailed as exc:
+            x = solve_load_step(p, w, x, lam1, steps_done)
+        except StepFailed as exc:
             halvings += 1
             if opts.verbose:
                 print(f"  load step to {lam1:.4f} failed ({exc}); halving")
             if halvings > opts.max_load_step_halvings:
-                timings["total"] = time.perf_counter() - t_total
-                result = StaticResult(x, False, iterations, steps_done, tuple(log), MappingProxyType(dict(timings)),
-                                      _reactions(mesh, material, x, nodes, f_grav * state_lam), counts["factor"],
-                                      counts["krylov"])
-                path = _save_failure(opts.failure_dir, mesh, x, dirichlet, state_lam, log)
+                result = _result(p, w, x, False, steps_done, lam, t_total)
+                path = _save_failure(opts.failure_dir, p.mesh, x, p.dirichlet, lam, w.log)
                 raise NotConverged(f"solve_static: {exc} at load factor {lam1:.4f} after {halvings - 1} successive "
-                                   "halvings",
-                                   result, path) from None
+                                   "halvings", result, path) from None
             dlam *= 0.5
-    timings["total"] = time.perf_counter() - t_total
-    return StaticResult(x, True, iterations, steps_done, tuple(log), MappingProxyType(dict(timings)),
-                        _reactions(mesh, material, x, nodes, f_grav), counts["factor"], counts["krylov"])
+            continue
+        lam = lam1
+        steps_done += 1
+        # a step that went through lets the next one grow back towards the planned size
+        halvings, dlam = 0, min(dlam0, 2.0 * dlam)
+    return x, steps_done
 
 
 def _reactions(mesh: TetMesh, material: Material, x: np.ndarray, nodes: np.ndarray, fext: np.ndarray) -> np.ndarray:
     """Constraint force at each Dirichlet node: internal force there minus the external load (K, 3)."""
-    f = _en.internal_forces(mesh, material, x)
+    f = internal_forces(mesh, material, x)
     return (f - fext)[nodes]
 
 
@@ -546,7 +392,7 @@ def tangent_factorization(mesh: TetMesh, material: Material, x: np.ndarray, diri
     symbolic analysis is reused and the new factorization becomes the cache's preconditioner for the next solve;
     with PARDISO this invalidates the cache's previous factorization object.
     """
-    K = _en.stiffness(mesh, material, x, project_psd=project_psd)
+    K = stiffness(mesh, material, x, project_psd=project_psd)
     free = np.ones(3 * mesh.n_nodes, dtype=bool)
     free[dirichlet.dofs] = False
     free_idx = np.flatnonzero(free)
