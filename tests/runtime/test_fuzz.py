@@ -25,6 +25,7 @@ import zmq
 
 from models.client import Client
 from models.protocol import ERROR_CODES
+from runtime.hardware import motor_config
 from runtime.messages import OPS
 
 SEED = int(os.environ.get("LIKENESS_FUZZ_SEED", str(random.SystemRandom().randrange(1 << 31))))
@@ -245,7 +246,8 @@ def _run(make_daemon: Any, seed: int) -> None:
     sock.connect(d.command_endpoint)
     answered = anonymous = 0
     faults: list[str] = []
-    limits = {name: (cfg.min_position, cfg.max_position) for name, cfg in d.hw.configs.items()}
+    configs = [motor_config(act) for act in d.head.actuators]  # what the drivers enforce, in driver units
+    limits = {cfg.name: (cfg.min_position, cfg.max_position) for cfg in configs}
     with Client(d.command_endpoint, timeout=30) as c:
         for _ in range(3):  # a starved emulator on a loaded host may miss a heartbeat on the way up
             _recover(c)
