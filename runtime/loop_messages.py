@@ -21,13 +21,11 @@ import zmq
 from models.errors import InternalError
 from runtime import ipc
 from runtime.core.commands import Command
+from runtime.core.events import Body
 
 #: Server → loop: every message on the command pipe is one of the core's commands.
 ToLoop = Command
 
-#: A reply body, an event or a state snapshot as the core builds it: protocol keys → plain values or numpy arrays
-#: (SI), read by key and formatted by the server.
-CoreMap = dict[str, object]
 
 
 @dataclass(frozen=True, slots=True)
@@ -35,21 +33,21 @@ class Reply:
     """The core's answer to the command carrying ``token``: the reply's fields, or ``{"error": {code, message}}``."""
 
     token: int
-    body: CoreMap
+    body: Body
 
 
 @dataclass(frozen=True, slots=True)
 class Event:
     """An event to publish on the telemetry socket (``{"event": kind, "t": ..., ...}``)."""
 
-    body: CoreMap
+    body: Body
 
 
 @dataclass(frozen=True, slots=True)
 class StateSnapshot:
     """The core's state for telemetry (positions SI, lifecycle, buses...), formatted by the server off its thread."""
 
-    body: CoreMap
+    body: Body
 
 
 @dataclass(frozen=True, slots=True)
@@ -73,9 +71,9 @@ class LoopStatistics:
     periods: np.ndarray
     phase_lock: PhaseLockReport | None = None
 
-    def summary(self) -> CoreMap:
+    def summary(self) -> Body:
         """Rate, counts and percentiles (µs) as ``status`` reports them under ``loop``."""
-        out: CoreMap = {"rate_hz": 1.0 / self.period, "cycles": self.cycles, "missed": self.missed,
+        out: Body = {"rate_hz": 1.0 / self.period, "cycles": self.cycles, "missed": self.missed,
                         "skipped": self.skipped}
         if self.phase_lock is not None:
             out["stream_phase_lock"] = {"locked": self.phase_lock.locked, "error_us": self.phase_lock.error_us}

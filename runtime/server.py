@@ -36,6 +36,7 @@ from runtime.client_sockets import ClientSockets, bind_client_sockets
 from runtime.config import DaemonConfig
 from runtime.core import commands as C
 from runtime.core.channels import ChannelMap
+from runtime.core.events import Body
 from runtime.decoder import DecodeJob, DecoderProcess, DecoderSpec, ReplyMap, die_with_parent
 from runtime.loop import process_threads
 from runtime.recording_session import RecordingSession
@@ -359,7 +360,7 @@ class Server:
                         self.recording.append(rows, self.units)
         return True
 
-    def _core_reply(self, token: int, body: L.CoreMap) -> None:
+    def _core_reply(self, token: int, body: Body) -> None:
         entry = self.pending.pop(token)
         if entry is None:
             return
@@ -380,7 +381,7 @@ class Server:
             return
         self._reply(entry.envelope, {"id": entry.request_id, "ok": True, **body})
 
-    def _format(self, op: str, body: L.CoreMap) -> L.CoreMap:
+    def _format(self, op: str, body: Body) -> Body:
         """The core's reply body as clients read it: configured units, the server's own parts of ``status``."""
         if op == "status":
             out = self.telemetry.status(body)
@@ -402,7 +403,7 @@ class Server:
         self.recording = RecordingSession.open(rt.record_dir, name, self.units,
                                                {"head": self.head.name, "rate_hz": rt.rate_hz})
 
-    def _finish_recording(self, body: L.CoreMap) -> L.CoreMap:
+    def _finish_recording(self, body: Body) -> Body:
         rec, self.recording = self.recording, None
         samples = cast(int, body["samples"])  # the rows the core recorded
         if rec is None:

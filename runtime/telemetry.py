@@ -20,7 +20,7 @@ import zmq
 
 from models import protocol as P
 from models.headspec import HeadSpec
-from runtime.loop_messages import CoreMap
+from runtime.core.events import Body
 
 if TYPE_CHECKING:
     from models.linkmap import LinkMap
@@ -99,7 +99,7 @@ class Telemetry:
     # Both results below cost about a millisecond each (a full predictor pass; m(p) per link) and the pose they
     # depend on stands still most of the time: each is recomputed only when its pose moved.
     _links_cache: tuple[bytes, dict[str, list[float]]] | None = None
-    _guard_cache: tuple[bytes, CoreMap] | None = None
+    _guard_cache: tuple[bytes, Body] | None = None
 
     def __init__(self, pub: zmq.Socket, head: HeadSpec, units: ActuatorUnits) -> None:
         self.pub = pub
@@ -107,7 +107,7 @@ class Telemetry:
         self.linkmap = _load_linkmap(head)
         self.guard = _load_guard(head)  # the full strain check, confirming the loop's reduced one
         self.guard_mismatch = 0
-        self.loop: CoreMap = {}  # the loop's statistics, summarised (runtime.loop_messages.LoopStatistics)
+        self.loop: Body = {}  # the loop's statistics, summarised (runtime.loop_messages.LoopStatistics)
         self.realtime = "not started"
         self._lock = threading.Lock()
         self._worker = LatestWorker(self._publish_state, "telemetry")
@@ -115,22 +115,22 @@ class Telemetry:
     def close(self) -> None:
         self._worker.close()
 
-    def event(self, body: CoreMap) -> None:
+    def event(self, body: Body) -> None:
         """Publish an event now."""
         self.publish(P.TOPIC_EVENT, body)
 
-    def state(self, snapshot: CoreMap) -> None:
+    def state(self, snapshot: Body) -> None:
         """Publish the state of ``snapshot`` soon, on the telemetry thread (a newer one replaces it)."""
         self._worker.put(snapshot)
 
-    def common(self, snap: CoreMap) -> CoreMap:
+    def common(self, snap: Body) -> Body:
         """The fields ``status`` replies and ``state`` messages share."""
         return {"t": snap["t"], "lifecycle": snap["lifecycle"], "mode": snap["mode"],
                 "commanded": self.units.named(snap["commanded_si"]), "measured": self.units.named(snap["measured_si"]),
                 "buses": snap["buses"], "connected": snap["connected"], "connection": snap.get("connection", {}),
                 "feedback_age_s": snap["feedback_age"]}
 
-    def status(self, body: CoreMap) -> CoreMap:
+    def status(self, body: Body) -> Body:
         """A ``status`` reply from the core's answer: units, the loop's statistics and realtime state."""
         out = self.common(body)
         for key in STATUS_KEYS:
@@ -140,7 +140,7 @@ class Telemetry:
         out["realtime"] = self.realtime
         return out
 
-    def state_message(self, snap: CoreMap) -> CoreMap:
+    def state_message(self, snap: Body) -> Body:
         """The ``state`` message of a snapshot: link poses m(q) and the full strain check included."""
         msg = self.common(snap)
         msg["loop"] = self.loop
@@ -154,7 +154,7 @@ class Telemetry:
             msg["guard_full"] = self._confirm_guard(snap["t"], np.asarray(snap["commanded_si"]))
         return msg
 
-    def publish(self, topic: bytes, msg: CoreMap) -> None:
+    def publish(self, topic: bytes, msg: Body) -> None:
         data = P.pack(plain(msg))
         try:
             with self._lock:
@@ -164,10 +164,10 @@ class Telemetry:
         except zmq.ZMQError as exc:
             log.warning("telemetry publish failed: %s", exc)
 
-    def _publish_state(self, snap: CoreMap) -> None:
+    def _publish_state(self, snap: Body) -> None:
         self.publish(P.TOPIC_STATE, self.state_message(snap))
 
-    def _confirm_guard(self, t: object, q: np.ndarray) -> CoreMap:
+    def _confirm_guard(self, t: object, q: np.ndarray) -> Body:
         """Full strain check of the commanded pose (off the loop): its strain range, and an event when the loop's
         reduced check decided otherwise (once per pose)."""
         assert self.guard is not None
@@ -181,7 +181,7 @@ class Telemetry:
             self.guard_mismatch += 1
             self.event({"event": "skin_guard", "t": t, "full": full_ok, "reduced": reduced_ok,
                         "strain": [float(strain[0]), float(strain[1])], "mismatches": self.guard_mismatch})
-        out: CoreMap = {"ok": full_ok, "strain": [round(float(strain[0]), 4), round(float(strain[1]), 4)],
+        out: Body = {"ok": full_ok, "strain": [round(float(strain[0]), 4), round(float(strain[1]), 4)],
                         "mismatches": self.guard_mismatch}
         self._guard_cache = (key, out)
         return dict(out)

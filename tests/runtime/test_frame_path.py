@@ -27,6 +27,7 @@ from runtime.bus import BusProxy
 from runtime.core import commands as C
 from runtime.core import core as K
 from runtime.core.cycle import CycleInputs, CycleOutputs
+from runtime.core.events import Body
 from runtime.inputs.hub import InputHub
 from runtime.runner import Runner
 
@@ -91,9 +92,9 @@ def test_what_the_loop_sends_back_is_one_typed_union_the_server_matches_on() -> 
     assert _hints(Runner._send)["msg"] == L.FromLoop
     assert _hints(L.send_to_server)["msg"] == L.FromLoop
     assert _hints(L.recv_from_loop)["return"] == L.FromLoop
-    assert _hints(L.Reply) == {"token": int, "body": L.CoreMap}
+    assert _hints(L.Reply) == {"token": int, "body": Body}
     reply = _hints(S.Server._core_reply)
-    assert reply["token"] is int and reply["body"] == L.CoreMap
+    assert reply["token"] is int and reply["body"] == Body
 
 
 def test_show_control_inputs_hand_the_server_core_commands() -> None:
