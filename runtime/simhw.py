@@ -175,7 +175,7 @@ class SimProcess:
 
     # ------------------------------------------------------------------ control channel
     def _request(self, message: Mapping[str, Any], timeout_s: float = 2.0) -> dict[str, Any]:
-        from sim_hardware.control import request
+        from models.emulator_control import request
 
         reply = request(self.control, message, timeout_s=timeout_s)
         if not reply.get("ok"):

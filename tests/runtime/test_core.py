@@ -13,13 +13,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from models.clip import clip_from_dict
 from models.headspec import load_head
 from runtime.config import daemon_config
 from runtime.core import commands as C
 from runtime.core import core as K
 from runtime.core.channels import ChannelMap
 from runtime.core.clips import bind_clip
-from runtime.curves import clip_from_dict
 
 SAMPLE = Path(__file__).resolve().parents[2] / "heads" / "sample" / "head.toml"
 HEAD = load_head(SAMPLE)

@@ -6,11 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from models.clip import clip_from_dict
 from runtime.core import commands as C
 from runtime.core import core as K
 from runtime.core.chase import ChaseParams
 from runtime.core.clips import bind_clip
-from runtime.curves import clip_from_dict
 from tests.runtime.test_core import HEAD, Rig
 
 RAMP = {"name": "ramp", "channels": {"jaw": {"interp": "linear", "keys": [[0, 0], [20, 20]]}}}

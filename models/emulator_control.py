@@ -1,4 +1,5 @@
-"""Fault-injection control channel for running emulators: msgpack requests over a ZeroMQ REP socket.
+"""The emulators' fault-injection control channel (server in each emulator process, client in the daemon and
+``likeness sim inject``): msgpack requests over a ZeroMQ REP socket.
 
 An emulator process serves ``ControlServer(endpoint, handler)``; ``handler(request) -> dict`` gets
 maps such as ``{"op": "inject", "fault": "stop_heartbeat", "device": 3}`` and returns a reply map.

@@ -5,7 +5,7 @@ Outputs in the run directory: ``journal.jsonl`` (every recorded pose; resuming s
 format), ``linkmap.json``, ``report.json``, ``report.png`` and ``proposed_config.toml``. All files except the
 append-only journal and capture log are written atomically.
 
-A live run drives a :class:`~runtime.calibration.heads.HeadDriver` and reads a tracker source; a replay run
+A live run drives a :class:`~offline.calibration.heads.HeadDriver` and reads a tracker source; a replay run
 (``calibrate_replay``) refits from a recorded capture CSV and the journal of the run that drove the head,
 so recorded capture data gives the same fit as the live stream did.
 """
@@ -27,11 +27,11 @@ import numpy as np
 
 from models.atomic import write_text
 from models.linkmap import LinkMap, LinkObservations, fit_linkmap
-from runtime.calibration.capture import CalibrationError, LinkEstimate, estimate
-from runtime.calibration.discovery import LimitResult, discover_limits, proposed_config, zero_offsets
-from runtime.calibration.journal import Journal
-from runtime.calibration.plan import Plan, make_plan
-from runtime.calibration.report import write_plot, write_report
+from offline.calibration.capture import CalibrationError, LinkEstimate, estimate
+from offline.calibration.discovery import LimitResult, discover_limits, proposed_config, zero_offsets
+from offline.calibration.journal import Journal
+from offline.calibration.plan import Plan, make_plan
+from offline.calibration.report import write_plot, write_report
 
 
 @dataclass
