@@ -102,7 +102,9 @@ class DaemonHead:
 
     Poses go out with the ``pose`` op at ``speed_fraction`` of max velocity (the daemon clips and rate-limits
     them again); ``status`` is polled until ``pose_reached``. The wire uses config units (degrees), converted
-    here from and to SI. The daemon is enabled if it is inactive and left active, holding, at the end.
+    here from and to SI. The daemon is enabled if it is inactive and left active, holding, at the end. A daemon
+    started for the run (``reset_start_fault``) that faulted before the first move (torque off, e.g. an emulated
+    bus late on a loaded host) is reset first; any other daemon in fault or e-stop is left to the operator.
     """
 
     def __init__(
@@ -113,6 +115,7 @@ class DaemonHead:
         timeout_s: float = 15.0,
         tolerance: float = math.radians(0.3),
         settle_s: float = 0.05,
+        reset_start_fault: bool = False,
     ) -> None:
         from models.client import Client, DaemonError
 
@@ -127,6 +130,9 @@ class DaemonHead:
         self._client = Client(endpoint, timeout=5.0)
         try:
             st = self._call("status")
+            if reset_start_fault and st.get("lifecycle") == "fault":
+                self._call("reset")
+                st = self._call("status")
             if st.get("lifecycle") == "inactive":
                 self._call("enable")
             elif st.get("lifecycle") != "active":

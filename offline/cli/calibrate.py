@@ -155,7 +155,7 @@ def _calibrate_live(args: argparse.Namespace, head: HeadSpec) -> CalibrationResu
             driver = KinematicHead(head, show=tracker.show)
             how = "ideal-motors"
         else:
-            driver = DaemonHead(endpoint, head, speed_fraction=args.speed)
+            driver = DaemonHead(endpoint, head, speed_fraction=args.speed, reset_start_fault=daemon is not None)
             how = f"daemon {endpoint}" + ("" if args.daemon else " (started for the run)")
         return calibrate_live(head, driver, source, args.out, _settings(args, how), reference=reference)
     finally:
