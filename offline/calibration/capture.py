@@ -1,8 +1,8 @@
 """Tracker sources for calibration and the robust per-pose estimate of each link's pose.
 
-A source returns the next ``n`` capture frames as :class:`~models.capture.MarkerSample` s: the simulated
-tracker directly, or a live ZeroMQ capture stream (``docs/tracker.md``). Recorded CSV exports are replayed
-through the journal's time windows instead (:mod:`.workflow`).
+A source returns the next ``n`` capture frames as :class:`~models.capture.MarkerSample` s: a live ZeroMQ capture
+stream (``docs/tracker.md``; the simulated tracker runs as a child process serving one). Recorded CSV exports are
+replayed through the journal's time windows instead (:mod:`.workflow`).
 
 :func:`estimate` turns one pose's samples into one pose per link: a consensus cluster of positions, widened by
 robust sigmas (1.4826·MAD, with floors) in position and then angle, averaged.
@@ -35,26 +35,6 @@ class TrackerSource(Protocol):
     def collect(self, n_frames: int) -> Sequence[MarkerSample]: ...
 
     def close(self) -> None: ...
-
-
-class FrameCapture(Protocol):
-    """An in-process tracker (e.g. ``sim_hardware.tracker.SimTracker`` in tests): the next ``n`` frames' samples."""
-
-    def capture(self, n_frames: int) -> list[MarkerSample]: ...
-
-
-class SimSource:
-    """An in-process tracker read directly (no network): the tests' simulated tracker."""
-
-    def __init__(self, tracker: FrameCapture) -> None:
-        self.tracker = tracker
-        self.description = "sim"
-
-    def collect(self, n_frames: int) -> Sequence[MarkerSample]:
-        return self.tracker.capture(n_frames)
-
-    def close(self) -> None:
-        pass
 
 
 class ZmqSource:

@@ -1,4 +1,5 @@
-"""Shared fixtures: the sample head, its mechanism, and a small calibration run with ideal motors."""
+"""Shared fixtures: the sample head, its mechanism, the simulated tracker read in-process, a daemon of the bare
+mechanism."""
 
 from __future__ import annotations
 
@@ -10,6 +11,20 @@ from models.headspec import load_head
 from sim_hardware.mechanism import sample_mechanism
 
 SAMPLE = Path(__file__).resolve().parents[2] / "heads" / "sample" / "head.toml"
+
+
+class SimSource:
+    """A calibration tracker source reading ``sim_hardware.tracker.SimTracker`` in-process (no network)."""
+
+    def __init__(self, tracker) -> None:
+        self.tracker = tracker
+        self.description = "sim"
+
+    def collect(self, n_frames: int):
+        return self.tracker.capture(n_frames)
+
+    def close(self) -> None:
+        pass
 
 
 @pytest.fixture(scope="session")

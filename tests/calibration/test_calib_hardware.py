@@ -15,12 +15,12 @@ import numpy as np
 import pytest
 
 from models.linkmap import LinkMap
-from offline.calibration.capture import CalibrationError, SimSource
+from offline.calibration.capture import CalibrationError
 from offline.calibration.heads import DaemonHead
 from offline.calibration.journal import Journal
 from offline.calibration.workflow import CalibrationSettings, calibrate_live
 from sim_hardware.tracker import SimTracker
-from tests.calibration.conftest import start_bare_daemon
+from tests.calibration.conftest import SimSource, start_bare_daemon
 
 DEG = math.pi / 180
 
