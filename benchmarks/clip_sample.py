@@ -19,8 +19,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from models.clip import Clip, clip_from_dict
 from runtime.compiled import compile_clip
-from runtime.curves import Clip, clip_from_dict
 
 CHANNELS = 52
 KEYS_PER_CHANNEL = 10_000 // CHANNELS

@@ -52,8 +52,8 @@ def bare_loop(rate_hz: float, seconds: float) -> dict:
 def daemon_run(rate_hz: float, performance: Path, extra: dict | None = None) -> dict:
     """Start the daemon, play the performance once, return the loop statistics over the playing time."""
     from models.client import Client
+    from models.clip import clip_file_as_dict
     from models.headspec import load_head
-    from runtime.curves import clip_file_as_dict
     from runtime.daemon import Daemon
 
     head = load_head(SAMPLE)

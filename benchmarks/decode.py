@@ -23,7 +23,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from runtime.curves import clip_from_dict
+from models.clip import clip_from_dict
 from runtime.messages import decode_request
 
 MIB = 1 << 20

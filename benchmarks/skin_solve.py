@@ -33,8 +33,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks._skin_reference import ReferenceInverse, reference_guard_ok  # noqa: E402
+from models.clip import load_clip_file  # noqa: E402
 from models.headspec import load_head  # noqa: E402
-from runtime.curves import load_clip_file  # noqa: E402
 from runtime.skin import SkinTargetSolver  # noqa: E402
 
 HEAD = ROOT / "heads" / "sample" / "head.toml"

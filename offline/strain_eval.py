@@ -89,10 +89,10 @@ def performance_poses(head: HeadSpec, files: Sequence[str | Path], every_s: floa
     Actuator channels convert from config units; ``arkit.*`` channels are solved frame by frame at ``rate_hz``
     with the head's skin solver settings, without the strain guard (the guard is what gets judged).
     """
-    from runtime.curves import load_clip_file
-    from runtime.skin import PREFIX, SkinTargetSolver
+    from models.clip import load_clip_file
+    from models.skin_targets import PREFIX, skin_targets_for_head
 
-    solver = SkinTargetSolver.from_head(head)
+    targets = skin_targets_for_head(head)
     names = head.actuator_names
     neutral = np.array(head.neutral_pose)
     poses, labels = [], []
@@ -106,14 +106,9 @@ def performance_poses(head: HeadSpec, files: Sequence[str | Path], every_s: floa
             values = clip.sample(t)
             arkit = {k: v for k, v in values.items() if k.startswith(PREFIX)}
             p = neutral.copy()
-            if arkit and solver is not None:
-                w = np.zeros(len(solver.units))
-                for ch, v in arkit.items():
-                    j = solver.units.get(ch[len(PREFIX):])
-                    if j is not None:
-                        w[j] = min(max(v, 0.0), 1.0)
-                p = solver.inverse.solve(w, p_prev=p_prev, max_iterations=solver.max_iterations,
-                                         tol=solver.tol).p
+            if arkit and targets is not None:
+                p = targets.inverse.solve(targets.weights(arkit), p_prev=p_prev, max_iterations=targets.max_iterations,
+                                          tol=targets.tol).p
                 p_prev = p
             for j, name in enumerate(names):
                 if name in values:

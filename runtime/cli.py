@@ -14,7 +14,7 @@ RUNTIME_COMMAND_MODULES: tuple[str, ...] = (
     "runtime.commands.keys",
     "runtime.commands.plot",
     "runtime.commands.recording",
-    "runtime.calibration.cli",
+    "offline.cli.calibrate",
 )
 
 

@@ -4,8 +4,8 @@
 every channel with a fixed number of numpy calls (no per-channel Python loop). The per-channel key search is one
 ``searchsorted`` over integer codes ``curve * M + rank(t) + 1``, ``rank`` being a key time's index among all the
 clip's distinct key times: exact, whatever the times. Step and linear values are the bits of
-:meth:`runtime.curves.Clip.sample`; Bezier channels run the safeguarded Newton iteration of
-:func:`runtime.curves._bezier_eval` on all of them in lockstep, each stopping where the scalar loop stops, so they
+:meth:`models.clip.Clip.sample`; Bezier channels run the safeguarded Newton iteration of
+:func:`models.clip._bezier_eval` on all of them in lockstep, each stopping where the scalar loop stops, so they
 give the same bits too (at the cost of a few numpy calls per iteration). Everything is plain numpy arrays and
 strings: picklable and cheap to hand to another process.
 """
@@ -17,10 +17,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from runtime.curves import Clip, ClipError
+from models.clip import Clip, ClipError
 from runtime.messages import ClipSpec
 
-_NEWTON_STEPS = 24  # as runtime.curves._bezier_eval
+_NEWTON_STEPS = 24  # as models.clip._bezier_eval
 _NEWTON_TOL = 1e-10
 
 
@@ -65,7 +65,7 @@ class CompiledClip:
     def sample(self, t: float, out: np.ndarray) -> None:
         """Write every channel's value at clip time ``t`` into ``out`` (one float64 per column; NaN for columns the
         clip has no curve for). Values hold before a curve's first key and after its last, as
-        :meth:`runtime.curves.Curve.value`. ``t`` must be finite."""
+        :meth:`models.clip.Curve.value`. ``t`` must be finite."""
         if len(out) != len(self.channel_index):
             raise ValueError(f"out has {len(out)} entries; the clip is compiled for {len(self.channel_index)} channels")
         t = float(t)
@@ -89,7 +89,7 @@ class CompiledClip:
 
     def _bezier(self, t: float, i: np.ndarray, s: np.ndarray, vals: np.ndarray) -> None:
         """Overwrite the Bezier curves' entries of ``vals`` strictly inside their key range: the steps of
-        :func:`runtime.curves._bezier_eval` (safeguarded Newton on x(s) = t from ``s``, then y(s)), all curves in
+        :func:`models.clip._bezier_eval` (safeguarded Newton on x(s) = t from ``s``, then y(s)), all curves in
         lockstep, each stopping where the scalar loop would. ``i``: the Bezier curves' slot indices."""
         inside = self.bez_first < t
         inside &= self.bez_last > t
@@ -146,8 +146,8 @@ def compile_clip(clip: Clip | ClipSpec, channels: Sequence[str]) -> CompiledClip
     """Compile ``clip`` for the columns ``channels`` (in that order; columns without a curve sample as NaN).
 
     A validated :class:`~runtime.messages.ClipSpec` compiles without per-key Python objects; a
-    :class:`~runtime.curves.Clip` reuses its curves' Bezier segments. A clip channel not in ``channels`` is a
-    :class:`~runtime.curves.ClipError`.
+    :class:`~models.clip.Clip` reuses its curves' Bezier segments. A clip channel not in ``channels`` is a
+    :class:`~models.clip.ClipError`.
     """
     channels = tuple(channels)
     if len(set(channels)) != len(channels):
@@ -215,7 +215,7 @@ def _build(name: str, channels: tuple[str, ...], curves: list) -> CompiledClip:
 
 
 def _bezier_segments(keys: np.ndarray) -> np.ndarray:
-    """Per segment the cubic coefficients (time a, b, c, d, value a, b, c, d) of :func:`runtime.curves.make_curve`
+    """Per segment the cubic coefficients (time a, b, c, d, value a, b, c, d) of :func:`models.clip.make_curve`
     for keys ``[t, v, in_dt, in_dv, out_dt, out_dv]``, with the same arithmetic (and so the same bits)."""
     a, b = keys[:-1], keys[1:]
     span = b[:, 0] - a[:, 0]

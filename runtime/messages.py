@@ -133,15 +133,15 @@ class ClipSpec(Struct, forbid_unknown_fields=True, dict=True):
 
     @property
     def duration(self) -> float:
-        """Last key time over all channels (as :attr:`runtime.curves.Clip.duration`)."""
+        """Last key time over all channels (as :attr:`models.clip.Clip.duration`)."""
         return max(float(self.key_array(ch)[-1, 0]) for ch in self.channels)
 
     def key_count(self) -> int:
         return sum(len(self.key_array(ch)) for ch in self.channels)
 
-    def to_clip(self):  # -> runtime.curves.Clip (imported lazily: curves does not need messages)
-        """The :class:`runtime.curves.Clip` of this spec (per-key Python objects: for files and tests, not cycles)."""
-        from runtime.curves import Clip, make_curve
+    def to_clip(self):  # -> models.clip.Clip (imported lazily: curves does not need messages)
+        """The :class:`models.clip.Clip` of this spec (per-key Python objects: for files and tests, not cycles)."""
+        from models.clip import Clip, make_curve
 
         return Clip(self.name, {ch: make_curve(spec.interp, self.key_array(ch).tolist(), f"clip {self.name!r}.{ch}")
                                 for ch, spec in self.channels.items()})
@@ -266,7 +266,7 @@ def decode_request(raw: bytes) -> Request:
 
 
 def _check_keys(spec: ChannelSpec, where: str) -> np.ndarray:
-    """A channel's keys as one array after the checks of :func:`runtime.curves.make_curve` (same messages)."""
+    """A channel's keys as one array after the checks of :func:`models.clip.make_curve` (same messages)."""
     width = 6 if spec.interp == "bezier" else 2
     arr = float_rows(spec.keys, width, MAX_CLIP_KEYS, f"{where}.keys", f"a list of {width} numbers for {spec.interp}",
                       "bad_value")

@@ -3,8 +3,8 @@
 :func:`start` launches ``likeness sim canopen`` (a socketcand server on a free loopback port) or ``likeness sim
 dynamixel`` (a pseudo-terminal) with ``sys.executable -m likeness.cli``, waits for its ``ready:`` line, and returns a
 :class:`SimProcess`: the bus options the real driver must use to reach it, ground truth in encoder counts by device
-id and fault injection, both over the emulator's control endpoint (:func:`control_request`: msgpack maps over
-ZeroMQ, the wire format ``sim_hardware/control.py`` serves; the runtime never imports the emulators). The emulator
+id and fault injection, both over the emulator's control endpoint (:func:`models.emulator_control.request`:
+msgpack maps over ZeroMQ; the runtime never imports the emulators). The emulator
 exits with this process (``--watch-parent``); a supervising thread logs its output and notices when it dies.
 :meth:`SimProcess.restart` brings a dead emulator back on the same socketcand port or pseudo-terminal path, as a
 device server or a replugged adapter comes back, so the daemon's bus can reconnect to it.
@@ -28,11 +28,9 @@ import time
 import weakref
 from collections.abc import Callable, Mapping, Sequence
 
-import msgpack
-import zmq
-
 from drivers.base import MotorConfig
 from drivers.errors import BusInitError, ConfigError
+from models.emulator_control import ControlReply, request
 
 log = logging.getLogger(__name__)
 
@@ -45,7 +43,6 @@ READY_TIMEOUT_S = 20.0
 EMULATOR_NICE = -10
 
 #: An emulator's reply on its control endpoint: ``{"ok": true, ...}`` or ``{"ok": false, "error": "..."}``.
-ControlReply = dict[str, object]
 
 #: Emulators still running, stopped at interpreter exit if their owner did not close them.
 _RUNNING: weakref.WeakSet[SimProcess] = weakref.WeakSet()
@@ -180,7 +177,7 @@ class SimProcess:
 
     # ------------------------------------------------------------------ control channel
     def _request(self, message: Mapping[str, object], timeout_s: float = 2.0) -> ControlReply:
-        reply = control_request(self.control, message, timeout_s=timeout_s)
+        reply = request(self.control, message, timeout_s=timeout_s)
         if not reply.get("ok"):
             raise RuntimeError(f"emulator of bus {self.bus_name}: {reply.get('error', 'request failed')}")
         return reply
@@ -319,22 +316,3 @@ _OPTIONS: dict[str, Callable[[str, dict[str, object], str], dict[str, object]]] 
     "dynamixel": _dynamixel_options,
 }
 
-
-def control_request(endpoint: str, message: Mapping[str, object], timeout_s: float = 2.0) -> ControlReply:
-    """Send one request to an emulator's control endpoint and return its reply map; TimeoutError if nobody answers.
-
-    The emulator serves a ZeroMQ REP socket taking and answering msgpack maps (``sim_hardware/control.py``).
-    """
-    sock = zmq.Context.instance().socket(zmq.REQ)
-    sock.setsockopt(zmq.LINGER, 0)
-    try:
-        sock.connect(endpoint)
-        sock.send(msgpack.packb(dict(message), use_bin_type=True))
-        if not sock.poll(int(timeout_s * 1000)):
-            raise TimeoutError(f"no answer from emulator control endpoint {endpoint} in {timeout_s} s")
-        reply = msgpack.unpackb(sock.recv(), raw=False)
-    finally:
-        sock.close(0)
-    if not isinstance(reply, dict):
-        raise RuntimeError(f"emulator control endpoint {endpoint} answered {type(reply).__name__}, not a map")
-    return reply

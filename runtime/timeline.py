@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from runtime.curves import Clip, ClipError
+from models.clip import Clip, ClipError
 
 
 @dataclass

@@ -1,6 +1,6 @@
 """``likeness sim inject``: send one fault-injection request to a running emulator's control endpoint.
 
-Works with any emulator that serves :class:`sim_hardware.control.ControlServer`; parameters are
+Works with any emulator that serves :class:`models.emulator_control.ControlServer`; parameters are
 ``key=value`` pairs, with values read as integers (``0x`` hex allowed), floats, ``true``/``false``
 or strings. Example: ``likeness sim inject --control tcp://127.0.0.1:5600 drive_fault device=3 code=0x2310``.
 """
@@ -54,7 +54,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     """Send the request, print the reply as JSON; exit 0 when the emulator accepted it, 1 otherwise."""
     message = {"op": "inject", "fault": args.fault, **parse_params(args.params)}
-    from sim_hardware.control import request
+    from models.emulator_control import request
 
     try:
         reply = request(args.control, message, timeout_s=args.timeout)

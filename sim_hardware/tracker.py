@@ -4,7 +4,7 @@
 per link per capture frame, ``models.capture.MarkerSample``) with Gaussian noise, dropouts (a link missing from
 a frame) and outliers (a marker swap: a jump of centimetres and a wrong orientation) at settable rates.
 :class:`TrackerPublisher` serves it as a live capture stream in the documented format (``docs/tracker.md``).
-The capture formats themselves live in :mod:`models.capture` (re-exported here).
+The capture formats themselves live in :mod:`models.capture`.
 """
 
 from __future__ import annotations
@@ -17,19 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from models.capture import (  # noqa: F401  (re-exported: the formats the tracker speaks)
-    CSV_COLUMNS,
-    STREAM_VERSION,
-    TOPIC,
-    CaptureLog,
-    CsvAppender,
-    MarkerSample,
-    frame_body,
-    read_csv,
-    samples_from_body,
-    samples_to_csv,
-    write_csv,
-)
+from models.capture import TOPIC, MarkerSample, frame_body, samples_from_body
+from models.mechanism import Mechanism
 from models.rigid import matrix_to_quat, quat_to_matrix, rotvec_to_matrix
 
 
@@ -54,7 +43,7 @@ class SimTracker:
 
     def __init__(
         self,
-        mechanism,
+        mechanism: Mechanism,
         positions: Callable[[], Mapping[str, float]],
         noise: TrackerNoise | None = None,
         rate_hz: float = 120.0,

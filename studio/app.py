@@ -17,7 +17,7 @@ import numpy as np
 import viser
 
 from studio.clipdoc import ClipDoc
-from studio.daemon_link import DaemonLink
+from studio.daemon_client import DaemonConnection
 from studio.frontdoor import FrontDoor
 from studio.head import StudioHead
 from studio.scene import BandedSkin
@@ -53,9 +53,9 @@ class Studio:
         self.doc = ClipDoc("take")
         self.p = head.neutral.copy()  # the pose shown, SI, head actuator order
         self.pose_lock = threading.RLock()
-        self.daemon: DaemonLink | None = None
+        self.daemon: DaemonConnection | None = None
         if options.daemon:
-            self.daemon = DaemonLink(options.daemon, options.telemetry, options.client_key, options.server_key)
+            self.daemon = DaemonConnection(options.daemon, options.telemetry, options.client_key, options.server_key)
         with contextlib.redirect_stdout(io.StringIO()):  # viser prints its own address; the page's is ours
             self.server = viser.ViserServer(host=options.host, port=0, label="Likeness Studio", verbose=False)
         self.server.gui.configure_theme(control_width="large", show_logo=False,

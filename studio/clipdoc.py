@@ -2,7 +2,7 @@
 
 The document is what the Animate tab edits and what is saved, loaded and sent to the daemon: ``to_dict`` gives the
 protocol's clip map (``docs/protocol.md``, ``load_clip``), ``from_dict`` reads one (validated by
-:func:`runtime.curves.clip_from_dict`, so a file the daemon would refuse is refused here with the same message).
+:func:`models.clip.clip_from_dict`, so a file the daemon would refuse is refused here with the same message).
 Bezier keys keep tangent handles read from a file; keys made in the studio get flat handles a third of the way to
 their neighbours (ease in and out), recomputed as keys move. Values are in each channel's configured unit.
 """
@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from runtime.curves import INTERPS, Curve, clip_from_dict, make_curve
+from models.clip import INTERPS, Curve, clip_from_dict, make_curve
 
 #: Two keys closer than this (s) are the same key.
 TIME_EPS = 1e-6

@@ -1,70 +1,60 @@
 """The exact FEM pose, off the page's thread: a worker process solves the skin FEM for one actuator pose.
 
-The worker loads the head's FEM problem (``offline.dataset.fem_problem``: the skin mesh beside the head, its link
-map and material) once and keeps it for later poses; the first solve also compiles the FEM kernels (tens of
-seconds), later ones take seconds. Offline code is imported only inside the worker process.
+The worker is ``python -m offline.pose_worker HEAD.toml``, a child process speaking JSON lines over its stdin and
+stdout (the protocol is in that module's docstring); the studio imports no offline code. The worker loads the head's
+FEM problem once and keeps it for later poses; the first solve also compiles the FEM kernels (tens of seconds),
+later ones take seconds.
 """
 
 from __future__ import annotations
 
 import concurrent.futures as cf
-import multiprocessing
+import json
+import subprocess
+import sys
+import threading
 from pathlib import Path
 
 import numpy as np
 
-_PROBLEM: dict[str, object] = {}
-
-
-def mesh_folder(config: str | Path) -> Path:
-    """The skin mesh of a head: ``[paths] skin_mesh`` when given, else ``skin/`` beside the head file."""
-    from models.headspec import load_head
-
-    head = load_head(config)
-    given = head.path("skin_mesh")
-    return Path(given) if given is not None else Path(head.source).parent / "skin"
-
-
-def solve_exact(config: str, p: list[float]) -> tuple[np.ndarray, bool, int]:
-    """Outer-surface positions (V, 3) m of the FEM solution at actuator pose ``p`` (SI), converged, iterations.
-
-    Runs in the worker process.
-    """
-    from models.headspec import load_head
-    from offline.dataset.fem_problem import FemSpec, material_fields
-
-    prob = _PROBLEM.get(config)
-    if prob is None:
-        head = load_head(config)
-        linkmap = head.path("linkmap")
-        if linkmap is None:
-            raise ValueError(f"{config}: the exact FEM pose needs the head's link map ([paths] linkmap)")
-        spec = FemSpec(config=str(head.source), mesh=str(mesh_folder(config)), linkmap=str(linkmap),
-                       **material_fields(head.skin_material()))
-        prob = spec.build()
-        _PROBLEM[config] = prob
-    sol = prob.solve(np.asarray(p, dtype=np.float64), None)  # type: ignore[attr-defined]
-    return np.asarray(sol.surface, dtype=np.float64), bool(sol.converged), int(sol.iterations)
+#: What a solve gives: outer-surface positions (V, 3) m, converged, Newton iterations.
+ExactSolution = tuple[np.ndarray, bool, int]
 
 
 class ExactPoser:
-    """One worker process (spawned, so it shares nothing with the page's threads) solving exact poses in turn."""
+    """One worker process solving exact poses in turn (started at the first pose, ended by :meth:`close`)."""
 
     def __init__(self, config: str | Path) -> None:
         self.config = str(Path(config).resolve())
-        self._pool: cf.ProcessPoolExecutor | None = None
+        self._proc: subprocess.Popen[str] | None = None
+        self._lock = threading.Lock()  # one request on the pipe at a time
+        self._pool = cf.ThreadPoolExecutor(max_workers=1, thread_name_prefix="exact-pose")
 
-    def submit(self, p: np.ndarray) -> cf.Future:
-        if self._pool is None:
-            self._pool = cf.ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"))
-        return self._pool.submit(solve_exact, self.config, [float(x) for x in p])
+    def submit(self, p: np.ndarray) -> cf.Future[ExactSolution]:
+        """The exact pose at actuator values ``p`` (SI), solved in the worker."""
+        return self._pool.submit(self._solve, [float(x) for x in p])
+
+    def _solve(self, p: list[float]) -> ExactSolution:
+        with self._lock:
+            if self._proc is None or self._proc.poll() is not None:
+                self._proc = subprocess.Popen([sys.executable, "-m", "offline.pose_worker", self.config],
+                                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+            proc = self._proc
+            assert proc.stdin is not None and proc.stdout is not None
+            proc.stdin.write(json.dumps({"p": p}) + "\n")
+            proc.stdin.flush()
+            line = proc.stdout.readline()
+        if not line:
+            raise RuntimeError(f"the exact-pose worker ended (status {proc.poll()})")
+        reply = json.loads(line)
+        if not reply.get("ok"):
+            raise RuntimeError(f"exact pose failed: {reply.get('error')}")
+        return np.asarray(reply["surface"], dtype=np.float64), bool(reply["converged"]), int(reply["iterations"])
 
     def close(self) -> None:
         """Stop the worker, ending a solve still running (the page is going away)."""
-        if self._pool is not None:
-            procs = list(getattr(self._pool, "_processes", {}).values())
-            self._pool.shutdown(wait=False, cancel_futures=True)
-            for proc in procs:
-                if proc.is_alive():
-                    proc.terminate()
-            self._pool = None
+        proc, self._proc = self._proc, None
+        if proc is not None and proc.poll() is None:
+            proc.terminate()
+            proc.wait()
+        self._pool.shutdown(wait=False, cancel_futures=True)

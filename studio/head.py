@@ -3,7 +3,7 @@ channel pose becomes an actuator pose (SI) for the skin predictor.
 
 Channel values are in each channel's configured unit (degrees, millimetres; ``weight`` 0..1 for ``arkit.*``), as the
 protocol carries them. Group channels fan out to their members with the group's gains; target channels are solved
-to actuator values through the predictor's hidden-space inverse (:class:`runtime.skin.SkinTargetSolver`).
+to actuator values through the predictor's hidden-space inverse (:mod:`models.skin_targets`).
 """
 
 from __future__ import annotations
@@ -16,9 +16,8 @@ import numpy as np
 
 from models.headspec import HeadSpec, load_head
 from models.predictor import SkinPredictor
+from models.skin_targets import PREFIX, skin_targets_for_head
 from models.strain_guard import StrainGuard
-
-TARGET_PREFIX = "arkit."
 
 
 @dataclass(frozen=True)
@@ -37,8 +36,6 @@ class StudioHead:
     """A head with its skin predictor, strain guard and (when the predictor has face units) target solver."""
 
     def __init__(self, head: HeadSpec) -> None:
-        from runtime.skin import SkinTargetSolver
-
         self.spec = head
         path = head.path("predictor")
         if path is None or not Path(path).is_file():
@@ -46,8 +43,8 @@ class StudioHead:
                              f"not found: {path}")
         self.predictor = SkinPredictor(path)
         self.predictor.check_against(head, require_full_range=False)
-        self.solver = SkinTargetSolver.from_head(head) if self.predictor.face_unit_offsets is not None else None
-        guard = self.solver.strain_guard if self.solver is not None else StrainGuard.for_head(head, self.predictor)
+        self.targets = skin_targets_for_head(head) if self.predictor.face_unit_offsets is not None else None
+        guard = self.targets.strain_guard if self.targets is not None else StrainGuard.for_head(head, self.predictor)
         if guard is None:  # for_head returns None only without a predictor path, checked above
             raise ValueError(f"{head.source}: no strain guard for this head")
         self.guard: StrainGuard = guard
@@ -85,8 +82,8 @@ class StudioHead:
             s = self.scale[first]
             out.append(Channel(g.name, "group", self.spec.actuators[first].unit, lo / s, hi / s,
                                float(np.clip(0.0, lo / s, hi / s))))
-        if self.solver is not None:
-            for ch in self.solver.channels():
+        if self.targets is not None:
+            for ch in self.targets.channels():
                 out.append(Channel(ch, "target", "weight", 0.0, 1.0, 0.0))
         return tuple(out)
 
@@ -116,15 +113,15 @@ class StudioHead:
 
     def solve_targets(self, weights: Mapping[str, float], p_prev: np.ndarray) -> tuple[np.ndarray, float]:
         """Actuator pose (SI) whose predicted skin best matches the ARKit weights, and the RMS residual (m)."""
-        if self.solver is None:
+        if self.targets is None:
             raise ValueError(f"head {self.spec.name!r}: the predictor has no face units, so no arkit.* channels")
-        units = self.solver.units
+        units = self.targets.units
         w = np.zeros(len(units))
         for ch, value in weights.items():
             if self.kind(ch) != "target":
                 raise KeyError(f"{ch!r} is not a target channel")
-            w[units[ch[len(TARGET_PREFIX):]]] = min(max(float(value), 0.0), 1.0)
-        res = self.solver.inverse.solve(w, p_prev=np.clip(p_prev, self.lo, self.hi), max_iterations=30, tol=1e-10)
+            w[units[ch[len(PREFIX):]]] = min(max(float(value), 0.0), 1.0)
+        res = self.targets.inverse.solve(w, p_prev=np.clip(p_prev, self.lo, self.hi), max_iterations=30, tol=1e-10)
         return np.clip(res.p, self.lo, self.hi), float(res.residual_rms)
 
     def channel_values(self, p: np.ndarray) -> dict[str, float]:

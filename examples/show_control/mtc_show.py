@@ -18,7 +18,7 @@ from pathlib import Path
 import mido.sockets
 
 from models.client import Client
-from runtime.curves import clip_file_as_dict
+from models.clip import clip_file_as_dict
 from runtime.inputs.mtcgen import MtcGenerator
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -30,10 +30,10 @@ def run(args: argparse.Namespace) -> int:
     from drivers.errors import BusError
     from likeness.cli import CliError
     from models.client import Client, Telemetry
+    from models.clip import ClipError, clip_file_as_dict, clip_from_dict
     from models.errors import SpecError
     from models.headspec import load_head
     from runtime.commands.plot import print_errors
-    from runtime.curves import ClipError, clip_file_as_dict, clip_from_dict
     from runtime.daemon import Daemon, DaemonStartError
     from runtime.recording import load_recording, plot_recording, tracking_errors
 

@@ -111,7 +111,7 @@ def replay_clip(rec: dict[str, Any], name: str, max_keys: int = REPLAY_MAX_KEYS)
 
 def run_replay(args: argparse.Namespace) -> int:
     from likeness.cli import CliError
-    from runtime.curves import ClipError, clip_from_dict
+    from models.clip import ClipError, clip_from_dict
 
     if not args.speed > 0 or args.max_keys < 2:
         raise CliError("--speed must be positive and --max-keys at least 2")

@@ -27,7 +27,7 @@ def run(args: argparse.Namespace) -> int:
     import time
 
     from likeness.cli import CliError
-    from runtime.curves import ClipError, clip_file_as_dict, clip_from_dict
+    from models.clip import ClipError, clip_file_as_dict, clip_from_dict
 
     if not args.fps > 0 or not args.speed > 0:
         raise CliError("--fps and --speed must be positive")

@@ -10,9 +10,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from models.clip import Clip
 from runtime.compiled import CompiledClip, compile_clip
 from runtime.core.channels import ChannelMap
-from runtime.curves import Clip
 from runtime.messages import ClipSpec
 
 
@@ -36,7 +36,7 @@ class BoundClip:
 
 
 def bind_clip(clip: Clip | ClipSpec, channels: ChannelMap) -> BoundClip:
-    """Compile ``clip`` (a :class:`~runtime.curves.Clip`, or a protocol :class:`~runtime.messages.ClipSpec`) to
+    """Compile ``clip`` (a :class:`~models.clip.Clip`, or a protocol :class:`~runtime.messages.ClipSpec`) to
     arrays and bind it to the head's channel vector (UnknownChannel for a foreign channel)."""
     names = tuple(clip.channels)
     idx = channels.indices(names)

@@ -110,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
         drives.start()
         server.start()
         if args.control:
-            from sim_hardware.control import ControlServer
+            from models.emulator_control import ControlServer
 
             try:
                 control = ControlServer(args.control, drives.handle_control)

@@ -70,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
         emulator.start()
         emulator.link(link)
         if args.control:
-            from sim_hardware.control import ControlServer
+            from models.emulator_control import ControlServer
 
             try:
                 control = ControlServer(args.control, emulator.handle_control)

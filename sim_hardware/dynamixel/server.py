@@ -6,7 +6,7 @@ honouring each servo's return delay time and status return level. Clients (dynam
 pyserial) open :attr:`DynamixelEmulator.port`, the slave device, as they would a USB adapter.
 Fault injection (dropped, delayed or corrupted packets; overheating, overload, bad input
 voltage, disconnected servos) goes through :meth:`inject`/:meth:`clear`, or over ZeroMQ through
-:meth:`handle_control` served by :class:`sim_hardware.control.ControlServer`.
+:meth:`handle_control` served by :class:`models.emulator_control.ControlServer`.
 """
 
 from __future__ import annotations

@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from runtime.calibration.capture import estimate
-from runtime.calibration.plan import make_plan
-from sim_hardware.tracker import MarkerSample
+from models.capture import MarkerSample
+from offline.calibration.capture import estimate
+from offline.calibration.plan import make_plan
 
 Q0 = (1.0, 0.0, 0.0, 0.0)
 

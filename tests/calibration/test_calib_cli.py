@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 from likeness.cli import main
@@ -38,3 +39,27 @@ def test_user_errors_exit_2_with_a_message(tmp_path, capsys) -> None:
     assert main([*base, "--tracker", "sim", "--ideal-motors", "--speed", "2"]) == 2
     assert main(["calibrate", "--config", str(tmp_path / "nope.toml"), "--tracker", "sim", "--out", "x"]) == 2
     assert "cannot read head spec" in capsys.readouterr().err
+
+
+def test_calibrate_starts_the_daemon_and_the_tracker_and_reaches_the_whole_travel(tmp_path, capsys) -> None:
+    """Without --daemon the command runs the head's daemon (bare mechanism: no skin-strain guard stops a pose
+    short) and the simulated tracker as child processes; a run stopped by an emulated bus timing out on a
+    saturated CPU is resumed, as an operator would."""
+    out = tmp_path / "run"
+    args = ["calibrate", "--config", str(SAMPLE), "--tracker", "sim", "--out", str(out), "--samples", "4",
+            "--sweep-levels", "2", "--frames", "4", "--speed", "0.6", "--no-discover", "--no-progress"]
+    for _attempt in range(4):
+        rc = main(args)
+        if rc == 0:
+            break
+    assert rc == 0, capsys.readouterr().err
+    report = json.loads((out / "report.json").read_text())
+    assert report["provenance"]["driver"].endswith("(started for the run)")
+    assert (out / "daemon.log").exists() and (out / "tracker.log").exists()
+    poses = [json.loads(x) for x in (out / "journal.jsonl").read_text().splitlines()]
+    poses = [p for p in poses if p["type"] == "pose"]
+    assert len(poses) == report["provenance"]["poses"]
+    for rec in poses:
+        for name, value in rec["commanded"].items():
+            assert abs(rec["measured"][name] - value) < math.radians(0.5), name  # settled on target
+    assert max(rec["measured"]["jaw"] for rec in poses) > math.radians(25)  # the jaw's whole travel (28 deg)

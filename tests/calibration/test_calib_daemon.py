@@ -7,11 +7,12 @@ import math
 import numpy as np
 import pytest
 
-from runtime.calibration.capture import CalibrationError, SimSource
-from runtime.calibration.heads import DaemonHead
-from runtime.calibration.journal import Journal
-from runtime.calibration.workflow import CalibrationSettings, calibrate_live
+from offline.calibration.capture import CalibrationError
+from offline.calibration.heads import DaemonHead
+from offline.calibration.journal import Journal
+from offline.calibration.workflow import CalibrationSettings, calibrate_live
 from sim_hardware.tracker import SimTracker
+from tests.calibration.conftest import SimSource
 
 DEG = math.pi / 180
 

@@ -1,4 +1,5 @@
-"""Calibration through the emulated sample head's buses (CiA 402 drives and Dynamixel servos in-process).
+"""Calibration through the emulated sample head's buses (CiA 402 drives and Dynamixel servos), driven by a daemon
+of the bare mechanism (no skin predictor, as ``likeness calibrate`` runs it).
 
 The emulated motors move the virtual mechanism, and the simulated tracker sees the links where the mechanism
 puts them for the motors' true positions; so each recorded link pose must agree with the mechanism evaluated
@@ -14,11 +15,12 @@ import numpy as np
 import pytest
 
 from models.linkmap import LinkMap
-from runtime.calibration.capture import CalibrationError, SimSource
-from runtime.calibration.heads import HardwareHead
-from runtime.calibration.journal import Journal
-from runtime.calibration.workflow import CalibrationSettings, calibrate_live
+from offline.calibration.capture import CalibrationError
+from offline.calibration.heads import DaemonHead
+from offline.calibration.journal import Journal
+from offline.calibration.workflow import CalibrationSettings, calibrate_live
 from sim_hardware.tracker import SimTracker
+from tests.calibration.conftest import SimSource, start_bare_daemon
 
 DEG = math.pi / 180
 
@@ -27,25 +29,23 @@ def _run(head, mech, out, attempts: int = 3, **kw):
     """Calibrate on fresh emulated buses; if the emulated buses fault (they time out when the shared CPU is
     saturated), start them again and resume from the journal, as an operator would."""
     from drivers.errors import BusError
-    from runtime.hardware import Hardware
 
     s = CalibrationSettings(**{"samples": 4, "sweep_levels": 2, "frames_per_pose": 4, "discover": False,
-                               "progress": False, **kw})
+                               "progress": False, "tie_groups": True, **kw})  # the daemon moves "together" groups
     for attempt in range(attempts):
-        hw = Hardware.from_head(head)
+        daemon = start_bare_daemon(head, out)
+        driver = None
         try:
-            driver = HardwareHead(hw, head, speed_fraction=0.5)
-        except BaseException:
-            hw.close()
-            raise
-        try:
-            src = SimSource(SimTracker(mech, hw.simulated_positions, seed=11 + attempt))
+            driver = DaemonHead(daemon.command_endpoint, head, speed_fraction=0.5)
+            src = SimSource(SimTracker(mech, daemon.hw.simulated_positions, seed=11 + attempt))
             return calibrate_live(head, driver, src, out, s, reference=mech.rest_poses())
         except (CalibrationError, BusError):
             if attempt == attempts - 1:
                 raise
         finally:
-            driver.close()
+            if driver is not None:
+                driver.close()
+            daemon.stop()
     raise AssertionError("unreachable")
 
 
@@ -88,9 +88,8 @@ def test_limit_discovery_on_the_emulated_drives(tmp_path, sample_head) -> None:
     from pathlib import Path
 
     from models.headspec import head_from_dict
-    from runtime.calibration.capture import estimate
-    from runtime.calibration.discovery import discover_limits
-    from runtime.hardware import Hardware
+    from offline.calibration.capture import estimate
+    from offline.calibration.discovery import discover_limits
     from sim_hardware.mechanism import sample_mechanism
 
     data = tomllib.loads(Path(sample_head.source).read_text())
@@ -99,10 +98,17 @@ def test_limit_discovery_on_the_emulated_drives(tmp_path, sample_head) -> None:
             act["max"] = 40.0
     wide = head_from_dict(data, source=sample_head.source)
     mech = sample_mechanism(None, seed=5)  # hard stops from the real sample limits
-    hw = Hardware.from_head(wide)
-    driver = HardwareHead(hw, wide, speed_fraction=0.3)
+    for attempt in range(3):  # emulated buses may fault before the first move on a saturated CPU: start again
+        daemon = start_bare_daemon(wide, tmp_path, dict(data))
+        try:
+            driver = DaemonHead(daemon.command_endpoint, wide, speed_fraction=0.3)
+            break
+        except BaseException:
+            daemon.stop()
+            if attempt == 2:
+                raise
     try:
-        src = SimSource(SimTracker(mech, hw.simulated_positions, seed=13))
+        src = SimSource(SimTracker(mech, daemon.hw.simulated_positions, seed=13))
 
         def observe():
             return {n: e.position for n, e in estimate(src.collect(4), list(mech.links), 4).items()}
@@ -110,6 +116,7 @@ def test_limit_discovery_on_the_emulated_drives(tmp_path, sample_head) -> None:
         res = discover_limits(wide, driver, observe, actuators=["jaw"], step=2 * DEG)
     finally:
         driver.close()
+        daemon.stop()
     stop = mech.stops["jaw"][1] + mech.zero_error["jaw"]
     assert res["jaw"].stop_found == (False, True)
     assert res["jaw"].proposed[1] == pytest.approx(stop - 1 * DEG, abs=2.5 * DEG)

@@ -23,14 +23,15 @@ from models.errors import SpecError
 from models.headspec import head_from_dict
 from models.linkmap import LinkMap, n_features
 from models.rigid import invert
-from runtime.calibration.capture import SimSource, ZmqSource, estimate
-from runtime.calibration.discovery import discover_limits
-from runtime.calibration.heads import KinematicHead
-from runtime.calibration.journal import Journal
-from runtime.calibration.plan import make_plan
-from runtime.calibration.workflow import CalibrationSettings, calibrate_live, calibrate_replay
+from offline.calibration.capture import ZmqSource, estimate
+from offline.calibration.discovery import discover_limits
+from offline.calibration.heads import KinematicHead
+from offline.calibration.journal import Journal
+from offline.calibration.plan import make_plan
+from offline.calibration.workflow import CalibrationSettings, calibrate_live, calibrate_replay
 from sim_hardware.mechanism import sample_mechanism
 from sim_hardware.tracker import SimTracker, TrackerNoise, TrackerPublisher
+from tests.calibration.conftest import SimSource
 
 DEG = math.pi / 180
 SIGMA = 0.2e-3

@@ -10,9 +10,9 @@ from pathlib import Path
 import pytest
 
 from likeness.cli import main
+from models.clip import ClipError, load_clip_file
 from models.errors import SpecError
 from models.headspec import load_head
-from runtime.curves import ClipError, load_clip_file
 from runtime.skin import SkinTargetSolver
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -12,8 +12,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from models.clip import Clip, ClipError, clip_from_dict
 from runtime.compiled import CompiledClip, compile_clip
-from runtime.curves import Clip, ClipError, clip_from_dict
 from runtime.messages import decode_request
 
 FINITE = st.floats(min_value=-1e3, max_value=1e3, allow_nan=False)

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from models.clip import clip_from_dict
 from models.headspec import load_head
 from runtime.config import daemon_config
 from runtime.core import commands as C
@@ -24,7 +25,6 @@ from runtime.core.lifecycle import Lifecycle
 from runtime.core.params import CoreParams
 from runtime.core.sources import Mode
 from runtime.core.state import CoreState
-from runtime.curves import clip_from_dict
 
 SAMPLE = Path(__file__).resolve().parents[2] / "heads" / "sample" / "head.toml"
 HEAD = load_head(SAMPLE)

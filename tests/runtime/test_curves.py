@@ -7,7 +7,7 @@ import math
 
 import pytest
 
-from runtime.curves import ClipError, clip_from_csv, clip_from_dict, load_clip_file, make_curve
+from models.clip import ClipError, clip_from_csv, clip_from_dict, load_clip_file, make_curve
 
 
 def test_step_and_linear_hold_outside_and_interpolate_inside() -> None:

@@ -12,9 +12,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from models.clip import clip_from_dict
 from models.protocol import ProtocolError
 from runtime import messages as M
-from runtime.curves import clip_from_dict
 from runtime.messages import RequestError, decode_request
 
 CLIP = {"name": "hi", "channels": {

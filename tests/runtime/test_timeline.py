@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from models.clip import clip_from_dict
 from runtime.core.stream import StreamBuffer
-from runtime.curves import clip_from_dict
 from runtime.timeline import Timeline
 
 

@@ -80,7 +80,7 @@ def test_serve_sdk_client_and_sigterm(tmp_path: Path) -> None:
             assert seen and seen[-1] == goals
             assert seen[0] != goals  # they moved there over time, not instantly
             # fault injection over the control channel shows up on the bus
-            from sim_hardware.control import request
+            from models.emulator_control import request
 
             assert request(control, {"op": "inject", "fault": "overload", "device": 7})["ok"]
             assert ph.read1ByteTxRx(port, 7, 70) == (0x20, COMM_SUCCESS, 0x80)

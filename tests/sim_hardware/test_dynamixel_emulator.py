@@ -247,7 +247,7 @@ def test_packet_fault_injection(port: PortHandler, ph: PacketHandler, emu: Dynam
 
 
 def test_control_channel_handler(emu: DynamixelEmulator) -> None:
-    from sim_hardware.control import ControlServer, request
+    from models.emulator_control import ControlServer, request
 
     server = ControlServer("tcp://127.0.0.1:0", emu.handle_control)
     try:

@@ -10,8 +10,9 @@ import pytest
 
 from models.headspec import load_head
 from models.linkmap import LinkObservations, fit_linkmap
+from models.mechanism import CrankSlider, FourBar
 from models.rigid import matrix_to_quat
-from sim_hardware.mechanism import CrankSlider, FourBar, sample_mechanism
+from sim_hardware.mechanism import sample_mechanism
 
 SAMPLE = Path(__file__).resolve().parents[2] / "heads" / "sample" / "head.toml"
 DEG = math.pi / 180

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from runtime.curves import clip_from_dict
+from models.clip import clip_from_dict
 from studio.arkit_csv import ARKIT_BLENDSHAPES, clip_from_live_link_csv, parse_timecode, reduce_keys
 from studio.clipdoc import ClipDoc, ClipError
 

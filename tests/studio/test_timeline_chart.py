@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from runtime.curves import clip_from_dict
+from models.clip import clip_from_dict
 from studio.clipdoc import ClipDoc, ClipError
 from studio.timeline import row_y, timeline_chart
 

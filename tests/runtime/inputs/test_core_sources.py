@@ -6,13 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from models.clip import clip_from_dict
 from runtime.core import commands as C
 from runtime.core.chase import ChaseParams
 from runtime.core.clips import bind_clip
 from runtime.core.params import CoreParams
 from runtime.core.sources import Mode
 from runtime.core.state import CoreState
-from runtime.curves import clip_from_dict
 from tests.runtime.test_core import HEAD, Rig
 
 RAMP = {"name": "ramp", "channels": {"jaw": {"interp": "linear", "keys": [[0, 0], [20, 20]]}}}

@@ -42,7 +42,7 @@ class Mirror:
     estop_reported: bool = False
 
 
-class DaemonLink:
+class DaemonConnection:
     """Connection to one daemon: requests, a dedicated E-stop socket and a telemetry mirror."""
 
     def __init__(self, endpoint: str, telemetry: str | None = None, client_key: str | Path | None = None,

@@ -1,8 +1,8 @@
 """Tracker sources for calibration and the robust per-pose estimate of each link's pose.
 
-A source returns the next ``n`` capture frames as :class:`~models.capture.MarkerSample` s: the simulated
-tracker directly, or a live ZeroMQ capture stream (``docs/tracker.md``). Recorded CSV exports are replayed
-through the journal's time windows instead (:mod:`.workflow`).
+A source returns the next ``n`` capture frames as :class:`~models.capture.MarkerSample` s: a live ZeroMQ capture
+stream (``docs/tracker.md``; the simulated tracker runs as a child process serving one). Recorded CSV exports are
+replayed through the journal's time windows instead (:mod:`.workflow`).
 
 :func:`estimate` turns one pose's samples into one pose per link: a consensus cluster of positions, widened by
 robust sigmas (1.4826·MAD, with floors) in position and then angle, averaged.
@@ -18,10 +18,12 @@ from typing import Protocol
 
 import numpy as np
 
+from models.capture import MarkerSample
+from models.errors import LikenessError
 from models.rigid import matrix_to_quat, quat_to_matrix, rotation_angle
 
 
-class CalibrationError(RuntimeError):
+class CalibrationError(LikenessError):
     """A calibration run cannot go on (no tracker data, hardware fault, plan mismatch...)."""
 
 
@@ -30,23 +32,9 @@ class TrackerSource(Protocol):
 
     description: str
 
-    def collect(self, n_frames: int) -> Sequence: ...
+    def collect(self, n_frames: int) -> Sequence[MarkerSample]: ...
 
     def close(self) -> None: ...
-
-
-class SimSource:
-    """The simulated tracker, read directly (no network)."""
-
-    def __init__(self, tracker) -> None:
-        self.tracker = tracker
-        self.description = "sim"
-
-    def collect(self, n_frames: int) -> Sequence:
-        return self.tracker.capture(n_frames)
-
-    def close(self) -> None:
-        pass
 
 
 class ZmqSource:
@@ -67,12 +55,12 @@ class ZmqSource:
         self._sock.setsockopt(zmq.SUBSCRIBE, b"tracker")
         self._sock.connect(endpoint)
 
-    def collect(self, n_frames: int) -> Sequence:
+    def collect(self, n_frames: int) -> Sequence[MarkerSample]:
         import msgpack
 
         from models.capture import TOPIC, samples_from_body
 
-        def unpack_frame(parts: list[bytes]) -> list:
+        def unpack_frame(parts: list[bytes]) -> list[MarkerSample]:
             if len(parts) != 2 or parts[0] != TOPIC:
                 raise ValueError("expected a two-part message [b'tracker', msgpack frame]")
             return samples_from_body(msgpack.unpackb(parts[1], raw=False))
@@ -83,7 +71,7 @@ class ZmqSource:
                 self._sock.recv_multipart(zmq.NOBLOCK)
             except zmq.Again:
                 break
-        out: list = []
+        out: list[MarkerSample] = []
         got = -self.skip_frames  # the first frame may have been captured before the call
         deadline = time.monotonic() + self.timeout_s * max(1, n_frames)
         while got < n_frames:
@@ -121,7 +109,7 @@ class LinkEstimate:
 
 
 def estimate(
-    samples: Iterable,
+    samples: Iterable[MarkerSample],
     links: Sequence[str],
     n_frames: int,
     min_fraction: float = 0.5,
@@ -134,7 +122,7 @@ def estimate(
     Inliers: the largest cluster of positions within ``2 * floor_m`` of one sample, widened to
     ``sigmas`` robust sigmas (1.4826·MAD) around its median, then filtered the same way by angle.
     """
-    by_link: dict[str, list] = {name: [] for name in links}
+    by_link: dict[str, list[MarkerSample]] = {name: [] for name in links}
     for s in samples:
         if s.link in by_link:
             by_link[s.link].append(s)

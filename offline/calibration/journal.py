@@ -13,7 +13,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-from runtime.calibration.capture import CalibrationError
+from offline.calibration.capture import CalibrationError
 
 
 class Journal:

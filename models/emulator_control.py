@@ -1,4 +1,5 @@
-"""Fault-injection control channel for running emulators: msgpack requests over a ZeroMQ REP socket.
+"""The emulators' fault-injection control channel (server in each emulator process, client in the daemon and
+``likeness sim inject``): msgpack requests over a ZeroMQ REP socket.
 
 An emulator process serves ``ControlServer(endpoint, handler)``; ``handler(request) -> dict`` gets
 maps such as ``{"op": "inject", "fault": "stop_heartbeat", "device": 3}`` and returns a reply map.
@@ -18,6 +19,8 @@ import zmq
 
 log = logging.getLogger(__name__)
 
+#: A control request or reply map.
+ControlReply = dict[str, object]
 Handler = Callable[[Mapping[str, Any]], Mapping[str, Any]]
 MAX_REQUEST_BYTES = 64 * 1024
 
@@ -59,8 +62,8 @@ class ControlServer:
         self._sock.close(0)
 
 
-def request(endpoint: str, message: Mapping[str, Any], timeout_s: float = 2.0) -> dict[str, Any]:
-    """Send one control request and return the reply; raises TimeoutError if nobody answers."""
+def request(endpoint: str, message: Mapping[str, object], timeout_s: float = 2.0) -> ControlReply:
+    """Send one control request and return the reply map; raises TimeoutError if nobody answers."""
     ctx = zmq.Context.instance()
     sock = ctx.socket(zmq.REQ)
     sock.setsockopt(zmq.LINGER, 0)
@@ -69,6 +72,9 @@ def request(endpoint: str, message: Mapping[str, Any], timeout_s: float = 2.0) -
         sock.send(msgpack.packb(dict(message), use_bin_type=True))
         if not sock.poll(int(timeout_s * 1000)):
             raise TimeoutError(f"no answer from emulator control endpoint {endpoint} in {timeout_s} s")
-        return msgpack.unpackb(sock.recv(), raw=False)
+        reply = msgpack.unpackb(sock.recv(), raw=False)
     finally:
         sock.close(0)
+    if not isinstance(reply, dict):
+        raise RuntimeError(f"emulator control endpoint {endpoint} answered {type(reply).__name__}, not a map")
+    return reply

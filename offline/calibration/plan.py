@@ -15,6 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from models.headspec import HeadSpec
+
 
 @dataclass(frozen=True)
 class PlannedPose:
@@ -62,7 +64,7 @@ def _satisfies(values: Mapping[str, float], coupled: list[tuple[tuple[str, ...],
 
 
 def make_plan(
-    head,
+    head: HeadSpec,
     samples: int = 120,
     seed: int = 0,
     sweep_levels: int = 5,

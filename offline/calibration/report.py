@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from models.atomic import write_text
+from models.atomic import atomic_path, write_text
 
 
 def write_report(path: Path, report: Mapping[str, Any]) -> Path:
@@ -58,8 +58,7 @@ def write_plot(path: Path, report: Mapping[str, Any], holdout_errors_mm: Mapping
     ax2.set_xlabel("hold-out position error (mm)")
     ax2.set_ylabel("link poses")
     fig.tight_layout()
-    tmp = path.with_name(f".{path.name}.tmp.png")
-    fig.savefig(tmp, dpi=100)
+    with atomic_path(path, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=100)
     plt.close(fig)
-    tmp.replace(path)
     return path

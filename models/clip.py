@@ -1,5 +1,9 @@
 """Animation clips: per-channel keyframe curves (step, linear, cubic Bezier) and their JSON and CSV files.
 
+The clip format every package shares: the daemon compiles clips for its loop (``runtime.compiled``), offline tools
+sample performances, and the studio edits and draws them. Evaluation here is the per-key reference
+(:meth:`Curve.value`); the loop's array evaluation lives in the runtime.
+
 A clip is ``{"name": str, "channels": {channel: {"keys": [[t, value], ...], "interp": "step" | "linear"}}}``;
 Bezier channels (``"interp": "bezier"``) give each key its tangent handles as offsets from the key,
 ``[t, value, in_dt, in_dv, out_dt, out_dv]`` (``in_dt <= 0 <= out_dt``, as animation tools export them). Values are in

@@ -5,7 +5,7 @@ Outputs in the run directory: ``journal.jsonl`` (every recorded pose; resuming s
 format), ``linkmap.json``, ``report.json``, ``report.png`` and ``proposed_config.toml``. All files except the
 append-only journal and capture log are written atomically.
 
-A live run drives a :class:`~runtime.calibration.heads.HeadDriver` and reads a tracker source; a replay run
+A live run drives a :class:`~offline.calibration.heads.HeadDriver` and reads a tracker source; a replay run
 (``calibrate_replay``) refits from a recorded capture CSV and the journal of the run that drove the head,
 so recorded capture data gives the same fit as the live stream did.
 """
@@ -26,12 +26,18 @@ from typing import Any
 import numpy as np
 
 from models.atomic import write_text
+from models.capture import MarkerSample
+from models.headspec import HeadSpec
 from models.linkmap import LinkMap, LinkObservations, fit_linkmap
-from runtime.calibration.capture import CalibrationError, LinkEstimate, estimate
-from runtime.calibration.discovery import LimitResult, discover_limits, proposed_config, zero_offsets
-from runtime.calibration.journal import Journal
-from runtime.calibration.plan import Plan, make_plan
-from runtime.calibration.report import write_plot, write_report
+from offline.calibration.capture import CalibrationError, LinkEstimate, TrackerSource, estimate
+from offline.calibration.discovery import LimitResult, discover_limits, proposed_config, zero_offsets
+from offline.calibration.heads import HeadDriver
+from offline.calibration.journal import Journal
+from offline.calibration.plan import Plan, make_plan
+from offline.calibration.report import write_plot, write_report
+
+#: One pose's capture: ``n`` frames' samples and each link's estimate from them.
+Collect = Callable[[int], tuple[list[MarkerSample], dict[str, LinkEstimate]]]
 
 
 @dataclass
@@ -93,15 +99,15 @@ class Progress:
             sys.stderr.flush()
 
 
-def _link_names(head) -> list[str]:
+def _link_names(head: HeadSpec) -> list[str]:
     return [link.name for link in head.links]
 
 
 # ---------------------------------------------------------------------------- live run
 def calibrate_live(
-    head,
-    driver,
-    source,
+    head: HeadSpec,
+    driver: HeadDriver,
+    source: TrackerSource,
     out_dir: str | Path,
     settings: CalibrationSettings | None = None,
     reference: Mapping[str, np.ndarray] | None = None,
@@ -116,7 +122,7 @@ def calibrate_live(
     capture = CsvAppender(out / "capture.csv")
     journal = Journal(out / "journal.jsonl").load()
 
-    def collect(n: int) -> tuple[list, dict[str, LinkEstimate]]:
+    def collect(n: int) -> tuple[list[MarkerSample], dict[str, LinkEstimate]]:
         samples = list(source.collect(n))
         capture.write(samples)
         return samples, estimate(samples, links, n)
@@ -153,7 +159,8 @@ def calibrate_live(
     return _finish(head, plan, records, out, s, limits, reference, recorded)
 
 
-def _discovery(head, driver, collect: Callable, out: Path, s: CalibrationSettings) -> dict[str, LimitResult]:
+def _discovery(head: HeadSpec, driver: HeadDriver, collect: Collect, out: Path,
+               s: CalibrationSettings) -> dict[str, LimitResult]:
     path = out / "discovery.json"
     if path.exists():
         doc = json.loads(path.read_text(encoding="utf-8"))
@@ -174,7 +181,7 @@ def _discovery(head, driver, collect: Callable, out: Path, s: CalibrationSetting
     return res
 
 
-def _plan(head, s: CalibrationSettings, limits: Mapping[str, LimitResult], out: Path) -> Plan:
+def _plan(head: HeadSpec, s: CalibrationSettings, limits: Mapping[str, LimitResult], out: Path) -> Plan:
     plan = make_plan(head, samples=s.samples, seed=s.seed, sweep_levels=s.sweep_levels,
                      holdout_fraction=s.holdout_fraction, limits={n: r.proposed for n, r in limits.items()},
                      tie_groups=s.tie_groups)
@@ -182,14 +189,14 @@ def _plan(head, s: CalibrationSettings, limits: Mapping[str, LimitResult], out: 
     return plan
 
 
-def _header(head, plan: Plan, s: CalibrationSettings) -> dict[str, Any]:
+def _header(head: HeadSpec, plan: Plan, s: CalibrationSettings) -> dict[str, Any]:
     return {"plan": plan.digest(), "head": head.name, "actuators": list(head.actuator_names),
             "frames_per_pose": s.frames_per_pose, "tracker": s.tracker}
 
 
 # ---------------------------------------------------------------------------- replay
 def calibrate_replay(
-    head,
+    head: HeadSpec,
     capture_csv: str | Path,
     journal_path: str | Path,
     out_dir: str | Path,
@@ -231,7 +238,8 @@ def calibrate_replay(
 
 
 # ---------------------------------------------------------------------------- fit and report
-def dataset(head, records: Sequence[Mapping[str, Any]]) -> tuple[np.ndarray, dict[str, LinkObservations], np.ndarray]:
+def dataset(head: HeadSpec, records: Sequence[Mapping[str, Any]]
+            ) -> tuple[np.ndarray, dict[str, LinkObservations], np.ndarray]:
     """Measured actuator matrix ``(n, A)``, per-link observations and the hold-out mask from pose records."""
     names = list(head.actuator_names)
     n = len(records)
@@ -270,7 +278,8 @@ def noise_floor_mm(records: Sequence[Mapping[str, Any]], links: Sequence[str]) -
 
 
 def _finish(
-    head, plan: Plan, records: list, out: Path, s: CalibrationSettings, limits: Mapping[str, LimitResult],
+    head: HeadSpec, plan: Plan, records: list[dict[str, Any]], out: Path, s: CalibrationSettings,
+    limits: Mapping[str, LimitResult],
     reference: Mapping[str, np.ndarray] | None, recorded: int, plan_digest: str | None = None,
 ) -> CalibrationResult:
     P, obs, holdout = dataset(head, records)
@@ -349,7 +358,7 @@ def _sha256(path: Path) -> str | None:
         return None
 
 
-def _commanded(driver: Any, planned: Mapping[str, float]) -> dict[str, float]:
+def _commanded(driver: HeadDriver, planned: Mapping[str, float]) -> dict[str, float]:
     """What the driver really commanded for a planned pose (a safety stage may stop short of it)."""
     get = getattr(driver, "commanded", None)
     return dict(planned) if get is None else {**planned, **get()}

@@ -19,7 +19,10 @@ from datetime import UTC, datetime
 
 import numpy as np
 
+from models.headspec import HeadSpec
+from models.linkmap import LinkMap
 from models.rigid import matrix_to_rotvec
+from offline.calibration.heads import HeadDriver
 
 
 @dataclass
@@ -42,8 +45,8 @@ class LimitResult:
 
 
 def discover_limits(
-    head,
-    driver,
+    head: HeadSpec,
+    driver: HeadDriver,
     observe: Callable[[], dict[str, np.ndarray]],
     actuators: Sequence[str] | None = None,
     step: float = math.radians(3.0),
@@ -114,7 +117,8 @@ def discover_limits(
     return results
 
 
-def zero_offsets(head, linkmap, reference: Mapping[str, np.ndarray], rot_weight_deg: float = 1.0) -> dict[str, float]:
+def zero_offsets(head: HeadSpec, linkmap: LinkMap, reference: Mapping[str, np.ndarray],
+                 rot_weight_deg: float = 1.0) -> dict[str, float]:
     """Actuator values (minus neutral, SI) that bring the fitted links closest to their reference poses.
 
     ``reference`` maps link name → 4x4 rest pose in the tracker frame; 1 mm of position counts as much as
@@ -147,7 +151,7 @@ def zero_offsets(head, linkmap, reference: Mapping[str, np.ndarray], rot_weight_
     return {a: float(sol.x[i] - head.actuator(a).neutral) for i, a in enumerate(used)}
 
 
-def proposed_config(head, limits: Mapping[str, LimitResult], offsets: Mapping[str, float]) -> str:
+def proposed_config(head: HeadSpec, limits: Mapping[str, LimitResult], offsets: Mapping[str, float]) -> str:
     """A TOML snippet of ``[[actuators]]`` changes (config units) for the operator to review and merge."""
     when = datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
     lines = [
