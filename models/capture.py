@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import msgpack
 import numpy as np
 
 from models.atomic import write_text
@@ -157,3 +158,19 @@ def samples_from_body(body: Any) -> list[MarkerSample]:
             raise ValueError(f"marker {link!r}: values must be finite with a non-zero quaternion")
         out.append(MarkerSample(t, str(link), (v[0], v[1], v[2]), (v[3], v[4], v[5], v[6])))
     return out
+
+
+def pack_frame(frame_index: int, samples: Sequence[MarkerSample]) -> list[bytes]:
+    """The two-part ZeroMQ message of one capture frame."""
+    return [TOPIC, msgpack.packb(frame_body(frame_index, samples), use_bin_type=True)]
+
+
+def unpack_frame(parts: Sequence[bytes]) -> list[MarkerSample]:
+    """Marker samples of one received message; ``ValueError`` naming what is wrong on a bad message."""
+    if len(parts) != 2 or parts[0] != TOPIC:
+        raise ValueError("expected a two-part message [b'tracker', msgpack frame]")
+    try:
+        body = msgpack.unpackb(parts[1], raw=False)
+    except Exception as exc:
+        raise ValueError(f"undecodable tracker frame: {exc}") from exc
+    return samples_from_body(body)

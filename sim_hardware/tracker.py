@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from models.capture import TOPIC, MarkerSample, frame_body, samples_from_body
+from models.capture import MarkerSample, pack_frame
 from models.mechanism import Mechanism
 from models.rigid import matrix_to_quat, quat_to_matrix, rotvec_to_matrix
 
@@ -114,26 +114,6 @@ class SimTracker:
 
 
 # ---------------------------------------------------------------------------- ZeroMQ stream
-def pack_frame(frame_index: int, samples: Sequence[MarkerSample]) -> list[bytes]:
-    """The two-part ZeroMQ message of one capture frame."""
-    import msgpack
-
-    return [TOPIC, msgpack.packb(frame_body(frame_index, samples), use_bin_type=True)]
-
-
-def unpack_frame(parts: Sequence[bytes]) -> list[MarkerSample]:
-    """Marker samples of one received message; ``ValueError`` naming what is wrong on a bad message."""
-    import msgpack
-
-    if len(parts) != 2 or parts[0] != TOPIC:
-        raise ValueError("expected a two-part message [b'tracker', msgpack frame]")
-    try:
-        body = msgpack.unpackb(parts[1], raw=False)
-    except Exception as exc:
-        raise ValueError(f"undecodable tracker frame: {exc}") from exc
-    return samples_from_body(body)
-
-
 class TrackerPublisher:
     """Publish a :class:`SimTracker` as a live ZeroMQ capture stream (a background thread at its rate)."""
 

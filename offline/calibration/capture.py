@@ -58,12 +58,7 @@ class ZmqSource:
     def collect(self, n_frames: int) -> Sequence[MarkerSample]:
         import msgpack
 
-        from models.capture import TOPIC, samples_from_body
-
-        def unpack_frame(parts: list[bytes]) -> list[MarkerSample]:
-            if len(parts) != 2 or parts[0] != TOPIC:
-                raise ValueError("expected a two-part message [b'tracker', msgpack frame]")
-            return samples_from_body(msgpack.unpackb(parts[1], raw=False))
+        from models.capture import unpack_frame
 
         zmq = self._zmq
         while True:  # drop frames captured before this call (the head was still moving)

@@ -8,11 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from models.capture import CSV_COLUMNS, CaptureLog, read_csv, write_csv
+from models.capture import CSV_COLUMNS, CaptureLog, pack_frame, read_csv, unpack_frame, write_csv
 from models.errors import SpecError
 from models.rigid import quat_to_matrix, rotation_angle
 from sim_hardware.mechanism import sample_mechanism
-from sim_hardware.tracker import SimTracker, TrackerNoise, pack_frame, unpack_frame
+from sim_hardware.tracker import SimTracker, TrackerNoise
 
 
 @pytest.fixture(scope="module")
