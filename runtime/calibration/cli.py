@@ -20,10 +20,10 @@ import math
 from pathlib import Path
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    """Add ``calibrate``."""
-    p = sub.add_parser("calibrate", help="fit the link map m(p) of a head from tracked marker poses",
-                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The options of ``calibrate``."""
+    p.description = __doc__
+    p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.add_argument("--config", required=True, type=Path, help="head config TOML")
     p.add_argument("--tracker", required=True, help="sim | FILE.csv | zmq://ENDPOINT")
     p.add_argument("--out", required=True, type=Path, help="run directory (outputs, journal; resumes if present)")
@@ -43,25 +43,23 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--dropout", type=float, default=0.02, help="simulated tracker dropout rate (default 0.02)")
     p.add_argument("--outliers", type=float, default=0.01, help="simulated tracker outlier rate (default 0.01)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     """Run or resume a calibration; prints the per-link report."""
-    from likeness.cli import CliError
-    from models.errors import SpecError
+    from models.errors import SpecError, UsageError
     from models.headspec import load_head
     from runtime.calibration.capture import CalibrationError
     from runtime.calibration.workflow import CalibrationSettings, calibrate_live, calibrate_replay
 
     if args.samples < 0 or args.frames < 2 or args.sweep_levels < 2 or not 0 <= args.holdout < 1:
-        raise CliError("need --samples >= 0, --frames >= 2, --sweep-levels >= 2 and 0 <= --holdout < 1")
+        raise UsageError("need --samples >= 0, --frames >= 2, --sweep-levels >= 2 and 0 <= --holdout < 1")
     if not 0 < args.speed <= 1:
-        raise CliError(f"--speed must be in (0, 1], got {args.speed}")
+        raise UsageError(f"--speed must be in (0, 1], got {args.speed}")
     try:
         head = load_head(args.config)
     except SpecError as exc:
-        raise CliError(str(exc)) from exc
+        raise UsageError(str(exc)) from exc
     settings = CalibrationSettings(
         samples=args.samples, seed=args.seed, sweep_levels=args.sweep_levels, holdout_fraction=args.holdout,
         frames_per_pose=args.frames, discover=not args.no_discover, discover_step=math.radians(args.discover_step),
@@ -77,9 +75,9 @@ def run(args: argparse.Namespace) -> int:
         if tracker.lower().endswith(".csv"):
             journal = args.journal or (args.out / "journal.jsonl")
             if not Path(tracker).exists():
-                raise CliError(f"capture file not found: {tracker}")
+                raise UsageError(f"capture file not found: {tracker}")
             if not journal.exists():
-                raise CliError(f"journal not found: {journal} (pass --journal of the run that drove the head)")
+                raise UsageError(f"journal not found: {journal} (pass --journal of the run that drove the head)")
             if head.name == "sample":
                 reference = _sample_reference(head)
             result = calibrate_replay(head, tracker, journal, args.out, settings, reference=reference)
@@ -102,10 +100,10 @@ def run(args: argparse.Namespace) -> int:
                     endpoint = f"tcp://{endpoint}"
                 source = ZmqSource(endpoint)
             else:
-                raise CliError(f"--tracker must be sim, a .csv capture export or zmq://ENDPOINT, got {tracker!r}")
+                raise UsageError(f"--tracker must be sim, a .csv capture export or zmq://ENDPOINT, got {tracker!r}")
             result = calibrate_live(head, driver, source, args.out, settings, reference=reference)
     except (CalibrationError, SpecError, ValueError) as exc:
-        raise CliError(str(exc)) from exc
+        raise UsageError(str(exc)) from exc
     finally:
         if source is not None:
             source.close()
@@ -116,14 +114,14 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _sample_mechanism(head):
-    from likeness.cli import CliError
+    from models.errors import UsageError
     from sim_hardware.mechanism import sample_mechanism
 
     mech = sample_mechanism(head)
     missing = sorted(set(head.actuator_names) ^ set(mech.actuators))
     links = sorted({link.name for link in head.links} ^ set(mech.links))
     if missing or links:
-        raise CliError(f"--tracker sim simulates the sample head's mechanism; head {head.name!r} differs in "
+        raise UsageError(f"--tracker sim simulates the sample head's mechanism; head {head.name!r} differs in "
                        f"actuators {missing} / links {links}")
     return mech
 
@@ -133,28 +131,28 @@ def _sample_reference(head):
 
 
 def _driver(args: argparse.Namespace, head):
-    from likeness.cli import CliError
+    from models.errors import UsageError
     from runtime.calibration.heads import DaemonHead, HardwareHead, KinematicHead
 
     if args.ideal_motors:
         if args.tracker != "sim":
-            raise CliError("--ideal-motors only works with --tracker sim")
+            raise UsageError("--ideal-motors only works with --tracker sim")
         return KinematicHead(head)
     if args.daemon:
         return DaemonHead(args.daemon, head, speed_fraction=args.speed)
     try:
         from runtime.hardware import Hardware
     except ImportError as exc:
-        raise CliError(f"cannot reach the head's buses ({exc}); use --daemon or --ideal-motors") from exc
+        raise UsageError(f"cannot reach the head's buses ({exc}); use --daemon or --ideal-motors") from exc
     try:
         hw = Hardware.from_head(head)
     except Exception as exc:
-        raise CliError(f"cannot start the head's buses: {exc}") from exc
+        raise UsageError(f"cannot start the head's buses: {exc}") from exc
     try:
         return HardwareHead(hw, head, speed_fraction=args.speed)
     except Exception as exc:
         hw.close()
-        raise CliError(f"cannot enable the head's buses: {exc}") from exc
+        raise UsageError(f"cannot enable the head's buses: {exc}") from exc
 
 
 def _print_report(result) -> None:
