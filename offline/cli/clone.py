@@ -16,7 +16,12 @@ measured with the runtime guard's measure) by a constraint inside the actuation 
 from __future__ import annotations
 
 import argparse
-from typing import Any
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from offline.design.clone import CloneSettings
+    from offline.design.face import FaceSkin
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -50,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
     from models.errors import UsageError
     from offline.cli._common import print_mold
     from offline.design.clone import CloneSettings
-    from offline.design.clone_job import estimate_seconds, load_clone_problem, run_clone
+    from offline.design.clone_job import load_clone_problem, run_clone
     from offline.design.mold import export_mold
     from offline.fem import kernel_threads
 
@@ -69,17 +74,7 @@ def run(args: argparse.Namespace) -> int:
     say = (lambda line: None) if args.quiet else (lambda line: print(line, flush=True))
     with kernel_threads(args.threads):
         if args.dry_run:
-            est, info = estimate_seconds(face, len(targets), settings)
-            print(f"head {face.skin.head.name}: {face.mesh.n_nodes} nodes, {face.mesh.n_tets} tets, "
-                  f"{info['free_dofs']} free DoFs, {len(face.outer)} outer-surface vertices matched")
-            print(f"{len(targets)} targets: {', '.join(targets)}")
-            print("strain constraint: " + ("on (every pose inside [skin] strain_min .. strain_max, the guard's measure)"
-                                           if settings.strain_constraint else "off"))
-            print(f"{face.space.n_actuators} actuators ({face.space.n_free} independent after groups), "
-                  f"{settings.n_samples} thickness samples, up to {settings.max_outer} outer iterations")
-            print(f"one Newton iteration (assembly + factorization) {info['newton_iteration_s']:.3f} s, one "
-                  f"warm-started pose solve {info['pose_solve_s']:.2f} s; estimated time about {est / 60:.0f} min "
-                  f"(rough, and an upper bound: assumes all {settings.max_outer} outer iterations run)")
+            _print_estimate(face, targets, settings)
             return 0
         report = run_clone(face, targets, args.out, settings, config=args.config, targets_file=args.targets,
                            resume=not args.fresh, progress=say)
@@ -89,6 +84,23 @@ def run(args: argparse.Namespace) -> int:
         return 0
     say("[clone] exporting the mold of the optimized skin (STL, mm) and checking it")
     return print_mold(export_mold(Path(args.out) / "skin", Path(args.out) / "mold"), Path(args.out) / "mold")
+
+
+def _print_estimate(face: FaceSkin, targets: Mapping[str, Any], settings: CloneSettings) -> None:
+    """The problem's size and a rough time estimate (the dry run)."""
+    from offline.design.clone_job import estimate_seconds
+
+    est, info = estimate_seconds(face, len(targets), settings)
+    print(f"head {face.skin.head.name}: {face.mesh.n_nodes} nodes, {face.mesh.n_tets} tets, "
+          f"{info['free_dofs']} free DoFs, {len(face.outer)} outer-surface vertices matched")
+    print(f"{len(targets)} targets: {', '.join(targets)}")
+    print("strain constraint: " + ("on (every pose inside [skin] strain_min .. strain_max, the guard's measure)"
+                                   if settings.strain_constraint else "off"))
+    print(f"{face.space.n_actuators} actuators ({face.space.n_free} independent after groups), "
+          f"{settings.n_samples} thickness samples, up to {settings.max_outer} outer iterations")
+    print(f"one Newton iteration (assembly + factorization) {info['newton_iteration_s']:.3f} s, one "
+          f"warm-started pose solve {info['pose_solve_s']:.2f} s; estimated time about {est / 60:.0f} min "
+          f"(rough, and an upper bound: assumes all {settings.max_outer} outer iterations run)")
 
 
 def _print_summary(sm: dict[str, Any]) -> None:

@@ -4,8 +4,13 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from runtime.cli._client import SAMPLE_HEAD
+
+if TYPE_CHECKING:
+    from models.headspec import HeadSpec
+    from runtime.daemon import Daemon
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -53,33 +58,45 @@ def overrides_from_args(args: argparse.Namespace) -> dict[str, object]:
 
 def run(args: argparse.Namespace) -> int:
     """Start the daemon and serve until SIGINT/SIGTERM; SIGUSR1 latches the e-stop."""
-    import shutil
-    import signal
     import tempfile
-    import threading
 
+    with tempfile.TemporaryDirectory(prefix="likeness-head-", ignore_cleanup_errors=True) as tmp:
+        daemon, head = _start(args, Path(tmp))
+        _serve(daemon, head)
+    print("daemon stopped", flush=True)
+    return 0
+
+
+def _start(args: argparse.Namespace, tmp: Path) -> tuple[Daemon, HeadSpec]:
+    """Load the head (with the --inputs tables merged into a copy under ``tmp``) and start its daemon."""
     from drivers.errors import BusError
     from models.errors import ConfigError
     from models.headspec import load_head
     from runtime.cli._client import start_error
     from runtime.daemon import Daemon, DaemonStartError
 
-    tmp = None
     try:
         config = args.config
         if args.inputs is not None:
             from runtime.inputs.headfile import head_with_inputs
 
-            tmp = Path(tempfile.mkdtemp(prefix="likeness-head-"))
             config = head_with_inputs(args.config, args.inputs, tmp / args.config.name)
         head = load_head(config)
         daemon = Daemon(head, overrides_from_args(args))
-    except BaseException as exc:  # a config or asset error: one line, non-zero exit
-        if tmp is not None:
-            shutil.rmtree(tmp, ignore_errors=True)
-        if isinstance(exc, OSError):
-            raise ConfigError(str(exc)) from exc
-        raise
+    except OSError as exc:  # a config or asset error: one line, non-zero exit
+        raise ConfigError(str(exc)) from exc
+    try:
+        daemon.start()
+    except (BusError, DaemonStartError, OSError) as exc:
+        raise start_error(exc, "cannot start: ") from exc
+    return daemon, head
+
+
+def _serve(daemon: Daemon, head: HeadSpec) -> None:
+    """Announce the daemon and wait for SIGINT/SIGTERM (SIGUSR1: e-stop), then stop it."""
+    import signal
+    import threading
+
     stop = threading.Event()
 
     def on_stop(signum: int, frame: object) -> None:
@@ -88,12 +105,6 @@ def run(args: argparse.Namespace) -> int:
     def on_estop(signum: int, frame: object) -> None:
         daemon.estop("signal SIGUSR1")
 
-    try:
-        daemon.start()
-    except (BusError, DaemonStartError, OSError) as exc:
-        if tmp is not None:
-            shutil.rmtree(tmp, ignore_errors=True)
-        raise start_error(exc, "cannot start: ") from exc
     old = {s: signal.signal(s, on_stop) for s in (signal.SIGINT, signal.SIGTERM)}
     old[signal.SIGUSR1] = signal.signal(signal.SIGUSR1, on_estop)
     try:
@@ -109,7 +120,3 @@ def run(args: argparse.Namespace) -> int:
         for s, h in old.items():
             signal.signal(s, h)
         daemon.stop()
-        if tmp is not None:
-            shutil.rmtree(tmp, ignore_errors=True)
-    print("daemon stopped", flush=True)
-    return 0

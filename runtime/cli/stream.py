@@ -4,8 +4,13 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from runtime.cli._client import add_client_options, connect
+
+if TYPE_CHECKING:
+    from models.client import Client
+    from runtime.curves import Clip
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -24,9 +29,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Stream the clip frame by frame at --fps, or upload and play it (--upload)."""
-    import sys
-    import time
-
     from models.errors import UsageError
     from runtime.curves import ClipError, clip_file_as_dict, clip_from_dict
 
@@ -46,32 +48,42 @@ def run(args: argparse.Namespace) -> int:
             print(f"playing {clip.name!r} ({reply['duration']:.2f} s) from daemon time {reply['start']:.3f}")
             return 0
         offset, rtt = client.clock_offset()
-        channels = sorted(clip.channels)
-        duration = clip.duration / args.speed
-        step = 1.0 / args.fps
-        t0 = time.monotonic()
-        sent = accepted = late = 0
-        k = 0
-        while True:
-            t = k * step
-            if t > duration + 1e-9:
-                break
-            wake = t0 + t
-            delay = wake - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
-            values = clip.sample(min(t * args.speed, clip.duration))
-            frame = [wake + offset] + [values[c] for c in channels]
-            reply = client.call("stream", channels=channels, frames=[frame])
-            sent += 1
-            accepted += reply["accepted"]
-            late += reply["late"]
-            k += 1
-            if k % max(1, int(args.fps / 4)) == 0 and sys.stdout.isatty():
-                print(f"\rstreaming {clip.name}: {t:6.2f}/{duration:.2f} s  {accepted} accepted, {late} late",
-                      end="", flush=True)
-        if sys.stdout.isatty():
-            print()
+        sent, accepted, late = _stream_frames(client, clip, args.fps, args.speed, offset)
     print(f"streamed {sent} frames of {clip.name!r} at {args.fps:g} fps: {accepted} accepted, {late} late "
           f"(clock offset {offset * 1e3:.3f} ms, round trip {rtt * 1e6:.0f} us)")
     return 0
+
+
+def _stream_frames(client: Client, clip: Clip, fps: float, speed: float, offset: float) -> tuple[int, int, int]:
+    """Send the clip sampled at ``fps`` as one-frame ``stream`` requests, each at its wall-clock time stamped in
+    daemon time (``offset``); shows progress on a terminal. Returns frames sent, accepted and late."""
+    import sys
+    import time
+
+    channels = sorted(clip.channels)
+    duration = clip.duration / speed
+    step = 1.0 / fps
+    t0 = time.monotonic()
+    sent = accepted = late = 0
+    k = 0
+    while True:
+        t = k * step
+        if t > duration + 1e-9:
+            break
+        wake = t0 + t
+        delay = wake - time.monotonic()
+        if delay > 0:
+            time.sleep(delay)
+        values = clip.sample(min(t * speed, clip.duration))
+        frame = [wake + offset] + [values[c] for c in channels]
+        reply = client.call("stream", channels=channels, frames=[frame])
+        sent += 1
+        accepted += reply["accepted"]
+        late += reply["late"]
+        k += 1
+        if k % max(1, int(fps / 4)) == 0 and sys.stdout.isatty():
+            print(f"\rstreaming {clip.name}: {t:6.2f}/{duration:.2f} s  {accepted} accepted, {late} late",
+                  end="", flush=True)
+    if sys.stdout.isatty():
+        print()
+    return sent, accepted, late

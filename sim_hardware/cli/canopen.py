@@ -11,9 +11,11 @@ from __future__ import annotations
 
 import argparse
 import os
-import signal
 import sys
-import threading
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from sim_hardware.cli._server import StopSignals
 
 
 def parse_nodes(text: str) -> list[int]:
@@ -60,6 +62,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Serve until SIGINT/SIGTERM; returns 0 after a clean shutdown."""
+    from sim_hardware.cli._server import StopSignals
+
+    nodes, initial = _checked(args)
+    with StopSignals(args.watch_parent) as signals:
+        _serve(args, nodes, initial, signals)
+    return 0
+
+
+def _checked(args: argparse.Namespace) -> tuple[list[int], dict[int, float]]:
+    """The node ids and start positions of the options (UsageError naming a bad one); writes the EDS if asked."""
     from models.errors import UsageError
 
     nodes = parse_nodes(args.nodes)
@@ -70,10 +82,8 @@ def run(args: argparse.Namespace) -> int:
     if args.physics_hz <= 0:
         raise UsageError(f"--physics-hz: must be positive, got {args.physics_hz}")
 
-    from sim_hardware.canopen.network import DriveSet
     from sim_hardware.canopen.od import write_eds
-    from sim_hardware.cli._server import ParentWatch, parse_counts
-    from sim_hardware.socketcand import SocketcandServer
+    from sim_hardware.cli._server import parse_counts
 
     if args.eds_out:
         try:
@@ -89,9 +99,15 @@ def run(args: argparse.Namespace) -> int:
     unknown = sorted(set(initial) - set(nodes))
     if unknown:
         raise UsageError(f"--initial-positions: node ids {unknown} are not among --nodes {args.nodes}")
-    watch = ParentWatch(args.watch_parent)
-    stop = threading.Event()
-    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    return nodes, initial
+
+
+def _serve(args: argparse.Namespace, nodes: list[int], initial: dict[int, float], signals: StopSignals) -> None:
+    """Run the drives, the socketcand server and the control endpoint until ``signals`` says stop."""
+    from models.errors import UsageError
+    from sim_hardware.canopen.network import DriveSet
+    from sim_hardware.socketcand import SocketcandServer
+
     internal = f"likeness-sim-canopen-{os.getpid()}"
     drives = DriveSet(nodes, channel=internal, heartbeat_ms=args.heartbeat_ms, physics_hz=args.physics_hz,
                       seed=args.seed, initial_positions=initial)
@@ -119,15 +135,10 @@ def run(args: argparse.Namespace) -> int:
             f"{server.host}:{server.port} channel {args.channel}{extra}",
             flush=True,
         )
-        while not stop.wait(0.2):
-            if watch.parent_gone():
-                break
+        signals.wait()
     finally:
         if control is not None:
             control.close()
         if server is not None:
             server.stop()
         drives.stop()
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-    return 0

@@ -7,6 +7,10 @@ up, then serves until SIGINT or SIGTERM and removes the ``--link`` symlink on th
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from sim_hardware.cli._server import StopSignals
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -27,14 +31,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Serve until SIGINT/SIGTERM; exit 0."""
+    from sim_hardware.cli._server import StopSignals
+
+    ids, link, initial = _checked(args)
+    with StopSignals(args.watch_parent) as signals:
+        _serve(args, ids, link, initial, signals)
+    return 0
+
+
+def _checked(args: argparse.Namespace) -> tuple[list[int], str, dict[int, int]]:
+    """The servo ids, the absolute link path and each servo's start position (UsageError naming a bad option)."""
     import os
-    import signal
-    import threading
 
     from models.errors import UsageError
-    from sim_hardware.cli._server import ParentWatch, parse_counts
+    from sim_hardware.cli._server import parse_counts
     from sim_hardware.dynamixel.control_table import MODELS
-    from sim_hardware.dynamixel.server import DynamixelEmulator, parse_ids
+    from sim_hardware.dynamixel.server import parse_ids
 
     try:
         ids = parse_ids(args.ids)
@@ -55,10 +67,15 @@ def run(args: argparse.Namespace) -> int:
     unknown = sorted(set(single) - set(ids))
     if unknown:
         raise UsageError(f"--initial-positions: servo ids {unknown} are not among --ids {args.ids}")
-    initial = {i: single.get(i, args.initial_position) for i in ids}
-    watch = ParentWatch(args.watch_parent)
-    stop = threading.Event()
-    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    return ids, link, {i: single.get(i, args.initial_position) for i in ids}
+
+
+def _serve(args: argparse.Namespace, ids: list[int], link: str, initial: dict[int, int],
+           signals: StopSignals) -> None:
+    """Run the emulator on its pty (``link`` points at it) and the control endpoint until ``signals`` says stop."""
+    from models.errors import UsageError
+    from sim_hardware.dynamixel.server import DynamixelEmulator
+
     emulator = DynamixelEmulator(ids, args.model, initial_positions=initial, seed=args.seed)
     control = None
     try:
@@ -74,13 +91,8 @@ def run(args: argparse.Namespace) -> int:
         span = f"ids {args.ids}"
         extra = f", control {control.endpoint}" if control else ""
         print(f"ready: {len(ids)} {args.model} servos ({span}) on {link} -> {emulator.port}{extra}", flush=True)
-        while not stop.wait(0.2):
-            if watch.parent_gone():
-                break
+        signals.wait()
     finally:
         if control is not None:
             control.close()
         emulator.close()
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-    return 0
