@@ -15,13 +15,16 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from models.errors import UsageError
 from models.headspec import load_head
 from models.material import SkinMaterial
+
+if TYPE_CHECKING:
+    from offline.fem import TetMesh
 
 #: The bundled sample head's config.
 SAMPLE_HEAD = Path(__file__).resolve().parents[1] / "heads" / "sample" / "head.toml"
@@ -271,7 +274,7 @@ def simulate_pose(settings: PoseSettings, say: Callable[[str], None] = print) ->
     return True
 
 
-def _write_deformed(out: Path, mesh: Any, x: np.ndarray, u: np.ndarray) -> None:
+def _write_deformed(out: Path, mesh: TetMesh, x: np.ndarray, u: np.ndarray) -> None:
     """Write deformed points with displacement and node-set flags as point data, atomically."""
     from offline.fem import TetMesh, save_mesh
 

@@ -6,13 +6,18 @@ from __future__ import annotations
 
 import sys
 from dataclasses import dataclass
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
+
+import numpy as np
 
 from models.errors import ConfigError, SpecError, UsageError
 from models.headspec import HeadSpec, load_head
 from offline.dataset.problem import ProblemSpec
 from offline.dataset.sampling import sample_poses, sample_ranges
 from offline.engine import make_engine
+
+if TYPE_CHECKING:
+    from offline.active.policy import Policy
 
 
 @dataclass(frozen=True)
@@ -42,7 +47,7 @@ class DatasetSettings:
     policy: str | None = None
 
 
-def problem_spec(settings: DatasetSettings, head: HeadSpec, lo: Any, hi: Any,
+def problem_spec(settings: DatasetSettings, head: HeadSpec, lo: np.ndarray, hi: np.ndarray,
                  note: TextIO | None = sys.stderr) -> ProblemSpec:
     """The skin problem each pose is solved with: the analytic sheet, or the FEM skin of the head's mesh moved
     through its link map (checked before any pose is solved); ``note`` hears which material stands in for a head
@@ -77,7 +82,7 @@ def problem_spec(settings: DatasetSettings, head: HeadSpec, lo: Any, hi: Any,
     return spec
 
 
-def _policy(settings: DatasetSettings) -> Any:
+def _policy(settings: DatasetSettings) -> Policy | None:
     """The GEN-LAL policy of ``--select genlal`` (None for ``random`` or no selection); checks the selection's
     options."""
     if settings.select is None:

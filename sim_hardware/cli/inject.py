@@ -13,7 +13,7 @@ import sys
 from typing import Any
 
 
-def parse_value(text: str) -> Any:
+def parse_value(text: str) -> int | float | bool | str:
     """``"0x10"`` → 16, ``"1.5"`` → 1.5, ``"true"`` → True, anything else stays a string."""
     lowered = text.lower()
     if lowered in ("true", "false"):
