@@ -90,3 +90,13 @@ def test_a_usage_error_is_one_line_with_status_2(tmp_path: Path, capsys: pytest.
                  "--out", str(tmp_path / "d")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["likeness offline: error: --poses must be positive, got 0"]
+
+
+def test_import_free_copies_of_library_constants_agree() -> None:
+    import offline.cli._common
+    import runtime.cli.recording
+    from models.material import MATERIAL_MODELS
+    from runtime.recording import REPLAY_MAX_KEYS
+
+    assert runtime.cli.recording.REPLAY_MAX_KEYS == REPLAY_MAX_KEYS
+    assert set(offline.cli._common.MATERIAL_MODELS) == set(MATERIAL_MODELS)

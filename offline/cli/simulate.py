@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import argparse
 
-MATERIALS = ("neo_hookean", "mooney_rivlin", "yeoh")  # models.material.MATERIAL_MODELS
+from offline.cli._common import MATERIAL_MODELS
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -30,7 +30,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--head", default=None, help="head config giving actuator units and ranges for --actuators "
                                                 "(default: the sample head)")
     p.add_argument("--out", required=True, help="output .vtu: deformed points, point data 'displacement' (m)")
-    p.add_argument("--material", choices=MATERIALS, default=None,
+    p.add_argument("--material", choices=MATERIAL_MODELS, default=None,
                    type=lambda t: t.strip().lower().replace("-", "_").replace("neohookean", "neo_hookean"),
                    help="material model (default: the head's [skin_material], else neo_hookean)")
     p.add_argument("--E", type=float, default=None,
