@@ -71,6 +71,10 @@ class StartError(LikenessError):
     """The daemon could not start (a bus, the API server or the loop); the message says which and why."""
 
 
+class UsageError(LikenessError):
+    """A command line that cannot run: an option out of range, options that do not go together, a missing input."""
+
+
 class InternalError(LikenessError):
     """A bug: an operation raised something unexpected. The daemon lives on."""
 

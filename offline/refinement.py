@@ -7,7 +7,7 @@ Levels (each keeps the shipped mesh's nodes first, in order, so solutions compar
 
 For each pose and each pair of successive levels the study reports the change of the outer-surface displacement at
 the shipped mesh's outer vertices (mean, p99, max Euclidean, the region of the max, and the change relative to the
-displacement). Pure functions here; :mod:`offline.refinement_cli` runs them resumably.
+displacement). Pure functions here; :mod:`offline.refinement_study` runs them resumably.
 """
 
 from __future__ import annotations

@@ -295,3 +295,27 @@ def plot_recording(rec: dict[str, Any], out: str | Path, title: str = "") -> Pat
     finally:
         plt.close(fig)
     return out
+
+
+#: Keys a replay clip holds at most (all channels together): keeps its ``load_clip`` request under 1 MiB.
+REPLAY_MAX_KEYS = 40_000
+
+
+def replay_clip(rec: dict[str, Any], name: str, max_keys: int = REPLAY_MAX_KEYS) -> dict[str, Any]:
+    """The protocol clip map of a recording's commanded curves (linear), decimated to at most ``max_keys`` keys."""
+    import math
+
+    t = np.asarray(rec["t"], dtype=float)
+    cmd = np.asarray(rec["commanded"], dtype=float)
+    channels: dict[str, Any] = {}
+    per_channel = max(2, max_keys // max(1, len(rec["names"])))
+    for j, ch in enumerate(rec["names"]):
+        ok = np.isfinite(cmd[:, j]) & np.isfinite(t)
+        tj, vj = t[ok] - (t[0] if len(t) else 0.0), cmd[ok, j]
+        if not len(tj):
+            continue
+        stride = max(1, math.ceil(len(tj) / per_channel))
+        idx = np.unique(np.r_[np.arange(0, len(tj), stride), len(tj) - 1])
+        keep = idx[np.r_[True, np.diff(tj[idx]) > 0]]  # strictly increasing times
+        channels[ch] = {"interp": "linear", "keys": np.column_stack([tj[keep], vj[keep]]).tolist()}
+    return {"name": name[:128], "channels": channels}

@@ -29,8 +29,6 @@ if TYPE_CHECKING:
     from offline.calibration.processes import ChildProcess, SimTrackerProcess
     from offline.calibration.workflow import CalibrationResult, CalibrationSettings
 
-SUMMARY = "fit the link map m(p) of a head from tracked marker poses"
-
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The options of ``likeness calibrate``."""
@@ -56,49 +54,30 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    """Add ``calibrate`` to a subparser set (until the command registry lists this module)."""
-    p = sub.add_parser("calibrate", help=SUMMARY, description=__doc__,
-                       formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_arguments(p)
-    p.set_defaults(func=_run_reporting_errors)
-
-
-def _run_reporting_errors(args: argparse.Namespace) -> int:
-    """:func:`run`, its errors as the command line's one-line user errors (exit status 2)."""
-    from likeness.cli import CliError
-    from models.errors import LikenessError
-
-    try:
-        return run(args)
-    except LikenessError as exc:
-        raise CliError(str(exc)) from exc
-
-
 def run(args: argparse.Namespace) -> int:
     """Run or resume a calibration; prints the per-link report. Errors are ``models.errors`` kinds."""
-    from models.errors import BadValue, LikenessError
+    from models.errors import BadValue, LikenessError, UsageError
     from models.headspec import load_head
     from offline.calibration.workflow import calibrate_replay
 
     if args.samples < 0 or args.frames < 2 or args.sweep_levels < 2 or not 0 <= args.holdout < 1:
-        raise BadValue("need --samples >= 0, --frames >= 2, --sweep-levels >= 2 and 0 <= --holdout < 1")
+        raise UsageError("need --samples >= 0, --frames >= 2, --sweep-levels >= 2 and 0 <= --holdout < 1")
     if not 0 < args.speed <= 1:
-        raise BadValue(f"--speed must be in (0, 1], got {args.speed}")
+        raise UsageError(f"--speed must be in (0, 1], got {args.speed}")
     tracker = args.tracker
     replay = tracker.lower().endswith(".csv")
     if not (replay or tracker == "sim" or tracker.startswith("zmq://")):
-        raise BadValue(f"--tracker must be sim, a .csv capture export or zmq://ENDPOINT, got {tracker!r}")
+        raise UsageError(f"--tracker must be sim, a .csv capture export or zmq://ENDPOINT, got {tracker!r}")
     if args.ideal_motors and tracker != "sim":
-        raise BadValue("--ideal-motors only works with --tracker sim")
+        raise UsageError("--ideal-motors only works with --tracker sim")
     head = load_head(args.config)
     try:
         if replay:
             journal = args.journal or (args.out / "journal.jsonl")
             if not Path(tracker).exists():
-                raise BadValue(f"capture file not found: {tracker}")
+                raise UsageError(f"capture file not found: {tracker}")
             if not journal.exists():
-                raise BadValue(f"journal not found: {journal} (pass --journal of the run that drove the head)")
+                raise UsageError(f"journal not found: {journal} (pass --journal of the run that drove the head)")
             reference = _sample_reference(head) if head.name == "sample" else None
             settings = _settings(args, "capture replay")
             result = calibrate_replay(head, tracker, journal, args.out, settings, reference=reference)

@@ -11,7 +11,8 @@ Modules:
 - :mod:`offline.material.virtual_test` — the FEM virtual uniaxial test (frictionless or clamped grips).
 - :mod:`offline.material.fit` — simulated annealing and least-squares fits.
 - :mod:`offline.material.plot` — measured versus simulated curves (PNG).
-- :mod:`offline.material.cli` — ``likeness offline uniaxial`` and ``likeness offline fit-material``.
+- :mod:`offline.cli.uniaxial` and :mod:`offline.cli.fit_material` — ``likeness offline uniaxial`` and
+  ``likeness offline fit-material``.
 
 Heavy modules (FEM, matplotlib) are imported only where needed.
 """

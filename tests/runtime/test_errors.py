@@ -12,12 +12,11 @@ import pytest
 
 from drivers.errors import BusInitError
 from drivers.errors import ConfigError as DriverConfigError
-from likeness.cli import main
+from likeness.cli import exit_status, main
 from models import errors as E
 from models import protocol as P
 from models.client import DaemonError, DaemonTimeout
 from models.errors import SpecError
-from runtime.commands._common import exit_status
 from runtime.core import commands as C
 from runtime.daemon import DaemonStartError
 from tests.runtime.test_core import Rig
@@ -75,10 +74,8 @@ def test_the_core_answers_refusals_with_the_code_of_their_kind() -> None:
     (E.InternalError("bug"), 70),
 ])
 def test_one_table_maps_every_kind_to_an_exit_status(exc: BaseException, status: int) -> None:
-    from runtime.commands._common import cli_error
-
     assert exit_status(exc.error if isinstance(exc, DaemonError) else exc) == status
-    assert cli_error(exc).status == status
+    assert exit_status(exc) == status
 
 
 def test_a_command_that_reaches_no_daemon_exits_4_with_one_line(capsys: pytest.CaptureFixture[str]) -> None:

@@ -9,8 +9,7 @@ import pytest
 
 from likeness.cli import main
 from models.client import Client
-from runtime.commands.recording import replay_clip
-from runtime.recording import Recorder, RecordingWriter, load_recording
+from runtime.recording import Recorder, RecordingWriter, load_recording, replay_clip
 
 
 def _write(path: Path, n: int = 101) -> None:

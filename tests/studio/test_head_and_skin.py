@@ -75,7 +75,7 @@ def test_the_page_is_viser_s_client_with_the_studio_script(head) -> None:
 
 def test_serving_beyond_loopback_needs_the_head_s_opt_in() -> None:
     from likeness.cli import main
-    from studio.cli import check_host
+    from studio.cli.studio import check_host
 
     assert check_host("127.0.0.1", {}) is None and check_host("localhost", {}) is None
     assert "allow_remote" in (check_host("0.0.0.0", {"allow_remote": True}) or "")

@@ -11,7 +11,7 @@ import pytest
 
 from likeness.cli import main
 from offline.fem import load_mesh
-from offline.fem_cli import compact_transform, parse_link_spec
+from offline.skin_pose import compact_transform, parse_link_spec
 
 ROOT = Path(__file__).resolve().parents[3]
 SKIN = ROOT / "heads" / "sample" / "skin"

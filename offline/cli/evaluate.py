@@ -1,0 +1,66 @@
+"""``likeness offline evaluate``: recompute a predictor's test metrics on its dataset and check its report."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The predictor, the dataset, the report to check and the split."""
+    p.description = ("Evaluate an ONNX skin predictor on the test split of a pose dataset (mean, RMS, "
+                       "p99 and max Euclidean vertex error, per-coordinate RMSE, the region of the max, per-region "
+                       "errors) and compare with predictor_report.json (beside the predictor unless --report is "
+                       "given). Exit status 1 when the report does not match.")
+    p.add_argument("--predictor", required=True, help="predictor ONNX file")
+    p.add_argument("--dataset", required=True, help="pose dataset the predictor was trained on: its folder, or a "
+                   "dataset pack (.npz from `likeness offline dataset-pack`; unpacked to a temporary folder and "
+                   "hash-checked)")
+    p.add_argument("--report", default=None, help="report to check (default: predictor_report.json beside the "
+                   "predictor; no check if there is none)")
+    p.add_argument("--split", default="test", choices=("train", "validation", "test", "all"),
+                   help="split to evaluate when no report is checked (default test; all: every converged pose, "
+                   "for a dataset of fresh poses the predictor never saw)")
+    p.add_argument("--threads", type=int, default=1, help="onnxruntime threads")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Evaluate, compare, print JSON."""
+    import json
+    import tempfile
+
+    from models.errors import ConfigError
+    from offline.train.evaluate import REPORT_NAME
+
+    report = Path(args.report) if args.report else Path(args.predictor).with_name(REPORT_NAME)
+    with tempfile.TemporaryDirectory(prefix="likeness-eval-") as tmp:
+        try:
+            dataset = _dataset_folder(Path(args.dataset), Path(tmp))
+            result = _evaluate(args, report, dataset)
+        except (ValueError, FileNotFoundError) as exc:
+            raise ConfigError(str(exc)) from exc
+    print(json.dumps(result, indent=1))
+    return 0 if result.get("matches", True) else 1
+
+
+def _dataset_folder(path: Path, tmp: Path) -> Path:
+    """``path`` itself when it is a dataset folder; a pack file is unpacked (hash-checked) under ``tmp``."""
+    if not path.is_file():
+        return path
+    from offline.dataset.pack import unpack_dataset
+
+    unpack_dataset(path, tmp / "dataset")
+    return tmp / "dataset"
+
+
+def _evaluate(args: argparse.Namespace, report: Path, dataset: Path) -> dict[str, Any]:
+    """Check ``report`` when one applies, else the metrics of the asked split."""
+    from models.errors import UsageError
+    from offline.train.evaluate import check_report, evaluate_predictor
+
+    if args.report or (report.exists() and args.split == "test"):
+        if args.split != "test":
+            raise UsageError("--report checks the test split; leave out --split")
+        return check_report(report, args.predictor, dataset, args.threads)
+    return {"split": args.split, args.split: evaluate_predictor(args.predictor, dataset, args.split, args.threads)}
