@@ -22,11 +22,11 @@ from typing import Any
 
 import numpy as np
 
+from models.atomic import write_bytes
 from offline.active import learner
 from offline.active.learner import LearnerConfig
 from offline.active.pool import BenchmarkData
 from offline.active.selectors import SelectionContext, Selector
-from offline.dataset.store import atomic_write_bytes
 
 REPORT_FORMAT = "likeness-al-benchmark"
 REPORT_VERSION = 1
@@ -85,12 +85,12 @@ def run_method(name: str, selector: Selector, data: BenchmarkData, seed: int, se
         labelled = np.concatenate([labelled, chosen])
         run["labelled"] = [int(i) for i in labelled]
         run["rng_state"] = rng.bit_generator.state
-        atomic_write_bytes(checkpoint, json.dumps(run).encode())
+        write_bytes(checkpoint, json.dumps(run).encode())
         log(f"{name} seed {seed}: {len(labelled)}/{settings.budget} labelled, test error "
             f"{run['mean_euclidean_um'][-1]:.1f} µm before this batch")
     run["complete"] = True
     run["seconds"] = round(run.get("seconds", 0.0) + time.perf_counter() - t0, 2)
-    atomic_write_bytes(checkpoint, json.dumps(run).encode())
+    write_bytes(checkpoint, json.dumps(run).encode())
     return run
 
 

@@ -22,12 +22,13 @@ from typing import Any, TextIO
 
 import numpy as np
 
+from models.atomic import write_bytes
 from offline.active import learner
 from offline.active.learner import LearnerConfig
 from offline.active.policy import Policy
 from offline.dataset.generate import generate_dataset
 from offline.dataset.problem import ProblemSpec
-from offline.dataset.store import PoseStore, atomic_write_bytes
+from offline.dataset.store import PoseStore
 from offline.engine import Engine
 
 SELECTIONS = ("genlal", "random")
@@ -112,7 +113,7 @@ def grow_dataset(root: str | Path, spec: ProblemSpec, samples: np.ndarray, *, se
             log(f"selection {select}: predictor retrained on {len(idx)} poses; batch {len(batches)} of {size} "
                 f"poses chosen from {len(cand)} candidates")
         batches.append([int(i) for i in pick])
-        atomic_write_bytes(sel_path, json.dumps({"select": select, "batches": batches}).encode())
+        write_bytes(sel_path, json.dumps({"select": select, "batches": batches}).encode())
         simulate(batches[-1])
     store.consolidate()
     idx, _, _ = _labelled(store, lo, hi)

@@ -29,11 +29,11 @@ from pathlib import Path
 
 import numpy as np
 
+from models.atomic import write_bytes
 from offline.active import learner
 from offline.active.features import CandidateFeatures, candidate_features, concat, morton_order
 from offline.active.learner import KsnnState, LearnerConfig
 from offline.active.regressor import predict_reduction, train_regressor
-from offline.dataset.store import atomic_write_bytes
 
 POLICY_FORMAT = "likeness-genlal-policy"
 
@@ -125,7 +125,7 @@ class Policy:
         np.savez(buf, regressor=np.frombuffer(self.regressor, dtype=np.uint8), order=self.order, scale=self.scale,
                  n_actuators=np.int64(self.n_actuators),
                  info=np.array(json.dumps({"format": POLICY_FORMAT, **self.info})))
-        atomic_write_bytes(Path(path), buf.getvalue())
+        write_bytes(Path(path), buf.getvalue())
 
     @classmethod
     def load(cls, path: str | Path) -> Policy:
@@ -162,7 +162,7 @@ def learn_policy(x: np.ndarray, y: np.ndarray, base: np.ndarray, settings: Polic
     digest = pool_digest(x, y)
     if stamp.exists() and json.loads(stamp.read_text()).get("policy_pool_hash") != digest:
         raise ValueError(f"{work}: simulated runs of a different policy pool; use a new output folder")
-    atomic_write_bytes(stamp, json.dumps({"policy_pool_hash": digest, "settings": asdict(settings)}).encode())
+    write_bytes(stamp, json.dumps({"policy_pool_hash": digest, "settings": asdict(settings)}).encode())
     order = morton_order(base)
     scale = offset_scale(y)
     parts: list[CandidateFeatures] = []
@@ -180,7 +180,7 @@ def learn_policy(x: np.ndarray, y: np.ndarray, base: np.ndarray, settings: Polic
             f, delta, step = simulate_run(x, y, tau, settings, cfg, order, scale)
             buf = io.BytesIO()
             np.savez(buf, mesh=f.mesh, act=f.act, extra=f.extra, delta=delta, step=step)
-            atomic_write_bytes(path, buf.getvalue())
+            write_bytes(path, buf.getvalue())
             log(f"policy: simulated run {tau + 1}/{settings.n_runs}: {len(delta)} candidates measured in "
                 f"{time.perf_counter() - t1:.0f} s (mean reduction {100 * delta.mean():.2f} %)")
         centred = delta.copy()

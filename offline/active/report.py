@@ -14,13 +14,13 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
+from models.atomic import write_bytes
 from offline.active.benchmark import REPORT_FORMAT, REPORT_VERSION, BenchmarkSettings, run_benchmark
 from offline.active.learner import LearnerConfig
 from offline.active.plot import plot_curves
 from offline.active.policy import Policy, PolicySettings, learn_policy, pool_digest
 from offline.active.pool import load_benchmark_data
 from offline.active.selectors import BASELINES, genlal_selector
-from offline.dataset.store import atomic_write_bytes
 
 FIGURE = "al_benchmark.png"
 
@@ -87,7 +87,7 @@ def run_and_report(pool_dir: str | Path, out: str | Path, methods: Sequence[str]
         "machine": {"python": platform.python_version(), "platform": platform.platform()},
         "seconds_this_invocation": round(time.perf_counter() - t0, 1),
     }
-    atomic_write_bytes(out / "report.json", json.dumps(report, indent=1).encode())
+    write_bytes(out / "report.json", json.dumps(report, indent=1).encode())
     plot_curves(result["runs"], out / FIGURE,
                 title=f"{data.dataset['id']}: {len(data.pool)}-pose pool, {len(data.test)} test poses, "
                       f"{bench.seeds} seeds")

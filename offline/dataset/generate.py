@@ -17,8 +17,9 @@ from typing import Any, TextIO
 
 import numpy as np
 
+from models.atomic import write_bytes
 from offline.dataset.problem import ProblemSpec, problem_for
-from offline.dataset.store import PoseRecord, PoseStore, atomic_write_bytes
+from offline.dataset.store import PoseRecord, PoseStore
 from offline.engine import Engine
 
 
@@ -154,11 +155,11 @@ def generate_dataset(root: str | Path, spec: ProblemSpec, samples: np.ndarray, *
         else:
             failures[str(i)] = out.error or "unknown error"
             prog.failed += 1
-            atomic_write_bytes(failures_path, json.dumps(failures, indent=1).encode())
+            write_bytes(failures_path, json.dumps(failures, indent=1).encode())
         prog.update()
     prog.finish()
     if failures:
-        atomic_write_bytes(failures_path, json.dumps(failures, indent=1).encode())
+        write_bytes(failures_path, json.dumps(failures, indent=1).encode())
     elif failures_path.exists():
         failures_path.unlink()
     complete = len(store.done()) == len(samples)

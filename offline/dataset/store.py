@@ -40,22 +40,17 @@ FORMAT_VERSION = 1
 STATUS_CONVERGED, STATUS_NOT_CONVERGED, STATUS_FAILED = 1, 0, -1
 
 
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` atomically (see :mod:`models.atomic`)."""
-    write_bytes(path, data)
-
-
 def atomic_savez(path: Path, **arrays: Any) -> None:
     """``np.savez`` to ``path`` atomically."""
     buf = io.BytesIO()
     np.savez(buf, **arrays)
-    atomic_write_bytes(path, buf.getvalue())
+    write_bytes(path, buf.getvalue())
 
 
 def atomic_save_npy(path: Path, arr: np.ndarray) -> None:
     buf = io.BytesIO()
     np.save(buf, arr)
-    atomic_write_bytes(path, buf.getvalue())
+    write_bytes(path, buf.getvalue())
 
 
 @dataclass(frozen=True)
@@ -96,7 +91,7 @@ class PoseStore:
                                     old.get(key))
             if "rest_pose" in manifest and "rest_pose" not in old:  # written before rest poses were recorded
                 doc = {**old, "rest_pose": manifest["rest_pose"]}
-                atomic_write_bytes(self.root / "dataset.json", json.dumps(doc, indent=1).encode())
+                write_bytes(self.root / "dataset.json", json.dumps(doc, indent=1).encode())
             return
         self.poses_dir.mkdir(parents=True, exist_ok=True)
         extra: dict[str, Any] = {}
@@ -114,7 +109,7 @@ class PoseStore:
                      faces=np.asarray(faces, dtype=np.int64), **extra)
         atomic_save_npy(self.root / "samples.npy", np.asarray(samples, dtype=np.float64))
         doc = {"format": FORMAT, "format_version": FORMAT_VERSION, **manifest}
-        atomic_write_bytes(self.root / "dataset.json", json.dumps(doc, indent=1).encode())
+        write_bytes(self.root / "dataset.json", json.dumps(doc, indent=1).encode())
         if len(samples) >= 3:  # smaller datasets cannot be split; training refuses them when it asks
             self.splits()
 

@@ -20,8 +20,8 @@ from typing import Any
 
 import numpy as np
 
+from models.atomic import write_bytes
 from models.predictor import KsnnWeights
-from offline.dataset.store import atomic_write_bytes
 
 
 @dataclass(frozen=True)
@@ -207,7 +207,7 @@ def train_ksnn(x_norm: np.ndarray, offsets: np.ndarray, train_idx: np.ndarray, v
         buf = io.BytesIO()
         torch.save({"key": key, "model": model.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict(),
                     "history": history, "best": best, "epoch": epoch, "scale": scale}, buf)
-        atomic_write_bytes(checkpoint, buf.getvalue())
+        write_bytes(checkpoint, buf.getvalue())
 
     x_t = torch.from_numpy(x_norm.astype(np.float32))
     rng = np.random.default_rng(config.seed * 7919 + hidden)

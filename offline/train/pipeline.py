@@ -18,9 +18,10 @@ from typing import Any
 
 import numpy as np
 
+from models.atomic import write_bytes
 from offline.dataset.describe import material_info, mesh_info, regions
 from offline.dataset.splits import SPLIT_NAMES
-from offline.dataset.store import PoseDataset, atomic_write_bytes
+from offline.dataset.store import PoseDataset
 from offline.train.evaluate import REPORT_FORMAT, REPORT_NAME, evaluate_predictor
 from offline.train.export import export_int8, export_predictor, predictor_metadata
 from offline.train.ksnn import TrainConfig, TrainResult, resolve_hidden, train_ksnn
@@ -108,7 +109,7 @@ def train_pipeline(dataset_dir: str | Path, out_dir: str | Path, config: TrainCo
                                                                                        config.threads))}
     _plots(out, ds, test_idx, best, results, test)
     report["seconds"] = round(time.perf_counter() - t0, 2)
-    atomic_write_bytes(out / REPORT_NAME, json.dumps(report, indent=1).encode())
+    write_bytes(out / REPORT_NAME, json.dumps(report, indent=1).encode())
     log(f"test ({len(test_idx)} poses): mean {test['mean_euclidean_um']:.1f} µm, RMS "
         f"{test['rms_euclidean_um']:.1f} µm, p99 {test['p99_euclidean_um']:.1f} µm, max "
         f"{test['max_euclidean_um']:.1f} µm in {test['max_at']['region']} (H={best.hidden}) → {model_path}")
