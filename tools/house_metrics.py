@@ -43,18 +43,15 @@ class Figures:
     cli_modules: list[str]
     cli_off_pattern: list[str]
     cycles: list[list[str]]
+    contract_exceptions: int
 
 
-def _sources(package: str) -> Iterator[Path]:
-    yield from sorted((ROOT / package).rglob("*.py"))
+def _sources(root: Path, package: str) -> Iterator[Path]:
+    yield from sorted((root / package).rglob("*.py"))
 
 
-def _rel(path: Path) -> str:
-    return path.relative_to(ROOT).as_posix()
-
-
-def _module_name(path: Path) -> str:
-    parts = list(path.relative_to(ROOT).with_suffix("").parts)
+def _module_name(root: Path, path: Path) -> str:
+    parts = list(path.relative_to(root).with_suffix("").parts)
     if parts[-1] == "__init__":
         parts.pop()
     return ".".join(parts)
@@ -180,18 +177,28 @@ def _follows_pattern(rel: str) -> bool:
     return (len(parts) == 3 and parts[1] == "cli") or rel == "likeness/cli.py"
 
 
-def measure() -> Figures:
+def _contract_exceptions(root: Path) -> int:
+    """Imports the import contracts (``pyproject.toml``) let through as listed exceptions."""
+    import tomllib
+
+    doc = tomllib.loads((root / "pyproject.toml").read_text(encoding="utf-8"))
+    contracts = doc.get("tool", {}).get("importlinter", {}).get("contracts", [])
+    return sum(len(c.get("ignore_imports", [])) for c in contracts)
+
+
+def measure(root: Path = ROOT) -> Figures:
+    """The figures of the source tree at ``root``."""
     any_runtime = any_path = 0
     sizes: list[tuple[str, int]] = []
     longs: list[tuple[str, str, int]] = []
     clis: list[str] = []
     graph: dict[str, set[str]] = {}
     for package in PACKAGES:
-        for path in _sources(package):
-            rel = _rel(path)
+        for path in _sources(root, package):
+            rel = path.relative_to(root).as_posix()
             text = path.read_text(encoding="utf-8")
             tree = ast.parse(text, filename=rel)
-            module = _module_name(path)
+            module = _module_name(root, path)
             graph[module] = imports(tree, module, path.name == "__init__.py")
             if _cli_module(rel):
                 clis.append(rel)
@@ -218,6 +225,7 @@ def measure() -> Figures:
         cli_modules=sorted(clis),
         cli_off_pattern=sorted(c for c in clis if not _follows_pattern(c)),
         cycles=import_cycles(resolved),
+        contract_exceptions=_contract_exceptions(root),
     )
 
 
@@ -246,6 +254,7 @@ def render(f: Figures, target: str = "docs/house_metrics.md") -> str:
         f"| command-line modules | {len(f.cli_modules)} |",
         f"| command-line modules outside the one pattern (`PILLAR/cli/COMMAND.py`) | {len(f.cli_off_pattern)} |",
         f"| import cycles between modules (TYPE_CHECKING imports aside) | {len(f.cycles)} |",
+        f"| import-contract exceptions (`ignore_imports`) | {f.contract_exceptions} |",
         "",
     ]
     if f.runtime_over_500:
@@ -260,12 +269,73 @@ def render(f: Figures, target: str = "docs/house_metrics.md") -> str:
     return "\n".join(lines)
 
 
+def measure_commit(commit: str) -> Figures:
+    """The figures of ``commit`` (its tree exported into a temporary folder)."""
+    import tarfile
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="house-") as tmp:
+        archive = subprocess.run(["git", "archive", "--format=tar", commit], cwd=ROOT, capture_output=True,
+                                 check=True).stdout
+        import io
+
+        with tarfile.open(fileobj=io.BytesIO(archive)) as tar:
+            tar.extractall(tmp, filter="data")
+        return measure(Path(tmp))
+
+
+BEGIN, END = "<!-- house-figures: begin -->", "<!-- house-figures: end -->"
+
+
+def comparison(before: Figures, now: Figures, commit: str) -> str:
+    """The before/now table ``docs/architecture.md`` carries between its house-figures markers."""
+    rows = [
+        ("annotations mentioning `Any` on the stream frame's path", before.any_frame_path, now.any_frame_path),
+        ("annotations mentioning `Any` in `runtime/`", before.any_runtime, now.any_runtime),
+        ("largest runtime module", f"`{before.largest_runtime[0]}`, {before.largest_runtime[1]} lines",
+         f"`{now.largest_runtime[0]}`, {now.largest_runtime[1]} lines"),
+        ("runtime modules over 500 lines", len(before.runtime_over_500), len(now.runtime_over_500)),
+        (f"functions over {LONG_FUNCTION} lines in `runtime/` and `offline/fem/`", len(before.long_functions),
+         len(now.long_functions)),
+        ("command-line modules outside the one pattern", f"{len(before.cli_off_pattern)} of {len(before.cli_modules)}",
+         f"{len(now.cli_off_pattern)} of {len(now.cli_modules)}"),
+        ("import cycles between modules", len(before.cycles), len(now.cycles)),
+        ("import-contract exceptions (`ignore_imports`)", before.contract_exceptions, now.contract_exceptions),
+    ]
+    lines = [BEGIN, f"Written by `python -m tools.house_metrics --before {commit} --architecture "
+             "docs/architecture.md` at commit " + _commit() + "; not edited by hand.", "",
+             f"| figure | before (`{commit}`) | now |", "|---|---|---|"]
+    lines += [f"| {name} | {b} | {n} |" for name, b, n in rows]
+    return "\n".join([*lines, END])
+
+
+def write_comparison(path: Path, before_commit: str) -> None:
+    """Replace the block between the house-figures markers of ``path`` with the before/now table."""
+    from models.atomic import write_text
+
+    text = path.read_text(encoding="utf-8")
+    if BEGIN not in text or END not in text:
+        raise SystemExit(f"{path}: no {BEGIN} ... {END} block to fill")
+    head, rest = text.split(BEGIN, 1)
+    _, tail = rest.split(END, 1)
+    write_text(path, head + comparison(measure_commit(before_commit), measure(), before_commit) + tail)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--write", type=Path, default=None, help="write the table to this markdown file")
+    parser.add_argument("--before", default=None, help="a commit to compare with (needs --architecture)")
+    parser.add_argument("--architecture", type=Path, default=None,
+                        help="fill this file's house-figures block with the before/now table")
     args = parser.parse_args(argv)
+    if args.architecture is not None:
+        if args.before is None:
+            parser.error("--architecture needs --before COMMIT")
+        write_comparison(args.architecture, args.before)
+        print(f"wrote the house figures into {args.architecture}")
     if args.write is None:
-        print(render(measure()))
+        if args.architecture is None:
+            print(render(measure()))
         return 0
     text = render(measure(), args.write.as_posix())
     from models.atomic import write_text
