@@ -85,6 +85,7 @@ class Daemon:
         from runtime.inputs.config import inputs_config
 
         self.inputs = inputs_config(head, self.channels)  # [inputs]: checked here, served by the API server
+        _check_server_assets(head)
         self.hw = hardware
         self._own_hw = hardware is None
         self.buses: list[BusProxy] = []
@@ -285,3 +286,13 @@ def _strain_guard(head: HeadSpec, solvers: list[TargetSolver]) -> StrainGuard | 
     from models.strain_guard import StrainGuard
 
     return StrainGuard.for_head(head)
+
+
+def _check_server_assets(head: HeadSpec) -> None:
+    """Read the files only the API server uses (the link map, for telemetry's attachment-link poses) once here, so a
+    corrupt one stops the daemon at start with a ``SpecError`` naming the file, before any process starts."""
+    from models.linkmap import LinkMap
+
+    path = head.path("linkmap")
+    if path is not None and path.exists():
+        LinkMap.for_head(head)
