@@ -230,17 +230,22 @@ def solve_frame_measured(wts: np.ndarray, p_prev: np.ndarray, p0: np.ndarray, lo
 
 
 @njit(cache=True)
-def solve_values_measured(values: np.ndarray, wts: np.ndarray, p_prev: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-                          scale_in: np.ndarray, const_b: float, e: np.ndarray, M: np.ndarray, q0: np.ndarray,
-                          Qd: np.ndarray, lam_s: float, W1: np.ndarray, b1: np.ndarray, W1b: np.ndarray,
-                          Rb: np.ndarray, xlo: np.ndarray, xhi: np.ndarray, mid: np.ndarray, ihalf: np.ndarray,
-                          mu: float, max_iterations: int, tol: float, xtol: float, E: np.ndarray, ge0: np.ndarray,
-                          C: np.ndarray, idet: np.ndarray, S_ptr: np.ndarray, S_idx: np.ndarray, S_w: np.ndarray):
+def solve_values_measured(values: np.ndarray, wts: np.ndarray, p_prev: np.ndarray, p_out: np.ndarray, lo: np.ndarray,
+                          hi: np.ndarray, scale_in: np.ndarray, const_b: float, e: np.ndarray, M: np.ndarray,
+                          q0: np.ndarray, Qd: np.ndarray, lam_s: float, W1: np.ndarray, b1: np.ndarray,
+                          W1b: np.ndarray, Rb: np.ndarray, xlo: np.ndarray, xhi: np.ndarray, mid: np.ndarray,
+                          ihalf: np.ndarray, mu: float, max_iterations: int, tol: float, xtol: float, E: np.ndarray,
+                          ge0: np.ndarray, C: np.ndarray, idet: np.ndarray, S_ptr: np.ndarray, S_idx: np.ndarray,
+                          S_w: np.ndarray) -> tuple[float, int, float, float]:
     """A control frame from channel values: the face-unit weights (a value clamped to 0..1, a non-finite one, i.e.
-    not set, as 0) written into ``wts``, then :func:`solve_frame_measured` warm-started from ``p_prev``."""
+    not set, as 0) written into ``wts``, then :func:`solve_frame_measured` warm-started from ``p_prev``, its pose
+    written into ``p_out`` (no array crosses back into Python). Returns (unscaled squared error, iterations,
+    strain min, strain max)."""
     for i in range(wts.shape[0]):
         v = values[i]
         wts[i] = min(max(v, 0.0), 1.0) if np.isfinite(v) else 0.0
-    return solve_frame_measured(wts, p_prev, np.empty(0), lo, hi, scale_in, const_b, e, M, q0, Qd, lam_s, W1, b1,
-                                W1b, Rb, xlo, xhi, mid, ihalf, mu, max_iterations, tol, xtol, E, ge0, C, idet, S_ptr,
-                                S_idx, S_w)
+    p, _, fit, _, it, _, s_lo, s_hi = solve_frame_measured(
+        wts, p_prev, np.empty(0), lo, hi, scale_in, const_b, e, M, q0, Qd, lam_s, W1, b1, W1b, Rb, xlo, xhi, mid,
+        ihalf, mu, max_iterations, tol, xtol, E, ge0, C, idet, S_ptr, S_idx, S_w)
+    p_out[:] = p
+    return fit, it, s_lo, s_hi

@@ -299,21 +299,30 @@ class FrameSolve:
         self.iterations = 0
         self.strain: tuple[float, float] = (0.0, 0.0)  # the guard's reduced measure (min, max) at the last solution
         self._scale = inverse.scale
-        self._fused = inverse.compiled and measure.compiled
-        self._args = (*inverse.kernel_arrays(), self.max_iterations, self.tol, self.xtol, *measure.kernel_arrays())
+        self._kernel = None
+        if inverse.compiled and measure.compiled:
+            from models._skin_kernels import solve_values_measured
+
+            self._kernel = solve_values_measured
+        # the compiled call writes the pose into whichever of these the start is not
+        self._poses = (np.empty(len(inverse.lo)), np.empty(len(inverse.lo)))
+        # what the compiled call takes after the values, the weights and the start
+        self.kernel_args = (*inverse.kernel_arrays(), self.max_iterations, self.tol, self.xtol,
+                            *measure.kernel_arrays())
 
     def __call__(self, values: np.ndarray, p_prev: np.ndarray) -> np.ndarray:
-        """The actuator values (raw SI, a new array) for channel ``values`` (one per face unit, in unit order; NaN:
-        not set), warm-started from the pose ``p_prev``."""
+        """The actuator values (raw SI) for channel ``values`` (one per face unit, in unit order; NaN: not set),
+        warm-started from the pose ``p_prev`` (float64). The array is this solve's own, reused by the call after
+        next: it may be the next call's ``p_prev``; copy it to keep it longer."""
         buf = self.values
         if values is not buf:
             if np.shape(values) != buf.shape:
                 raise ValueError(f"need {buf.shape[0]} face-unit values, got shape {np.shape(values)}")
             np.copyto(buf, values)
-        if self._fused:
-            from models import _skin_kernels as K
-
-            p, _, fit, _, it, _, s_lo, s_hi = K.solve_values_measured(buf, self.weights, p_prev, *self._args)
+        if self._kernel is not None:
+            a, b = self._poses
+            p = b if p_prev is a else a
+            fit, it, s_lo, s_hi = self._kernel(buf, self.weights, p_prev, p, *self.kernel_args)
             self.residual_rms = math.sqrt(fit * self._scale)
             self.iterations = it
             self.strain = (s_lo, s_hi)

@@ -112,11 +112,11 @@ class SkinTargetSolver:
         self.strain_range = strain_guard.strain_range
         self._accepted = self.neutral.copy()
         self._index = {PREFIX + n: i for n, i in self.units.items()}  # channel → face unit (its place in the block)
-        self._frame = self.inverse.frame_solve(max_iterations, tol, xtol, strain_guard)
+        self.frame = self.inverse.frame_solve(max_iterations, tol, xtol, strain_guard)  # the bound in-cycle solve
         self._out = np.empty(len(self.names))  # solve_array's result
         self.telemetry = SkinTelemetry()
         # compile (or load) the fused solve-and-measure kernel now, never in a control cycle
-        self._frame(self._frame.values, self.neutral)
+        self.frame(self.frame.values, self.neutral)
 
     @classmethod
     def from_head(cls, head: HeadSpec) -> SkinTargetSolver | None:
@@ -174,7 +174,7 @@ class SkinTargetSolver:
     def solve(self, targets: Mapping[str, float], current: Mapping[str, float]) -> SolveResult:
         """Actuator values (SI) for the addressed face-unit weights (unaddressed units count as 0)."""
         t0 = time.perf_counter()
-        values = self._frame.values
+        values = self.frame.values
         values.fill(np.nan)
         index = self._index
         for ch, value in targets.items():
@@ -204,7 +204,7 @@ class SkinTargetSolver:
     def _step(self, values: np.ndarray, t0: float) -> np.ndarray:
         """One frame: the compiled solve of ``values`` from the last accepted pose, the guard's verdict on it (and
         its limit when it fails), the telemetry figures; returns the accepted pose."""
-        frame = self._frame
+        frame = self.frame
         p = frame(values, self._accepted)
         strain = frame.strain
         if self.strain_guard.passes(strain):  # the solution lies in the trained range by construction
@@ -219,6 +219,11 @@ class SkinTargetSolver:
         tel.guard = guard
         tel.solve_us = (time.perf_counter() - t0) * 1e6
         return p
+
+    @property
+    def accepted(self) -> np.ndarray:
+        """The last accepted pose (a copy): the next solve's warm start."""
+        return self._accepted.copy()
 
     # ------------------------------------------------------------------ strain guard
     def strain(self, p: np.ndarray) -> tuple[float, float]:
