@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.linalg.lapack import dposv as _dposv
@@ -158,7 +158,8 @@ class KsnnInverse:
         return max(float(h @ (self._G @ h + 2.0 * c)) + kappa, 0.0) * self.scale
 
     def solve(self, unit_weights: np.ndarray, p_prev: np.ndarray | None = None, p0: np.ndarray | None = None,
-              max_iterations: int = 20, tol: float = 1e-9, xtol: float = 0.0, measure: Any = None) -> SolveResult:
+              max_iterations: int = 20, tol: float = 1e-9, xtol: float = 0.0,
+              measure: StrainGuard | None = None) -> SolveResult:
         """Damped, projected Gauss-Newton from ``p0`` (default ``p_prev``, else mid-range) for face-unit weights.
 
         ``tol`` bounds the relative decrease of the objective that counts as converged; ``xtol`` (normalized
