@@ -316,10 +316,10 @@ class FrameSolve:
         warm-started from the pose ``p_prev`` (float64). The array is this solve's own, reused by the call after
         next: it may be the next call's ``p_prev``; copy it to keep it longer."""
         buf = self.values
-        if values is not buf:
-            if np.shape(values) != buf.shape:
-                raise ValueError(f"need {buf.shape[0]} face-unit values, got shape {np.shape(values)}")
-            np.copyto(buf, values)
+        if values is not buf:  # copied: the compiled call then always sees a writable float64 vector of its own
+            if values.shape != buf.shape:
+                raise ValueError(f"need {buf.shape[0]} face-unit values, got shape {values.shape}")
+            buf[:] = values
         if self._kernel is not None:
             a, b = self._poses
             p = b if p_prev is a else a

@@ -191,7 +191,7 @@ class SkinTargetSolver:
         needed: the solve starts from its own last accepted pose."""
         p = self._step(block, time.perf_counter())
         out = self._out
-        np.copyto(out, p)
+        out[:] = p
         return out, self.telemetry
 
     def reset_array(self, q: np.ndarray) -> None:
