@@ -2,13 +2,12 @@
 
 Frames: the sample head's ``blendshapes.json`` performance sampled at 500 Hz (warm-started frame to frame, as the
 daemon solves it) and random sparse face-unit weights; a channel the frame does not set is NaN. Per frame, each path
-on its own solver (the same frames, the same warm-start chain), interleaved so machine load hits them alike:
+on its own solver (the same frames, the same warm-start chain), interleaved so machine load hits them alike, and
+each after the same sweep over more memory than a core's cache (as a control cycle runs between other work):
 
 * kernel (the baseline): the bare compiled call (``models._skin_kernels.solve_values_measured``: weights from the
   channel values, the inverse, the guard's reduced measure) with its arguments gathered beforehand, on the array
-  path's frame from the same start, run untimed just before it (the compiled call's data then is in cache for
-  both) and timed right after it (hot, while the array path's own Python objects come cold from the other paths'
-  work, as in a control cycle: its excess over the kernel includes their cache misses);
+  path's frame from the same start;
 * array path: ``SkinTargetSolver.solve_array``, what the core calls every cycle (plus the guard's verdict, the
   warm start and the telemetry figures); the goal is p99 ≤ 0.1 ms;
 * mapping API: ``SkinTargetSolver.solve`` from a name → value map (built outside the timing), the same compiled
@@ -108,32 +107,41 @@ class Paths:
                                     hi=self.array.hi)
         self.p_ref = self.array.neutral.copy()
         self.q = self.array.neutral.copy()
+        self._junk = np.zeros(1 << 20)  # 8 MiB
         self.ref_ok = 0
         self.mismatch = 0
         self.dev = 0.0
 
+    def cool(self) -> None:
+        """Other work between two timed calls, as a control cycle has: a sweep over more memory than the core's
+        cache holds, so that each timed path starts with its data and code as cold as the others'."""
+        np.add(self._junk, 1.0, out=self._junk)
+
     def run(self, values: np.ndarray, times: dict[str, list[float]]) -> None:
-        """Every path on one frame, each timed. The kernel solves the array path's frame from the same start just
-        before it (bringing the compiled call's data into cache for it) and just after it: the baseline is the
-        second, so the array path's excess over it is its own work. Records whether the array path and the mapping
-        API agree."""
+        """Every path on one frame, each timed after the same :meth:`cool`; the kernel solves the array path's frame
+        from the same start. Records whether the array path and the mapping API agree."""
         clock = time.perf_counter
         start = self.array.accepted
         dt: dict[str, float] = {}
-        self.kernel_fn(values, self.kernel_w, start, self.kernel_p, *self.kernel_args)
+        self.cool()
         t0 = clock()
-        got, _ = self.array.solve_array(values, self.q)
-        t1 = clock()
         self.kernel_fn(values, self.kernel_w, start, self.kernel_p, *self.kernel_args)
+        t1 = clock()
+        self.cool()
         t2 = clock()
-        dt["array"], dt["kernel"] = t1 - t0, t2 - t1
+        got, _ = self.array.solve_array(values, self.q)
+        t3 = clock()
+        dt["kernel"], dt["array"] = t1 - t0, t3 - t2
         targets = {ch: float(v) for ch, v in zip(self.channels, values.tolist(), strict=True) if v == v}
+        self.cool()
         t0 = clock()
         res = self.mapping.solve(targets, {})
         t1 = clock()
-        self.adapter.solve_array(values, self.q)
+        self.cool()
         t2 = clock()
-        dt["mapping"], dt["adapter"] = t1 - t0, t2 - t1
+        self.adapter.solve_array(values, self.q)
+        t3 = clock()
+        dt["mapping"], dt["adapter"] = t1 - t0, t3 - t2
         w = np.where(np.isfinite(values), np.clip(values, 0.0, 1.0), 0.0)
         t0 = clock()
         r_ref = self.ref.solve(w, p_prev=self.p_ref, max_iterations=self.array.max_iterations, tol=self.array.tol)

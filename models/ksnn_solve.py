@@ -301,15 +301,15 @@ class FrameSolve:
         self.strain: tuple[float, float] = (0.0, 0.0)  # the guard's reduced measure (min, max) at the last solution
         self._scale = inverse.scale
         self._kernel = None
+        self.kernel_args: tuple[np.ndarray, ...] = ()  # what the compiled call takes after values, weights, poses
         if inverse.compiled and measure.compiled:
-            from models._skin_kernels import solve_values_measured
+            from models._skin_kernels import pack_frame_args, solve_values_measured
 
             self._kernel = solve_values_measured
+            self.kernel_args = pack_frame_args((*inverse.kernel_arrays(), self.max_iterations, self.tol, self.xtol),
+                                               measure.kernel_arrays())
         # the compiled call writes the pose into whichever of these the start is not
         self._poses = (np.empty(len(inverse.lo)), np.empty(len(inverse.lo)))
-        # what the compiled call takes after the values, the weights and the start
-        self.kernel_args = (*inverse.kernel_arrays(), self.max_iterations, self.tol, self.xtol,
-                            *measure.kernel_arrays())
 
     def __call__(self, values: np.ndarray, p_prev: np.ndarray) -> np.ndarray:
         """The actuator values (raw SI) for channel ``values`` (one per face unit, in unit order; NaN: not set),
