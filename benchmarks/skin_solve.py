@@ -107,7 +107,7 @@ class Paths:
                                     hi=self.array.hi)
         self.p_ref = self.array.neutral.copy()
         self.q = self.array.neutral.copy()
-        self._junk = np.zeros(1 << 20)  # 8 MiB
+        self._junk = np.zeros(1 << 18)  # 2 MiB: a core's L2 here
         self.ref_ok = 0
         self.mismatch = 0
         self.dev = 0.0
