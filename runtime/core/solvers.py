@@ -24,7 +24,8 @@ class ArrayTargetSolver(Protocol):
 
     def solve_array(self, block: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, Mapping[str, object]]:
         """Actuator targets (SI, NaN: not addressed) for its block of channel values (NaN: not set), from the
-        present command ``q``; plus extra telemetry fields (residual, predicted poses)."""
+        present command ``q``; plus extra telemetry fields (residual, predicted poses), which the core copies when it
+        reports them: both may be the solver's own, updated by its next solve."""
         ...
 
     def reset_array(self, q: np.ndarray) -> None:
