@@ -12,7 +12,8 @@ each after the same sweep over more memory than a core's cache (as a control cyc
   warm start and the telemetry figures); the goal is p99 ≤ 0.1 ms;
 * mapping API: ``SkinTargetSolver.solve`` from a name → value map (built outside the timing), the same compiled
   call;
-* by-name adapter: ``runtime.core.solvers.ArraySolver`` around the mapping API, the core's previous per-cycle path;
+* by-name adapter: ``runtime.core.solvers.ArraySolver`` around the mapping API: the core's previous per-cycle path
+  (dictionaries both ways), here over the new compiled call;
 * reference: the previous inverse (``benchmarks/_skin_reference.py``) + the previous guard check (a full predictor
   pass and the extreme strain over all triangles), and one predictor forward pass alone.
 
