@@ -1,17 +1,27 @@
-"""ARKit frame solve including the reduced strain guard, vs the previous implementation measured in the same run.
+"""ARKit frame solve, as the control core calls it and by name, against the bare compiled call measured in the same run.
 
 Frames: the sample head's ``blendshapes.json`` performance sampled at 500 Hz (warm-started frame to frame, as the
-daemon solves it) and random sparse face-unit weights. Per frame, interleaved so machine load hits both alike:
+daemon solves it) and random sparse face-unit weights; a channel the frame does not set is NaN. Per frame, each path
+on its own solver (the same frames, the same warm-start chain), interleaved so machine load hits them alike, and
+each after the same sweep over more memory than a core's cache (as a control cycle runs between other work):
 
-* core (new): ``KsnnInverse.solve`` (52 units, 3 iterations) with the guard's reduced measure of the solution in
-  the same compiled call (``measure=``), and its verdict; the goal is p99 ≤ 0.1 ms;
-* ``SkinTargetSolver.solve`` (new), the same plus channel parsing and telemetry;
+* kernel (the baseline): the bare compiled call (``models._skin_kernels.solve_values_measured``: weights from the
+  channel values, the inverse, the guard's reduced measure) with its arguments gathered beforehand, on the array
+  path's frame from the same start;
+* array path: ``SkinTargetSolver.solve_array``, what the core calls every cycle (plus the guard's verdict, the
+  warm start and the telemetry figures); the goal is p99 ≤ 0.1 ms;
+* mapping API: ``SkinTargetSolver.solve`` from a name → value map (built outside the timing), the same compiled
+  call;
+* by-name adapter: ``runtime.core.solvers.ArraySolver`` around the mapping API: the core's previous per-cycle path
+  (dictionaries both ways), here over the new compiled call;
 * reference: the previous inverse (``benchmarks/_skin_reference.py``) + the previous guard check (a full predictor
   pass and the extreme strain over all triangles), and one predictor forward pass alone.
 
-Then it prints the agreements stored in the guard's report (``likeness offline guard evaluate``).
+Timings need a quiet machine: on a loaded one read the ratios to the kernel and p1 (the nearly undisturbed cost).
+``--profile`` adds a cProfile look at where the array path's and the mapping API's time goes. Then it prints the
+agreements stored in the guard's report (``likeness offline guard evaluate``).
 
-Run: ``python benchmarks/skin_solve.py [--random 1000] [--report heads/sample/skin_guard_report.json]``.
+Run: ``python benchmarks/skin_solve.py [--random 1000] [--profile] [--report heads/sample/skin_guard_report.json]``.
 """
 
 from __future__ import annotations
@@ -22,9 +32,13 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import argparse  # noqa: E402
+import cProfile  # noqa: E402
+import io  # noqa: E402
 import json  # noqa: E402
+import pstats  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
+from collections.abc import Callable  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
@@ -34,110 +48,195 @@ sys.path.insert(0, str(ROOT))
 
 from benchmarks._skin_reference import ReferenceInverse, reference_guard_ok  # noqa: E402
 from models.clip import load_clip_file  # noqa: E402
-from models.headspec import load_head  # noqa: E402
+from models.headspec import HeadSpec, load_head  # noqa: E402
+from runtime.core.solvers import ArraySolver  # noqa: E402
 from runtime.skin import SkinTargetSolver  # noqa: E402
 
 HEAD = ROOT / "heads" / "sample" / "head.toml"
 CLIP = ROOT / "heads" / "sample" / "performances" / "blendshapes.json"
 REPORT = ROOT / "heads" / "sample" / "skin_guard_report.json"
+GOAL_US = 100.0
+PATHS = ("kernel", "array", "mapping", "adapter", "reference", "forward")
 
 
-def frames(solver: SkinTargetSolver, n_random: int, seed: int = 0) -> list[tuple[str, np.ndarray]]:
-    """(kind, unit weights) per frame: the performance at 500 Hz, then random sparse weights."""
+def frames(channels: list[str], n_random: int, seed: int = 0) -> list[tuple[str, np.ndarray]]:
+    """(kind, channel values in ``channels`` order, NaN: not set) per frame: the performance at 500 Hz, then random
+    sparse weights."""
     clip = load_clip_file(CLIP)
+    index = {ch: i for i, ch in enumerate(channels)}
     out = []
     for i in range(int(clip.duration * 500) + 1):
-        w = np.zeros(len(solver.units))
-        for ch, v in clip.sample(i / 500).items():
-            j = solver.units.get(ch.removeprefix("arkit."))
+        v = np.full(len(channels), np.nan)
+        for ch, x in clip.sample(i / 500).items():
+            j = index.get(ch)
             if j is not None:
-                w[j] = min(max(v, 0.0), 1.0)
-        out.append(("performance", w))
+                v[j] = x
+        out.append(("performance", v))
     rng = np.random.default_rng(seed)
+    n = len(channels)
     for _ in range(n_random):
-        w = rng.uniform(0.0, 0.6, len(solver.units)) * (rng.random(len(solver.units)) < 0.15)
-        out.append(("random", w))
+        out.append(("random", np.where(rng.random(n) < 0.15, rng.uniform(0.0, 0.6, n), np.nan)))
     return out
 
 
-def pct(ts: list[float]) -> tuple[float, float, float]:
-    """p50, p99 and p1 (the nearly undisturbed cost on a loaded machine), µs."""
+def stats(ts: list[float]) -> tuple[float, float, float, float]:
+    """p50, p99, max and p1 (the nearly undisturbed cost on a loaded machine), µs."""
     a = np.asarray(ts) * 1e6
-    return float(np.percentile(a, 50)), float(np.percentile(a, 99)), float(np.percentile(a, 1))
+    return float(np.percentile(a, 50)), float(np.percentile(a, 99)), float(a.max()), float(np.percentile(a, 1))
+
+
+class Paths:
+    """The timed paths, each with its own solver and warm-start chain, run on one frame at a time."""
+
+    def __init__(self, head: HeadSpec) -> None:
+        from models import _skin_kernels as K
+
+        array, mapping, by_name = (SkinTargetSolver.from_head(head) for _ in range(3))
+        assert array is not None and mapping is not None and by_name is not None
+        self.array, self.mapping = array, mapping
+        self.channels = list(self.array.channels())
+        self.adapter = ArraySolver(by_name, self.channels, head.actuator_names)
+        inv, guard = self.array.inverse, self.array.strain_guard
+        self.guard = guard
+        self.kernel_fn = K.solve_values_measured
+        self.kernel_args = self.array.frame.kernel_args  # the settings the solver's frame solve has bound
+        self.kernel_w = np.zeros(inv.n_units)
+        self.kernel_p = np.empty(len(self.array.names))
+        self.p_free = self.array.neutral.copy()  # the unguarded chain, compared with the reference's
+        sp = self.array.predictor
+        self.ref = ReferenceInverse(sp.weights, sp.face_unit_offsets, smoothness=inv.smoothness, lo=self.array.lo,
+                                    hi=self.array.hi)
+        self.p_ref = self.array.neutral.copy()
+        self.q = self.array.neutral.copy()
+        self._junk = np.zeros(1 << 18)  # 2 MiB: a core's L2 here
+        self.ref_ok = 0
+        self.mismatch = 0
+        self.dev = 0.0
+
+    def cool(self) -> None:
+        """Other work between two timed calls, as a control cycle has: a sweep over more memory than the core's
+        cache holds, so that each timed path starts with its data and code as cold as the others'."""
+        np.add(self._junk, 1.0, out=self._junk)
+
+    def run(self, values: np.ndarray, times: dict[str, list[float]]) -> None:
+        """Every path on one frame, each timed after the same :meth:`cool`; the kernel solves the array path's frame
+        from the same start. Records whether the array path and the mapping API agree."""
+        clock = time.perf_counter
+        start = self.array.accepted
+        dt: dict[str, float] = {}
+        self.cool()
+        t0 = clock()
+        self.kernel_fn(values, self.kernel_w, start, self.kernel_p, *self.kernel_args)
+        t1 = clock()
+        self.cool()
+        t2 = clock()
+        got, _ = self.array.solve_array(values, self.q)
+        t3 = clock()
+        dt["kernel"], dt["array"] = t1 - t0, t3 - t2
+        targets = {ch: float(v) for ch, v in zip(self.channels, values.tolist(), strict=True) if v == v}
+        self.cool()
+        t0 = clock()
+        res = self.mapping.solve(targets, {})
+        t1 = clock()
+        self.cool()
+        t2 = clock()
+        self.adapter.solve_array(values, self.q)
+        t3 = clock()
+        dt["mapping"], dt["adapter"] = t1 - t0, t3 - t2
+        w = np.where(np.isfinite(values), np.clip(values, 0.0, 1.0), 0.0)
+        t0 = clock()
+        r_ref = self.ref.solve(w, p_prev=self.p_ref, max_iterations=self.array.max_iterations, tol=self.array.tol)
+        self.ref_ok += int(reference_guard_ok(self.array.predictor, r_ref.p, self.guard.strain_range))
+        t1 = clock()
+        self.array.predictor.predict(r_ref.p)
+        t2 = clock()
+        dt["reference"], dt["forward"] = t1 - t0, t2 - t1
+        for name in PATHS:
+            times[name].append(dt[name])
+        self.mismatch += int(not np.array_equal(got, [res.actuators[n] for n in self.array.names]))
+        free = np.empty_like(self.p_free)
+        self.kernel_fn(values, self.kernel_w, self.p_free, free, *self.kernel_args)
+        self.dev = max(self.dev, float(np.abs(free - r_ref.p).max()))
+        self.p_free, self.p_ref = free, r_ref.p
+
+
+def report_times(kind: str, tk: dict[str, list[float]]) -> None:
+    """One block of the table: p50 / p99 / max per path, the ratio to the kernel, and the goal."""
+    k50, k99, _, _ = stats(tk["kernel"])
+    kernel = np.asarray(tk["kernel"])
+    print(f"  {kind} ({len(tk['kernel'])} frames)             p50      p99      max       p1   p50/p99 ÷ kernel   "
+          "(+ per-frame excess over the kernel, p50)")
+    labels = {"kernel": "kernel (baseline)", "array": "array path (core)", "mapping": "mapping API",
+              "adapter": "by-name adapter", "reference": "previous solve+guard", "forward": "one predictor pass"}
+    for name in PATHS:
+        a50, a99, amax, a1 = stats(tk[name])
+        goal = ""
+        if name in ("array", "mapping", "adapter"):
+            excess = float(np.median(np.asarray(tk[name]) - kernel)) * 1e6
+            goal = f"  (+{excess:5.1f})   p99 goal {GOAL_US:.0f} µs {'met' if a99 <= GOAL_US else 'NOT met'}"
+        print(f"    {labels[name]:22s} {a50:7.1f}  {a99:7.1f}  {amax:7.1f}  {a1:7.1f}   "
+              f"{a50 / k50:4.2f} / {a99 / k99:4.2f}{goal}")
+
+
+def profile(paths: Paths, fr: list[tuple[str, np.ndarray]]) -> None:
+    """cProfile of the array path and of the mapping API over the frames: the top entries by own time."""
+    for label, fn in (("array path", lambda v: paths.array.solve_array(v, paths.q)),
+                      ("mapping API", lambda v: paths.mapping.solve(
+                          {ch: float(x) for ch, x in zip(paths.channels, v.tolist(), strict=True) if x == x}, {}))):
+        prof = cProfile.Profile()
+        run: Callable[[np.ndarray], object] = fn
+        prof.enable()
+        for _, v in fr:
+            run(v)
+        prof.disable()
+        buf = io.StringIO()
+        pstats.Stats(prof, stream=buf).sort_stats("tottime").print_stats(8)
+        lines = [ln for ln in buf.getvalue().splitlines() if ln.strip()]
+        start = next(i for i, ln in enumerate(lines) if ln.lstrip().startswith("ncalls"))
+        print(f"  cProfile, {label} ({len(fr)} frames; the profiler's own cost inflates small calls):")
+        for ln in lines[start:start + 9]:
+            print(f"    {ln}")
+
+
+def report_guard(path: Path) -> None:
+    """The agreements stored in the guard's report."""
+    if not path.is_file():
+        print(f"  no guard report at {path} (likeness offline guard evaluate ... --out {path})")
+        return
+    r = json.loads(path.read_text())
+    print(f"  guard report ({path.name}, {r['poses']} FEM poses): guard vs FEM {r['guard_vs_fem']:.4f}, "
+          f"reduced vs full {r['reduced_vs_full']:.4f}, reduced vs FEM {r['reduced_vs_fem']:.4f}")
+    for root, d in r.get("per_dataset", {}).items():
+        print(f"    {root}: {d['poses']} poses, guard vs FEM {d['guard_vs_fem']:.4f}, reduced vs full "
+              f"{d['reduced_vs_full']:.4f}, FEM passes {d['fem_ok_fraction']:.2f}")
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--random", type=int, default=1000, help="random frames after the performance (default 1000)")
+    ap.add_argument("--profile", action="store_true", help="add a cProfile look at the array path and mapping API")
     ap.add_argument("--report", default=str(REPORT), help="guard agreement report to print")
     args = ap.parse_args(argv)
-    head = load_head(HEAD)
-    solver = SkinTargetSolver.from_head(head)
-    assert solver is not None
-    guard = solver.strain_guard
-    inv = solver.inverse
-    sp = solver.predictor
-    ref = ReferenceInverse(sp.weights, sp.face_unit_offsets, smoothness=inv.smoothness, lo=solver.lo, hi=solver.hi)
-    names = [f"arkit.{n}" for n in solver.units]
-    fr = frames(solver, args.random)
-    times: dict[str, dict[str, list[float]]] = {k: {"core": [], "solver": [], "reference": [], "forward": []}
-                                                for k in ("performance", "random")}
-    p_new = solver.neutral.copy()
-    p_ref = solver.neutral.copy()
-    dev = 0.0
-    passes = {"new": 0, "reference": 0}
-    its, tol, xtol = solver.max_iterations, solver.tol, solver.xtol
-    clock = time.perf_counter
-    for kind, w in fr:
-        t0 = clock()
-        res = inv.solve(w, p_prev=p_new, max_iterations=its, tol=tol, xtol=xtol, measure=guard)
-        ok_new = guard.passes(res.strain)
-        t1 = clock()
-        targets = {n: float(x) for n, x in zip(names, w, strict=True) if x > 0}
-        t2 = clock()
-        solver.solve(targets, {})
-        t3 = clock()
-        r_ref = ref.solve(w, p_prev=p_ref, max_iterations=its, tol=tol)
-        ok_ref = reference_guard_ok(sp, r_ref.p, guard.strain_range)
-        t4 = clock()
-        sp.predict(r_ref.p)
-        t5 = clock()
-        tk = times[kind]
-        tk["core"].append(t1 - t0)
-        tk["solver"].append(t3 - t2)
-        tk["reference"].append(t4 - t3)
-        tk["forward"].append(t5 - t4)
-        dev = max(dev, float(np.abs(res.p - r_ref.p).max()))
-        passes["new"] += int(ok_new)
-        passes["reference"] += int(ok_ref)
-        p_new, p_ref = res.p, r_ref.p
+    paths = Paths(load_head(HEAD))
+    fr = frames(paths.channels, args.random)
+    times = {k: {name: [] for name in PATHS} for k in ("performance", "random")}
+    for kind, values in fr:
+        paths.run(values, times[kind])
+    guard, solver = paths.guard, paths.array
     load = os.getloadavg()
-    print(f"skin ARKit frame solve, sample head (52 units, H = 26, {its} iterations/frame, reduced guard: "
-          f"{guard.calibration.patches} patches, {guard.calibration.vertices} vertices); load average "
-          f"{load[0]:.1f} on {os.cpu_count()} CPUs")
+    print(f"skin ARKit frame solve, sample head ({len(paths.channels)} units, {solver.max_iterations} "
+          f"iterations/frame, reduced guard: {guard.calibration.patches} patches, {guard.calibration.vertices} "
+          f"vertices); µs; load average {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f} on {os.cpu_count()} CPUs")
+    print("  timings need a quiet machine (load average well under the CPU count); on a loaded one compare the "
+          "ratios to the kernel, measured in the same run, and p1")
     for kind, tk in times.items():
-        c50, c99, c1 = pct(tk["core"])
-        s50, s99, _ = pct(tk["solver"])
-        r50, r99, r1 = pct(tk["reference"])
-        f50, f99, f1 = pct(tk["forward"])
-        print(f"  {kind:11s} ({len(tk['core'])} frames)  p50 / p99 µs: core {c50:6.1f} / {c99:6.1f}   "
-              f"SkinTargetSolver.solve {s50:6.1f} / {s99:6.1f}   reference {r50:6.1f} / {r99:6.1f}   "
-              f"one predictor pass {f50:5.1f} / {f99:5.1f}")
-        print(f"  {'':11s} core vs reference: p50 {r50 / c50:.1f}x faster, p99 {r99 / c99:.1f}x; p1 core {c1:.1f}, "
-              f"reference {r1:.1f}, predictor pass {f1:.1f} µs; p99 goal 100 µs {'met' if c99 <= 100 else 'NOT met'}")
-    print(f"  largest pose difference from the reference solve: {np.degrees(dev):.4f}° (early stop at "
-          f"{xtol:g} of the range); unguarded solutions passed by the new guard {passes['new']} of {len(fr)}, by the "
-          f"previous one {passes['reference']}")
-    rep = Path(args.report)
-    if rep.is_file():
-        r = json.loads(rep.read_text())
-        print(f"  guard report ({rep.name}, {r['poses']} FEM poses): guard vs FEM {r['guard_vs_fem']:.4f}, "
-              f"reduced vs full {r['reduced_vs_full']:.4f}, reduced vs FEM {r['reduced_vs_fem']:.4f}")
-        for root, d in r.get("per_dataset", {}).items():
-            print(f"    {root}: {d['poses']} poses, guard vs FEM {d['guard_vs_fem']:.4f}, reduced vs full "
-                  f"{d['reduced_vs_full']:.4f}, FEM passes {d['fem_ok_fraction']:.2f}")
-    else:
-        print(f"  no guard report at {rep} (likeness offline guard evaluate ... --out {rep})")
+        report_times(kind, tk)
+    print(f"  array path vs mapping API: {paths.mismatch} of {len(fr)} frames differ; largest pose difference from "
+          f"the reference solve {np.degrees(paths.dev):.4f}° (early stop at {solver.xtol:g} of the range); "
+          f"unguarded reference solutions passed by the previous guard {paths.ref_ok} of {len(fr)}")
+    if args.profile:
+        profile(paths, fr)
+    report_guard(Path(args.report))
     return 0
 
 

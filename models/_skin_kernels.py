@@ -227,3 +227,76 @@ def solve_frame_measured(wts: np.ndarray, p_prev: np.ndarray, p0: np.ndarray, lo
                                          W1b, Rb, xlo, xhi, mid, ihalf, mu, max_iterations, tol, xtol)
     s_lo, s_hi = reduced_measure(h, E, ge0, C, idet, S_ptr, S_idx, S_w)
     return p, h, fit, f, it, conv, s_lo, s_hi
+
+
+def pack_frame_args(solve: tuple, measure: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The constants of a frame solve (``KsnnInverse.kernel_arrays()`` + max iterations, tol, xtol) and of the
+    reduced measure (``StrainGuard.kernel_arrays()``) packed into four arrays, the layout
+    :func:`solve_values_measured` unpacks: a call then passes 8 arguments instead of 33, and the dispatcher's
+    per-argument typing (about 0.1 µs each, a few times that when its caches are cold) shrinks with them."""
+    (lo, hi, scale_in, const_b, e, M, q0, Qd, lam_s, W1, b1, W1b, Rb, xlo, xhi, mid, ihalf, mu, max_iterations, tol,
+     xtol) = solve
+    E, ge0, C, idet, S_ptr, S_idx, S_w = measure
+    f64 = np.concatenate([np.ravel(np.asarray(a, dtype=np.float64)) for a in (
+        lo, hi, scale_in, xlo, xhi, mid, ihalf, e, M, q0, Qd, W1, b1, W1b, Rb, C, idet, S_w,
+        [const_b, lam_s, mu, tol, xtol])])
+    f32 = np.concatenate([np.ravel(np.asarray(E, dtype=np.float32)), np.ravel(np.asarray(ge0, dtype=np.float32))])
+    i64 = np.concatenate([np.asarray(S_ptr, dtype=np.int64), np.asarray(S_idx, dtype=np.int64)])
+    dims = np.array([len(lo), len(e), Rb.shape[1], len(idet), len(S_ptr), len(S_idx), E.shape[2], int(max_iterations)],
+                    dtype=np.int64)
+    return f64, f32, i64, dims
+
+
+@njit(cache=True)
+def solve_values_measured(values: np.ndarray, wts: np.ndarray, p_prev: np.ndarray, p_out: np.ndarray,
+                          f64: np.ndarray, f32: np.ndarray, i64: np.ndarray,
+                          dims: np.ndarray) -> tuple[float, int, float, float]:
+    """A control frame from channel values: the face-unit weights (a value clamped to 0..1, a non-finite one, i.e.
+    not set, as 0) written into ``wts``, then :func:`solve_frame_measured` warm-started from ``p_prev`` on the
+    constants :func:`pack_frame_args` packed, its pose written into ``p_out`` (no array crosses back into Python).
+    Returns (unscaled squared error, iterations, strain min, strain max)."""
+    for i in range(wts.shape[0]):
+        v = values[i]
+        wts[i] = min(max(v, 0.0), 1.0) if np.isfinite(v) else 0.0
+    A, U, H, T, P1, NZ, E2, max_iterations = dims[0], dims[1], dims[2], dims[3], dims[4], dims[5], dims[6], dims[7]
+    H3 = 3 * H
+    lo = f64[0:A]
+    hi = f64[A:2 * A]
+    scale_in = f64[2 * A:3 * A]
+    xlo = f64[3 * A:4 * A]
+    xhi = f64[4 * A:5 * A]
+    mid = f64[5 * A:6 * A]
+    ihalf = f64[6 * A:7 * A]
+    o = 7 * A
+    e = f64[o:o + U]
+    o += U
+    M = f64[o:o + U * U].reshape(U, U)
+    o += U * U
+    q0 = f64[o:o + H3]
+    o += H3
+    Qd = f64[o:o + H3 * U].reshape(H3, U)
+    o += H3 * U
+    W1 = f64[o:o + H3 * A].reshape(H3, A)
+    o += H3 * A
+    b1 = f64[o:o + H3]
+    o += H3
+    W1b = f64[o:o + H3 * A].reshape(3, H, A)
+    o += H3 * A
+    Rb = f64[o:o + H3 * H].reshape(3, H, H)
+    o += H3 * H
+    C = f64[o:o + 4 * T].reshape(2, 2, T)
+    o += 4 * T
+    idet = f64[o:o + T]
+    o += T
+    S_w = f64[o:o + NZ]
+    o += NZ
+    const_b, lam_s, mu, tol, xtol = f64[o], f64[o + 1], f64[o + 2], f64[o + 3], f64[o + 4]
+    E = f32[0:3 * H * E2].reshape(3, H, E2)
+    ge0 = f32[3 * H * E2:3 * H * E2 + 3 * E2].reshape(3, 1, E2)
+    S_ptr = i64[0:P1]
+    S_idx = i64[P1:P1 + NZ]
+    p, _, fit, _, it, _, s_lo, s_hi = solve_frame_measured(
+        wts, p_prev, np.empty(0), lo, hi, scale_in, const_b, e, M, q0, Qd, lam_s, W1, b1, W1b, Rb, xlo, xhi, mid,
+        ihalf, mu, max_iterations, tol, xtol, E, ge0, C, idet, S_ptr, S_idx, S_w)
+    p_out[:] = p
+    return fit, it, s_lo, s_hi

@@ -34,6 +34,8 @@ def warm(head_path: str) -> None:
         inv = KsnnInverse(sp.weights, sp.face_unit_offsets, lo=lo, hi=hi)  # compiles the solve
         inv.solve(np.zeros(inv.n_units), p_prev=0.5 * (lo + hi), max_iterations=2)
         inv.solve(np.zeros(inv.n_units), p_prev=0.5 * (lo + hi), max_iterations=2, measure=guard)  # and fused
+        if guard is not None:  # and the control cycle's frame solve from channel values
+            inv.frame_solve(2, 1e-6, 1e-3, guard)(np.full(inv.n_units, np.nan), 0.5 * (lo + hi))
 
 
 if __name__ == "__main__":

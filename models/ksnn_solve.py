@@ -14,14 +14,18 @@ with an active set), a temporal smoothness term towards the previous frame, and 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.linalg.lapack import dposv as _dposv
 
 from models.kernel_support import kernels_available
 from models.predictor import KsnnWeights
+
+if TYPE_CHECKING:
+    from models.strain_guard import StrainGuard
 
 _EMPTY = np.empty(0)
 
@@ -125,6 +129,18 @@ class KsnnInverse:
             self.solve(np.zeros(self.n_units), max_iterations=1)
 
     # ------------------------------------------------------------------ pieces
+    def kernel_arrays(self) -> tuple[np.ndarray | float, ...]:
+        """The constants the compiled frame solve (:mod:`models._skin_kernels`) takes after the weights and the
+        starts: raw limits, input scale, the objective's terms, the network, the box, smoothness and damping."""
+        w = self.weights
+        return (w.lo, w.hi, self._scale_in, self._const_b, self._e, self._M, self._q0, self._Qd,
+                self.smoothness / self.scale, self._W1, self._b1, self._W1b, self._Rb, self._xlo, self._xhi,
+                self._mid, self._ihalf, self.damping / self.scale)
+
+    def frame_solve(self, max_iterations: int, tol: float, xtol: float, measure: StrainGuard) -> FrameSolve:
+        """The in-cycle solve with these settings and ``measure`` bound (see :class:`FrameSolve`)."""
+        return FrameSolve(self, max_iterations, tol, xtol, measure)
+
     def _terms(self, wts: np.ndarray) -> tuple[np.ndarray, float]:
         """Linear term c and constant κ of f(h) = hᵀGh + 2hᵀc + κ (the unscaled squared surface error)."""
         c = self._c0 - self._Cd @ wts
@@ -142,7 +158,8 @@ class KsnnInverse:
         return max(float(h @ (self._G @ h + 2.0 * c)) + kappa, 0.0) * self.scale
 
     def solve(self, unit_weights: np.ndarray, p_prev: np.ndarray | None = None, p0: np.ndarray | None = None,
-              max_iterations: int = 20, tol: float = 1e-9, xtol: float = 0.0, measure: Any = None) -> SolveResult:
+              max_iterations: int = 20, tol: float = 1e-9, xtol: float = 0.0,
+              measure: StrainGuard | None = None) -> SolveResult:
         """Damped, projected Gauss-Newton from ``p0`` (default ``p_prev``, else mid-range) for face-unit weights.
 
         ``tol`` bounds the relative decrease of the objective that counts as converged; ``xtol`` (normalized
@@ -159,13 +176,10 @@ class KsnnInverse:
         if self.compiled:
             from models import _skin_kernels as K
 
-            w = self.weights
             none = _EMPTY
             args = (wts, none if p_prev is None else np.asarray(p_prev, dtype=np.float64),
-                    none if p0 is None else np.asarray(p0, dtype=np.float64), w.lo, w.hi, self._scale_in,
-                    self._const_b, self._e, self._M, self._q0, self._Qd, self.smoothness / self.scale, self._W1,
-                    self._b1, self._W1b, self._Rb, self._xlo, self._xhi, self._mid, self._ihalf,
-                    self.damping / self.scale, max_iterations, tol, xtol)
+                    none if p0 is None else np.asarray(p0, dtype=np.float64), *self.kernel_arrays(),
+                    max_iterations, tol, xtol)
             strain = None
             if measure is not None and measure.compiled:
                 p, h, fit, f, it, conv, s_lo, s_hi = K.solve_frame_measured(*args, *measure.kernel_arrays())
@@ -259,3 +273,67 @@ class KsnnInverse:
         return SolveResult(p=p, residual_rms=float(np.sqrt(fit)), iterations=it, converged=converged,
                            objective=f * self.scale, hidden=h,
                            strain=None if measure is None else measure.measure_hidden(h))
+
+
+class FrameSolve:
+    """One control frame's inverse solve with its settings bound: face-unit channel values → actuator values, the
+    residual and the strain guard's reduced measure of the solution, in one compiled call.
+
+    Built once (:meth:`KsnnInverse.frame_solve`) so that a frame gathers no arguments and allocates no inputs: a value
+    is clamped to 0..1 and a non-finite one (NaN: not set) counts as 0, as the weights of :meth:`KsnnInverse.solve`;
+    the solve is warm-started from the previous pose with the inverse's smoothness. The last call's residual,
+    iterations and strain are attributes, valid until the next call. Without the compiled kernels it runs the same
+    steps through :meth:`KsnnInverse.solve` in numpy.
+    """
+
+    def __init__(self, inverse: KsnnInverse, max_iterations: int, tol: float, xtol: float,
+                 measure: StrainGuard) -> None:
+        n = inverse.n_units
+        self.inverse = inverse
+        self.measure = measure
+        self.max_iterations = int(max_iterations)
+        self.tol = float(tol)
+        self.xtol = float(xtol)
+        self.values = np.full(n, np.nan)  # the channel values being solved (the caller may fill this buffer)
+        self.weights = np.zeros(n)  # the face-unit weights they gave
+        self.residual_rms = 0.0  # m, of the last solve
+        self.iterations = 0
+        self.strain: tuple[float, float] = (0.0, 0.0)  # the guard's reduced measure (min, max) at the last solution
+        self._scale = inverse.scale
+        self._kernel = None
+        self.kernel_args: tuple[np.ndarray, ...] = ()  # what the compiled call takes after values, weights, poses
+        if inverse.compiled and measure.compiled:
+            from models._skin_kernels import pack_frame_args, solve_values_measured
+
+            self._kernel = solve_values_measured
+            self.kernel_args = pack_frame_args((*inverse.kernel_arrays(), self.max_iterations, self.tol, self.xtol),
+                                               measure.kernel_arrays())
+        # the compiled call writes the pose into whichever of these the start is not
+        self._poses = (np.empty(len(inverse.lo)), np.empty(len(inverse.lo)))
+
+    def __call__(self, values: np.ndarray, p_prev: np.ndarray) -> np.ndarray:
+        """The actuator values (raw SI) for channel ``values`` (one per face unit, in unit order; NaN: not set),
+        warm-started from the pose ``p_prev`` (float64). The array is this solve's own, reused by the call after
+        next: it may be the next call's ``p_prev``; copy it to keep it longer."""
+        buf = self.values
+        if values is not buf:  # copied: the compiled call then always sees a writable float64 vector of its own
+            if values.shape != buf.shape:
+                raise ValueError(f"need {buf.shape[0]} face-unit values, got shape {values.shape}")
+            buf[:] = values
+        if self._kernel is not None:
+            a, b = self._poses
+            p = b if p_prev is a else a
+            fit, it, s_lo, s_hi = self._kernel(buf, self.weights, p_prev, p, *self.kernel_args)
+            self.residual_rms = math.sqrt(fit * self._scale)
+            self.iterations = it
+            self.strain = (s_lo, s_hi)
+            return p
+        w = self.weights
+        np.clip(buf, 0.0, 1.0, out=w)
+        w[~np.isfinite(buf)] = 0.0
+        res = self.inverse.solve(w, p_prev=p_prev, max_iterations=self.max_iterations, tol=self.tol, xtol=self.xtol,
+                                 measure=self.measure)
+        self.residual_rms = res.residual_rms
+        self.iterations = res.iterations
+        self.strain = res.strain if res.strain is not None else self.measure.measure(res.p)
+        return res.p

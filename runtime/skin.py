@@ -6,14 +6,20 @@ previous frame with temporal smoothness, within the head's limits and the predic
 guard (:class:`models.strain_guard.StrainGuard`, its reduced in-cycle check) then checks the solution: a pose whose
 strain measure leaves the material's validated range (default −20 % .. +50 %, ``docs/skin_guard.md``) is pulled back
 toward the last accepted pose until it passes, or the last accepted pose is held. Telemetry carries the solve
-residual, iterations, time and guard outcome. Imports only numpy, scipy and onnxruntime (via models).
+residual, iterations, time and guard outcome.
+
+The control core calls :meth:`SkinTargetSolver.solve_array` every cycle: its block of the channel vector in, the
+actuator vector out, through one compiled call (:class:`models.ksnn_solve.FrameSolve`) with no per-cycle dictionaries
+or string handling; the telemetry fields are a view (:class:`SkinTelemetry`) formatted only when the status snapshot
+reads them. :meth:`SkinTargetSolver.solve` is the same solve by channel name. Imports only numpy, scipy and
+onnxruntime (via models).
 """
 
 from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 
 import numpy as np
@@ -23,15 +29,56 @@ from models.headspec import HeadSpec
 from models.ksnn_solve import KsnnInverse
 from models.predictor import DEFAULT_STRAIN_RANGE, SkinPredictor
 from models.strain_guard import StrainGuard, skin_number, skin_strain_range
-from runtime.solve import SolveExtra, SolveResult, TargetSolver
+from runtime.solve import SolveResult, TargetSolver
 
 log = logging.getLogger(__name__)
 
 PREFIX = "arkit."
 
 
+class SkinTelemetry(Mapping[str, float | int | str | list[float]]):
+    """The telemetry fields of the last skin solve (``skin_residual_mm``, ``skin_iterations``, ``skin_solve_us``,
+    ``skin_strain``, ``skin_guard``): the raw figures, formatted only when a field is read.
+
+    One per solver, updated in place by every solve, so a control cycle builds no dictionary and rounds nothing; the
+    core's status snapshot copies it (``dict(...)``) at its own period. Read it before the next solve.
+    """
+
+    KEYS = ("skin_residual_mm", "skin_iterations", "skin_solve_us", "skin_strain", "skin_guard")
+
+    def __init__(self) -> None:
+        self.residual_rms = 0.0  # m
+        self.iterations = 0
+        self.solve_us = 0.0
+        self.strain: tuple[float, float] = (0.0, 0.0)
+        self.guard = "ok"
+
+    def __getitem__(self, key: str) -> float | int | str | list[float]:
+        if key == "skin_residual_mm":
+            return self.residual_rms * 1e3
+        if key == "skin_iterations":
+            return self.iterations
+        if key == "skin_solve_us":
+            return self.solve_us
+        if key == "skin_strain":
+            return [round(self.strain[0], 4), round(self.strain[1], 4)]
+        if key == "skin_guard":
+            return self.guard
+        raise KeyError(key)
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.KEYS)
+
+    def __len__(self) -> int:
+        return len(self.KEYS)
+
+
 class SkinTargetSolver:
-    """:class:`runtime.solve.TargetSolver` for ``arkit.*`` channels of a head with a skin predictor."""
+    """:class:`runtime.solve.TargetSolver` for ``arkit.*`` channels of a head with a skin predictor, and the core's
+    array form of it (:class:`runtime.core.solvers.ArrayTargetSolver`: ``solve_array``, ``reset_array``).
+
+    ``max_iterations``, ``tol`` and ``xtol`` are bound into the frame solve at construction.
+    """
 
     def __init__(self, head: HeadSpec, predictor: SkinPredictor | str | Path,
                  strain_range: tuple[float, float] = DEFAULT_STRAIN_RANGE, smoothness: float = (0.1e-3) ** 2,
@@ -55,7 +102,7 @@ class SkinTargetSolver:
         # A frame whose Gauss-Newton step moves no actuator by more than this fraction of its range is done: on the
         # sample performance at 500 Hz most frames then take one iteration, within 0.02° of running all of them.
         self.xtol = xtol
-        self.neutral = np.array(head.neutral_pose)
+        self.neutral = np.array(head.neutral_pose, dtype=np.float64)
         if strain_guard is None:
             strain_guard = StrainGuard(sp, np.clip(self.neutral, sp.lo, sp.hi), strain_range,
                                        names=tuple(a.name for a in head.actuators))
@@ -64,9 +111,12 @@ class SkinTargetSolver:
         self.strain_guard = strain_guard
         self.strain_range = strain_guard.strain_range
         self._accepted = self.neutral.copy()
-        self._weights = np.zeros(len(self.units))
+        self._index = {PREFIX + n: i for n, i in self.units.items()}  # channel → face unit (its place in the block)
+        self.frame = self.inverse.frame_solve(max_iterations, tol, xtol, strain_guard)  # the bound in-cycle solve
+        self._out = np.empty(len(self.names))  # solve_array's result
+        self.telemetry = SkinTelemetry()
         # compile (or load) the fused solve-and-measure kernel now, never in a control cycle
-        self.inverse.solve(self._weights, max_iterations=1, measure=strain_guard)
+        self.frame(self.frame.values, self.neutral)
 
     @classmethod
     def from_head(cls, head: HeadSpec) -> SkinTargetSolver | None:
@@ -124,29 +174,56 @@ class SkinTargetSolver:
     def solve(self, targets: Mapping[str, float], current: Mapping[str, float]) -> SolveResult:
         """Actuator values (SI) for the addressed face-unit weights (unaddressed units count as 0)."""
         t0 = time.perf_counter()
-        w = self._weights
-        w[:] = 0.0
+        values = self.frame.values
+        values.fill(np.nan)
+        index = self._index
         for ch, value in targets.items():
-            i = self.units.get(ch[len(PREFIX):]) if ch.startswith(PREFIX) else None
-            if i is not None and np.isfinite(value):
-                w[i] = min(max(float(value), 0.0), 1.0)
-        g = self.strain_guard
-        res = self.inverse.solve(w, p_prev=self._accepted, max_iterations=self.max_iterations, tol=self.tol,
-                                 xtol=self.xtol, measure=g)
-        strain = res.strain if res.strain is not None else g.measure(res.p)
-        if g.passes(strain):  # the solution lies in the trained range by construction
-            p, guard = res.p, "ok"
+            i = index.get(ch)
+            if i is not None:
+                values[i] = value
+        p = self._step(values, t0)
+        return SolveResult(dict(zip(self.names, p.tolist(), strict=True)), dict(self.telemetry))
+
+    # ------------------------------------------------------------------ the core's array form
+    def solve_array(self, block: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, SkinTelemetry]:
+        """Actuator values (SI, head order) for the block of ``arkit.*`` channel values in :meth:`channels` order
+        (NaN: not set, counts as 0), and the telemetry view; the array is reused by the next call. ``q`` is not
+        needed: the solve starts from its own last accepted pose."""
+        p = self._step(block, time.perf_counter())
+        out = self._out
+        out[:] = p
+        return out, self.telemetry
+
+    def reset_array(self, q: np.ndarray) -> None:
+        """:meth:`reset` at the command ``q`` (head order; a non-finite value: that actuator from neutral)."""
+        acc = self.neutral.copy()
+        ok = np.isfinite(q)
+        acc[ok] = np.minimum(np.maximum(q[ok], self.lo[ok]), self.hi[ok])
+        self._accepted = acc
+
+    def _step(self, values: np.ndarray, t0: float) -> np.ndarray:
+        """One frame: the compiled solve of ``values`` from the last accepted pose, the guard's verdict on it (and
+        its limit when it fails), the telemetry figures; returns the accepted pose."""
+        frame = self.frame
+        p = frame(values, self._accepted)
+        strain = frame.strain
+        if self.strain_guard.passes(strain):  # the solution lies in the trained range by construction
+            guard = "ok"
         else:
-            p, guard, strain = self.guard(res.p)
+            p, guard, strain = self.guard(p)
         self._accepted = p
-        extra: SolveExtra = {
-            "skin_residual_mm": res.residual_rms * 1e3,
-            "skin_iterations": res.iterations,
-            "skin_solve_us": (time.perf_counter() - t0) * 1e6,
-            "skin_strain": [round(strain[0], 4), round(strain[1], 4)],
-            "skin_guard": guard,
-        }
-        return SolveResult({n: float(x) for n, x in zip(self.names, p, strict=True)}, extra)
+        tel = self.telemetry
+        tel.residual_rms = frame.residual_rms
+        tel.iterations = frame.iterations
+        tel.strain = strain
+        tel.guard = guard
+        tel.solve_us = (time.perf_counter() - t0) * 1e6
+        return p
+
+    @property
+    def accepted(self) -> np.ndarray:
+        """The last accepted pose (a copy): the next solve's warm start."""
+        return self._accepted.copy()
 
     # ------------------------------------------------------------------ strain guard
     def strain(self, p: np.ndarray) -> tuple[float, float]:

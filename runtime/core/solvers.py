@@ -24,7 +24,8 @@ class ArrayTargetSolver(Protocol):
 
     def solve_array(self, block: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, Mapping[str, object]]:
         """Actuator targets (SI, NaN: not addressed) for its block of channel values (NaN: not set), from the
-        present command ``q``; plus extra telemetry fields (residual, predicted poses)."""
+        present command ``q``; plus extra telemetry fields (residual, predicted poses), which the core copies when it
+        reports them: both may be the solver's own, updated by its next solve."""
         ...
 
     def reset_array(self, q: np.ndarray) -> None:
@@ -80,11 +81,16 @@ class ArraySolver:
 
 def as_array_solvers(solvers: Sequence[TargetSolver | ArrayTargetSolver], blocks: Sequence[tuple[int, int, int]],
                      names: Sequence[str], actuators: Sequence[str]) -> list[ArrayTargetSolver]:
-    """One array solver per target solver, each given the channel names of its block of the channel vector."""
+    """One array solver per target solver, each given the channel names of its block of the channel vector.
+
+    A solver with the array form is used as it is when its block holds exactly the channels it declares, in order
+    (its block is then indexed as it expects); when a channel it declares went to an earlier solver or a group, a
+    solver that also has the mapping API is adapted by name instead."""
     out: list[ArrayTargetSolver] = []
     for s, a, b in blocks:
         solver = solvers[s]
-        if hasattr(solver, "solve_array") and hasattr(solver, "reset_array"):
+        native = hasattr(solver, "solve_array") and hasattr(solver, "reset_array")
+        if native and (tuple(names[a:b]) == tuple(declared_channels(solver)) or not hasattr(solver, "solve")):
             out.append(solver)  # has the array form already
         else:
             out.append(ArraySolver(solver, names[a:b], actuators))

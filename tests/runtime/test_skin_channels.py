@@ -243,3 +243,35 @@ def test_reset_forgets_the_warm_start_and_channels_are_declared(tmp_path, head):
     again = solver.solve({"arkit.jawOpen": 1.0}, {})
     assert again.actuators == pytest.approx(fresh.actuators, abs=1e-12)
     assert again.extra["skin_guard"] == "ok"
+
+
+def test_the_array_path_and_the_mapping_api_give_the_same_targets(head):
+    """``solve_array`` (the core's per-cycle call) and ``solve`` (by name) are the same solve: the same actuator
+    values and telemetry on random sparse frames (NaN: not set; values outside 0..1 clamped), across guard
+    limits and resets; the core takes the solver in its array form."""
+    from runtime.core.channels import ChannelMap
+    from runtime.core.solvers import as_array_solvers, channel_sets
+
+    by_name = SkinTargetSolver.from_head(head)
+    by_array = SkinTargetSolver.from_head(head)
+    assert by_name is not None and by_array is not None
+    cm = ChannelMap.build(head, channel_sets([by_array]))
+    assert as_array_solvers([by_array], cm.target_blocks, cm.names, head.actuator_names) == [by_array]
+    channels = list(by_array.channels())
+    rng = np.random.default_rng(7)
+    guards = set()
+    for k in range(300):
+        block = np.where(rng.random(len(channels)) < 0.15, rng.uniform(-0.2, 1.3, len(channels)), np.nan)
+        if k % 50 == 49:
+            q = rng.uniform(by_array.lo, by_array.hi)
+            q[0] = np.nan
+            by_array.reset_array(q)
+            by_name.reset({n: float(v) for n, v in zip(head.actuator_names, q, strict=True)})
+        got, extra = by_array.solve_array(block, np.zeros(len(head.actuators)))
+        ref = by_name.solve({ch: float(v) for ch, v in zip(channels, block, strict=True) if v == v}, {})
+        np.testing.assert_array_equal(got, [ref.actuators[n] for n in head.actuator_names])
+        plain = dict(extra)
+        assert plain.pop("skin_solve_us") > 0 and ref.extra.pop("skin_solve_us") > 0
+        assert plain == ref.extra
+        guards.add(plain["skin_guard"])
+    assert "ok" in guards
