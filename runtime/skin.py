@@ -17,23 +17,17 @@ onnxruntime (via models).
 
 from __future__ import annotations
 
-import logging
 import time
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 
 import numpy as np
 
-from models.errors import SpecError
 from models.headspec import HeadSpec
-from models.ksnn_solve import KsnnInverse
 from models.predictor import DEFAULT_STRAIN_RANGE, SkinPredictor
-from models.strain_guard import StrainGuard, skin_number, skin_strain_range
+from models.skin_targets import PREFIX, SkinTargets, skin_targets, skin_targets_for_head
+from models.strain_guard import StrainGuard
 from runtime.solve import SolveResult, TargetSolver
-
-log = logging.getLogger(__name__)
-
-PREFIX = "arkit."
 
 
 class SkinTelemetry(Mapping[str, float | int | str | list[float]]):
@@ -80,88 +74,46 @@ class SkinTargetSolver:
     ``max_iterations``, ``tol`` and ``xtol`` are bound into the frame solve at construction.
     """
 
-    def __init__(self, head: HeadSpec, predictor: SkinPredictor | str | Path,
-                 strain_range: tuple[float, float] = DEFAULT_STRAIN_RANGE, smoothness: float = (0.1e-3) ** 2,
-                 max_iterations: int = 3, tol: float = 1e-6, strain_guard: StrainGuard | None = None,
-                 xtol: float = 1e-3) -> None:
-        sp = predictor if isinstance(predictor, SkinPredictor) else SkinPredictor(predictor)
-        sp.check_against(head, require_full_range=False)
-        if sp.face_unit_offsets is None or not sp.face_unit_names:
-            raise SpecError(str(sp.path), "metadata likeness.face_units",
-                            "the predictor carries no face units, so it cannot solve arkit.* channels")
-        self.head = head
-        self.predictor = sp
-        self.names = sp.actuator_names
-        self.units = {n: i for i, n in enumerate(sp.face_unit_names)}
+    def __init__(self, targets: SkinTargets, xtol: float = 1e-3) -> None:
+        self.head = targets.head
+        self.predictor = targets.predictor
+        self.names = targets.predictor.actuator_names
+        self.units = targets.units
         # Solutions stay where the head allows and the predictor was trained (no extrapolation).
-        self.lo = np.maximum([a.min for a in head.actuators], sp.lo)
-        self.hi = np.minimum([a.max for a in head.actuators], sp.hi)
-        self.inverse = KsnnInverse(sp.weights, sp.face_unit_offsets, smoothness=smoothness, lo=self.lo, hi=self.hi)
-        self.max_iterations = max_iterations  # per frame: the warm start carries the solve across frames
-        self.tol = tol
+        self.lo, self.hi = targets.lo, targets.hi
+        self.inverse = targets.inverse
+        self.max_iterations = targets.max_iterations  # per frame: the warm start carries the solve across frames
+        self.tol = targets.tol
         # A frame whose Gauss-Newton step moves no actuator by more than this fraction of its range is done: on the
         # sample performance at 500 Hz most frames then take one iteration, within 0.02° of running all of them.
         self.xtol = xtol
-        self.neutral = np.array(head.neutral_pose, dtype=np.float64)
-        if strain_guard is None:
-            strain_guard = StrainGuard(sp, np.clip(self.neutral, sp.lo, sp.hi), strain_range,
-                                       names=tuple(a.name for a in head.actuators))
-        elif strain_guard.predictor is not sp:
-            raise ValueError("strain_guard must be built on the solver's predictor")
-        self.strain_guard = strain_guard
-        self.strain_range = strain_guard.strain_range
+        self.neutral = np.array(self.head.neutral_pose, dtype=np.float64)
+        self.strain_guard = targets.strain_guard
+        self.strain_range = targets.strain_guard.strain_range
         self._accepted = self.neutral.copy()
         self._index = {PREFIX + n: i for n, i in self.units.items()}  # channel → face unit (its place in the block)
-        self.frame = self.inverse.frame_solve(max_iterations, tol, xtol, strain_guard)  # the bound in-cycle solve
+        # the bound in-cycle solve
+        self.frame = self.inverse.frame_solve(self.max_iterations, self.tol, xtol, self.strain_guard)
         self._out = np.empty(len(self.names))  # solve_array's result
         self.telemetry = SkinTelemetry()
         # compile (or load) the fused solve-and-measure kernel now, never in a control cycle
         self.frame(self.frame.values, self.neutral)
 
     @classmethod
+    def build(cls, head: HeadSpec, predictor: SkinPredictor | str | Path,
+              strain_range: tuple[float, float] = DEFAULT_STRAIN_RANGE, smoothness: float = (0.1e-3) ** 2,
+              max_iterations: int = 3, tol: float = 1e-6, strain_guard: StrainGuard | None = None,
+              xtol: float = 1e-3) -> SkinTargetSolver:
+        """The solver of ``head`` on ``predictor`` with explicit settings (:func:`models.skin_targets.skin_targets`)."""
+        return cls(skin_targets(head, predictor, strain_range, smoothness, max_iterations, tol, strain_guard), xtol)
+
+    @classmethod
     def from_head(cls, head: HeadSpec) -> SkinTargetSolver | None:
-        """The solver for the head's ``paths.predictor``, or None when the head names none.
-
-        A predictor file that is named but missing is a :class:`SpecError` (the daemon stops at start-up rather than
-        silently dropping the ``arkit.*`` channels) unless ``[paths] predictor_optional = true``, which logs a warning
-        and returns None.
-
-        An optional ``[skin]`` table tunes it: ``strain_min`` / ``strain_max`` (validated range of the strain
-        measure, default −0.2 / 0.5), ``radius_mm`` / ``band_mm`` / ``reference`` (the measure's neighbourhood,
-        attachment band and reference surface, ``models.strain_guard``), ``smoothness_mm`` (RMS surface error,
-        mm, that a full-range jump of one actuator costs, default 0.1) and ``iterations_per_frame`` (default 3).
-        ``[paths] skin_guard`` names the attachment footprint of the skin (``likeness offline guard footprint``).
-        """
-        path = head.path("predictor")
-        if path is None:
-            return None
-        if not Path(path).is_file():
-            if head.predictor_optional:
-                log.warning("%s: predictor file %s not found; running without the arkit.* target channels "
-                            "([paths] predictor_optional = true)", head.source, path)
-                return None
-            raise SpecError(str(head.source), "paths.predictor",
-                            f"predictor file not found: {path} (set [paths] predictor_optional = true to run "
-                            "without its target channels)")
-        cfg = dict(head.section("skin"))
-        allowed = {"strain_min", "strain_max", "radius_mm", "band_mm", "reference", "smoothness_mm",
-                   "iterations_per_frame"}
-        for key in cfg:
-            if key not in allowed:
-                raise SpecError(str(head.source), f"skin.{key}", f"unknown key; allowed: {', '.join(sorted(allowed))}")
-
-        lo, hi = skin_strain_range(head)
-        smooth = skin_number(head, "smoothness_mm", 0.1)
-        if smooth < 0:
-            raise SpecError(str(head.source), "skin.smoothness_mm", "must not be negative", smooth)
-        iters = cfg.get("iterations_per_frame", 3)
-        if isinstance(iters, bool) or not isinstance(iters, int) or iters < 1:
-            raise SpecError(str(head.source), "skin.iterations_per_frame", "must be a positive integer", iters)
-        sp = SkinPredictor(path)
-        sp.check_against(head, require_full_range=False)
-        guard = StrainGuard.for_head(head, predictor=sp)
-        return cls(head, sp, strain_range=(lo, hi), smoothness=(smooth * 1e-3) ** 2, max_iterations=iters,
-                   strain_guard=guard)
+        """The solver for the head's ``paths.predictor`` with its ``[skin]`` settings, or None when it names none
+        (:func:`models.skin_targets.skin_targets_for_head` says what each setting does and which files are
+        required)."""
+        targets = skin_targets_for_head(head)
+        return None if targets is None else cls(targets)
 
     # ------------------------------------------------------------------ TargetSolver protocol
     def handles(self, channel: str) -> bool:

@@ -76,7 +76,7 @@ def test_solver_recovers_the_pose_behind_a_face_unit(tmp_path, head):
     target = pose(head, jaw=15.0, lip_corner_l_up=10.0, brow_r=-8.0)
     sp = write_predictor(tmp_path / "p.onnx", head, unit_poses={"jawOpen": target, "mouthSmileLeft":
                                                                  pose(head, lip_corner_l_up=25.0)})
-    solver = SkinTargetSolver(head, sp, smoothness=0.0, max_iterations=30)
+    solver = SkinTargetSolver.build(head, sp, smoothness=0.0, max_iterations=30)
     assert solver.handles("arkit.jawOpen") and not solver.handles("arkit.nope") and not solver.handles("jaw")
     # The neutral face (all weights 0) is the neutral pose.
     res = solver.solve({"arkit.jawOpen": 0.0}, {})
@@ -89,7 +89,7 @@ def test_solver_recovers_the_pose_behind_a_face_unit(tmp_path, head):
     assert res.extra["skin_residual_mm"] < 1e-4 and res.extra["skin_guard"] == "ok"
     assert res.extra["skin_iterations"] >= 1 and res.extra["skin_solve_us"] > 0
     # With temporal smoothness the first frame moves less, and holding the target keeps shrinking the residual.
-    smooth = SkinTargetSolver(head, sp)
+    smooth = SkinTargetSolver.build(head, sp)
     first = smooth.solve({"arkit.jawOpen": 1.0}, {})
     p1 = np.array([first.actuators[n] for n in head.actuator_names])
     assert np.linalg.norm(p1 - pose(head)) < np.linalg.norm(got - pose(head))
@@ -100,7 +100,7 @@ def test_solver_recovers_the_pose_behind_a_face_unit(tmp_path, head):
 
 def test_strain_guard_keeps_poses_within_the_validated_range(tmp_path, head):
     sp = write_predictor(tmp_path / "p.onnx", head, amplitude=2e-3, seed=3, unit_poses={"x": pose(head)})
-    solver = SkinTargetSolver(head, sp)
+    solver = SkinTargetSolver.build(head, sp)
     rng = np.random.default_rng(0)
     P = rng.uniform(solver.lo, solver.hi, size=(300, len(solver.lo)))
     strains = np.array([solver.strain(p) for p in P])
@@ -122,7 +122,7 @@ def test_predictor_without_face_units_or_for_another_head_is_refused(tmp_path, h
 
     sp = write_predictor(tmp_path / "p.onnx", head)
     with pytest.raises(SpecError, match="face_units"):
-        SkinTargetSolver(head, sp)
+        SkinTargetSolver.build(head, sp)
     other = load_head(SAMPLE)
     import dataclasses
 
@@ -130,7 +130,7 @@ def test_predictor_without_face_units_or_for_another_head_is_refused(tmp_path, h
     other = dataclasses.replace(other, actuators=(dataclasses.replace(acts[0], name="mandible"), *acts[1:]))
     sp2 = write_predictor(tmp_path / "q.onnx", head, unit_poses={"jawOpen": pose(head, jaw=5)})
     with pytest.raises(SpecError, match="jaw"):
-        SkinTargetSolver(other, sp2)
+        SkinTargetSolver.build(other, sp2)
 
 
 def test_daemon_plays_blendshape_curves_through_the_predictor(tmp_path, head, make_daemon):
@@ -174,7 +174,7 @@ def test_predictor_trained_on_part_of_the_range_solves_within_it(tmp_path, head)
     far = pose(head, jaw=25.0, brow_l=30.0)  # outside the trained range
     edge = np.clip(far, sp_lo(narrow), sp_hi(narrow))
     sp = write_predictor(tmp_path / "p.onnx", narrow, unit_poses={"jawOpen": edge})
-    solver = SkinTargetSolver(head, sp, smoothness=0.0, max_iterations=30)
+    solver = SkinTargetSolver.build(head, sp, smoothness=0.0, max_iterations=30)
     np.testing.assert_allclose(solver.hi, sp.hi)
     for _ in range(5):
         res = solver.solve({"arkit.jawOpen": 1.0}, {})
@@ -232,10 +232,10 @@ def test_reset_forgets_the_warm_start_and_channels_are_declared(tmp_path, head):
     from models.strain_guard import StrainGuard
 
     sp = write_predictor(tmp_path / "p.onnx", head, unit_poses={"jawOpen": pose(head, jaw=15.0, upper_lip=5.0)})
-    solver = SkinTargetSolver(head, sp)
+    solver = SkinTargetSolver.build(head, sp)
     assert isinstance(solver.strain_guard, StrainGuard)
     assert solver.channels() == {"arkit.jawOpen": "weight"}
-    fresh = SkinTargetSolver(head, sp).solve({"arkit.jawOpen": 1.0}, {})
+    fresh = SkinTargetSolver.build(head, sp).solve({"arkit.jawOpen": 1.0}, {})
     for _ in range(5):
         warm = solver.solve({"arkit.jawOpen": 1.0}, {})
     assert warm.actuators["jaw"] > fresh.actuators["jaw"] + 1e-3  # the warm start carried the solve further
