@@ -1,0 +1,177 @@
+"""The feedback watch (after ros2_control's and CiA 402 drives' watchdogs): feedback that stops or a drive that stops
+following never goes unnoticed while the head is active.
+
+Two checks run every cycle on the feedback the read stage took in:
+
+- **feedback age per bus**: how long ago the bus's devices last reported (the oldest of its actuators' newest samples,
+  stamped by the driver when the device's answer arrived). Past ``[buses.NAME] feedback_timeout_s`` a
+  ``feedback_late`` event names the bus and the age (and another when the feedback is fresh again); past
+  ``feedback_fault_s`` the head faults naming the bus.
+- **following error per actuator**: the distance of the measured position from the span of the commands posted in
+  the last :data:`LAG_CYCLES` cycles (a posted command reaches the drive one cycle later and the drive reports where
+  it was when it took it, so the newest commands are not yet due). Beyond ``max_following_error`` for
+  ``following_error_time_s`` the head faults naming the actuator. An actuator whose bus is late is left to the
+  feedback age (its measurement is not current).
+
+Both are judged from the moment the head went active (the enable re-reads every device) and start afresh on every
+enable.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from models import errors as E
+from models.headspec import HeadSpec
+from runtime.config import DaemonConfig
+from runtime.core.cycle import CycleOutputs
+from runtime.core.events import FeedbackLate
+
+#: ``[buses.NAME] feedback_timeout_s`` when the head does not set it, in control periods.
+LATE_PERIODS = 5
+#: The commands posted in this many recent cycles are all "what the core commanded" for the following error.
+LAG_CYCLES = 3
+#: ``max_following_error`` when an actuator does not set it: the distance it covers in this long at its max velocity.
+FOLLOWING_ERROR_AT_MAX_VELOCITY_S = 0.1
+#: ``following_error_time_s`` when an actuator does not set it.
+FOLLOWING_ERROR_TIME_S = 0.25
+
+
+@dataclass(frozen=True)
+class WatchParams:
+    """The limits, fixed for a run: per bus (in the order of the core's buses) the feedback ages of the event and of
+    the fault (s); per actuator the following error (SI) and how long it may be exceeded (s)."""
+
+    late_s: np.ndarray
+    fault_s: np.ndarray
+    max_error: np.ndarray
+    error_time_s: np.ndarray
+
+    @classmethod
+    def build(cls, head: HeadSpec, cfg: DaemonConfig, buses: tuple[str, ...], period: float) -> WatchParams:
+        """The head's limits with their defaults filled in; ConfigError naming the key when they do not fit the
+        loop's period or each other."""
+        late, fault = [], []
+        for name in buses:
+            bus = head.buses[name]
+            limit = cfg.safety.feedback_timeout_s if bus.feedback_fault_s is None else bus.feedback_fault_s
+            key = f"buses.{name}.feedback_fault_s" if bus.feedback_fault_s is not None else "safety.feedback_timeout_s"
+            if limit <= 2.0 * period:
+                raise E.ConfigError(f"{head.source}: {key} = {limit!r}: must exceed two loop periods "
+                                    f"({2.0 * period:g} s)")
+            warn = min(LATE_PERIODS * period, 0.5 * limit) if bus.feedback_timeout_s is None else bus.feedback_timeout_s
+            if warn >= limit:
+                raise E.ConfigError(f"{head.source}: buses.{name}.feedback_timeout_s = {warn!r}: must be shorter "
+                                    f"than the fault limit {key} ({limit:g} s)")
+            late.append(warn)
+            fault.append(limit)
+        max_error = [a.max_velocity * FOLLOWING_ERROR_AT_MAX_VELOCITY_S if a.max_following_error is None
+                     else a.max_following_error for a in head.actuators]
+        error_time = [FOLLOWING_ERROR_TIME_S if a.following_error_time_s is None else a.following_error_time_s
+                      for a in head.actuators]
+        return cls(np.array(late), np.array(fault), np.array(max_error), np.array(error_time))
+
+
+@dataclass
+class WatchState:
+    """What the watch remembers: per late bus the largest age seen; the commands posted in the last cycles (rows,
+    newest last; NaN: none yet); per actuator since when its following error is beyond the limit (NaN: within) and
+    the largest following error since the head went active (telemetry)."""
+
+    posted: np.ndarray
+    over_since: np.ndarray
+    peak_error: np.ndarray
+    late: dict[str, float] = field(default_factory=dict)
+
+    @classmethod
+    def initial(cls, n: int) -> WatchState:
+        """Nothing posted, nothing late."""
+        return cls(posted=np.full((LAG_CYCLES, n), np.nan), over_since=np.full(n, np.nan), peak_error=np.zeros(n))
+
+    def restart(self) -> None:
+        """Forget the past (the head went active, faulted or stopped commanding)."""
+        self.posted.fill(np.nan)
+        self.over_since.fill(np.nan)
+        self.late.clear()
+
+
+@dataclass(frozen=True)
+class Finding:
+    """What the watch found wrong: the message, the bus and (for a following error) the actuator."""
+
+    source: str  # "timeout" (feedback age) or "following_error"
+    message: str
+    bus: str
+    actuator: str | None = None
+
+
+def feedback_ages(stamps: np.ndarray, buses: tuple[tuple[str, np.ndarray], ...], t: float,
+                  since: float) -> np.ndarray:
+    """Per bus, the age of its devices' newest feedback at ``t`` (the oldest of its actuators' samples), counted
+    from ``since`` at the earliest."""
+    ages = np.empty(len(buses))
+    for i, (_, idx) in enumerate(buses):
+        newest = float(stamps[idx].min()) if idx.size else t
+        ages[i] = t - max(newest, since)
+    return ages
+
+
+def check_feedback(w: WatchState, wp: WatchParams, buses: tuple[tuple[str, np.ndarray], ...], ages: np.ndarray,
+                   out: CycleOutputs, t: float) -> Finding | None:
+    """Publish ``feedback_late`` when a bus's age passes its limit (and ``recovered`` when it is back within); the
+    finding when an age passes its fault limit."""
+    for i, (name, _) in enumerate(buses):
+        age = float(ages[i])
+        if age > wp.late_s[i]:
+            if name not in w.late:
+                out.emit(FeedbackLate(t, name, "late", age, float(wp.late_s[i])))
+            w.late[name] = max(age, w.late.get(name, 0.0))
+            if age > wp.fault_s[i]:
+                return Finding("timeout", f"bus {name}: no feedback from its devices for {age * 1e3:.0f} ms "
+                               f"(limit {wp.fault_s[i]:g} s)", name)
+        elif name in w.late:
+            out.emit(FeedbackLate(t, name, "recovered", w.late.pop(name), float(wp.late_s[i])))
+    return None
+
+
+def check_following(w: WatchState, wp: WatchParams, names: tuple[str, ...], bus_of: tuple[str, ...],
+                    measured: np.ndarray, scale: np.ndarray, units: tuple[str, ...], t: float) -> Finding | None:
+    """The finding when an actuator's following error stayed beyond its limit for its time (buses in ``w.late``
+    skipped)."""
+    error = following_errors(w.posted, measured)
+    late = [i for i, b in enumerate(bus_of) if b in w.late]
+    if late:
+        error[late] = 0.0
+    np.maximum(w.peak_error, error, out=w.peak_error)
+    over = error > wp.max_error
+    w.over_since[~over] = np.nan
+    start = over & np.isnan(w.over_since)
+    w.over_since[start] = t
+    due = np.flatnonzero(over & (t - w.over_since >= wp.error_time_s))
+    if not due.size:
+        return None
+    i = int(due[0])
+    k = scale[i]
+    return Finding("following_error",
+                   f"actuator {names[i]}: following error {error[i] / k:.3g} {units[i]} beyond "
+                   f"{wp.max_error[i] / k:.3g} {units[i]} for {t - w.over_since[i]:.3g} s (bus {bus_of[i]})",
+                   bus_of[i], names[i])
+
+
+def following_errors(posted: np.ndarray, measured: np.ndarray) -> np.ndarray:
+    """Per actuator, how far ``measured`` lies outside the span of the commands ``posted`` (rows; NaN rows: none);
+    0 where nothing was posted or nothing measured."""
+    lo = np.fmin.reduce(posted, axis=0)  # NaN rows ignored; NaN only where nothing was posted
+    hi = np.fmax.reduce(posted, axis=0)
+    error = np.maximum(np.maximum(lo - measured, measured - hi), 0.0)
+    error[~np.isfinite(error)] = 0.0
+    return error
+
+
+def post(w: WatchState, write: np.ndarray | None) -> None:
+    """Remember this cycle's posted command (None: nothing posted, the drives keep the last one)."""
+    w.posted[:-1] = w.posted[1:]
+    w.posted[-1] = w.posted[-2] if write is None else write
+
