@@ -96,6 +96,19 @@ _TPDO2 = struct.Struct("<ihH")  # velocity actual, current actual (per mille), e
 _RPDO1 = struct.Struct("<Hi")  # controlword, target position
 
 
+#: A frame stamp further in the past than this is not believed (a clock step): the frame counts as just received.
+MAX_FRAME_AGE_S = 10.0
+
+
+def reported_at(frame_time: float) -> float:
+    """The ``time.monotonic()`` at which a frame was on the bus, from its python-can stamp (wall-clock seconds: the
+    kernel's receive time on SocketCAN, the server's on socketcand), so that a backlog of frames read late still
+    shows when the drive sent them; now when the stamp is missing or implausible."""
+    now = time.monotonic()
+    age = time.time() - frame_time
+    return now - age if 0.0 < age < MAX_FRAME_AGE_S else now
+
+
 class _QuietPartialReads(logging.Filter):
     """Drop python-can's socketcand client warning about a message split across TCP reads (benign, per read)."""
 
@@ -328,7 +341,7 @@ class CanOpen402Bus(MotorBus):
     def _subscribe(self, node: _Node) -> None:
         net = self._network
         assert net is not None
-        net.subscribe(0x180 + node.id, lambda _id, data, _ts, n=node: self._on_tpdo1(n, data))
+        net.subscribe(0x180 + node.id, lambda _id, data, ts, n=node: self._on_tpdo1(n, data, ts))
         net.subscribe(0x280 + node.id, lambda _id, data, _ts, n=node: self._on_tpdo2(n, data))
         node.node.emcy.add_callback(lambda entry, n=node: self._on_emcy(n, entry))
         node.node.nmt.add_heartbeat_callback(lambda state, n=node: self._on_heartbeat(n, state))
@@ -471,13 +484,13 @@ class CanOpen402Bus(MotorBus):
         self._nodes.clear()
 
     # ------------------------------------------------------------------ bus-thread callbacks (no bus lock here)
-    def _on_tpdo1(self, node: _Node, data: bytes) -> None:
+    def _on_tpdo1(self, node: _Node, data: bytes, frame_time: float) -> None:
         if len(data) != _TPDO1.size:
             node.malformed += 1
             self._stats["malformed_tpdos"] += 1
             return
         node.status, node.position = _TPDO1.unpack(data)
-        node.stamp = time.monotonic()
+        node.stamp = reported_at(frame_time)
         node.answered_sync = self._sync_count
         self._check_cycle_complete()
 

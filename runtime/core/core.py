@@ -105,7 +105,7 @@ def _watch(state: CoreState, params: CoreParams, out: CycleOutputs, t: float) ->
     w, wp, fb = state.watch, params.watch, state.feedback
     ages = watch.feedback_ages(fb.stamps, params.buses, t, state.life.enabled_at)
     found = watch.check_feedback(w, wp, params.buses, ages, out, t) or watch.check_following(
-        w, wp, params.names, params.bus_of, fb.measured, params.scale, params.units, t)
+        w, wp, params.names, params.buses, params.bus_of, ages, fb.measured, params.scale, params.units, t)
     return None if found is None else lifecycle.Trouble(found.source, found.message, found.bus, found.actuator)
 
 

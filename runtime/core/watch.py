@@ -33,6 +33,9 @@ from runtime.core.events import FeedbackLate
 LATE_PERIODS = 5
 #: The commands posted in this many recent cycles are all "what the core commanded" for the following error.
 LAG_CYCLES = 3
+#: After a ``recovered``, a bus's next ``late`` is published no sooner than this (a bus hovering about its limit
+#: publishes one pair a second, not one a cycle); the fault limit is judged every cycle regardless.
+LATE_EVENT_SPACING_S = 1.0
 #: ``max_following_error`` when an actuator does not set it: the distance it covers in this long at its max velocity.
 FOLLOWING_ERROR_AT_MAX_VELOCITY_S = 0.1
 #: ``following_error_time_s`` when an actuator does not set it.
@@ -76,14 +79,16 @@ class WatchParams:
 
 @dataclass
 class WatchState:
-    """What the watch remembers: per late bus the largest age seen; the commands posted in the last cycles (rows,
-    newest last; NaN: none yet); per actuator since when its following error is beyond the limit (NaN: within) and
-    the largest following error since the head went active (telemetry)."""
+    """What the watch remembers: the commands posted in the last cycles (rows, newest last; NaN: none yet); per
+    actuator since when its following error is beyond the limit (NaN: within) and the largest following error since
+    the head went active (telemetry); per bus announced late the largest age seen, and until when a new ``late`` is
+    not published."""
 
     posted: np.ndarray
     over_since: np.ndarray
     peak_error: np.ndarray
     late: dict[str, float] = field(default_factory=dict)
+    quiet_until: dict[str, float] = field(default_factory=dict)
 
     @classmethod
     def initial(cls, n: int) -> WatchState:
@@ -94,6 +99,7 @@ class WatchState:
         """Forget the past (the head went active, faulted or stopped commanding)."""
         self.posted.fill(np.nan)
         self.over_since.fill(np.nan)
+        self.peak_error.fill(0.0)
         self.late.clear()
 
 
@@ -120,30 +126,34 @@ def feedback_ages(stamps: np.ndarray, buses: tuple[tuple[str, np.ndarray], ...],
 
 def check_feedback(w: WatchState, wp: WatchParams, buses: tuple[tuple[str, np.ndarray], ...], ages: np.ndarray,
                    out: CycleOutputs, t: float) -> Finding | None:
-    """Publish ``feedback_late`` when a bus's age passes its limit (and ``recovered`` when it is back within); the
-    finding when an age passes its fault limit."""
+    """Publish ``feedback_late`` when a bus's age passes its limit (and ``recovered`` when it is back within; at most
+    one pair per :data:`LATE_EVENT_SPACING_S`); the finding when an age passes its fault limit."""
     for i, (name, _) in enumerate(buses):
         age = float(ages[i])
         if age > wp.late_s[i]:
-            if name not in w.late:
+            if name in w.late:
+                w.late[name] = max(age, w.late[name])
+            elif t >= w.quiet_until.get(name, -np.inf):
                 out.emit(FeedbackLate(t, name, "late", age, float(wp.late_s[i])))
-            w.late[name] = max(age, w.late.get(name, 0.0))
+                w.late[name] = age
             if age > wp.fault_s[i]:
                 return Finding("timeout", f"bus {name}: no feedback from its devices for {age * 1e3:.0f} ms "
                                f"(limit {wp.fault_s[i]:g} s)", name)
         elif name in w.late:
             out.emit(FeedbackLate(t, name, "recovered", w.late.pop(name), float(wp.late_s[i])))
+            w.quiet_until[name] = t + LATE_EVENT_SPACING_S
     return None
 
 
-def check_following(w: WatchState, wp: WatchParams, names: tuple[str, ...], bus_of: tuple[str, ...],
-                    measured: np.ndarray, scale: np.ndarray, units: tuple[str, ...], t: float) -> Finding | None:
-    """The finding when an actuator's following error stayed beyond its limit for its time (buses in ``w.late``
-    skipped)."""
+def check_following(w: WatchState, wp: WatchParams, names: tuple[str, ...], buses: tuple[tuple[str, np.ndarray], ...],
+                    bus_of: tuple[str, ...], ages: np.ndarray, measured: np.ndarray, scale: np.ndarray,
+                    units: tuple[str, ...], t: float) -> Finding | None:
+    """The finding when an actuator's following error stayed beyond its limit for its time (the actuators of a bus
+    whose feedback is late are skipped: their measurement is not current)."""
     error = following_errors(w.posted, measured)
-    late = [i for i, b in enumerate(bus_of) if b in w.late]
-    if late:
-        error[late] = 0.0
+    for i, (_, idx) in enumerate(buses):
+        if ages[i] > wp.late_s[i]:
+            error[idx] = 0.0
     np.maximum(w.peak_error, error, out=w.peak_error)
     over = error > wp.max_error
     w.over_since[~over] = np.nan

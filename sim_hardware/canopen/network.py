@@ -286,7 +286,9 @@ class DriveSet:
                 self.network.impairment = LinkImpairment()
             for drive in self.drives.values():
                 drive.heartbeat_enabled = True
+                drive.feedback_frozen = False
                 drive.set_jammed(False)
+                drive.set_slipping(False)
             return {}
         if fault == "status":
             return {"drives": self.status()}
@@ -304,6 +306,13 @@ class DriveSet:
             drive.set_jammed(True)
         elif fault == "release":
             drive.set_jammed(False)
+            drive.set_slipping(False)
+        elif fault == "freeze_feedback":
+            drive.feedback_frozen = True
+        elif fault == "resume_feedback":
+            drive.feedback_frozen = False
+        elif fault == "slip":
+            drive.set_slipping(True)
         elif fault == "following_error":
             counts = float(params.pop("counts", 2 * drive._fe_window))
             drive.set_jammed(True, offset_counts=counts)
@@ -336,6 +345,8 @@ class DriveSet:
                 "velocity_counts": d.velocity_counts,
                 "heartbeat": d.heartbeat_enabled,
                 "jammed": d.jammed,
+                "feedback_frozen": d.feedback_frozen,
+                "slipping": d.slipping,
             }
             for n, d in self.drives.items()
         }
@@ -347,10 +358,13 @@ FAULTS: dict[str, str] = {
     "resume_heartbeat": "device=N: heartbeats resume",
     "drive_fault": "device=N [code=0x1000]: the drive faults and sends EMCY code",
     "jam": "device=N: the rotor is blocked (following error builds up when it is commanded to move)",
-    "release": "device=N: unblock the rotor",
+    "release": "device=N: unblock the rotor and end a slip",
+    "freeze_feedback": "device=N: the drive stops answering SYNCs with TPDOs (heartbeat and SDO go on)",
+    "resume_feedback": "device=N: TPDOs resume",
+    "slip": "device=N: the reported position stays where it is while the motor follows (the drive sees no error)",
     "following_error": "device=N [counts=2*window]: the rotor is knocked off by counts and blocked",
     "frames": "[drop=P] [corrupt=P] [delay_ms=D] [direction=tx|rx|both] [device=N] [seed=S]: link faults",
-    "clear": "remove link faults, jams and heartbeat stops",
+    "clear": "remove link faults, jams, slips, frozen feedback and heartbeat stops",
     "status": "report every drive's state",
 }
 
