@@ -80,7 +80,8 @@ class BusConnectionChanged:
 @dataclass(frozen=True)
 class FeedbackLate:
     """A bus's devices have not reported for longer than ``[buses.NAME] feedback_timeout_s`` (``state`` ``late``,
-    ``age`` the age then), or report again (``recovered``, ``age`` the largest age seen)."""
+    ``age`` the age then), or have reported within it again for a while (``recovered``, ``age`` the largest age
+    seen)."""
 
     t: float
     bus: str

@@ -33,9 +33,9 @@ from runtime.core.events import FeedbackLate
 LATE_PERIODS = 5
 #: The commands posted in this many recent cycles are all "what the core commanded" for the following error.
 LAG_CYCLES = 3
-#: After a ``recovered``, a bus's next ``late`` is published no sooner than this (a bus hovering about its limit
-#: publishes one pair a second, not one a cycle); the fault limit is judged every cycle regardless.
-LATE_EVENT_SPACING_S = 1.0
+#: A late bus is ``recovered`` once its feedback has stayed within the limit this long (a bus hovering about its
+#: limit stays late rather than publishing a pair of events every few cycles); every new lateness is published at once.
+RECOVER_AFTER_S = 0.5
 #: ``max_following_error`` when an actuator does not set it: the distance it covers in this long at its max velocity.
 FOLLOWING_ERROR_AT_MAX_VELOCITY_S = 0.1
 #: ``following_error_time_s`` when an actuator does not set it.
@@ -81,14 +81,13 @@ class WatchParams:
 class WatchState:
     """What the watch remembers: the commands posted in the last cycles (rows, newest last; NaN: none yet); per
     actuator since when its following error is beyond the limit (NaN: within) and the largest following error since
-    the head went active (telemetry); per bus announced late the largest age seen, and until when a new ``late`` is
-    not published."""
+    the head went active (telemetry); per late bus the largest age seen, and since when it is within its limit again."""
 
     posted: np.ndarray
     over_since: np.ndarray
     peak_error: np.ndarray
     late: dict[str, float] = field(default_factory=dict)
-    quiet_until: dict[str, float] = field(default_factory=dict)
+    fresh_since: dict[str, float] = field(default_factory=dict)
 
     @classmethod
     def initial(cls, n: int) -> WatchState:
@@ -101,6 +100,7 @@ class WatchState:
         self.over_since.fill(np.nan)
         self.peak_error.fill(0.0)
         self.late.clear()
+        self.fresh_since.clear()
 
 
 @dataclass(frozen=True)
@@ -126,22 +126,21 @@ def feedback_ages(stamps: np.ndarray, buses: tuple[tuple[str, np.ndarray], ...],
 
 def check_feedback(w: WatchState, wp: WatchParams, buses: tuple[tuple[str, np.ndarray], ...], ages: np.ndarray,
                    out: CycleOutputs, t: float) -> Finding | None:
-    """Publish ``feedback_late`` when a bus's age passes its limit (and ``recovered`` when it is back within; at most
-    one pair per :data:`LATE_EVENT_SPACING_S`); the finding when an age passes its fault limit."""
+    """Publish ``feedback_late`` when a bus's age passes its limit (and ``recovered`` once it has stayed within for
+    :data:`RECOVER_AFTER_S`); the finding when an age passes its fault limit."""
     for i, (name, _) in enumerate(buses):
         age = float(ages[i])
         if age > wp.late_s[i]:
-            if name in w.late:
-                w.late[name] = max(age, w.late[name])
-            elif t >= w.quiet_until.get(name, -np.inf):
+            if name not in w.late:
                 out.emit(FeedbackLate(t, name, "late", age, float(wp.late_s[i])))
-                w.late[name] = age
+            w.late[name] = max(age, w.late.get(name, 0.0))
+            w.fresh_since.pop(name, None)
             if age > wp.fault_s[i]:
                 return Finding("timeout", f"bus {name}: no feedback from its devices for {age * 1e3:.0f} ms "
                                f"(limit {wp.fault_s[i]:g} s)", name)
-        elif name in w.late:
+        elif name in w.late and t - w.fresh_since.setdefault(name, t) >= RECOVER_AFTER_S:
             out.emit(FeedbackLate(t, name, "recovered", w.late.pop(name), float(wp.late_s[i])))
-            w.quiet_until[name] = t + LATE_EVENT_SPACING_S
+            del w.fresh_since[name]
     return None
 
 

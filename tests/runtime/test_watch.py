@@ -82,7 +82,9 @@ def test_late_bus_that_recovers_publishes_recovered_and_stays_active() -> None:
     rig.run(0.1)
     rig.bus_inputs = lambda: tuple(BusInput(b, rig.bus_state[b], True, rig.q[idx].copy(),  # type: ignore[method-assign]
                                             rig.t) for b, idx in rig.params.buses)
-    rig.run(0.05)
+    rig.run(0.4)
+    assert [e["state"] for e in _events(rig, "feedback_late")] == ["late"]
+    rig.run(0.2)
     states = [(e["bus"], e["state"]) for e in _events(rig, "feedback_late")]
     assert states == [("dxl", "late"), ("dxl", "recovered")]
     assert _events(rig, "feedback_late")[1]["age"] >= 0.09
