@@ -41,14 +41,18 @@ def _play(rig: Rig, spec: dict) -> None:
 
 
 def test_defaults_follow_the_period_and_the_safety_timeout() -> None:
-    rig = Rig()
-    wp = rig.params.watch
-    period = rig.params.period
-    assert np.allclose(wp.late_s, LATE_PERIODS * period)
-    assert np.allclose(wp.fault_s, rig.cfg.safety.feedback_timeout_s)
-    jaw = HEAD.actuator("jaw")
+    data = _head()
+    for bus in data["buses"].values():
+        bus.pop("feedback_timeout_s", None)
+    head = head_from_dict(data, source=SAMPLE)
+    cfg = daemon_config(head, {"runtime.rate_hz": 250.0})
+    wp = WatchParams.build(head, cfg, tuple(head.buses), 1 / 250.0)
+    assert np.allclose(wp.late_s, LATE_PERIODS / 250.0)
+    assert np.allclose(wp.fault_s, cfg.safety.feedback_timeout_s)
+    jaw = head.actuator("jaw")
     assert wp.max_error[0] == pytest.approx(jaw.max_velocity * 0.1)
     assert np.allclose(wp.error_time_s, FOLLOWING_ERROR_TIME_S)
+    assert np.allclose(Rig().params.watch.late_s, 0.1)  # the sample head sets its emulated buses' limit
 
 
 def test_silent_bus_publishes_late_then_faults_naming_it() -> None:
@@ -79,7 +83,7 @@ def test_late_bus_that_recovers_publishes_recovered_and_stays_active() -> None:
     stale = rig.t
     rig.bus_inputs = lambda: tuple(BusInput(b, rig.bus_state[b], True, rig.q[idx].copy(),  # type: ignore[method-assign]
                                             stale if b == "dxl" else rig.t) for b, idx in rig.params.buses)
-    rig.run(0.1)
+    rig.run(0.2)
     rig.bus_inputs = lambda: tuple(BusInput(b, rig.bus_state[b], True, rig.q[idx].copy(),  # type: ignore[method-assign]
                                             rig.t) for b, idx in rig.params.buses)
     rig.run(0.4)
@@ -87,7 +91,7 @@ def test_late_bus_that_recovers_publishes_recovered_and_stays_active() -> None:
     rig.run(0.2)
     states = [(e["bus"], e["state"]) for e in _events(rig, "feedback_late")]
     assert states == [("dxl", "late"), ("dxl", "recovered")]
-    assert _events(rig, "feedback_late")[1]["age"] >= 0.09
+    assert _events(rig, "feedback_late")[1]["age"] >= 0.19
     assert rig.state.lifecycle is Lifecycle.ACTIVE
 
 
@@ -183,7 +187,7 @@ def test_limits_in_config_units_and_against_the_loop() -> None:
     slow = head_from_dict(_head({"feedback_timeout_s": 0.9}), source=SAMPLE)
     with pytest.raises(ConfigError, match=r"buses\.can0\.feedback_timeout_s = 0\.9: must be shorter than"):
         WatchParams.build(slow, daemon_config(slow, {"safety.feedback_timeout_s": 0.5}), tuple(slow.buses), 0.004)
-    fast = head_from_dict(_head({"feedback_fault_s": 0.005}), source=SAMPLE)
+    fast = head_from_dict(_head({"feedback_timeout_s": 0.002, "feedback_fault_s": 0.005}), source=SAMPLE)
     with pytest.raises(ConfigError, match=r"buses\.can0\.feedback_fault_s = 0\.005: must exceed two loop periods"):
         WatchParams.build(fast, daemon_config(fast, {}), tuple(fast.buses), 0.004)
 
