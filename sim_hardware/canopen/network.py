@@ -168,6 +168,8 @@ class DriveSet:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.overruns = 0
+        self._physics_lock = threading.Lock()
+        self._physics_t = 0.0  # time.monotonic() the motion has been stepped to
 
     # ------------------------------------------------------------------ life cycle
     def start(self) -> DriveSet:
@@ -178,6 +180,10 @@ class DriveSet:
         net = _EmulatorNetwork(bus, self._seed)
         net.connect()
         self.network = net
+        self._physics_t = time.monotonic()
+        # Before the drives' own SYNC handlers: the motion is brought up to date, so the TPDOs a SYNC triggers report
+        # where the drives are now even when the physics thread has been waiting for a CPU.
+        net.subscribe(0x80, self._on_sync)
         for drive in self.drives.values():
             drive.attach(net)
         for drive in self.drives.values():
@@ -205,22 +211,31 @@ class DriveSet:
     def __exit__(self, *exc: object) -> None:
         self.stop()
 
+    def advance(self, now: float) -> None:
+        """Step every drive's motion up to ``now`` (at most :data:`MAX_CATCHUP_STEPS` steps; time beyond that is
+        dropped and counted in ``overruns``)."""
+        dt = 1.0 / self.physics_hz
+        with self._physics_lock:
+            steps = int((now - self._physics_t) / dt)
+            if steps > self.MAX_CATCHUP_STEPS:
+                self.overruns += 1
+                self._physics_t = now - self.MAX_CATCHUP_STEPS * dt
+                steps = self.MAX_CATCHUP_STEPS
+            if steps > 0:
+                for drive in self.drives.values():
+                    drive.step(dt, steps)
+                self._physics_t += steps * dt
+
+    def _on_sync(self, can_id: int, data: bytes, timestamp: float) -> None:
+        self.advance(time.monotonic())
+
     def _run(self) -> None:
         dt = 1.0 / self.physics_hz
         drives = list(self.drives.values())
-        last = time.monotonic()
-        deadline = last
+        deadline = time.monotonic()
         while not self._stop.is_set():
             now = time.monotonic()
-            steps = int((now - last) / dt)
-            if steps > self.MAX_CATCHUP_STEPS:
-                self.overruns += 1
-                last = now - self.MAX_CATCHUP_STEPS * dt
-                steps = self.MAX_CATCHUP_STEPS
-            if steps:
-                for drive in drives:
-                    drive.step(dt, steps)
-                last += steps * dt
+            self.advance(now)
             net = self.network
             if net is None:
                 break
