@@ -4,9 +4,9 @@ following never goes unnoticed while the head is active.
 Two checks run every cycle on the feedback the read stage took in:
 
 - **feedback age per bus**: how long ago the bus's devices last reported (the oldest of its actuators' newest samples,
-  stamped by the driver when the device's answer arrived). Past ``[buses.NAME] feedback_timeout_s`` a
-  ``feedback_late`` event names the bus and the age (and another when the feedback is fresh again); past
-  ``feedback_fault_s`` the head faults naming the bus.
+  stamped with the time the device's answer was on the bus). Past ``[buses.NAME] feedback_timeout_s`` a
+  ``feedback_late`` event names the bus and the age (and a ``recovered`` one once it has been within the limit for
+  :data:`RECOVER_AFTER_S`); past ``feedback_fault_s`` the head faults naming the bus.
 - **following error per actuator**: the distance of the measured position from the span of the commands posted in
   the last :data:`LAG_CYCLES` cycles (a posted command reaches the drive one cycle later and the drive reports where
   it was when it took it, so the newest commands are not yet due). Beyond ``max_following_error`` for

@@ -142,3 +142,48 @@ def test_normal_clip_raises_neither(make_daemon, clip_name: str) -> None:
               f"{len(late)} feedback_late events")
         assert finished and not faults, faults or "the clip did not finish"
         assert c.call("status")["lifecycle"] == "active"
+
+
+def test_stalled_emulator_process_is_reported_late(make_daemon) -> None:
+    """SIGSTOP of the CANopen emulator for 0.6 s while a clip plays: a ``feedback_late`` event names can0 within the
+    sample head's limit (the head faults only past ``feedback_fault_s``, 1 s there), then ``recovered`` gives the
+    largest age seen."""
+    import os
+    import signal
+
+    d = make_daemon()
+    sim = d.hw.emulator("can0")
+    limit = float(d.params.watch.late_s[0])
+    clip = {"name": "sway", "channels": {"jaw": {"interp": "linear", "keys": [[0, 0], [1.0, 8], [2.0, 0], [3.0, 8]]}}}
+    with Client(d.command_endpoint, timeout=30) as c, Telemetry(d.telemetry_endpoint, topics=(b"event",)) as tel:
+        enable_retrying(c)
+        c.call("load_clip", clip=clip)
+        c.call("play", clip="sway")
+        assert wait_until(lambda: c.call("status")["commanded"]["jaw"] > 1.0, 20.0), "the clip did not move the jaw"
+        os.kill(sim.pid, signal.SIGSTOP)
+        stopped = time.monotonic()
+        try:
+            time.sleep(0.6)  # the stall itself (the injected fault), not a wait for a condition
+        finally:
+            os.kill(sim.pid, signal.SIGCONT)
+        events: list[dict] = []
+        deadline = time.monotonic() + 20.0
+        while time.monotonic() < deadline:
+            msg = tel.recv(0.1)
+            if msg is None:
+                continue
+            events.append(dict(msg[1]))
+            if msg[1]["event"] == "feedback_late" and msg[1]["bus"] == "can0" and msg[1]["state"] == "recovered" \
+                    and msg[1]["t"] > stopped:
+                break
+        late = [e for e in events if e["event"] == "feedback_late" and e["bus"] == "can0"]
+        during = [e for e in late if e["state"] == "late" and stopped - 0.1 <= e["t"] <= stopped + 0.6]
+        assert during, f"no feedback_late for can0 during the stall; events: {events}"
+        ev = during[0]
+        assert limit < ev["age"] <= limit + 3 * d.params.period, ev
+        recovered = [e for e in late if e["state"] == "recovered" and e["t"] > ev["t"]]
+        faults = [e for e in events if e["event"] == "fault"]
+        largest = f"largest age {recovered[0]['age'] * 1e3:.0f} ms" if recovered else "no recovery seen"
+        print(f"\nemulator stopped 0.6 s → feedback_late {(ev['t'] - stopped) * 1e3:.0f} ms after the stop; {largest}; "
+              f"faults: {faults}")
+        assert all(f["bus"] == "can0" and f["source"] == "timeout" for f in faults), faults
