@@ -20,6 +20,7 @@ from tests.runtime.conftest import SAMPLE, enable_retrying, wait_until
 LATE_S = 0.15  # [buses.can0] feedback_timeout_s in the test head
 FAULT_S = 0.6  # [buses.can0] feedback_fault_s: below the driver's own stale-feedback and heartbeat limits
 JAW = 1  # node id of the jaw on can0
+SLACK_S = 0.1  # cycles the loop may skip on a loaded host before it judges the age again
 JAW_MAX_ERROR_DEG = 4.0  # [[actuators]] jaw: max_following_error, following_error_time_s in the test head
 JAW_TIME_S = 0.2
 
@@ -73,10 +74,10 @@ def test_frozen_canopen_feedback_is_late_then_faults_naming_the_bus(tmp_path, ma
         late = [e for e in events if e["event"] == "feedback_late" and e["bus"] == "can0" and e["state"] == "late"]
         assert late, f"no feedback_late for can0 before the fault; events: {events}"
         ev = late[-1]
-        period = d.params.period
-        # published on the cycle the age passed the limit (the loop runs at its deadlines; a cycle or two of slack)
-        assert LATE_S < ev["age"] <= LATE_S + 3 * period, ev
-        assert ev["t"] < fault["t"] and FAULT_S < fault["t"] - (ev["t"] - ev["age"]) <= FAULT_S + 3 * period
+        # published on the first cycle after the age passed the limit: within a cycle, or a few when the loaded host
+        # made the loop skip cycles
+        assert LATE_S < ev["age"] <= LATE_S + SLACK_S, ev
+        assert ev["t"] < fault["t"] and FAULT_S < fault["t"] - (ev["t"] - ev["age"]) <= FAULT_S + SLACK_S
         print(f"\nfreeze → feedback_late {(ev['t'] - injected) * 1e3:.0f} ms (age {ev['age'] * 1e3:.0f} ms, limit "
               f"{LATE_S * 1e3:.0f} ms); → fault {(fault['t'] - injected) * 1e3:.0f} ms (limit {FAULT_S * 1e3:.0f} ms)")
         assert c.call("status")["lifecycle"] == "fault"
@@ -182,7 +183,7 @@ def test_stalled_emulator_process_is_reported_late(make_daemon) -> None:
         during = [e for e in late if e["state"] == "late" and stopped - 0.1 <= e["t"] <= stopped + 0.6]
         assert during, f"no feedback_late for can0 during the stall; events: {events}"
         ev = during[0]
-        assert limit < ev["age"] <= limit + 3 * d.params.period, ev
+        assert limit < ev["age"] <= limit + SLACK_S, ev
         recovered = [e for e in late if e["state"] == "recovered" and e["t"] > ev["t"]]
         faults = [e for e in events if e["event"] == "fault"]
         largest = f"largest age {recovered[0]['age'] * 1e3:.0f} ms" if recovered else "no recovery seen"
