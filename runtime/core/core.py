@@ -103,7 +103,7 @@ def _control(state: CoreState, params: CoreParams, out: CycleOutputs, t: float) 
 def _watch(state: CoreState, params: CoreParams, out: CycleOutputs, t: float) -> lifecycle.Trouble | None:
     """The feedback's age per bus, then each actuator's following error (:mod:`~runtime.core.watch`)."""
     w, wp, fb = state.watch, params.watch, state.feedback
-    ages = watch.feedback_ages(fb.stamps, params.buses, t, state.life.enabled_at)
+    ages = watch.feedback_ages(fb.reported, t, state.life.enabled_at)
     found = watch.check_feedback(w, wp, params.buses, ages, out, t) or watch.check_following(
         w, wp, params.names, params.buses, params.bus_of, ages, fb.measured, params.scale, params.units, t)
     return None if found is None else lifecycle.Trouble(found.source, found.message, found.bus, found.actuator)

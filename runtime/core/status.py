@@ -23,8 +23,7 @@ def snapshot(state: CoreState, params: CoreParams, t: float) -> Body:
         "buses": dict(fb.states), "connected": dict(fb.connected),
         "connection": {name: info.as_dict() for name, info in fb.connections.items()},
         "guard": {"verdict": state.guard.verdict, "refused": state.guard.refused},
-        "feedback_age": dict(zip((name for name, _ in params.buses),
-                                 feedback_ages(fb.stamps, params.buses, t, -np.inf).tolist(), strict=True)),
+        "feedback_age": dict(zip(fb.reported, feedback_ages(fb.reported, t, -np.inf), strict=True)),
         "following_error_si": state.watch.peak_error.copy(),
     }
     pb = src.timeline.playback

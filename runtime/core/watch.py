@@ -81,18 +81,21 @@ class WatchParams:
 class WatchState:
     """What the watch remembers: the commands posted in the last cycles (rows, newest last; NaN: none yet); per
     actuator since when its following error is beyond the limit (NaN: within) and the largest following error since
-    the head went active (telemetry); per late bus the largest age seen, and since when it is within its limit again."""
+    the head went active (telemetry); per late bus the largest age seen, and since when it is within its limit again;
+    the following errors of the cycle (a work buffer)."""
 
     posted: np.ndarray
     over_since: np.ndarray
     peak_error: np.ndarray
+    error: np.ndarray
     late: dict[str, float] = field(default_factory=dict)
     fresh_since: dict[str, float] = field(default_factory=dict)
 
     @classmethod
     def initial(cls, n: int) -> WatchState:
         """Nothing posted, nothing late."""
-        return cls(posted=np.full((LAG_CYCLES, n), np.nan), over_since=np.full(n, np.nan), peak_error=np.zeros(n))
+        return cls(posted=np.full((LAG_CYCLES, n), np.nan), over_since=np.full(n, np.nan), peak_error=np.zeros(n),
+                   error=np.zeros(n))
 
     def restart(self) -> None:
         """Forget the past (the head went active, faulted or stopped commanding)."""
@@ -113,23 +116,18 @@ class Finding:
     actuator: str | None = None
 
 
-def feedback_ages(stamps: np.ndarray, buses: tuple[tuple[str, np.ndarray], ...], t: float,
-                  since: float) -> np.ndarray:
-    """Per bus, the age of its devices' newest feedback at ``t`` (the oldest of its actuators' samples), counted
-    from ``since`` at the earliest."""
-    ages = np.empty(len(buses))
-    for i, (_, idx) in enumerate(buses):
-        newest = float(stamps[idx].min()) if idx.size else t
-        ages[i] = t - max(newest, since)
-    return ages
+def feedback_ages(reported: dict[str, float], t: float, since: float) -> list[float]:
+    """Per bus (in the order of ``reported``), how long ago at ``t`` its devices last reported, counted from
+    ``since`` at the earliest."""
+    return [t - max(stamp, since) for stamp in reported.values()]
 
 
-def check_feedback(w: WatchState, wp: WatchParams, buses: tuple[tuple[str, np.ndarray], ...], ages: np.ndarray,
+def check_feedback(w: WatchState, wp: WatchParams, buses: tuple[tuple[str, np.ndarray], ...], ages: list[float],
                    out: CycleOutputs, t: float) -> Finding | None:
     """Publish ``feedback_late`` when a bus's age passes its limit (and ``recovered`` once it has stayed within for
     :data:`RECOVER_AFTER_S`); the finding when an age passes its fault limit."""
     for i, (name, _) in enumerate(buses):
-        age = float(ages[i])
+        age = ages[i]
         if age > wp.late_s[i]:
             if name not in w.late:
                 out.emit(FeedbackLate(t, name, "late", age, float(wp.late_s[i])))
@@ -145,19 +143,21 @@ def check_feedback(w: WatchState, wp: WatchParams, buses: tuple[tuple[str, np.nd
 
 
 def check_following(w: WatchState, wp: WatchParams, names: tuple[str, ...], buses: tuple[tuple[str, np.ndarray], ...],
-                    bus_of: tuple[str, ...], ages: np.ndarray, measured: np.ndarray, scale: np.ndarray,
+                    bus_of: tuple[str, ...], ages: list[float], measured: np.ndarray, scale: np.ndarray,
                     units: tuple[str, ...], t: float) -> Finding | None:
     """The finding when an actuator's following error stayed beyond its limit for its time (the actuators of a bus
     whose feedback is late are skipped: their measurement is not current)."""
-    error = following_errors(w.posted, measured)
+    error = following_errors(w.posted, measured, out=w.error)
     for i, (_, idx) in enumerate(buses):
         if ages[i] > wp.late_s[i]:
             error[idx] = 0.0
     np.maximum(w.peak_error, error, out=w.peak_error)
     over = error > wp.max_error
+    if not over.any():
+        w.over_since.fill(np.nan)
+        return None
     w.over_since[~over] = np.nan
-    start = over & np.isnan(w.over_since)
-    w.over_since[start] = t
+    w.over_since[over & np.isnan(w.over_since)] = t
     due = np.flatnonzero(over & (t - w.over_since >= wp.error_time_s))
     if not due.size:
         return None
@@ -169,18 +169,23 @@ def check_following(w: WatchState, wp: WatchParams, names: tuple[str, ...], buse
                    bus_of[i], names[i])
 
 
-def following_errors(posted: np.ndarray, measured: np.ndarray) -> np.ndarray:
+def following_errors(posted: np.ndarray, measured: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """Per actuator, how far ``measured`` lies outside the span of the commands ``posted`` (rows; NaN rows: none);
-    0 where nothing was posted or nothing measured."""
-    lo = np.fmin.reduce(posted, axis=0)  # NaN rows ignored; NaN only where nothing was posted
-    hi = np.fmax.reduce(posted, axis=0)
-    error = np.maximum(np.maximum(lo - measured, measured - hi), 0.0)
-    error[~np.isfinite(error)] = 0.0
-    return error
+    0 where nothing was posted or nothing measured. Into ``out`` when given."""
+    lo = np.array(posted[0]) if out is None else out
+    if out is not None:
+        lo[:] = posted[0]
+    hi = posted[0].copy()
+    for row in posted[1:]:  # fmin/fmax skip NaN: a row not yet posted
+        np.fmin(lo, row, out=lo)
+        np.fmax(hi, row, out=hi)
+    np.subtract(lo, measured, out=lo)
+    np.subtract(measured, hi, out=hi)
+    np.fmax(lo, hi, out=lo)
+    return np.fmax(lo, 0.0, out=lo)  # NaN (nothing posted or measured) → 0
 
 
 def post(w: WatchState, write: np.ndarray | None) -> None:
     """Remember this cycle's posted command (None: nothing posted, the drives keep the last one)."""
     w.posted[:-1] = w.posted[1:]
     w.posted[-1] = w.posted[-2] if write is None else write
-
