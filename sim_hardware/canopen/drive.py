@@ -183,7 +183,7 @@ class EmulatedDrive:
         self._velocity_filtered = 0.0
         self._network: canopen.Network | None = None
         self.heartbeat_enabled = True
-        self.feedback_frozen = False  # fault injection: no TPDOs at all (the drive stops reporting)
+        self.feedback_frozen = False  # fault injection: SYNCs ignored, so no TPDOs (the drive stops reporting)
         self._stuck_at: float | None = None  # fault injection: the reported position stays here (slipping output)
         self._next_heartbeat = 0.0
         self.emcy_log: list[int] = []

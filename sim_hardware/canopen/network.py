@@ -374,7 +374,7 @@ FAULTS: dict[str, str] = {
     "drive_fault": "device=N [code=0x1000]: the drive faults and sends EMCY code",
     "jam": "device=N: the rotor is blocked (following error builds up when it is commanded to move)",
     "release": "device=N: unblock the rotor and end a slip",
-    "freeze_feedback": "device=N: the drive stops answering SYNCs with TPDOs (heartbeat and SDO go on)",
+    "freeze_feedback": "device=N: the drive ignores SYNCs: no TPDOs, no new targets (heartbeat and SDO go on)",
     "resume_feedback": "device=N: TPDOs resume",
     "slip": "device=N: the reported position stays where it is while the motor follows (the drive sees no error)",
     "following_error": "device=N [counts=2*window]: the rotor is knocked off by counts and blocked",
