@@ -38,8 +38,9 @@ LAG_CYCLES = 3
 RECOVER_AFTER_S = 0.5
 #: ``max_following_error`` when an actuator does not set it: the distance it covers in this long at its max velocity.
 FOLLOWING_ERROR_AT_MAX_VELOCITY_S = 0.1
-#: ``following_error_time_s`` when an actuator does not set it.
-FOLLOWING_ERROR_TIME_S = 0.25
+#: ``following_error_time_s`` when an actuator does not set it: longer than the stalls of emulated drives on a loaded
+#: host (up to ~0.2 s), short enough that a jammed or slipping actuator stops the show within half a second.
+FOLLOWING_ERROR_TIME_S = 0.5
 
 
 @dataclass(frozen=True)
