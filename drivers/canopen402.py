@@ -19,7 +19,8 @@ producer time, PDOs (RPDO1 = controlword + target position; TPDO1 = statusword +
 TPDO2 = velocity actual + current actual + error code, both on every SYNC; the others disabled),
 mode CSP, NMT operational, and wait for its first operational heartbeat. Cyclic I/O: :meth:`write`
 sends every RPDO then one SYNC; :meth:`read` returns the latest TPDO feedback and sends a SYNC itself
-when none went out since the previous read, so feedback stays fresh while inactive.
+when none went out since the previous read, so feedback stays fresh while inactive. A motor state's timestamp is
+when its drive's latest TPDO1 was on the bus (:class:`FrameClock`), not when this process got to it.
 
 Faults (all end in FAULT through :meth:`mark_fault`, then a quick stop of every drive): EMCY from a
 drive (its code; length/overrun EMCYs 0x8110/0x8120/0x8210/0x8220 are only counted), a drive's
@@ -94,6 +95,37 @@ _TORQUE_ON = ("OPERATION ENABLED", "QUICK STOP ACTIVE", "FAULT REACTION ACTIVE")
 _TPDO1 = struct.Struct("<Hi")  # statusword, position actual
 _TPDO2 = struct.Struct("<ihH")  # velocity actual, current actual (per mille), error code
 _RPDO1 = struct.Struct("<Hi")  # controlword, target position
+
+
+#: A frame that seems older than this is not believed (a clock step): it counts as just received.
+MAX_FRAME_AGE_S = 10.0
+#: How long the transport's shortest delay is remembered (two windows of this; a clock step is forgotten after).
+DELAY_FLOOR_WINDOW_S = 5.0
+
+
+class FrameClock:
+    """When a frame was on the bus, as ``time.monotonic()``, from its python-can stamp (wall-clock seconds: the
+    kernel's receive time on SocketCAN, the server's on socketcand), so that a backlog of frames read late still shows
+    when the drives sent them. A remote server's clock may differ from this host's: ages count from the shortest
+    delay seen lately (the transport at its quickest), so a constant offset cancels out."""
+
+    def __init__(self) -> None:
+        self._floor = math.inf  # shortest delay in the current window
+        self._floor_before = math.inf  # ... and in the window before
+        self._window_end = 0.0
+
+    def reported_at(self, frame_time: float) -> float:
+        """The monotonic time at which a frame stamped ``frame_time`` was on the bus (now when implausible)."""
+        now = time.monotonic()
+        delay = time.time() - frame_time
+        if not math.isfinite(delay) or frame_time <= 0.0:
+            return now
+        if now >= self._window_end:
+            self._floor_before, self._floor = self._floor, math.inf
+            self._window_end = now + DELAY_FLOOR_WINDOW_S
+        self._floor = min(self._floor, delay)
+        age = delay - min(self._floor, self._floor_before)
+        return now - age if age < MAX_FRAME_AGE_S else now
 
 
 class _QuietPartialReads(logging.Filter):
@@ -257,6 +289,7 @@ class CanOpen402Bus(MotorBus):
         self._monitor_stop = threading.Event()
         self._stats = {"syncs": 0, "malformed_tpdos": 0, "tolerated_emcy": 0, "emcy": 0}
         self._feedback = threading.Event()
+        self._frame_clock = FrameClock()  # TPDO stamps (used on the bus thread only)
 
     # ------------------------------------------------------------------ diagnostics
     def wait_for_feedback(self, timeout_s: float) -> bool:
@@ -328,7 +361,7 @@ class CanOpen402Bus(MotorBus):
     def _subscribe(self, node: _Node) -> None:
         net = self._network
         assert net is not None
-        net.subscribe(0x180 + node.id, lambda _id, data, _ts, n=node: self._on_tpdo1(n, data))
+        net.subscribe(0x180 + node.id, lambda _id, data, ts, n=node: self._on_tpdo1(n, data, ts))
         net.subscribe(0x280 + node.id, lambda _id, data, _ts, n=node: self._on_tpdo2(n, data))
         node.node.emcy.add_callback(lambda entry, n=node: self._on_emcy(n, entry))
         node.node.nmt.add_heartbeat_callback(lambda state, n=node: self._on_heartbeat(n, state))
@@ -471,13 +504,13 @@ class CanOpen402Bus(MotorBus):
         self._nodes.clear()
 
     # ------------------------------------------------------------------ bus-thread callbacks (no bus lock here)
-    def _on_tpdo1(self, node: _Node, data: bytes) -> None:
+    def _on_tpdo1(self, node: _Node, data: bytes, frame_time: float) -> None:
         if len(data) != _TPDO1.size:
             node.malformed += 1
             self._stats["malformed_tpdos"] += 1
             return
         node.status, node.position = _TPDO1.unpack(data)
-        node.stamp = time.monotonic()
+        node.stamp = self._frame_clock.reported_at(frame_time)
         node.answered_sync = self._sync_count
         self._check_cycle_complete()
 

@@ -38,10 +38,15 @@ class HeartbeatTable(_Table, kw_only=True):
 
 
 class BusTable(_Table, kw_only=True):
+    """``[buses.NAME]``: the driver and its options; how old the devices' newest feedback may grow before the core
+    says so (``feedback_timeout_s``, an event) and before it faults the head (``feedback_fault_s``)."""
+
     driver: str
     options: dict[str, Any] = {}
     simulated: bool = False
     heartbeat: HeartbeatTable | None = None
+    feedback_timeout_s: float | None = None
+    feedback_fault_s: float | None = None
 
 
 class ActuatorTable(_Table, kw_only=True):
@@ -58,6 +63,8 @@ class ActuatorTable(_Table, kw_only=True):
     gear_ratio: float = 1.0
     direction: int = 1
     zero_count: int = 0
+    max_following_error: float | None = None
+    following_error_time_s: float | None = None
     options: dict[str, Any] = {}
 
 

@@ -60,6 +60,10 @@ class ActuatorSpec:
     direction: int
     zero_count: int
     options: Mapping[str, Any]
+    #: |commanded − measured| (SI) the actuator may exceed for ``following_error_time_s`` before the head faults;
+    #: None: the core's default (:mod:`runtime.core.watch`)
+    max_following_error: float | None = None
+    following_error_time_s: float | None = None
 
     @property
     def unit_scale(self) -> float:
@@ -82,6 +86,10 @@ class BusSpec:
     options: Mapping[str, Any]
     simulated: bool
     heartbeat: HeartbeatSpec | None
+    #: age (s) of the devices' newest feedback past which the core publishes ``feedback_late``; None: its default
+    feedback_timeout_s: float | None = None
+    #: age (s) past which the head faults naming the bus; None: the core's default (``[safety] feedback_timeout_s``)
+    feedback_fault_s: float | None = None
 
     def driver_options(self) -> dict[str, Any]:
         """The options handed to the driver: ``options``, with the heartbeat as ``heartbeat_period_s`` and
@@ -275,10 +283,23 @@ def _buses(v: _Values, tables: Mapping[str, BusTable] | None) -> dict[str, BusSp
         key = f"buses.{bus_name}"
         driver = v.string(t.driver, f"{key}.driver")
         heartbeat = None if t.heartbeat is None else _heartbeat(v, t.heartbeat, key, t.options)
-        buses[bus_name] = BusSpec(bus_name, driver, dict(t.options), t.simulated, heartbeat)
+        late, fault = _feedback_limits(v, t, key)
+        buses[bus_name] = BusSpec(bus_name, driver, dict(t.options), t.simulated, heartbeat, late, fault)
     if not buses:
         raise SpecError(v.source, "buses", "a head needs at least one bus")
     return buses
+
+
+def _feedback_limits(v: _Values, t: BusTable, key: str) -> tuple[float | None, float | None]:
+    """``feedback_timeout_s`` and ``feedback_fault_s``: positive when given, the fault limit above the event's."""
+    late = None if t.feedback_timeout_s is None else v.number(
+        t.feedback_timeout_s, f"{key}.feedback_timeout_s", positive=True)
+    fault = None if t.feedback_fault_s is None else v.number(
+        t.feedback_fault_s, f"{key}.feedback_fault_s", positive=True)
+    if late is not None and fault is not None and fault <= late:
+        raise SpecError(v.source, f"{key}.feedback_fault_s", f"must be longer than feedback_timeout_s ({late:g} s)",
+                        fault)
+    return late, fault
 
 
 def _heartbeat(v: _Values, t: HeartbeatTable, key: str, options: Mapping[str, Any]) -> HeartbeatSpec:
@@ -342,11 +363,16 @@ def _actuator(v: _Values, t: ActuatorTable, i: int, buses: Mapping[str, BusSpec]
     gear = v.number(t.gear_ratio, f"{key}.gear_ratio", positive=True)
     if t.direction not in (1, -1):
         raise SpecError(v.source, f"{key}.direction", "must be 1 or -1", t.direction)
+    max_fe = None if t.max_following_error is None else scale * v.number(
+        t.max_following_error, f"{key}.max_following_error", positive=True)
+    fe_time = None if t.following_error_time_s is None else v.number(
+        t.following_error_time_s, f"{key}.following_error_time_s", positive=True)
     return ActuatorSpec(
         name=name, bus=t.bus, device_id=device_id, unit=unit, kind=kind,
         min=lo * scale, max=hi * scale, neutral=neutral * scale,
         max_velocity=vmax * scale, max_acceleration=amax * scale,
         counts_per_rev=cpr, gear_ratio=gear, direction=t.direction, zero_count=t.zero_count, options=dict(t.options),
+        max_following_error=max_fe, following_error_time_s=fe_time,
     )
 
 

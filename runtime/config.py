@@ -66,7 +66,7 @@ class SafetySettings:
     safe_speed: float = 0.25  # fraction of each actuator's max velocity for pose/neutral moves
     fault_action: str = "disable"  # after a fault: "disable" torque on every bus, or "hold" (stop commanding)
     estop_action: str = "disable"
-    feedback_timeout_s: float = 0.25  # a motor state older than this while active is a fault
+    feedback_timeout_s: float = 0.25  # default of each [buses.NAME] feedback_fault_s (feedback this old faults)
 
 
 @dataclass(frozen=True)

@@ -128,7 +128,8 @@ class Telemetry:
         return {"t": snap["t"], "lifecycle": snap["lifecycle"], "mode": snap["mode"],
                 "commanded": self.units.named(snap["commanded_si"]), "measured": self.units.named(snap["measured_si"]),
                 "buses": snap["buses"], "connected": snap["connected"], "connection": snap.get("connection", {}),
-                "feedback_age_s": snap["feedback_age"]}
+                "feedback_age_s": snap["feedback_age"],
+                "following_error": self.units.named(snap["following_error_si"])}
 
     def status(self, body: Body) -> Body:
         """A ``status`` reply from the core's answer: units, the loop's statistics and realtime state."""

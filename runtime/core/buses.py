@@ -1,8 +1,8 @@
 """The read stage: every bus's latest feedback (a snapshot the runner took without blocking) taken into the core.
 
-:class:`BusesState` keeps the measured positions with their stamps and, per bus, its lifecycle state, connection
-and device faults; :func:`read` takes a cycle's feedback in and :func:`announce_connections` publishes connection
-changes.
+:class:`BusesState` keeps the measured positions and, per bus, when its devices last reported, its lifecycle state,
+connection and device faults; :func:`read` takes a cycle's feedback in and :func:`announce_connections` publishes
+connection changes.
 The lifecycle's supervision judges this feedback (:func:`runtime.core.lifecycle.supervise`).
 """
 
@@ -32,11 +32,12 @@ class ConnectionInfo:
 
 @dataclass
 class BusesState:
-    """The latest feedback: measured positions (SI, NaN before any) and when each was sampled; per bus its state,
-    connection, device faults, connection details and the connection state already announced."""
+    """The latest feedback: measured positions (SI, NaN before any); per bus when its devices last reported (the
+    oldest of their newest samples, monotonic; -inf before any), its state, connection, device faults, connection
+    details and the connection state already announced."""
 
     measured: np.ndarray
-    stamps: np.ndarray
+    reported: dict[str, float]
     states: dict[str, str]
     connected: dict[str, bool]
     faults: dict[str, dict[str, tuple[int, str]]]
@@ -47,7 +48,7 @@ class BusesState:
     def initial(cls, params: CoreParams) -> BusesState:
         """Nothing measured yet; every bus unconfigured and not connected."""
         n = len(params.names)
-        return cls(measured=np.full(n, np.nan), stamps=np.full(n, -np.inf),
+        return cls(measured=np.full(n, np.nan), reported={b: -np.inf for b, _ in params.buses},
                    states={b: "unconfigured" for b, _ in params.buses},
                    connected={b: False for b, _ in params.buses}, faults={b: {} for b, _ in params.buses})
 
@@ -65,7 +66,7 @@ def read(fb: BusesState, params: CoreParams, buses: tuple[BusInput, ...], t: flo
     """Take each bus's feedback in (``buses`` in the order of ``params.buses``)."""
     for (name, idx), bus in zip(params.buses, buses, strict=True):
         fb.measured[idx] = bus.positions
-        fb.stamps[idx] = bus.stamp
+        fb.reported[name] = bus.stamp
         fb.states[name] = bus.state
         fb.connected[name] = bus.connected
         fb.faults[name] = bus.faults

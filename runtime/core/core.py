@@ -8,7 +8,9 @@ A cycle runs its stages in order, each a small system with its own part of the s
   system whose state they change, and the outcomes of bus lifecycle requests (enable, disable, reset run in the bus
   processes, asynchronously);
 - **lifecycle** (:mod:`~runtime.core.lifecycle`): settle the bus transition under way; supervise the feedback (bus
-  states, disconnections and stale feedback become faults);
+  states and disconnections become faults);
+- **watch** (:mod:`~runtime.core.watch`), while commanding: each bus's feedback age (an event when late, a fault
+  when too late) and each actuator's following error (a fault when it stays too large);
 - **chase** (:mod:`~runtime.core.chasing`): the timecode chase places its clip;
 - **sources** (:mod:`~runtime.core.sources`): the active source (clip, stream, live values, pose, neutral, hold)
   gives a channel vector or actuator targets;
@@ -29,7 +31,7 @@ from typing import assert_never
 
 import numpy as np
 
-from runtime.core import buses, chasing, guard, lifecycle, recorder, shape, solve, sources, status
+from runtime.core import buses, chasing, guard, lifecycle, recorder, shape, solve, sources, status, watch
 from runtime.core import commands as C
 from runtime.core.cycle import CycleInputs, CycleOutputs
 from runtime.core.events import Body
@@ -56,12 +58,15 @@ def step(state: CoreState, params: CoreParams, inputs: CycleInputs) -> CycleOutp
         lifecycle.bus_result(state.life, out, t, *result)
     _settle(state, params, out, t)
     trouble = lifecycle.supervise(state.life, state.feedback, params, t)
+    if trouble is None and state.life.commanding:
+        trouble = _watch(state, params, out, t)
     if trouble is not None:
         _enter_fault(state, params, out, t, trouble)
     if state.chase is not None:
         chasing.follow(state.chase, state.sources, state.life, out, t)
     if state.life.commanding:
         _control(state, params, out, t)
+        watch.post(state.watch, out.write)
     recorder.record(state.recorder, params, out, t, state.shaper.q, state.feedback.measured)
     state.cycle += 1
     if state.cycle % params.telemetry_every == 0:
@@ -93,6 +98,15 @@ def _control(state: CoreState, params: CoreParams, out: CycleOutputs, t: float) 
     except Exception as exc:  # a failing solver or a bug: nothing is written, the head faults, replies stand
         out.write = None
         fault(state, params, out, t, "control loop", f"control cycle failed: {type(exc).__name__}: {exc}")
+
+
+def _watch(state: CoreState, params: CoreParams, out: CycleOutputs, t: float) -> lifecycle.Trouble | None:
+    """The feedback's age per bus, then each actuator's following error (:mod:`~runtime.core.watch`)."""
+    w, wp, fb = state.watch, params.watch, state.feedback
+    ages = watch.feedback_ages(fb.reported, t, state.life.enabled_at)
+    found = watch.check_feedback(w, wp, params.buses, ages, out, t) or watch.check_following(
+        w, wp, params.names, params.buses, params.bus_of, ages, fb.measured, params.scale, params.units, t)
+    return None if found is None else lifecycle.Trouble(found.source, found.message, found.bus, found.actuator)
 
 
 def solve_channels(state: CoreState, params: CoreParams, out: CycleOutputs, values: np.ndarray) -> np.ndarray:
@@ -203,9 +217,10 @@ def _enter_fault(state: CoreState, params: CoreParams, out: CycleOutputs, t: flo
 
 
 def _halt(state: CoreState) -> None:
-    """Every source stops and the solvers and the guard start afresh (fault, e-stop, reset)."""
+    """Every source stops and the solvers, the guard and the watch start afresh (enable, fault, e-stop, reset)."""
     sources.stop_motion(state.sources)
     _restart_solvers(state)
+    state.watch.restart()
 
 
 def _restart_solvers(state: CoreState) -> None:

@@ -31,15 +31,17 @@ class LifecycleChanged:
 class Fault:
     """Why the head entered FAULT: what found it, its message, the bus (if one), and every device fault then."""
 
-    source: str  # "bus", "driver", "timeout", "control loop"
+    source: str  # "bus", "driver", "timeout", "following_error", "control loop"
     message: str
     t: float
     bus: str | None
     faults: dict[str, list[int | str]]  # "bus/device" → [code, message]
+    actuator: str | None = None  # the actuator that stopped following ("following_error")
 
     def info(self) -> Body:
         """The fault as status replies report it."""
-        return {"source": self.source, "message": self.message, "t": self.t, "bus": self.bus, "faults": self.faults}
+        return {"source": self.source, "message": self.message, "t": self.t, "bus": self.bus,
+                "actuator": self.actuator, "faults": self.faults}
 
     def as_dict(self) -> Body:
         """The ``fault`` event."""
@@ -73,6 +75,24 @@ class BusConnectionChanged:
         """The ``bus_link`` event."""
         return {"event": "bus_link", "t": self.t, "bus": self.bus, "state": self.state, "previous": self.previous,
                 "attempts": self.attempts, "retry_in_s": self.retry_in_s}
+
+
+@dataclass(frozen=True)
+class FeedbackLate:
+    """A bus's devices have not reported for longer than ``[buses.NAME] feedback_timeout_s`` (``state`` ``late``,
+    ``age`` the age then), or have reported within it again for a while (``recovered``, ``age`` the largest age
+    seen)."""
+
+    t: float
+    bus: str
+    state: str  # "late" or "recovered"
+    age: float
+    limit: float
+
+    def as_dict(self) -> Body:
+        """The ``feedback_late`` event."""
+        return {"event": "feedback_late", "t": self.t, "bus": self.bus, "state": self.state, "age": self.age,
+                "limit": self.limit}
 
 
 @dataclass(frozen=True)
@@ -187,5 +207,6 @@ class RecordStopped:
 
 
 #: Every event the core publishes.
-Event: TypeAlias = (LifecycleChanged | Fault | EStopped | BusConnectionChanged | BusRequestFailed | ClipPlaying
-                    | ClipFinished | Watchdog | DroppedFrames | TimecodeChanged | RecordStarted | RecordStopped)
+Event: TypeAlias = (LifecycleChanged | Fault | EStopped | BusConnectionChanged | FeedbackLate | BusRequestFailed
+                    | ClipPlaying | ClipFinished | Watchdog | DroppedFrames | TimecodeChanged | RecordStarted
+                    | RecordStopped)

@@ -13,8 +13,6 @@ import enum
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
-import numpy as np
-
 from models import errors as E
 from runtime.core import commands as C
 from runtime.core.buses import BusesState
@@ -71,11 +69,12 @@ class LifecycleState:
 
 
 class Trouble(NamedTuple):
-    """What supervision found wrong: what found it, the message, the bus (if one)."""
+    """What supervision found wrong: what found it, the message, the bus (if one), the actuator (if one)."""
 
     source: str
     message: str
     bus: str | None
+    actuator: str | None = None
 
 
 def set_lifecycle(life: LifecycleState, out: CycleOutputs, t: float, new: Lifecycle) -> None:
@@ -125,7 +124,7 @@ def enter_fault(life: LifecycleState, fb: BusesState, params: CoreParams, out: C
     unconfigured."""
     if life.lifecycle in (Lifecycle.FAULT, Lifecycle.ESTOP, Lifecycle.UNCONFIGURED):
         return False
-    life.fault = Fault(trouble.source, trouble.message, t, trouble.bus, fb.fault_table())
+    life.fault = Fault(trouble.source, trouble.message, t, trouble.bus, fb.fault_table(), trouble.actuator)
     fail_transition(life, out, E.Faulted(f"fault: {trouble.message}"))
     set_lifecycle(life, out, t, Lifecycle.FAULT)
     out.emit(life.fault)
@@ -151,8 +150,7 @@ def enter_estop(life: LifecycleState, fb: BusesState, params: CoreParams, out: C
 
 def supervise(life: LifecycleState, fb: BusesState, params: CoreParams, t: float) -> Trouble | None:
     """Judge the feedback of an active or inactive head with no transition under way: every bus connected (a lost
-    bus faults, naming it); a device fault with torque off faults too; when active, every bus active and feedback
-    fresh."""
+    bus faults, naming it); a device fault with torque off faults too; when active, every bus active."""
     if life.lifecycle not in (Lifecycle.ACTIVE, Lifecycle.INACTIVE) or life.transition is not None:
         return None
     active = life.lifecycle is Lifecycle.ACTIVE
@@ -166,18 +164,7 @@ def supervise(life: LifecycleState, fb: BusesState, params: CoreParams, t: float
         state = fb.states[name]
         if (state != "active") if active else (state == "fault"):
             return Trouble("driver", f"bus {name}: {fb.fault_detail(name)}", name)
-    if not active:
-        return None
-    timeout = params.cfg.safety.feedback_timeout_s
-    if t - life.enabled_at > timeout:
-        stale = np.flatnonzero(t - fb.stamps > timeout)
-        if stale.size:
-            names = ", ".join(params.names[i] for i in stale[:6])
-            buses = [b for b, idx in params.buses if np.isin(idx, stale).any()]
-            where = f"bus {buses[0]}: " if len(buses) == 1 else ""
-            return Trouble("timeout", f"{where}no fresh feedback for {timeout:g} s from {names}",
-                           buses[0] if len(buses) == 1 else None)
-    return None
+    return None  # when active, the feedback's age and the following errors are the watch's (runtime.core.watch)
 
 
 # ---------------------------------------------------------------------- transitions

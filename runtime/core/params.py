@@ -13,6 +13,7 @@ from runtime.config import DaemonConfig
 from runtime.core.channels import ChannelMap
 from runtime.core.chase import ChaseParams
 from runtime.core.guard import StrainLimiter
+from runtime.core.watch import WatchParams
 
 
 @dataclass(frozen=True)
@@ -24,6 +25,9 @@ class CoreParams:
     period: float
     buses: tuple[tuple[str, np.ndarray], ...]  # bus name → indices of its actuators, in the bus's order
     channels: ChannelMap
+    watch: WatchParams  # feedback age and following error limits
+    units: tuple[str, ...]  # each actuator's config unit (messages)
+    bus_of: tuple[str, ...]  # each actuator's bus
     cfg: DaemonConfig
     telemetry_every: int
     record_capacity: int
@@ -37,10 +41,13 @@ class CoreParams:
         """The parameters of ``head`` run with ``cfg``; ``bus_order``: each bus's actuators in the bus's order."""
         index = {n: i for i, n in enumerate(head.actuator_names)}
         rt = cfg.runtime
+        period = 1.0 / rt.rate_hz
         return cls(
             names=head.actuator_names, scale=np.array([a.unit_scale for a in head.actuators]),
-            period=1.0 / rt.rate_hz,
+            period=period,
             buses=tuple((b, np.array([index[m] for m in motors], dtype=np.intp)) for b, motors in bus_order),
-            channels=channels, cfg=cfg, telemetry_every=max(1, round(rt.rate_hz / rt.telemetry_hz)),
+            channels=channels, watch=WatchParams.build(head, cfg, tuple(b for b, _ in bus_order), period),
+            units=tuple(a.unit for a in head.actuators), bus_of=tuple(a.bus for a in head.actuators), cfg=cfg,
+            telemetry_every=max(1, round(rt.rate_hz / rt.telemetry_hz)),
             record_capacity=int(rt.record_max_s * rt.rate_hz) + 1, guard=guard, chase=chase,
         )

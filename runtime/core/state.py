@@ -21,6 +21,7 @@ from runtime.core.shape import make_shaper
 from runtime.core.solve import SolveState
 from runtime.core.solvers import ArrayTargetSolver
 from runtime.core.sources import Mode, SourcesState
+from runtime.core.watch import WatchState
 from runtime.safety import SafetyFilter
 from runtime.shaper import Shaper
 from runtime.timeline import Timeline
@@ -38,6 +39,7 @@ class CoreState:
     recorder: RecorderState
     safety: SafetyFilter  # limits, groups, neutral (stateless use: constrain against the shaper's command)
     shaper: Shaper  # commanded position, velocity and acceleration (jerk-limited, ruckig)
+    watch: WatchState  # feedback age and following error: what was posted, since when an error is exceeded
     chase: Chase | None = None  # timecode chase, when a timecode input is configured
     cycle: int = 0
 
@@ -48,6 +50,7 @@ class CoreState:
             life=LifecycleState(), feedback=BusesState.initial(params), sources=SourcesState.initial(params),
             solve=SolveState(list(solvers)), guard=GuardState(), recorder=RecorderState(),
             safety=SafetyFilter(head), shaper=make_shaper(head, params.period),
+            watch=WatchState.initial(len(params.names)),
             chase=None if params.chase is None else Chase(params.chase),
         )
 

@@ -11,6 +11,7 @@ from runtime.core.events import Body
 from runtime.core.params import CoreParams
 from runtime.core.sources import Mode
 from runtime.core.state import CoreState
+from runtime.core.watch import feedback_ages
 
 
 def snapshot(state: CoreState, params: CoreParams, t: float) -> Body:
@@ -22,8 +23,8 @@ def snapshot(state: CoreState, params: CoreParams, t: float) -> Body:
         "buses": dict(fb.states), "connected": dict(fb.connected),
         "connection": {name: info.as_dict() for name, info in fb.connections.items()},
         "guard": {"verdict": state.guard.verdict, "refused": state.guard.refused},
-        "feedback_age": {name: float(t - fb.stamps[idx].max()) if idx.size else 0.0
-                         for name, idx in params.buses},
+        "feedback_age": dict(zip(fb.reported, feedback_ages(fb.reported, t, -np.inf), strict=True)),
+        "following_error_si": state.watch.peak_error.copy(),
     }
     pb = src.timeline.playback
     if pb is not None:

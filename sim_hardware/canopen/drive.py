@@ -183,6 +183,8 @@ class EmulatedDrive:
         self._velocity_filtered = 0.0
         self._network: canopen.Network | None = None
         self.heartbeat_enabled = True
+        self.feedback_frozen = False  # fault injection: SYNCs ignored, so no TPDOs (the drive stops reporting)
+        self._stuck_at: float | None = None  # fault injection: the reported position stays here (slipping output)
         self._next_heartbeat = 0.0
         self.emcy_log: list[int] = []
         self._reset_profile_state()
@@ -216,6 +218,11 @@ class EmulatedDrive:
     @property
     def jammed(self) -> bool:
         return self._motor.jammed
+
+    @property
+    def slipping(self) -> bool:
+        """Whether the reported position is stuck (:meth:`set_slipping`)."""
+        return self._stuck_at is not None
 
     # ------------------------------------------------------------------ life cycle
     def _reset_profile_state(self) -> None:
@@ -330,7 +337,7 @@ class EmulatedDrive:
         if index == 0x6041:
             return self._statusword()
         if index == 0x6064:
-            return _clamp_i32(round(self._motor.position))
+            return _clamp_i32(round(self._motor.position if self._stuck_at is None else self._stuck_at))
         if index == 0x606C:
             return _clamp_i32(round(self._velocity_filtered))
         if index == 0x6062:
@@ -553,6 +560,13 @@ class EmulatedDrive:
             if jammed:
                 self._motor.velocity = 0.0
 
+    def set_slipping(self, slipping: bool) -> None:
+        """A slipping output stage (a load-side encoder behind a slipping coupling): the reported position actual
+        (0x6064) stays where it is while the motor keeps following its demand, so the drive itself sees no following
+        error; only the master can tell."""
+        with self._lock:
+            self._stuck_at = self._motor.position if slipping else None
+
     # ------------------------------------------------------------------ PDOs
     def _reload_pdos(self) -> None:
         """Decode the PDO records and (re)subscribe the RPDO COB-IDs."""
@@ -600,7 +614,7 @@ class EmulatedDrive:
         return b"".join(self.node.get_data(i, s) for i, s, _ in pdo.entries)
 
     def _on_sync(self, can_id: int, data: bytes, timestamp: float) -> None:
-        if self.node.nmt._state != NMT_OPERATIONAL:
+        if self.node.nmt._state != NMT_OPERATIONAL or self.feedback_frozen:
             return
         with self._lock:
             if self._pdo_dirty:

@@ -168,6 +168,8 @@ class DriveSet:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.overruns = 0
+        self._physics_lock = threading.Lock()
+        self._physics_t = 0.0  # time.monotonic() the motion has been stepped to
 
     # ------------------------------------------------------------------ life cycle
     def start(self) -> DriveSet:
@@ -178,6 +180,10 @@ class DriveSet:
         net = _EmulatorNetwork(bus, self._seed)
         net.connect()
         self.network = net
+        self._physics_t = time.monotonic()
+        # Before the drives' own SYNC handlers: the motion is brought up to date, so the TPDOs a SYNC triggers report
+        # where the drives are now even when the physics thread has been waiting for a CPU.
+        net.subscribe(0x80, self._on_sync)
         for drive in self.drives.values():
             drive.attach(net)
         for drive in self.drives.values():
@@ -205,22 +211,31 @@ class DriveSet:
     def __exit__(self, *exc: object) -> None:
         self.stop()
 
+    def advance(self, now: float) -> None:
+        """Step every drive's motion up to ``now`` (at most :data:`MAX_CATCHUP_STEPS` steps; time beyond that is
+        dropped and counted in ``overruns``)."""
+        dt = 1.0 / self.physics_hz
+        with self._physics_lock:
+            steps = int((now - self._physics_t) / dt)
+            if steps > self.MAX_CATCHUP_STEPS:
+                self.overruns += 1
+                self._physics_t = now - self.MAX_CATCHUP_STEPS * dt
+                steps = self.MAX_CATCHUP_STEPS
+            if steps > 0:
+                for drive in self.drives.values():
+                    drive.step(dt, steps)
+                self._physics_t += steps * dt
+
+    def _on_sync(self, can_id: int, data: bytes, timestamp: float) -> None:
+        self.advance(time.monotonic())
+
     def _run(self) -> None:
         dt = 1.0 / self.physics_hz
         drives = list(self.drives.values())
-        last = time.monotonic()
-        deadline = last
+        deadline = time.monotonic()
         while not self._stop.is_set():
             now = time.monotonic()
-            steps = int((now - last) / dt)
-            if steps > self.MAX_CATCHUP_STEPS:
-                self.overruns += 1
-                last = now - self.MAX_CATCHUP_STEPS * dt
-                steps = self.MAX_CATCHUP_STEPS
-            if steps:
-                for drive in drives:
-                    drive.step(dt, steps)
-                last += steps * dt
+            self.advance(now)
             net = self.network
             if net is None:
                 break
@@ -286,7 +301,9 @@ class DriveSet:
                 self.network.impairment = LinkImpairment()
             for drive in self.drives.values():
                 drive.heartbeat_enabled = True
+                drive.feedback_frozen = False
                 drive.set_jammed(False)
+                drive.set_slipping(False)
             return {}
         if fault == "status":
             return {"drives": self.status()}
@@ -304,6 +321,13 @@ class DriveSet:
             drive.set_jammed(True)
         elif fault == "release":
             drive.set_jammed(False)
+            drive.set_slipping(False)
+        elif fault == "freeze_feedback":
+            drive.feedback_frozen = True
+        elif fault == "resume_feedback":
+            drive.feedback_frozen = False
+        elif fault == "slip":
+            drive.set_slipping(True)
         elif fault == "following_error":
             counts = float(params.pop("counts", 2 * drive._fe_window))
             drive.set_jammed(True, offset_counts=counts)
@@ -336,6 +360,8 @@ class DriveSet:
                 "velocity_counts": d.velocity_counts,
                 "heartbeat": d.heartbeat_enabled,
                 "jammed": d.jammed,
+                "feedback_frozen": d.feedback_frozen,
+                "slipping": d.slipping,
             }
             for n, d in self.drives.items()
         }
@@ -347,10 +373,13 @@ FAULTS: dict[str, str] = {
     "resume_heartbeat": "device=N: heartbeats resume",
     "drive_fault": "device=N [code=0x1000]: the drive faults and sends EMCY code",
     "jam": "device=N: the rotor is blocked (following error builds up when it is commanded to move)",
-    "release": "device=N: unblock the rotor",
+    "release": "device=N: unblock the rotor and end a slip",
+    "freeze_feedback": "device=N: the drive ignores SYNCs: no TPDOs, no new targets (heartbeat and SDO go on)",
+    "resume_feedback": "device=N: TPDOs resume",
+    "slip": "device=N: the reported position stays where it is while the motor follows (the drive sees no error)",
     "following_error": "device=N [counts=2*window]: the rotor is knocked off by counts and blocked",
     "frames": "[drop=P] [corrupt=P] [delay_ms=D] [direction=tx|rx|both] [device=N] [seed=S]: link faults",
-    "clear": "remove link faults, jams and heartbeat stops",
+    "clear": "remove link faults, jams, slips, frozen feedback and heartbeat stops",
     "status": "report every drive's state",
 }
 
