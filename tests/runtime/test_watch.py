@@ -9,6 +9,7 @@ import math
 import numpy as np
 import pytest
 
+from models.clip import clip_from_dict
 from models.errors import ConfigError
 from models.headspec import head_from_dict, load_head
 from runtime.config import daemon_config
@@ -17,7 +18,6 @@ from runtime.core.clips import bind_clip
 from runtime.core.cycle import BusInput
 from runtime.core.lifecycle import Lifecycle
 from runtime.core.watch import FOLLOWING_ERROR_TIME_S, LATE_PERIODS, WatchParams, following_errors
-from runtime.curves import clip_from_dict
 from tests.runtime.test_core import CLIP, HEAD, SAMPLE, Rig
 
 SWEEP = {"name": "sweep", "channels": {
