@@ -209,6 +209,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(importlib.import_module(args.likeness_module).run(args) or 0)
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:  # the reader went away (``likeness status | head``): stop quietly, as Unix tools do
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     except Exception as exc:
         if not reported(exc):
             raise

@@ -35,12 +35,21 @@ def run(args: argparse.Namespace) -> int:
     if tl.get("clip"):
         print(f"clip {tl['clip']} at {tl['time'] or 0:.2f}/{tl['duration']:.2f} s"
               f"{' (paused)' if tl['paused'] else ''}{' (finished)' if tl['finished'] else ''}")
-    print(f"{'actuator':<20}{'commanded':>12}{'measured':>12}")
+    ages = st.get("feedback_age_s") or {}
+    if ages:
+        print("feedback age " + "  ".join(f"{bus} {_ms(age)}" for bus, age in ages.items()))
+    following = st.get("following_error") or {}
+    print(f"{'actuator':<20}{'commanded':>12}{'measured':>12}{'peak error':>12}")
     for name, cmd in st["commanded"].items():
         meas = st["measured"].get(name)
-        print(f"{name:<20}{_fmt(cmd):>12}{_fmt(meas):>12}")
+        print(f"{name:<20}{_fmt(cmd):>12}{_fmt(meas):>12}{_fmt(following.get(name)):>12}")
     return 0
 
 
 def _fmt(x: float | None) -> str:
     return "-" if x is None else f"{x:.3f}"
+
+
+def _ms(age: float | None) -> str:
+    """A feedback age as milliseconds ("-" before the first report)."""
+    return "-" if age is None or age != age or age == float("inf") else f"{age * 1e3:.0f} ms"

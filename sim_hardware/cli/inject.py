@@ -46,7 +46,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.description = __doc__
     parser.add_argument("--control", required=True, metavar="ENDPOINT", help="emulator control endpoint (ZeroMQ)")
     parser.add_argument("--timeout", type=float, default=2.0, help="seconds to wait for the answer (default 2)")
-    parser.add_argument("fault", help="fault name, e.g. stop_heartbeat, drive_fault, frames, clear, status")
+    parser.add_argument("fault", help="fault name, e.g. stop_heartbeat, drive_fault, freeze_feedback, slip, frames, "
+                        "clear, status (docs/operations.md lists each emulator's faults)")
     parser.add_argument("params", nargs="*", metavar="KEY=VALUE", help="fault parameters")
 
 
