@@ -13,11 +13,38 @@ from models.clip import Clip
 
 
 @dataclass
+class FeedbackSeen:
+    """What one performance showed of the buses' feedback: the largest feedback age per bus (from the state
+    messages and the ``feedback_late`` events) and how often each bus was reported late."""
+
+    max_age: dict[str, float] = field(default_factory=dict)
+    late: dict[str, int] = field(default_factory=dict)
+    limit: dict[str, float] = field(default_factory=dict)
+
+    def take(self, topic: str, body: Mapping[str, Any]) -> None:
+        """Fold one telemetry message in."""
+        ages: Mapping[str, Any] = {}
+        if topic == "state":
+            ages = body.get("feedback_age_s") or {}
+        elif topic == "event" and body.get("event") == "feedback_late":
+            bus = str(body["bus"])
+            ages = {bus: body.get("age")}
+            self.limit[bus] = float(body.get("limit", 0.0))
+            if body.get("state") == "late":
+                self.late[bus] = self.late.get(bus, 0) + 1
+        for bus, age in ages.items():
+            if isinstance(age, int | float) and age == age and age != float("inf"):
+                self.max_age[bus] = max(self.max_age.get(bus, 0.0), float(age))
+
+
+@dataclass
 class DemoRun:
-    """What the performance left: each played clip with its recording's ``record stop`` reply, the daemon's last
-    status, and the fault or e-stop event that cut it short (None when every clip played)."""
+    """What the performance left: each played clip with its recording's ``record stop`` reply and what its buses'
+    feedback showed, the daemon's last status, and the fault or e-stop event that cut it short (None when every
+    clip played)."""
 
     recordings: list[tuple[Clip, dict[str, Any]]] = field(default_factory=list)
+    feedback: dict[str, FeedbackSeen] = field(default_factory=dict)
     status: dict[str, Any] = field(default_factory=dict)
     fault: dict[str, Any] | None = None
 
@@ -45,7 +72,8 @@ def play_performance(command_endpoint: str, telemetry_endpoint: str,
         client.call("enable")
         time.sleep(0.2)  # let the telemetry subscription settle
         for data, clip in clips:
-            result.fault = _play(client, tel, data, clip, say)
+            seen = result.feedback[clip.name] = FeedbackSeen()
+            result.fault = _play(client, tel, data, clip, say, seen)
             rec_reply = client.call("record", action="stop")
             if result.fault is not None:
                 break
@@ -57,8 +85,9 @@ def play_performance(command_endpoint: str, telemetry_endpoint: str,
 
 
 def _play(client: Client, tel: Telemetry, data: Mapping[str, Any], clip: Clip,
-          say: Callable[..., None]) -> dict[str, Any] | None:
-    """Load, record and play one clip with a progress bar; returns the fault or e-stop event that cut it short."""
+          say: Callable[..., None], seen: FeedbackSeen) -> dict[str, Any] | None:
+    """Load, record and play one clip with a progress bar, watching the buses' feedback age (``seen``); returns the
+    fault or e-stop event that cut it short."""
     reply = client.call("load_clip", clip=data)
     say(f"performance {clip.name!r}: {reply['duration']:.2f} s, {len(reply['channels'])} channels, "
         f"{reply['keys']} keys")
@@ -67,11 +96,17 @@ def _play(client: Client, tel: Telemetry, data: Mapping[str, Any], clip: Clip,
     duration = reply["duration"]
     shown = -1
     while True:
+        stop = None
         msg = tel.recv(0.5)
+        while msg is not None:  # every message that came meanwhile, so no late event goes unseen
+            seen.take(msg[0], msg[1])
+            if msg[0] == "event" and msg[1]["event"] in ("fault", "estop") and stop is None:
+                stop = msg[1]
+            msg = tel.recv(0.0)
         now = client.call("clock")["t_send"]
-        if msg is not None and msg[0] == "event" and msg[1]["event"] in ("fault", "estop"):
+        if stop is not None:
             say()
-            return msg[1]
+            return stop
         pct = int(min(1.0, max(0.0, (now - start) / duration)) * 100)
         if pct // 5 != shown:
             shown = pct // 5

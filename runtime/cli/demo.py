@@ -64,8 +64,11 @@ def run(args: argparse.Namespace) -> int:
     finally:
         daemon.stop()
     if result.fault is not None:
-        print(f"performance stopped by {result.fault['event']}: "
-              f"{result.fault.get('message') or result.fault.get('reason')}")
+        why = result.fault.get("message") or result.fault.get("reason")
+        if result.fault.get("source") == "timeout":
+            print(f"FEEDBACK FROZE: {why}", file=sys.stderr)
+        print(f"performance stopped by {result.fault['event']}: {why}")
+        _print_feedback(result)
         return 1
     _print_results(head, result, args.out)
     return 0
@@ -80,6 +83,7 @@ def _print_results(head: HeadSpec, result: DemoRun, out: Path) -> None:
         rec = load_recording(rec_reply["path"])
         print(f"tracking error of {clip.name!r} (commanded vs measured):")
         print_errors(tracking_errors(rec, settle_s=0.0))
+        _print_feedback(result, clip.name)
         png = plot_recording(rec, out / f"{clip.name}.png", title=f"{head.name}: {clip.name} — commanded vs measured")
         print(f"recording: {rec_reply['path']} ({rec_reply['samples']} samples)\nplot: {png}")
     status: dict[str, Any] = result.status
@@ -92,3 +96,16 @@ def _print_results(head: HeadSpec, result: DemoRun, out: Path) -> None:
           f"p50 {loop.get('jitter_p50_us', 0):.1f} us, p99 {loop.get('jitter_p99_us', 0):.1f} us, max "
           f"{loop.get('jitter_max_us', 0):.1f} us; cycle work p50 {loop.get('work_p50_us', 0):.0f} us, "
           f"p99 {loop.get('work_p99_us', 0):.0f} us")
+
+
+def _print_feedback(result: DemoRun, only: str | None = None) -> None:
+    """Per performance, the largest feedback age of each bus and how often it was reported late."""
+    for name, seen in result.feedback.items():
+        if only is not None and name != only:
+            continue
+        ages = ", ".join(f"{bus} {age * 1e3:.0f} ms" for bus, age in sorted(seen.max_age.items())) or "none seen"
+        line = f"feedback of {name!r}: largest age {ages}"
+        if seen.late:
+            line += "; late: " + ", ".join(f"{bus} {n}x (limit {seen.limit.get(bus, 0) * 1e3:.0f} ms)"
+                                           for bus, n in sorted(seen.late.items()))
+        print(line)

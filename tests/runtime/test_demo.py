@@ -17,6 +17,8 @@ def test_demo_plays_the_performance_and_writes_a_plot(tmp_path: Path) -> None:
                          text=True, timeout=120, env=env, cwd=tmp_path)
     assert out.returncode == 0, out.stdout + out.stderr
     assert "100%" in out.stdout and "tracking error" in out.stdout and "missed deadlines" in out.stdout
+    # Each performance says how fresh its buses' feedback stayed.
+    assert "feedback of 'expressive': largest age can0 " in out.stdout and " dxl " in out.stdout
     png = tmp_path / "expressive.png"
     assert png.read_bytes()[:4] == b"\x89PNG"
     rec = load_recording(tmp_path / "expressive.lrec")
