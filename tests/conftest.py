@@ -20,11 +20,29 @@ from pathlib import Path
 import pytest
 
 EXCLUSIVE = "exclusive"
+#: Modules whose every test is exclusive (a test elsewhere can say so with ``@pytest.mark.exclusive``): emulated
+#: buses with tight timeouts, daemons with their emulators, timing and realtime-priority checks, fixed ports, the
+#: browser.
+EXCLUSIVE_MODULES = frozenset({
+    "calibration/test_calib_daemon.py", "calibration/test_calib_hardware.py",
+    "drivers/test_canopen402.py", "drivers/test_dynamixel.py",
+    "runtime/inputs/test_examples.py", "runtime/inputs/test_inputs_e2e.py", "runtime/inputs/test_sacn_multicast.py",
+    "runtime/test_api_server.py", "runtime/test_bus_reconnect.py", "runtime/test_buslink.py",
+    "runtime/test_daemon_e2e.py", "runtime/test_demo.py", "runtime/test_fuzz.py", "runtime/test_heartbeat_loss.py",
+    "runtime/test_link_telemetry.py", "runtime/test_protocol_fuzz.py", "runtime/test_recording_cli.py",
+    "runtime/test_security_cli.py", "runtime/test_skin_channels.py",
+    "sim_hardware/test_canopen_emulator.py", "sim_hardware/test_canopen_socketcand.py",
+    "sim_hardware/test_dynamixel_cli.py", "sim_hardware/test_dynamixel_emulator.py",
+    "studio/test_browser.py",
+})
+TESTS = Path(__file__).resolve().parent
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Put every exclusive test in the one xdist group that a single worker runs."""
+    """Mark the exclusive modules' tests, and put every exclusive test in the one xdist group one worker runs."""
     for item in items:
+        if item.path.is_relative_to(TESTS) and item.path.relative_to(TESTS).as_posix() in EXCLUSIVE_MODULES:
+            item.add_marker(EXCLUSIVE)
         if item.get_closest_marker(EXCLUSIVE) is not None:
             item.add_marker(pytest.mark.xdist_group(EXCLUSIVE))
 

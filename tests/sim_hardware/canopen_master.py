@@ -7,7 +7,6 @@ from canopen.profiles.p402 import BaseNode402
 
 from sim_hardware.canopen.od import build_od
 
-
 #: How long the master waits for a drive to reach a state (s): canopen's own bounds (0.4-0.8 s) are for real drives
 #: on a dedicated bus, not for emulated ones on a loaded two-core host; each wait ends as soon as the state is seen.
 PATIENCE_S = 10.0
