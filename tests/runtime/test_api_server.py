@@ -93,7 +93,7 @@ def test_replies_carry_the_request_id_and_telemetry_flows(busless: Daemon) -> No
         if c.call("status")["lifecycle"] != "active":
             c.call("enable")
         assert c.request("pose", pose={"jaw": 3.0}, speed=1.0)["ok"]
-        msg = tel.wait_for(lambda t, m: t == "state" and m["lifecycle"] == "active" and m["loop"], 3.0)
+        msg = tel.wait_for(lambda t, m: t == "state" and m["lifecycle"] == "active" and m["loop"], 30)
         assert msg is not None and msg[1]["loop"]["rate_hz"] == 500.0
         raw = c.send_raw(msgpack.packb({"op": "pose", "id": "abc", "pose": {"nose": 1.0}}))
         assert raw["id"] == "abc" and raw["error"]["code"] == "unknown_channel"

@@ -76,7 +76,7 @@ def test_heartbeat_loss_faults_within_three_producer_periods(tmp_path, make_daem
             for attempt in range(3):
                 offset = time.time() - time.monotonic()
                 sim.inject("stop_heartbeat", device=NODE)
-                ev = tel.wait_for(lambda topic, m: m["event"] == "fault", 5.0)
+                ev = tel.wait_for(lambda topic, m: m["event"] == "fault", 30)
                 assert ev is not None, "no fault after the heartbeat stopped"
                 fault = ev[1]
                 if f"no heartbeat from node {NODE} " in fault["message"] or attempt == 2:

@@ -24,8 +24,8 @@ def test_state_telemetry_carries_link_poses_that_match_the_mechanism(make_daemon
             measured = c.call("status")["measured"]
             return all(abs(measured[n] - v) < 0.2 for n, v in goal.items())
 
-        assert wait_until(arrived, 10.0), c.call("status")["measured"]
-        hit = tel.wait_for(lambda topic, msg: "links" in msg and abs(msg["measured"]["jaw"] - goal["jaw"]) < 0.3, 3.0)
+        assert wait_until(arrived, 30), c.call("status")["measured"]
+        hit = tel.wait_for(lambda topic, msg: "links" in msg and abs(msg["measured"]["jaw"] - goal["jaw"]) < 0.3, 30)
         assert hit is not None, "no state message with link poses"
         state = hit[1]
         c.call("disable")

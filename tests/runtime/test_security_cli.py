@@ -90,7 +90,7 @@ def test_daemon_process_status_stream_estop_and_sigterm(tmp_path: Path) -> None:
             assert c.call("status")["lifecycle"] == "inactive"
         proc.send_signal(signal.SIGUSR1)  # the e-stop signal
         with Client(endpoint) as c:
-            assert wait_until(lambda: c.call("status")["lifecycle"] == "estop", 3.0)
+            assert wait_until(lambda: c.call("status")["lifecycle"] == "estop", 30)
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(timeout=20) == 0
         assert "daemon stopped" in proc.stdout.read()

@@ -155,7 +155,7 @@ def test_daemon_plays_blendshape_curves_through_the_predictor(tmp_path, head, ma
                 extras.append(msg["extra"])
             if topic == "event" and msg.get("event") == "clip" and msg.get("state") == "finished":
                 break
-        st = wait_until(lambda: (lambda s: s if not s["moving"] else None)(c.call("status")), 3.0)
+        st = wait_until(lambda: (lambda s: s if not s["moving"] else None)(c.call("status")), 30)
         assert st and st["fault"] is None
         assert st["commanded"]["jaw"] == pytest.approx(12.0, abs=1.0)
         assert st["commanded"]["upper_lip"] == pytest.approx(6.0, abs=1.0)

@@ -75,7 +75,7 @@ def test_osc_cue_system_example_moves_the_head(example_daemon) -> None:
         th.join(120.0)
         assert out and "cue sent" in out[0]
         assert peak > 5.0
-        assert wait_until(lambda: c.call("status")["lifecycle"] == "inactive", 20.0)  # the cue system disabled it
+        assert wait_until(lambda: c.call("status")["lifecycle"] == "inactive", 30)  # the cue system disabled it
 
 
 def test_sacn_console_example_moves_the_head_then_the_watchdog_takes_over(example_daemon) -> None:
@@ -92,7 +92,7 @@ def test_sacn_console_example_moves_the_head_then_the_watchdog_takes_over(exampl
             peak = _peak(tel, "jaw", 5.0)  # the console opens the jaw to 12 degrees
             th.join(120.0)
             assert peak > 6.0
-            assert wait_until(lambda: events.of("watchdog", stage="neutral", source="sacn"), 20.0)
+            assert wait_until(lambda: events.of("watchdog", stage="neutral", source="sacn"), 30)
         finally:
             events.close()
         c.call("disable")
