@@ -15,11 +15,12 @@ from typing import TypeVar
 T = TypeVar("T")
 
 
-def wait_until(predicate: Callable[[], T], timeout: float, what: str = "", interval: float = 0.01) -> T:
+def wait_until(predicate: Callable[[], T], timeout: float, what: str | Callable[[], str] = "",
+               interval: float = 0.01) -> T:
     """Poll ``predicate`` every ``interval`` s until it returns something truthy, and return that.
 
-    After ``timeout`` s raise ``AssertionError`` naming ``what`` (by default the source line of ``predicate``) and
-    the last value it returned.
+    After ``timeout`` s raise ``AssertionError`` naming ``what`` (by default the source line of ``predicate``; a
+    callable is asked at the timeout, to describe the state the test saw) and the last value ``predicate`` returned.
     """
     end = time.monotonic() + timeout
     while True:
@@ -27,7 +28,8 @@ def wait_until(predicate: Callable[[], T], timeout: float, what: str = "", inter
         if value:
             return value
         if time.monotonic() > end:
-            raise AssertionError(f"waited {timeout:g} s for {what or _source(predicate)}; last value: {value!r}")
+            said = what() if callable(what) else what
+            raise AssertionError(f"waited {timeout:g} s for {said or _source(predicate)}; last value: {value!r}")
         time.sleep(interval)
 
 

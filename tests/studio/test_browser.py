@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from models.client import Client, DaemonError, Telemetry
+from tests import _wait
 from tests.studio.conftest import wait_until
 
 pytestmark = pytest.mark.timeout(600)
@@ -174,7 +175,10 @@ def test_select_a_key_on_the_timeline_and_move_it(page: Any, studio: Any, image_
     assert wait_until(lambda: animate.time.value == pytest.approx(2.0), 30)  # the playhead goes to the key
     box = page.get_by_role("textbox", name="Key time (s)", exact=True)
     # The page shows the selected key before it is edited (a late update would overwrite the typed value).
-    assert wait_until(lambda: _number(box.input_value()) == 2.0, 30)
+    _wait.wait_until(lambda: _number(box.input_value()) == 2.0, 30, lambda: (
+        f"the key-time box to show 2.0; page: time box {box.input_value()!r}, key "
+        f"{page.get_by_role('combobox', name='Key', exact=True).input_value()!r}; studio: time {animate.key_t.value}, "
+        f"key {animate.key_pick.value!r}, selected {animate._selected}"))
     box.fill("1.5")
     box.press("Enter")
     assert wait_until(lambda: studio.doc.key_times("jaw") == [0.0, 1.5], 30)
