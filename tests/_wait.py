@@ -16,7 +16,7 @@ T = TypeVar("T")
 
 
 def wait_until(predicate: Callable[[], T], timeout: float, what: str | Callable[[], str] = "",
-               interval: float = 0.01) -> T:
+               interval: float = 0.02) -> T:
     """Poll ``predicate`` every ``interval`` s until it returns something truthy, and return that.
 
     After ``timeout`` s raise ``AssertionError`` naming ``what`` (by default the source line of ``predicate``; a

@@ -10,7 +10,8 @@ import math
 import pytest
 
 from models.client import Client, DaemonError, Telemetry
-from tests.runtime.conftest import enable_retrying, wait_until
+from tests._wait import wait_until
+from tests.runtime.conftest import enable_retrying
 
 
 def _status(c: Client) -> dict:

@@ -14,7 +14,7 @@ import pytest
 
 from models.client import Client, DaemonError, Telemetry
 from runtime.recording import load_recording, tracking_errors
-from tests.runtime.conftest import wait_until
+from tests._wait import wait_until
 
 CLIP = {
     "name": "probe",
@@ -116,7 +116,7 @@ def test_pause_resume_seek_and_pose(shared_daemon) -> None:
         assert wait_until(lambda: _status(c)["commanded"]["brow_l"] > 15.0, 30)
         reply = c.call("pose", pose={"jaw": 5.0, "blink": 10.0, "brow_l": 0.0}, speed=0.5)
         assert reply["targets"]["lid_r"] == pytest.approx(10.0)
-        assert wait_until(lambda: _pose_reached(c), 30), "pose not reached"
+        wait_until(lambda: _pose_reached(c), 30, "the pose reached")
         assert _arrives(d, c, "jaw", 5.0) and _arrives(d, c, "lid_l", 10.0)
         # Out-of-range pose values are clipped to the limits, never passed on.
         reply = c.call("pose", pose={"jaw": 500.0})

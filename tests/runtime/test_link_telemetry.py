@@ -9,7 +9,8 @@ import numpy as np
 from models.client import Client, Telemetry
 from models.headspec import load_head
 from sim_hardware.mechanism import sample_mechanism
-from tests.runtime.conftest import SAMPLE, wait_until
+from tests._wait import wait_until
+from tests.runtime.conftest import SAMPLE
 
 
 def test_state_telemetry_carries_link_poses_that_match_the_mechanism(make_daemon) -> None:
@@ -24,7 +25,7 @@ def test_state_telemetry_carries_link_poses_that_match_the_mechanism(make_daemon
             measured = c.call("status")["measured"]
             return all(abs(measured[n] - v) < 0.2 for n, v in goal.items())
 
-        assert wait_until(arrived, 30), c.call("status")["measured"]
+        wait_until(arrived, 30, lambda: f"every goal within 0.2; measured {c.call('status')['measured']}")
         hit = tel.wait_for(lambda topic, msg: "links" in msg and abs(msg["measured"]["jaw"] - goal["jaw"]) < 0.3, 30)
         assert hit is not None, "no state message with link poses"
         state = hit[1]

@@ -13,7 +13,8 @@ import pytest
 
 from likeness.cli import main
 from models.client import Client, DaemonTimeout, Telemetry
-from tests.runtime.conftest import ROOT, wait_until
+from tests._wait import wait_until
+from tests.runtime.conftest import ROOT
 
 PY = sys.executable
 

@@ -135,7 +135,7 @@ def test_predictor_without_face_units_or_for_another_head_is_refused(tmp_path, h
 
 def test_daemon_plays_blendshape_curves_through_the_predictor(tmp_path, head, make_daemon):
     from models.client import Client, Telemetry
-    from tests.runtime.conftest import wait_until
+    from tests._wait import wait_until
 
     # The sample's attachment distances belong to its own skin, not to this test predictor's grid.
     text = SAMPLE.read_text()

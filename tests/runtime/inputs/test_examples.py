@@ -14,7 +14,8 @@ from typing import Any
 import pytest
 
 from models.client import Client, Telemetry
-from tests.runtime.conftest import ROOT, daemon_overrides, wait_until
+from tests._wait import wait_until
+from tests.runtime.conftest import ROOT, daemon_overrides
 from tests.runtime.inputs.conftest import Events, enable, loopback_address, show_head, started
 
 EXAMPLES = ROOT / "examples" / "show_control"
