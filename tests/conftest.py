@@ -1,11 +1,13 @@
 """Suite-wide test setup: tests marked ``exclusive`` have the machine to themselves when pytest-xdist runs the suite.
 
-The default test command runs isolated tests on two xdist workers (``-n 2 --dist loadgroup``, pyproject's
-``addopts``). Tests that cannot share the machine (realtime loop timing, emulated buses with tight timeouts, daemons
-and their emulator processes, the browser) are marked ``exclusive``: they all go to one worker (xdist group
-``exclusive``, in collection order, so module fixtures are made once) and each runs under an exclusive lock that the
-other worker's tests take shared, so nothing else runs beside them. A turnstile lock keeps a waiting exclusive test
+The default test command runs the suite on two xdist workers, a test module at a time on one worker (``-n 2
+--dist loadfile``, pyproject's ``addopts``: module fixtures such as a daemon or the browser are made once). Tests that
+cannot share the machine (realtime loop timing, emulated buses with tight timeouts, daemons and their emulator
+processes, fixed ports, the browser) are marked ``exclusive``: each runs under an exclusive lock that the other
+worker's tests take shared, so nothing of the suite runs beside it. A turnstile lock keeps a waiting exclusive test
 from being starved by the shared ones. Without xdist (``-p no:xdist`` or ``-n 0``) nothing is locked.
+(xdist's ``loadgroup`` would keep the exclusive tests on one worker, but it marks groups by rewriting node ids, which
+pytest 9 no longer reads.)
 """
 
 from __future__ import annotations
@@ -39,12 +41,10 @@ TESTS = Path(__file__).resolve().parent
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Mark the exclusive modules' tests, and put every exclusive test in the one xdist group one worker runs."""
+    """Mark the exclusive modules' tests."""
     for item in items:
         if item.path.is_relative_to(TESTS) and item.path.relative_to(TESTS).as_posix() in EXCLUSIVE_MODULES:
             item.add_marker(EXCLUSIVE)
-        if item.get_closest_marker(EXCLUSIVE) is not None:
-            item.add_marker(pytest.mark.xdist_group(EXCLUSIVE))
 
 
 @contextmanager
