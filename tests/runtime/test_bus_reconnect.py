@@ -33,7 +33,7 @@ def _arrives(daemon, c: Client, name: str, want: float, tol: float = 0.5, timeou
 @pytest.mark.parametrize(("bus", "other", "actuator"), [("can0", "dxl", "jaw"), ("dxl", "can0", "brow_l")])
 def test_a_lost_bus_reconnects_after_its_emulator_restarts(make_daemon, bus: str, other: str, actuator: str) -> None:
     d = make_daemon()
-    with Client(d.command_endpoint, timeout=10) as c, Telemetry(d.telemetry_endpoint) as tel, \
+    with Client(d.command_endpoint, timeout=30) as c, Telemetry(d.telemetry_endpoint) as tel, \
             Telemetry(d.telemetry_endpoint, topics=(b"event",)) as events:
         sim = d.hw.emulator(bus)
         for attempt in range(2):

@@ -66,7 +66,7 @@ def test_heartbeat_loss_faults_within_three_producer_periods(tmp_path, make_daem
     sim = d.hw.emulator("can0")
     observer = _Observer(sim.options, NODE)
     try:
-        with Client(d.command_endpoint, timeout=10) as c, \
+        with Client(d.command_endpoint, timeout=30) as c, \
                 Telemetry(d.telemetry_endpoint, topics=(b"event",)) as tel:
             enable_retrying(c)
             time.sleep(1.2)

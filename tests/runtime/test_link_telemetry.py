@@ -17,7 +17,7 @@ def test_state_telemetry_carries_link_poses_that_match_the_mechanism(make_daemon
     d = make_daemon()
     assert d.head.path("linkmap") is not None and d.head.path("linkmap").is_file()
     goal = {"jaw": 5.0, "cheek_l": 15.0, "lip_corner_l_up": 20.0}  # within the skin guard's range
-    with Client(d.command_endpoint, timeout=5) as c, Telemetry(d.telemetry_endpoint, topics=(b"state",)) as tel:
+    with Client(d.command_endpoint, timeout=30) as c, Telemetry(d.telemetry_endpoint, topics=(b"state",)) as tel:
         c.call("enable")
         c.call("pose", pose=goal, speed=1.0)
 

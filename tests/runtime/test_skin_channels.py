@@ -145,7 +145,7 @@ def test_daemon_plays_blendshape_curves_through_the_predictor(tmp_path, head, ma
                                                                     "browInnerUp": pose(head, brow_l=10, brow_r=10)})
     d = make_daemon(tmp_path / "head.toml", target_solvers=None)  # None: solvers from the head config
     clip = {"name": "talk", "channels": {"arkit.jawOpen": {"interp": "linear", "keys": [[0, 0], [0.4, 1], [1.4, 1]]}}}
-    with Client(d.command_endpoint, timeout=5) as c, Telemetry(d.telemetry_endpoint) as tel:
+    with Client(d.command_endpoint, timeout=30) as c, Telemetry(d.telemetry_endpoint) as tel:
         c.call("enable")
         c.call("load_clip", clip=clip)
         start = c.call("play", clip="talk")["start"]

@@ -58,7 +58,7 @@ def _tab(page: Any, name: str) -> None:
 
 
 def _status(daemon: Any) -> dict:
-    with Client(daemon.command_endpoint, timeout=10) as c:
+    with Client(daemon.command_endpoint, timeout=30) as c:
         return c.call("status")
 
 

@@ -67,7 +67,7 @@ def test_osc_cue_system_example_moves_the_head(example_daemon) -> None:
     import threading
 
     d = example_daemon
-    with Client(d.command_endpoint, timeout=10) as c, Telemetry(d.telemetry_endpoint, topics=(b"state",)) as tel:
+    with Client(d.command_endpoint, timeout=30) as c, Telemetry(d.telemetry_endpoint, topics=(b"state",)) as tel:
         port = c.call("hello")["inputs"]["osc"]["udp"].rsplit(":", 1)[1]
         out: list[str] = []
         th = threading.Thread(target=lambda: out.append(_run("osc_cue_system.py", "--port", port, "--wait", "8")))
@@ -83,7 +83,7 @@ def test_sacn_console_example_moves_the_head_then_the_watchdog_takes_over(exampl
     import threading
 
     d = example_daemon
-    with Client(d.command_endpoint, timeout=10) as c, Telemetry(d.telemetry_endpoint, topics=(b"state",)) as tel:
+    with Client(d.command_endpoint, timeout=30) as c, Telemetry(d.telemetry_endpoint, topics=(b"state",)) as tel:
         dest = c.call("hello")["inputs"]["sacn"]["bind"].rsplit(":", 1)[0]
         enable(c)
         events = Events(d.telemetry_endpoint)
@@ -101,7 +101,7 @@ def test_sacn_console_example_moves_the_head_then_the_watchdog_takes_over(exampl
 
 def test_mtc_show_example_chases_the_performance(example_daemon) -> None:
     d = example_daemon
-    with Client(d.command_endpoint, timeout=10) as c:
+    with Client(d.command_endpoint, timeout=30) as c:
         mtc = c.call("hello")["inputs"]["timecode"]["bind"]
         events = Events(d.telemetry_endpoint)
         try:

@@ -129,7 +129,7 @@ def test_osc_messages_and_bundles_move_the_head(show) -> None:
     from pythonosc.osc_message_builder import OscMessageBuilder
     from pythonosc.udp_client import SimpleUDPClient
 
-    with Client(show.command_endpoint, timeout=10) as c:
+    with Client(show.command_endpoint, timeout=30) as c:
         hello = c.call("hello")
         host, port = hello["inputs"]["osc"]["udp"].rsplit(":", 1)
         osc = SimpleUDPClient(host, int(port))
@@ -205,7 +205,7 @@ def _set(sender: Any, jaw: float, brow: float) -> None:
 
 
 def test_sacn_sources_merge_by_priority_then_htp_and_silence_trips_the_watchdog(show) -> None:
-    with Client(show.command_endpoint, timeout=10) as c:
+    with Client(show.command_endpoint, timeout=30) as c:
         dest = c.call("hello")["inputs"]["sacn"]["bind"].rsplit(":", 1)[0]
         _inactive(c)  # whatever an earlier test left
         enable(c)
@@ -241,7 +241,7 @@ def test_sacn_sources_merge_by_priority_then_htp_and_silence_trips_the_watchdog(
 
 # ---------------------------------------------------------------------- MIDI timecode
 def test_mtc_locks_freewheels_then_holds_and_a_jump_relocates_the_clip(show) -> None:
-    with Client(show.command_endpoint, timeout=10) as c:
+    with Client(show.command_endpoint, timeout=30) as c:
         host, port = c.call("hello")["inputs"]["timecode"]["bind"].rsplit(":", 1)
         _inactive(c)  # whatever an earlier test left
         enable(c)
