@@ -40,10 +40,14 @@ def drives():
     ds.stop()
 
 
+#: Timeouts that an emulator thread stalled by a loaded host does not trip (the driver's defaults are for real drives);
+#: a test about one of them sets it.
+PATIENT = {"heartbeat_timeout_s": 1.0, "feedback_timeout_s": 1.0, "sdo_timeout_s": 2.0, "state_timeout_s": 2.0}
+
+
 def _bus(drives: DriveSet, motors=MOTORS, **options) -> CanOpen402Bus:
-    """The driver on the drives' channel; a heartbeat timeout that a stalled emulator thread on a loaded host does
-    not trip, except where the test is about the timeout."""
-    opts = {"interface": "virtual", "channel": drives.channel, "heartbeat_timeout_s": 1.0, **options}
+    """The driver on the drives' channel, patient except where the test sets a timeout."""
+    opts = {"interface": "virtual", "channel": drives.channel, **PATIENT, **options}
     return CanOpen402Bus("can0", opts, motors)
 
 
@@ -351,7 +355,7 @@ def test_node_reboot_faults_and_reset_reconfigures(bus, drives):
 
 def test_over_socketcand_in_one_process(drives):
     server = SocketcandServer(bus_kwargs={"interface": "virtual", "channel": drives.channel}, port=0).start()
-    bus = CanOpen402Bus("can0", {"interface": "socketcand", "port": server.port, "channel": "can0"}, MOTORS)
+    bus = CanOpen402Bus("can0", {"interface": "socketcand", "port": server.port, "channel": "can0", **PATIENT}, MOTORS)
     try:
         bus.open()
         bus.enable()
@@ -377,7 +381,7 @@ def test_sample_head_can_bus_in_process():
                            max_velocity=a.max_velocity)
         for a in actuators
     ]
-    options = {**spec.driver_options(), "channel": f"test-sample-{uuid.uuid4().hex[:8]}"}
+    options = {**spec.driver_options(), **PATIENT, "channel": f"test-sample-{uuid.uuid4().hex[:8]}"}
     with DriveSet([a.device_id for a in actuators], channel=options["channel"]) as ds:
         bus = create_bus(spec.driver, "can0", options, motors)
         try:
