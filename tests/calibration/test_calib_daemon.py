@@ -12,6 +12,7 @@ from offline.calibration.heads import DaemonHead
 from offline.calibration.journal import Journal
 from offline.calibration.workflow import CalibrationSettings, calibrate_live
 from sim_hardware.tracker import SimTracker
+from tests._wait import wait_until
 from tests.calibration.conftest import SimSource
 
 DEG = math.pi / 180
@@ -55,9 +56,11 @@ def test_calibration_through_the_daemon(tmp_path, daemon, sample_head, sample_me
             # emulated buses can time out on a saturated shared CPU: reset the daemon and resume, as an operator
             if attempt == 2:
                 raise
-            with Client(daemon.command_endpoint, timeout=5) as c:
+            with Client(daemon.command_endpoint, timeout=30) as c:
                 if c.call("status")["lifecycle"] in ("fault", "estop"):
-                    c.call("reset")
+                    # refused while a stalled emulator's heartbeat is still missing: until the buses are heard again
+                    wait_until(lambda: c.request("reset", timeout=30)["ok"], 30, "the daemon's reset accepted",
+                               interval=0.5)
         finally:
             if driver is not None:
                 driver.close()

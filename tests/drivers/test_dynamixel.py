@@ -15,6 +15,7 @@ from drivers.dynamixel import FAULT_COMMUNICATION, FAULT_TORQUE_LOST, DynamixelB
 from drivers.errors import BusInitError, BusTimeout, CommandRejected, ConfigError, DeviceFault
 from drivers.registry import create_bus
 from sim_hardware.dynamixel import DynamixelEmulator
+from tests._wait import wait_until
 
 IDS = (1, 2, 3, 4)
 RAD_PER_COUNT = 2 * math.pi / 4096
@@ -50,16 +51,6 @@ def bus(emu: DynamixelEmulator) -> Iterator[DynamixelBus]:
     b.open()
     yield b
     b.close()
-
-
-def wait_for(predicate, timeout: float = 2.0) -> bool:
-    """Poll ``predicate`` until true (broadcast sync writes have no answer to wait on)."""
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.005)
-    return True
 
 
 def ramp(bus: DynamixelBus, targets: dict[str, float], seconds: float) -> None:
@@ -107,24 +98,23 @@ def test_enable_write_read_tracks_targets(emu: DynamixelEmulator, fast: bool) ->
         assert emu.servo(3).read_item("goal_position") == 2148  # torque on holding the present position
         targets = {"m1": 0.4, "m2": -0.3, "m3": 0.2, "m4": 0.5}
         ramp(bus, targets, 0.3)
-        time.sleep(0.2)
-        states = bus.read()
-        for name, target in targets.items():
-            assert abs(states[name].position - target) <= 1.5 * RAD_PER_COUNT, name
+        # the servos settle on the last targets
+        wait_until(lambda: all(abs(s.position - targets[n]) <= 1.5 * RAD_PER_COUNT for n, s in bus.read().items()),
+                   10.0, "every servo within 1.5 counts of its target")
         truth = emu.positions()
         assert abs(truth[2] - (2048 + 0.3 * 4096 / (2 * math.pi))) <= 1  # direction -1: counts go up
         assert abs(truth[1] - (2048 + 0.4 * 4096 / (2 * math.pi))) <= 1
         bus.disable()
-        assert wait_for(lambda: not any(emu.servo(i).torque_enabled for i in IDS))
+        assert wait_until(lambda: not any(emu.servo(i).torque_enabled for i in IDS), 10)
 
 
 def test_velocity_and_effort_in_si(bus: DynamixelBus, emu: DynamixelEmulator) -> None:
     bus.enable()
     emu.servo(1).write_item("goal_position", 2048 + 2000)  # a big step behind the guard, to see motion
     emu.servo(1).write_item("max_position_limit", 4095)
-    time.sleep(0.05)
-    state = bus.read()["m1"]
     speed_limit = min(167, emu.servo(1).read_item("velocity_limit")) * 0.229 * 2 * math.pi / 60  # profile velocity
+    # well under way (at the start of the step the current saturates), as after 50 ms at the profile velocity
+    state = wait_until(lambda: (st := bus.read()["m1"]).position > 0.15 and st, 10.0, "m1 under way (0.15 rad)")
     assert 0.5 * speed_limit < state.velocity <= speed_limit * 1.01
     assert state.effort != 0.0 and abs(state.effort) < 1193 * 2.69e-3
 
@@ -150,7 +140,7 @@ def test_hardware_fault_then_reboot_recovery(bus: DynamixelBus, emu: DynamixelEm
     assert bus.state is LifecycleState.FAULT
     assert bus.faults()["m2"][0] == code
     assert states["m2"].fault_code == code
-    assert wait_for(lambda: not any(emu.servo(i).torque_enabled for i in IDS))  # every servo in the safe state
+    assert wait_until(lambda: not any(emu.servo(i).torque_enabled for i in IDS), 10)  # every servo in the safe state
     with pytest.raises(DeviceFault) as err:
         bus.write({"m1": 0.0})
     assert err.value.code == code
@@ -205,7 +195,7 @@ def test_communication_loss_faults_after_consecutive_failures(bus: DynamixelBus,
     assert bus.state is LifecycleState.FAULT
     (device, (code, _)), = bus.faults().items()
     assert code == FAULT_COMMUNICATION and device in ("dxl", "m2")
-    assert wait_for(lambda: not emu.servo(1).torque_enabled)
+    assert wait_until(lambda: not emu.servo(1).torque_enabled, 10)
     emu.clear("disconnect")
     bus.reset_fault()
     assert bus.state is LifecycleState.INACTIVE
@@ -296,8 +286,8 @@ def test_sample_head_dxl_bus_in_process() -> None:
             assert bus.operating_mode == 4
             first = actuators[0]
             ramp(bus, {first.name: first.max * 0.5}, 0.3)
-            time.sleep(0.3)
-            assert abs(bus.read()[first.name].position - first.max * 0.5) < 2 * RAD_PER_COUNT
+            wait_until(lambda: abs(bus.read()[first.name].position - first.max * 0.5) < 2 * RAD_PER_COUNT, 10.0,
+                       f"{first.name} within 2 counts of its target")
 
 
 def test_concurrent_use_is_serialised(bus: DynamixelBus) -> None:
@@ -351,4 +341,4 @@ def test_fault_during_enable_is_not_overwritten_by_active(bus: DynamixelBus, emu
     with pytest.raises(DeviceFault, match="while enabling"):
         bus.enable()
     assert bus.state is LifecycleState.FAULT and bus.faults()["m1"][0] == 0x04
-    assert wait_for(lambda: not any(emu.servo(i).torque_enabled for i in IDS))
+    assert wait_until(lambda: not any(emu.servo(i).torque_enabled for i in IDS), 10)

@@ -53,16 +53,6 @@ def shared_daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
         daemon.stop()
 
 
-def wait_until(predicate: Callable[[], Any], timeout: float, interval: float = 0.02) -> Any:
-    """Poll ``predicate`` until it returns something truthy (returned) or ``timeout`` s pass (returns the last)."""
-    end = time.monotonic() + timeout
-    while True:
-        value = predicate()
-        if value or time.monotonic() > end:
-            return value
-        time.sleep(interval)
-
-
 def enable_retrying(client: Any, tries: int = 3) -> None:
     """Enable the head; an emulator starved of CPU on a loaded host can miss a heartbeat or a reply window on the
     way up (a fault), so reset and try again. For tests whose subject comes after the enable."""

@@ -9,14 +9,15 @@ import numpy as np
 from models.client import Client, Telemetry
 from models.headspec import load_head
 from sim_hardware.mechanism import sample_mechanism
-from tests.runtime.conftest import SAMPLE, wait_until
+from tests._wait import wait_until
+from tests.runtime.conftest import SAMPLE
 
 
 def test_state_telemetry_carries_link_poses_that_match_the_mechanism(make_daemon) -> None:
     d = make_daemon()
     assert d.head.path("linkmap") is not None and d.head.path("linkmap").is_file()
     goal = {"jaw": 5.0, "cheek_l": 15.0, "lip_corner_l_up": 20.0}  # within the skin guard's range
-    with Client(d.command_endpoint, timeout=5) as c, Telemetry(d.telemetry_endpoint, topics=(b"state",)) as tel:
+    with Client(d.command_endpoint, timeout=30) as c, Telemetry(d.telemetry_endpoint, topics=(b"state",)) as tel:
         c.call("enable")
         c.call("pose", pose=goal, speed=1.0)
 
@@ -24,8 +25,8 @@ def test_state_telemetry_carries_link_poses_that_match_the_mechanism(make_daemon
             measured = c.call("status")["measured"]
             return all(abs(measured[n] - v) < 0.2 for n, v in goal.items())
 
-        assert wait_until(arrived, 10.0), c.call("status")["measured"]
-        hit = tel.wait_for(lambda topic, msg: "links" in msg and abs(msg["measured"]["jaw"] - goal["jaw"]) < 0.3, 3.0)
+        wait_until(arrived, 30, lambda: f"every goal within 0.2; measured {c.call('status')['measured']}")
+        hit = tel.wait_for(lambda topic, msg: "links" in msg and abs(msg["measured"]["jaw"] - goal["jaw"]) < 0.3, 30)
         assert hit is not None, "no state message with link poses"
         state = hit[1]
         c.call("disable")

@@ -60,7 +60,7 @@ def _check_limits(daemon: Daemon) -> None:
 def fuzz_daemon(shared_daemon):
     d = shared_daemon
     d.call("enable")
-    with Client(d.command_endpoint, timeout=10) as c:
+    with Client(d.command_endpoint, timeout=30) as c:
         d.fuzz_client = c
         yield d
     d.call("disable")
@@ -93,7 +93,7 @@ def test_any_request_gets_a_reply_and_limits_hold(fuzz_daemon: Daemon, msg) -> N
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(payload=st.one_of(st.binary(max_size=300), REQUEST.map(lambda m: msgpack.packb(m, use_bin_type=True))))
 def test_raw_bytes_over_the_socket(fuzz_daemon: Daemon, payload: bytes) -> None:
-    with Client(fuzz_daemon.command_endpoint, timeout=5) as c:
+    with Client(fuzz_daemon.command_endpoint, timeout=30) as c:
         reply = c.send_raw(payload)
     assert isinstance(reply, dict) and isinstance(reply["ok"], bool)
     _check_limits(fuzz_daemon)
@@ -118,7 +118,7 @@ def test_hostile_streams_never_leave_limits(fuzz_daemon: Daemon) -> None:
     watcher = threading.Thread(target=watch)
     watcher.start()
     try:
-        with Client(d.command_endpoint, timeout=5) as c:
+        with Client(d.command_endpoint, timeout=30) as c:
             t0 = c.call("clock")["t_send"]
             rng = np.random.default_rng(7)
             for k in range(60):

@@ -53,13 +53,13 @@ def test_replay_clip_is_decimated_within_the_key_budget(tmp_path: Path) -> None:
 def test_replay_plays_the_commanded_curves_on_a_daemon(shared_daemon, tmp_path: Path,
                                                         capsys: pytest.CaptureFixture[str]) -> None:
     _write(tmp_path / "take.lrec")
-    with Client(shared_daemon.command_endpoint, timeout=5) as c:
+    with Client(shared_daemon.command_endpoint, timeout=30) as c:
         if c.call("status")["lifecycle"] == "fault":  # an emulated bus may time out on a loaded host
             c.call("reset")
     assert main(["recording", "replay", str(tmp_path / "take.lrec"), "--endpoint", shared_daemon.command_endpoint,
                  "--enable"]) == 0
     assert "replaying 'replay-take'" in capsys.readouterr().out
-    with Client(shared_daemon.command_endpoint, timeout=5) as c:
+    with Client(shared_daemon.command_endpoint, timeout=30) as c:
         st = c.call("status")
         assert "replay-take" in str(st["timeline"])
         c.call("disable")

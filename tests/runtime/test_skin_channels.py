@@ -135,7 +135,7 @@ def test_predictor_without_face_units_or_for_another_head_is_refused(tmp_path, h
 
 def test_daemon_plays_blendshape_curves_through_the_predictor(tmp_path, head, make_daemon):
     from models.client import Client, Telemetry
-    from tests.runtime.conftest import wait_until
+    from tests._wait import wait_until
 
     # The sample's attachment distances belong to its own skin, not to this test predictor's grid.
     text = SAMPLE.read_text()
@@ -145,7 +145,7 @@ def test_daemon_plays_blendshape_curves_through_the_predictor(tmp_path, head, ma
                                                                     "browInnerUp": pose(head, brow_l=10, brow_r=10)})
     d = make_daemon(tmp_path / "head.toml", target_solvers=None)  # None: solvers from the head config
     clip = {"name": "talk", "channels": {"arkit.jawOpen": {"interp": "linear", "keys": [[0, 0], [0.4, 1], [1.4, 1]]}}}
-    with Client(d.command_endpoint, timeout=5) as c, Telemetry(d.telemetry_endpoint) as tel:
+    with Client(d.command_endpoint, timeout=30) as c, Telemetry(d.telemetry_endpoint) as tel:
         c.call("enable")
         c.call("load_clip", clip=clip)
         start = c.call("play", clip="talk")["start"]
@@ -155,7 +155,7 @@ def test_daemon_plays_blendshape_curves_through_the_predictor(tmp_path, head, ma
                 extras.append(msg["extra"])
             if topic == "event" and msg.get("event") == "clip" and msg.get("state") == "finished":
                 break
-        st = wait_until(lambda: (lambda s: s if not s["moving"] else None)(c.call("status")), 3.0)
+        st = wait_until(lambda: (lambda s: s if not s["moving"] else None)(c.call("status")), 30)
         assert st and st["fault"] is None
         assert st["commanded"]["jaw"] == pytest.approx(12.0, abs=1.0)
         assert st["commanded"]["upper_lip"] == pytest.approx(6.0, abs=1.0)

@@ -13,20 +13,12 @@ import pytest
 from sim_hardware.canopen import drive as drv
 from sim_hardware.canopen.network import DriveSet
 from sim_hardware.canopen.od import DEVICE_TYPE, build_od, write_eds
+from tests._wait import wait_until
 from tests.sim_hardware.canopen_master import setup_master as _setup_master
 
 
 def _channel() -> str:
     return f"test-canopen-{uuid.uuid4().hex[:10]}"
-
-
-def _wait(predicate, timeout: float = 2.0, step: float = 0.005) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(step)
-    return predicate()
 
 
 @pytest.fixture
@@ -67,13 +59,13 @@ def test_boot_up_heartbeat_and_sdo(rig):
     net.subscribe(0x701, lambda _id, data, _ts: seen.append(data[0]))
     node = net.add_node(1, canopen.ObjectDictionary())
     assert struct.unpack("<I", node.sdo.upload(0x1000, 0))[0] == DEVICE_TYPE
-    assert _wait(lambda: len(seen) >= 3)
+    assert wait_until(lambda: len(seen) >= 3, 10)
     assert set(seen) == {127}  # pre-operational heartbeats at 0x1017 = 20 ms
     # NMT reset node: boot-up (state 0) then pre-operational again, defaults restored.
     node.sdo.download(0x6065, 0, struct.pack("<I", 123))
     seen.clear()
     net.send_message(0, bytes([0x81, 1]))
-    assert _wait(lambda: 0 in seen and seen[-1] == 127)
+    assert wait_until(lambda: 0 in seen and seen[-1] == 127, 10)
     assert struct.unpack("<I", node.sdo.upload(0x6065, 0))[0] == 5000
     # A refused write aborts like a real drive: unsupported mode of operation.
     with pytest.raises(canopen.SdoAbortedError):
@@ -103,8 +95,8 @@ def test_base_node_402_state_machine_and_csp_motion(rig):
             node.rpdo[1]["Target position"].raw = round(goal[node.id] * min(t / 0.5, 1.0))
         time.sleep(0.01)
     for node in nodes:
-        assert _wait(lambda node=node: abs(drives.drives[node.id].position_counts - goal[node.id]) < 20, 1.0)
-        assert _wait(lambda node=node: abs(node.tpdo[1]["Position actual value"].raw - goal[node.id]) < 20, 1.0)
+        assert wait_until(lambda node=node: abs(drives.drives[node.id].position_counts - goal[node.id]) < 20, 10)
+        assert wait_until(lambda node=node: abs(node.tpdo[1]["Position actual value"].raw - goal[node.id]) < 20, 10)
     # Back down the state machine.
     nodes[0].state = "SWITCH ON DISABLED"
     assert drives.drives[1].state == drv.SWITCH_ON_DISABLED
@@ -137,15 +129,15 @@ def test_profile_position_mode_and_quick_stop(rig):
     status = struct.unpack("<H", node.sdo.upload(0x6041, 0))[0]
     assert status & 0x1000  # set-point acknowledged
     _cw(node, 0x0F)
-    assert _wait(lambda: abs(drive.position_counts - 40_000) < 20, 2.0)
-    assert _wait(lambda: struct.unpack("<H", node.sdo.upload(0x6041, 0))[0] & 0x0400, 1.0)  # target reached
+    assert wait_until(lambda: abs(drive.position_counts - 40_000) < 20, 10)
+    assert wait_until(lambda: struct.unpack("<H", node.sdo.upload(0x6041, 0))[0] & 0x0400, 10)  # target reached
     # Start a long move, then quick stop: the drive decelerates, then (option 2) switch on disabled.
     node.sdo.download(0x607A, 0, struct.pack("<i", -400_000))
     _cw(node, 0x1F)
-    assert _wait(lambda: abs(drive.velocity_counts) > 90_000, 2.0)
+    assert wait_until(lambda: abs(drive.velocity_counts) > 90_000, 10)
     _cw(node, 0x0B)  # quick stop
     assert drive.state == drv.QUICK_STOP_ACTIVE
-    assert _wait(lambda: drive.state == drv.SWITCH_ON_DISABLED, 1.0)
+    assert wait_until(lambda: drive.state == drv.SWITCH_ON_DISABLED, 10)
     assert abs(drive.velocity_counts) < 1000
     assert drive.position_counts > -400_000 + 100_000  # stopped well before the target
 
@@ -163,9 +155,9 @@ def test_a_quick_stop_ramp_ends_at_the_software_position_limit(rig):
     node.sdo.download(0x6084, 0, struct.pack("<I", 10_000_000))
     node.sdo.download(0x607A, 0, struct.pack("<i", 49_000))  # inside the limits
     _cw(node, 0x1F)
-    assert _wait(lambda: drive.position_counts > 30_000 and drive.velocity_counts > 90_000, 2.0)
+    assert wait_until(lambda: drive.position_counts > 30_000 and drive.velocity_counts > 90_000, 10)
     _cw(node, 0x0B)  # quick stop at speed: unclamped, the ramp would run ~250,000 counts further
-    assert _wait(lambda: drive.state == drv.SWITCH_ON_DISABLED, 2.0)
+    assert wait_until(lambda: drive.state == drv.SWITCH_ON_DISABLED, 10)
     # stopped at the limit, give or take the motor's overshoot when its demand stops there at full speed (a few
     # hundred counts; ~250,000 counts further without the limit)
     assert drive.position_counts <= 50_000 + 3_000
@@ -196,15 +188,15 @@ def test_fault_emcy_and_reset_on_rising_edge(rig):
     node.emcy.add_callback(lambda e: emcy.append(e.code))
     _enable_via_sdo(node, 8)
     drives.inject("drive_fault", device=2, code=0x2310)
-    assert _wait(lambda: drive.state == drv.FAULT, 1.0)
-    assert _wait(lambda: 0x2310 in emcy, 1.0)
+    assert wait_until(lambda: drive.state == drv.FAULT, 10)
+    assert wait_until(lambda: 0x2310 in emcy, 10)
     assert struct.unpack("<H", node.sdo.upload(0x603F, 0))[0] == 0x2310
     assert node.sdo.upload(0x1001, 0)[0] & 0x03 == 0x03  # generic + current
     _cw(node, 0x80)  # rising edge of bit 7 resets
     assert drive.state == drv.SWITCH_ON_DISABLED
     assert struct.unpack("<H", node.sdo.upload(0x603F, 0))[0] == 0
     drives.inject("drive_fault", device=2, code=0x4310)
-    assert _wait(lambda: drive.state == drv.FAULT, 1.0)
+    assert wait_until(lambda: drive.state == drv.FAULT, 10)
     _cw(node, 0x80)  # bit 7 already high: no edge, still faulted
     assert drive.state == drv.FAULT
     _cw(node, 0x00)
@@ -220,8 +212,8 @@ def test_following_error_faults_with_emcy_8611(rig):
     node.emcy.add_callback(lambda e: emcy.append(e.code))
     _enable_via_sdo(node, 8)
     drives.inject("following_error", device=1, counts=20_000)
-    assert _wait(lambda: drive.state == drv.FAULT, 1.0)
-    assert _wait(lambda: drv.EMCY_FOLLOWING_ERROR in emcy, 1.0)
+    assert wait_until(lambda: drive.state == drv.FAULT, 10)
+    assert wait_until(lambda: drv.EMCY_FOLLOWING_ERROR in emcy, 10)
     drives.inject("release", device=1)
     assert not drive.jammed
 
@@ -236,19 +228,19 @@ def test_sync_pdo_exchange_and_corrupted_rpdo(rig):
     node.emcy.add_callback(lambda e: emcy.append(e.code))
     _enable_via_sdo(node, 8)
     node.nmt.state = "OPERATIONAL"
-    time.sleep(0.02)
+    wait_until(lambda: drive.nmt_state == "OPERATIONAL", 10, "the drive in NMT OPERATIONAL (PDOs processed)")
     net.send_message(0x401, struct.pack("<Hi", 0x0F, 500))  # RPDO3 default: controlword + target, sync
     time.sleep(0.02)
     assert drive._target != 500  # synchronous RPDO waits for the SYNC
     net.send_message(0x80, b"")
-    assert _wait(lambda: len(frames) >= 1)
-    assert _wait(lambda: abs(drive.position_counts - 500) < 5)
+    assert wait_until(lambda: len(frames) >= 1, 10)
+    assert wait_until(lambda: abs(drive.position_counts - 500) < 5, 10)
     net.send_message(0x80, b"")
-    assert _wait(lambda: len(frames) >= 2)
+    assert wait_until(lambda: len(frames) >= 2, 10)
     status, position = struct.unpack("<Hi", frames[-1])
     assert status & 0x6F == 0x27 and abs(position - 500) < 5
     net.send_message(0x401, b"\x0f\x00\x01")  # too short: EMCY 0x8210, not applied
-    assert _wait(lambda: drv.EMCY_PDO_LENGTH in emcy)
+    assert wait_until(lambda: drv.EMCY_PDO_LENGTH in emcy, 10)
     assert drive.state == drv.OPERATION_ENABLED
 
 
@@ -256,25 +248,26 @@ def test_link_faults_drop_and_corrupt_frames(rig):
     drives, net = rig
     received: list[bytes] = []
     net.subscribe(0x701, lambda _id, data, _ts: received.append(bytes(data)))
-    assert _wait(lambda: len(received) >= 2)
+    assert wait_until(lambda: len(received) >= 2, 10)
     drives.inject("frames", drop=1.0, device=1)
-    time.sleep(0.03)
+    counts = drives.network.impairment.counts
+    # two heartbeats dropped since: one sent before the injection has arrived by now
+    wait_until(lambda: counts["dropped"] >= 2, 10, "two frames dropped")
     received.clear()
-    time.sleep(0.1)
+    wait_until(lambda: counts["dropped"] >= 7, 10, "five more frames dropped")
     assert received == []
-    assert drives.network.impairment.counts["dropped"] >= 5
     drives.inject("frames", corrupt=1.0, device=1)
-    assert _wait(lambda: len(received) >= 2)
+    assert wait_until(lambda: len(received) >= 2, 10)
     assert all(len(r) == 0 for r in received)  # one byte short
     drives.inject("frames", delay_ms=50, device=1)
     time.sleep(0.03)
     received.clear()
     t0 = time.monotonic()
-    assert _wait(lambda: len(received) >= 1)
+    assert wait_until(lambda: len(received) >= 1, 10)
     assert time.monotonic() - t0 >= 0.02
     drives.inject("clear")
     received.clear()
-    assert _wait(lambda: len(received) >= 2)
+    assert wait_until(lambda: len(received) >= 2, 10)
     assert all(r == b"\x7f" for r in received)
     with pytest.raises(ValueError, match="drop"):
         drives.inject("frames", drop=2.0)
@@ -293,7 +286,7 @@ def test_physics_keeps_running_without_master():
     with DriveSet([3], channel=channel) as drives:
         drive = drives.drives[3]
         drive._motor.velocity = 1000.0
-        assert _wait(lambda: drive.velocity_counts < 500, 1.0)
+        assert wait_until(lambda: drive.velocity_counts < 500, 10)
         assert drive.position_counts > 10
     bus = can.Bus(interface="virtual", channel=channel)
     bus.shutdown()

@@ -17,6 +17,7 @@ import canopen
 import pytest
 
 from sim_hardware.socketcand import SocketcandServer, format_frame, parse_send
+from tests._wait import wait_until
 from tests.sim_hardware.canopen_master import setup_master
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -25,7 +26,7 @@ READY = re.compile(
 )
 
 
-def _recv(bus: can.BusABC, timeout: float = 1.0) -> can.Message | None:
+def _recv(bus: can.BusABC, timeout: float = 10.0) -> can.Message | None:
     return bus.recv(timeout)
 
 
@@ -52,7 +53,9 @@ def test_bridge_between_clients_and_bus():
         a = can.Bus(interface="socketcand", host=server.host, port=server.port, channel="can0")
         b = can.Bus(interface="socketcand", host=server.host, port=server.port, channel="can0")
         try:
-            time.sleep(0.05)  # past the raw-mode grace period
+            # both clients in raw mode on the server (frames to them are forwarded, or held for the grace period)
+            wait_until(lambda: server.client_count == 2 and all(c.raw for c in server._clients), 10,
+                       "both clients in raw mode")
             a.send(can.Message(arbitration_id=0x123, data=b"\xde\xad", is_extended_id=False))
             got = _recv(local)
             assert got is not None and got.arbitration_id == 0x123 and bytes(got.data) == b"\xde\xad"
@@ -76,17 +79,8 @@ def test_bridge_between_clients_and_bus():
         finally:
             a.shutdown()
             b.shutdown()
-        assert _wait(lambda: server.client_count == 0)
+        assert wait_until(lambda: server.client_count == 0, 10)
     local.shutdown()
-
-
-def _wait(predicate, timeout: float = 2.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.01)
-    return predicate()
 
 
 @pytest.fixture
@@ -118,7 +112,7 @@ def test_cli_base_node_402_across_processes_inject_and_sigterm(served):
     net.NOTIFIER_CYCLE = 0.1
     net.connect(interface="socketcand", host="127.0.0.1", port=port, channel="can0", tcp_tune=True)
     try:
-        node = setup_master(net, 2, heartbeat_wait_s=2.0)
+        node = setup_master(net, 2)
         net.sync.start(0.01)
         node.rpdo[1].start(0.01)
         node.nmt.state = "OPERATIONAL"
@@ -129,7 +123,7 @@ def test_cli_base_node_402_across_processes_inject_and_sigterm(served):
         while (t := time.monotonic() - start) < 0.5:
             node.rpdo[1]["Target position"].raw = round(15_000 * min(t / 0.4, 1.0))
             time.sleep(0.01)
-        assert _wait(lambda: abs(node.tpdo[1]["Position actual value"].raw - 15_000) < 20, 2.0)
+        assert wait_until(lambda: abs(node.tpdo[1]["Position actual value"].raw - 15_000) < 20, 10)
 
         emcy: list[int] = []
         node.emcy.add_callback(lambda e: emcy.append(e.code))
@@ -140,8 +134,8 @@ def test_cli_base_node_402_across_processes_inject_and_sigterm(served):
         )
         assert out.returncode == 0, out.stderr
         assert json.loads(out.stdout)["ok"] is True
-        assert _wait(lambda: 0x2310 in emcy, 2.0)
-        assert _wait(lambda: node.state == "FAULT", 2.0)
+        assert wait_until(lambda: 0x2310 in emcy, 10)
+        assert wait_until(lambda: node.state == "FAULT", 10)
         bad = subprocess.run(
             [sys.executable, "-m", "likeness", "sim", "inject", "--control", control, "drive_fault", "device=9"],
             cwd=ROOT, capture_output=True, text=True, timeout=30,

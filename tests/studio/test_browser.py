@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from models.client import Client, DaemonError, Telemetry
-from tests.studio.conftest import wait_until
+from tests._wait import wait_until
 
 pytestmark = pytest.mark.timeout(600)
 
@@ -58,7 +58,7 @@ def _tab(page: Any, name: str) -> None:
 
 
 def _status(daemon: Any) -> dict:
-    with Client(daemon.command_endpoint, timeout=10) as c:
+    with Client(daemon.command_endpoint, timeout=30) as c:
         return c.call("status")
 
 
@@ -91,8 +91,8 @@ def test_every_control_is_named_and_the_jaw_slider_changes_the_rendered_skin(pag
     jaw.focus()
     page.keyboard.press("End")  # the jaw's upper limit
     assert wait_until(lambda: abs(math.degrees(studio.p[jaw_k]) - head.by_name["jaw"].max) < 1e-6, 30)
-    changed = wait_until(lambda: _changed_fraction(_face(page), before) > 0.01, 60, interval=0.5)
-    assert changed, "the rendered skin did not change after the jaw slider moved"
+    wait_until(lambda: _changed_fraction(_face(page), before) > 0.01, 60,
+               "the rendered skin to change after the jaw slider moved", interval=0.5)
     # The sample head's jaw at its limit stretches the skin past the validated range: the guard says so.
     assert wait_until(lambda: page.get_by_text("Refused:").count() > 0, 30)
     page.screenshot(path=str(image_dir / "studio-pose.png"))
@@ -174,7 +174,10 @@ def test_select_a_key_on_the_timeline_and_move_it(page: Any, studio: Any, image_
     assert wait_until(lambda: animate.time.value == pytest.approx(2.0), 30)  # the playhead goes to the key
     box = page.get_by_role("textbox", name="Key time (s)", exact=True)
     # The page shows the selected key before it is edited (a late update would overwrite the typed value).
-    assert wait_until(lambda: _number(box.input_value()) == 2.0, 30)
+    wait_until(lambda: _number(box.input_value()) == 2.0, 30, lambda: (
+        f"the key-time box to show 2.0; page: time box {box.input_value()!r}, key "
+        f"{page.get_by_role('combobox', name='Key', exact=True).input_value()!r}; studio: time {animate.key_t.value}, "
+        f"key {animate.key_pick.value!r}, selected {animate._selected}"))
     box.fill("1.5")
     box.press("Enter")
     assert wait_until(lambda: studio.doc.key_times("jaw") == [0.0, 1.5], 30)
@@ -186,7 +189,8 @@ def test_select_a_key_on_the_timeline_and_move_it(page: Any, studio: Any, image_
     page.get_by_role("button", name="Later", exact=True).click()  # one preview frame later
     assert wait_until(lambda: studio.doc.key_times("jaw")[1] == pytest.approx(1.5 + 1 / 30), 30)
     value_box = page.get_by_role("textbox", name="Key value", exact=True)
-    assert wait_until(lambda: value_box.input_value() == "4", 30), value_box.input_value()
+    wait_until(lambda: value_box.input_value() == "4", 30,
+               lambda: f"the key-value box to show 4, not {value_box.input_value()!r}")
     page.get_by_text("Every keyed channel, one row each").scroll_into_view_if_needed()
     page.screenshot(path=str(image_dir / "studio-timeline.png"))
     page.get_by_role("button", name="Save clip").click()

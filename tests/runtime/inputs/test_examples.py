@@ -14,7 +14,8 @@ from typing import Any
 import pytest
 
 from models.client import Client, Telemetry
-from tests.runtime.conftest import ROOT, daemon_overrides, wait_until
+from tests._wait import wait_until
+from tests.runtime.conftest import ROOT, daemon_overrides
 from tests.runtime.inputs.conftest import Events, enable, loopback_address, show_head, started
 
 EXAMPLES = ROOT / "examples" / "show_control"
@@ -66,7 +67,7 @@ def test_osc_cue_system_example_moves_the_head(example_daemon) -> None:
     import threading
 
     d = example_daemon
-    with Client(d.command_endpoint, timeout=10) as c, Telemetry(d.telemetry_endpoint, topics=(b"state",)) as tel:
+    with Client(d.command_endpoint, timeout=30) as c, Telemetry(d.telemetry_endpoint, topics=(b"state",)) as tel:
         port = c.call("hello")["inputs"]["osc"]["udp"].rsplit(":", 1)[1]
         out: list[str] = []
         th = threading.Thread(target=lambda: out.append(_run("osc_cue_system.py", "--port", port, "--wait", "8")))
@@ -75,14 +76,14 @@ def test_osc_cue_system_example_moves_the_head(example_daemon) -> None:
         th.join(120.0)
         assert out and "cue sent" in out[0]
         assert peak > 5.0
-        assert wait_until(lambda: c.call("status")["lifecycle"] == "inactive", 20.0)  # the cue system disabled it
+        assert wait_until(lambda: c.call("status")["lifecycle"] == "inactive", 30)  # the cue system disabled it
 
 
 def test_sacn_console_example_moves_the_head_then_the_watchdog_takes_over(example_daemon) -> None:
     import threading
 
     d = example_daemon
-    with Client(d.command_endpoint, timeout=10) as c, Telemetry(d.telemetry_endpoint, topics=(b"state",)) as tel:
+    with Client(d.command_endpoint, timeout=30) as c, Telemetry(d.telemetry_endpoint, topics=(b"state",)) as tel:
         dest = c.call("hello")["inputs"]["sacn"]["bind"].rsplit(":", 1)[0]
         enable(c)
         events = Events(d.telemetry_endpoint)
@@ -92,7 +93,7 @@ def test_sacn_console_example_moves_the_head_then_the_watchdog_takes_over(exampl
             peak = _peak(tel, "jaw", 5.0)  # the console opens the jaw to 12 degrees
             th.join(120.0)
             assert peak > 6.0
-            assert wait_until(lambda: events.of("watchdog", stage="neutral", source="sacn"), 20.0)
+            assert wait_until(lambda: events.of("watchdog", stage="neutral", source="sacn"), 30)
         finally:
             events.close()
         c.call("disable")
@@ -100,7 +101,7 @@ def test_sacn_console_example_moves_the_head_then_the_watchdog_takes_over(exampl
 
 def test_mtc_show_example_chases_the_performance(example_daemon) -> None:
     d = example_daemon
-    with Client(d.command_endpoint, timeout=10) as c:
+    with Client(d.command_endpoint, timeout=30) as c:
         mtc = c.call("hello")["inputs"]["timecode"]["bind"]
         events = Events(d.telemetry_endpoint)
         try:
