@@ -26,11 +26,12 @@ EXCLUSIVE = "exclusive"
 #: buses with tight timeouts, daemons with their emulators, timing and realtime-priority checks, fixed ports, the
 #: browser.
 EXCLUSIVE_MODULES = frozenset({
-    "calibration/test_calib_daemon.py", "calibration/test_calib_hardware.py",
+    "calibration/test_calib_cli.py", "calibration/test_calib_daemon.py", "calibration/test_calib_hardware.py",
     "drivers/test_canopen402.py", "drivers/test_dynamixel.py",
     "runtime/inputs/test_examples.py", "runtime/inputs/test_inputs_e2e.py", "runtime/inputs/test_sacn_multicast.py",
     "runtime/test_api_server.py", "runtime/test_bus_reconnect.py", "runtime/test_buslink.py",
-    "runtime/test_daemon_e2e.py", "runtime/test_demo.py", "runtime/test_fuzz.py", "runtime/test_heartbeat_loss.py",
+    "runtime/test_daemon_e2e.py", "runtime/test_demo.py", "runtime/test_feedback_watch.py", "runtime/test_fuzz.py",
+    "runtime/test_heartbeat_loss.py",
     "runtime/test_link_telemetry.py", "runtime/test_protocol_fuzz.py", "runtime/test_recording_cli.py",
     "runtime/test_security_cli.py", "runtime/test_skin_channels.py",
     "sim_hardware/test_canopen_emulator.py", "sim_hardware/test_canopen_socketcand.py",
