@@ -209,8 +209,8 @@ def test_a_dead_emulator_faults_the_bus_and_the_loop_side_keeps_going(head: Head
         assert fb.state is LifecycleState.FAULT, fb
         assert not fb.connected or fb.faults, fb
         assert _alive(link.pid)  # the driver's errors did not kill the bus process
-        published = int(link._c[1])  # feedback publications: the bus process keeps publishing at the idle rate
-        wait_until(lambda: int(link._c[1]) > published + 2, 30, "feedback still published")
+        published = link.feedback_published  # feedback publications: the bus process keeps publishing at the idle rate
+        wait_until(lambda: link.feedback_published > published + 2, 30, "feedback still published")
         for _ in range(20):
             link.post(hold)
             assert link.feedback().state is LifecycleState.FAULT

@@ -15,7 +15,8 @@ from pathlib import Path
 import pytest
 
 from models.client import Client, Telemetry
-from tests.runtime.conftest import SAMPLE, enable_retrying, wait_until
+from tests._wait import wait_until
+from tests.runtime.conftest import SAMPLE, enable_retrying
 
 LATE_S = 0.15  # [buses.can0] feedback_timeout_s in the test head
 FAULT_S = 0.6  # [buses.can0] feedback_fault_s: below the driver's own stale-feedback and heartbeat limits
@@ -82,7 +83,7 @@ def test_frozen_canopen_feedback_is_late_then_faults_naming_the_bus(tmp_path, ma
               f"{LATE_S * 1e3:.0f} ms); → fault {(fault['t'] - injected) * 1e3:.0f} ms (limit {FAULT_S * 1e3:.0f} ms)")
         assert c.call("status")["lifecycle"] == "fault"
         sim.inject("resume_feedback", device=JAW)
-        wait_until(lambda: c.request("reset", timeout=30).get("ok"), 20.0, interval=0.5)
+        wait_until(lambda: c.request("reset", timeout=30).get("ok"), 20.0, "a reset the daemon accepts", interval=0.5)
         enable_retrying(c)
         assert c.call("status")["lifecycle"] == "active"
 
@@ -162,7 +163,7 @@ def test_stalled_emulator_process_is_reported_late(make_daemon) -> None:
         enable_retrying(c)
         c.call("load_clip", clip=clip)
         c.call("play", clip="sway")
-        assert wait_until(lambda: c.call("status")["commanded"]["jaw"] > 1.0, 20.0), "the clip did not move the jaw"
+        wait_until(lambda: c.call("status")["commanded"]["jaw"] > 1.0, 20.0, "the clip moving the jaw")
         os.kill(sim.pid, signal.SIGSTOP)
         stopped = time.monotonic()
         try:
