@@ -254,9 +254,18 @@ class DynamixelBus(MotorBus):
         return f"{motor.name} (id {device_id})" if motor else f"id {device_id}"
 
     def _call(self, fn: Callable[..., T], *args: Any) -> T:
-        """Run one SDK transaction under the port lock; serial exceptions become BusTimeout-able results."""
+        """Run one SDK transaction under the port lock; serial exceptions become BusTimeout-able results.
+
+        A transaction the SDK aborts with an exception (a pseudo-terminal closing under it) leaves its port's busy
+        flag set, and every later one would answer "Port is in use!" without touching the port, so a lost port would
+        never show; the lock here already keeps transactions apart, so the flag is cleared."""
         with self._io:
-            return fn(*args)
+            try:
+                return fn(*args)
+            except BaseException:
+                if self._port is not None:
+                    self._port.is_using = False
+                raise
 
     def _txrx(self, what: str, device_id: int, fn: Callable[..., Any], *args: Any,
               allow_alert: bool = True, retries: int | None = None) -> Any:

@@ -342,3 +342,19 @@ def test_fault_during_enable_is_not_overwritten_by_active(bus: DynamixelBus, emu
         bus.enable()
     assert bus.state is LifecycleState.FAULT and bus.faults()["m1"][0] == 0x04
     assert wait_until(lambda: not any(emu.servo(i).torque_enabled for i in IDS), 10)
+
+
+def test_a_transaction_the_sdk_aborts_leaves_the_port_usable(bus: DynamixelBus) -> None:
+    """The SDK marks its port busy for a transaction and clears the mark only when the transaction ends normally; one
+    that raises half way (a pseudo-terminal closing under it) must not leave every later one answering "Port is in
+    use!" without touching the port, which would hide a lost port from the reconnect logic."""
+    port = bus._port
+
+    def aborted() -> None:
+        port.is_using = True  # as the SDK's txPacket does first
+        raise IndexError("status packet cut short")
+
+    with pytest.raises(IndexError):
+        bus._call(aborted)
+    assert port.is_using is False
+    assert set(bus.read()) == {m.name for m in motors()}  # the next transaction reaches the servos
