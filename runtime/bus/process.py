@@ -317,8 +317,12 @@ class BusServer:
 
 
 def _connection_lost(exc: BaseException) -> bool:
-    """Whether a driver error means the transport is gone (rather than a device fault or a missed answer)."""
-    return isinstance(exc, OSError | BusConnectionLost) or type(exc).__module__.startswith(("serial", "can."))
+    """Whether a driver error means the transport is gone (rather than a device fault or a missed answer): an
+    ``OSError``, the drivers' ``BusConnectionLost``, or an error of the transport libraries, pyserial's and
+    python-can's, and ``termios.error`` (not an ``OSError``), which pyserial raises when a pseudo-terminal or adapter
+    vanishes while it sets the line up."""
+    return isinstance(exc, OSError | BusConnectionLost) or type(exc).__module__.startswith(("serial", "can.",
+                                                                                             "termios"))
 
 
 def _setup_process(cfg: BusProcessConfig) -> None:

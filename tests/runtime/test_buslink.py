@@ -301,3 +301,16 @@ def test_emulator_processes_start_at_the_given_pose_and_report_ground_truth(head
     assert not sim.alive
     with pytest.raises(ConfigError, match="no emulator for driver 'ethercat'"):
         simhw.start("ethercat", bus, {}, motors)
+
+
+def test_transport_errors_count_as_a_lost_connection() -> None:
+    """pyserial raises ``termios.error`` (not an OSError) when a pseudo-terminal vanishes under it; a missed answer
+    is not a lost connection."""
+    import termios
+
+    from drivers.errors import BusTimeout
+    from runtime.bus.process import _connection_lost
+
+    assert _connection_lost(termios.error(5, "Input/output error"))
+    assert _connection_lost(OSError(5, "Input/output error"))
+    assert not _connection_lost(BusTimeout("brow_l", "no status packet"))
