@@ -105,6 +105,8 @@ COMMANDS: tuple[Command, ...] = (
     Command("al-benchmark", OFFLINE, "offline.cli.al_benchmark",
             "benchmark GEN-LAL active learning against baselines (resumable)"),
     Command("studio", TOP, "studio.cli.studio", "pose, animate and perform a head in the browser"),
+    Command("blender", TOP, "studio.cli.blender",
+            "install the Blender add-on (animate a head on its predicted skin, export clips, stream live)"),
 )
 
 #: Exit status of a ``likeness`` command by kind of error, the one table from errors to exit codes. Kinds are named,
