@@ -157,11 +157,16 @@ def clip_to_action(obj: bpy.types.Object, clip: Mapping[str, Any], known: Iterab
     ad.action = bpy.data.actions.new(str(clip["name"]))
     curves = fcurves(obj, create=True)
     end = base.frame_start
+    exact = ExactKeys(base, {})
     for ch, spec in clip["channels"].items():
         keys = keyframes_from_channel(spec, base, f"clip {clip['name']!r}.channels.{ch}")
         fc = curves.new(channel_path(ch))
         write_keyframes(fc, keys)
         end = max(end, keys[-1].frame)
-    ad.action[EXACT_PROP] = json.dumps(ExactKeys.of_clip(clip, base).to_json())
+        # Recorded beside the numbers Blender stored (it nudges zero-length handles off their key).
+        stored = read_keyframes(fc)
+        exact.channels[ch] = [(k.rounded(), [float(x) for x in key]) for k, key in zip(stored, spec["keys"],
+                                                                                        strict=True)]
+    ad.action[EXACT_PROP] = json.dumps(exact.to_json())
     scene.frame_end = max(scene.frame_end, int(np.ceil(end)))
     return ad.action

@@ -32,7 +32,7 @@ class _Shown:
     state: SkinState
 
 
-_SHOWN: dict[str, _Shown] = {}  # object name → what its mesh shows
+_SHOWN: dict[int, _Shown] = {}  # object (session id) → what its mesh shows
 
 
 def rig_for(config: str | Path) -> HeadRig:
@@ -86,7 +86,8 @@ def import_head(config: str | Path, scene: bpy.types.Scene | None = None, name: 
 def _strain_material() -> bpy.types.Material:
     """A material whose base colour is the strain attribute (Cycles and EEVEE; Workbench shows the attribute)."""
     mat = bpy.data.materials.get("Likeness strain") or bpy.data.materials.new("Likeness strain")
-    mat.use_nodes = True
+    if bpy.app.version < (5, 0, 0):  # always true from Blender 5 on (the property is deprecated there)
+        mat.use_nodes = True
     nodes = mat.node_tree.nodes
     bsdf = next((n for n in nodes if n.type == "BSDF_PRINCIPLED"), None) or nodes.new("ShaderNodeBsdfPrincipled")
     attr = nodes.get("Strain") or nodes.new("ShaderNodeAttribute")
@@ -114,7 +115,7 @@ def update_head(obj: bpy.types.Object, force: bool = False) -> tuple[SkinState, 
     rig = head_rig(obj)
     values = addressed_values(obj, rig)
     key = tuple(sorted((n, v) for n, v in values.items()))
-    shown = _SHOWN.get(obj.name)
+    shown = _SHOWN.get(obj.session_uid)
     if shown is not None and shown.key == key and not force:
         return shown.state, False
     state = rig.skin(rig.pose(values))
@@ -129,7 +130,7 @@ def update_head(obj: bpy.types.Object, force: bool = False) -> tuple[SkinState, 
     if obj.get(PASSES_PROP) != state.passes:
         obj[PASSES_PROP] = state.passes
     obj[UTIL_PROP] = state.utilisation
-    _SHOWN[obj.name] = _Shown(key, state)
+    _SHOWN[obj.session_uid] = _Shown(key, state)
     return state, True
 
 
