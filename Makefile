@@ -4,6 +4,10 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 PIP    := $(PY) -m pip
 EXTRAS ?= offline,test
+# Blender as a Python module for tests/blender, where a wheel exists (Linux, Python 3.11). bpy declares numpy<2 for its
+# audio module alone, against the pinned numpy 2, so it installs without its declared dependencies (see docs/blender.md).
+BLENDER_ON := python_version == "3.11" and platform_system == "Linux"
+BLENDER := 'bpy==5.0.1; $(BLENDER_ON)' 'requests; $(BLENDER_ON)' 'zstandard; $(BLENDER_ON)'
 
 .PHONY: install demo test lint bench clean
 
@@ -11,6 +15,7 @@ $(VENV)/.installed: pyproject.toml constraints.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PIP) install -q --upgrade pip
 	$(PIP) install -q -c constraints.txt -e '.[$(EXTRAS)]'
+	$(PIP) install -q -c constraints.txt --no-deps $(BLENDER)
 	$(PY) -m models.kernels  # compile the in-cycle kernels into numba's cache once
 	touch $@
 
