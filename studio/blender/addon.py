@@ -263,6 +263,15 @@ class LIKENESS_PT_panel(bpy.types.Panel):
         stop.operator(LIKENESS_OT_estop.bl_idname, icon="CANCEL")
 
 
+def _menu_import(self: Any, context: Any) -> None:
+    self.layout.operator(LIKENESS_OT_import_head.bl_idname, text="Likeness Head (.toml)")
+    self.layout.operator(LIKENESS_OT_import_clip.bl_idname, text="Likeness Clip or Recording")
+
+
+def _menu_export(self: Any, context: Any) -> None:
+    self.layout.operator(LIKENESS_OT_export_clip.bl_idname, text="Likeness Clip (.json)")
+
+
 CLASSES = (LIKENESS_OT_import_head, LIKENESS_OT_export_clip, LIKENESS_OT_import_clip, LIKENESS_OT_scan_guard,
            LIKENESS_OT_live_connect, LIKENESS_OT_live_disconnect, LIKENESS_OT_estop, LIKENESS_PT_panel)
 HANDLERS = ((bpy.app.handlers.frame_change_post, on_frame_change),
@@ -280,11 +289,15 @@ def register() -> None:
     for handlers, fn in HANDLERS:
         if fn not in handlers:
             handlers.append(fn)
+    bpy.types.TOPBAR_MT_file_import.append(_menu_import)
+    bpy.types.TOPBAR_MT_file_export.append(_menu_export)
 
 
 def unregister() -> None:
     """Undo :func:`register` (stopping a running live link)."""
     stop_link()
+    bpy.types.TOPBAR_MT_file_import.remove(_menu_import)
+    bpy.types.TOPBAR_MT_file_export.remove(_menu_export)
     for handlers, fn in HANDLERS:
         if fn in handlers:
             handlers.remove(fn)

@@ -65,6 +65,7 @@ def import_head(config: str | Path, scene: bpy.types.Scene | None = None, name: 
     mesh.color_attributes.new(COLOR_ATTR, "FLOAT_COLOR", "POINT")
     mesh.attributes.active_color_name = COLOR_ATTR
     obj = bpy.data.objects.new(name or spec.name, mesh)
+    obj.rotation_euler = (np.pi / 2, 0.0, 0.0)  # the head's y-up frame in Blender's z-up world, facing -y (front)
     scene.collection.objects.link(obj)
     obj[HEAD_PROP] = str(Path(config).resolve())
     for ch in rig.channels:
