@@ -13,6 +13,7 @@ from pathlib import Path
 import bpy
 import numpy as np
 
+from models.errors import LikenessError
 from studio.blender.anim import animated_channels
 from studio.blender.rig import HeadRig, SkinState
 
@@ -136,8 +137,20 @@ def update_head(obj: bpy.types.Object, force: bool = False) -> tuple[SkinState, 
 
 
 def update_heads(scene: bpy.types.Scene) -> list[tuple[bpy.types.Object, SkinState, bool]]:
-    """Update every head object of the scene."""
-    return [(obj, *update_head(obj)) for obj in scene.objects if is_head(obj)]
+    """Update every head object of the scene. A head that cannot be shown (its files moved, a channel property
+    deleted) shows the reason as its verdict, once, instead of failing every frame."""
+    out = []
+    for obj in scene.objects:
+        if not is_head(obj):
+            continue
+        try:
+            out.append((obj, *update_head(obj)))
+        except (LikenessError, ValueError, KeyError, OSError) as exc:
+            reason = f"Cannot show the skin: {exc}"
+            if obj.get(VERDICT_PROP) != reason:
+                obj[VERDICT_PROP] = reason
+                obj[PASSES_PROP] = False
+    return out
 
 
 def scan_guard(scene: bpy.types.Scene, obj: bpy.types.Object, marker: str = "refused") -> list[int]:

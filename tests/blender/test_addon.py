@@ -151,7 +151,7 @@ def test_clip_to_action_to_clip_reproduces_every_key(blender: Any, tmp_path: Pat
                                                                            for t in keys[:, 0]])
 
 
-def test_unknown_channel_in_a_clip_is_refused_by_name(blender: Any) -> None:
+def test_unknown_channels_and_missing_head_files_are_named(blender: Any) -> None:
     from models.clip import ClipError
     from studio.blender import anim, scene
 
@@ -159,6 +159,11 @@ def test_unknown_channel_in_a_clip_is_refused_by_name(blender: Any) -> None:
     bad = {"name": "bad", "channels": {"nose": {"interp": "linear", "keys": [[0, 0], [1, 1]]}}}
     with pytest.raises(ClipError, match=r"\['nose'\] are not channels of head"):
         anim.clip_to_action(obj, bad, [c.name for c in scene.head_rig(obj).channels])
+    # A head whose files moved shows why as its verdict instead of failing every frame.
+    obj[scene.HEAD_PROP] = "/nowhere/head.toml"
+    assert scene.update_heads(blender.context.scene) == []
+    assert obj[scene.VERDICT_PROP].startswith("Cannot show the skin") and "/nowhere/head.toml" in obj[
+        scene.VERDICT_PROP]
 
 
 def test_the_installed_addon_package_registers_in_blender(blender: Any, tmp_path: Path) -> None:

@@ -147,3 +147,16 @@ def test_install_writes_the_addon_package_and_the_zip(tmp_path: Path) -> None:
     assert user_addon_dir("5.0", "linux", {**env, "BLENDER_USER_SCRIPTS": "/s"}) == Path("/s/addons")
     with pytest.raises(UsageError, match=r"MAJOR\.MINOR"):
         user_addon_dir("five", "linux", env)
+
+
+def test_the_command_installs_and_zips_the_addon(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from likeness.cli import main
+
+    assert main(["blender", "install", "--target", str(tmp_path / "addons")]) == 0
+    assert (tmp_path / "addons" / "likeness_blender" / "__init__.py").is_file()
+    assert "enable 'Likeness'" in capsys.readouterr().out
+    assert main(["blender", "zip", "--out", str(tmp_path / "l.zip")]) == 0
+    assert zipfile.is_zipfile(tmp_path / "l.zip")
+    assert main(["blender", "install", "--blender-version", "x", "--target", str(tmp_path)]) == 0  # target wins
+    assert main(["blender", "install", "--blender-version", "x"]) == 2  # a usage error, one line
+    assert "MAJOR.MINOR" in capsys.readouterr().err
