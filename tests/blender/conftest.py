@@ -3,10 +3,12 @@ the reason when it cannot be imported, and a fresh empty scene with the add-on r
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import json
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -33,3 +35,13 @@ def blender() -> Iterator[Any]:
         yield bpy
     finally:
         addon.unregister()
+
+
+def write_lrec(path: Path, names: Sequence[str], rows: np.ndarray, tail: bytes = b"") -> Path:
+    """A recording file as docs/operations.md defines it: a padded JSON header line, then float64 records."""
+    header = {"format": "likeness.recording", "version": 1, "names": list(names), "units": ["deg"] * len(names),
+              "columns": 1 + 2 * len(names), "dtype": "<f8", "meta": {}}
+    line = json.dumps(header)
+    line += " " * (-(len(line) + 1) % 8) + "\n"
+    path.write_bytes(line.encode() + np.asarray(rows, dtype="<f8").tobytes() + tail)
+    return path

@@ -13,7 +13,7 @@ import pytest
 
 from models.clip import clip_from_dict
 from studio.head import StudioHead
-from tests.blender.conftest import SAMPLE
+from tests.blender.conftest import SAMPLE, write_lrec
 
 
 @pytest.fixture(scope="module")
@@ -149,6 +149,21 @@ def test_clip_to_action_to_clip_reproduces_every_key(blender: Any, tmp_path: Pat
     assert resampled["interp"] == "linear" and len(keys) == 18  # frames 0..16 of the clip, then its end at 16.5
     assert keys[-1, 0] == pytest.approx(0.55) and np.allclose(keys[:, 1], [want.channels["blink"].value(t)
                                                                            for t in keys[:, 0]])
+
+
+def test_a_recording_comes_back_as_an_action(blender: Any, tmp_path: Path) -> None:
+    from studio.blender import anim, scene
+
+    obj = scene.import_head(SAMPLE)
+    t = np.arange(0, 2.0, 0.004)
+    rows = np.column_stack([t + 100.0, 5 * t, np.full_like(t, 2.0), 5 * t - 0.3, np.full_like(t, 2.1)])
+    path = write_lrec(tmp_path / "take.lrec", ["jaw", "brow_l"], rows)
+    assert blender.ops.likeness.import_clip(filepath=str(path), curves="measured") == {"FINISHED"}
+    curves = anim.animated_channels(obj)
+    assert set(curves) == {"jaw", "brow_l"} and obj.animation_data.action.name == "take"
+    sc = blender.context.scene
+    sc.frame_set(sc.frame_start + 24)  # 1 s into the take
+    assert obj["jaw"] == pytest.approx(5 * 1.0 - 0.3, abs=1e-3) and obj["brow_l"] == pytest.approx(2.1)
 
 
 def test_unknown_channels_and_missing_head_files_are_named(blender: Any) -> None:

@@ -20,6 +20,7 @@ from studio.blender.curves import (
     keyframes_from_channel,
 )
 from studio.blender.live import FrameClock
+from tests.blender.conftest import write_lrec
 
 CLIP = {"name": "probe", "channels": {
     "jaw": {"interp": "bezier", "keys": [[0.0, 0.0, 0.0, 0.0, 0.21, 3.3],
@@ -109,15 +110,9 @@ def test_frame_clock_follows_the_timeline_without_drift_and_reanchors_on_jumps()
 def test_recording_becomes_a_linear_clip_of_its_commanded_or_measured_curves(tmp_path: Path) -> None:
     from studio.blender.recording import recording_clip
 
-    names = ["jaw", "blink"]
-    header = {"format": "likeness.recording", "version": 1, "names": names, "units": ["deg", "deg"],
-              "columns": 5, "dtype": "<f8", "meta": {}}
-    line = json.dumps(header)
-    line += " " * (-(len(line) + 1) % 8) + "\n"
     t = np.arange(0, 1.0, 0.004)
     rows = np.column_stack([t + 5.0, 10 * t, np.full_like(t, 3.0), 10 * t - 0.5, np.full_like(t, np.nan)])
-    path = tmp_path / "take.lrec"
-    path.write_bytes(line.encode() + rows.astype("<f8").tobytes() + b"\x00" * 12)  # a cut last record
+    path = write_lrec(tmp_path / "take.lrec", ["jaw", "blink"], rows, tail=b"\x00" * 12)  # a cut last record
     clip = recording_clip(path, "commanded", step=1 / 24)
     jaw = np.array(clip["channels"]["jaw"]["keys"])
     assert jaw[0, 0] == 0.0 and jaw[-1, 0] == pytest.approx(t[-1]) and len(jaw) in (25, 26)
