@@ -4,11 +4,11 @@
 Timestamps follow the timeline, not the moment a frame happened to be drawn: a frame is stamped
 ``anchor_time + (frame − anchor_frame) / fps``, so a head fed at real-time playback moves with the timeline's exact
 spacing and never drifts from it. The anchor is set ``lead`` seconds ahead of now (on the daemon's clock, through the
-protocol's ``clock`` exchange) when the link starts, when the timeline jumps (a scrub, a loop back, a skipped frame
-range) and whenever the stamps would fall more than ``tolerance`` seconds from ``now + lead`` (Blender playing slower
-or faster than real time), so the head neither lags far behind the picture nor gets frames the daemon would call
-late. The daemon plays a frame ``stream_delay_s`` after its stamp. Sending runs on a thread of its own: Blender's
-frame handler only stamps and queues.
+protocol's ``clock`` exchange) when the link starts, when the timeline jumps (a scrub, a loop back) and whenever the
+stamps would fall more than ``tolerance`` seconds from ``now + lead`` (Blender playing slower or faster than real
+time), so the head neither lags far behind the picture nor gets frames the daemon would call late. The daemon plays
+a frame ``stream_delay_s`` after its stamp. Sending runs on a thread of its own: Blender's frame handler only stamps
+and queues.
 """
 
 from __future__ import annotations
@@ -38,7 +38,9 @@ class FrameClock:
     def stamp(self, frame: float, fps: float, now: float) -> float:
         """The local time at which ``frame`` should show on the head."""
         step = 1.0 / fps
-        jumped = self.last_frame is None or not (0 < frame - self.last_frame <= 2.0)
+        # Forward steps up to half a second are playback (Blender skips frames to keep up with real time or with
+        # its audio); anything else is a jump. Drift either way is caught by the tolerance below.
+        jumped = self.last_frame is None or not (0 < frame - self.last_frame <= max(2.0, 0.5 * fps))
         if self.anchor_frame is not None and not jumped:
             t = self.anchor_time + (frame - self.anchor_frame) * step
             if abs(t - (now + self.lead)) <= self.tolerance:

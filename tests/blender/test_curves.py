@@ -96,6 +96,9 @@ def test_frame_clock_follows_the_timeline_without_drift_and_reanchors_on_jumps()
     rng = np.random.default_rng(1)
     stamps = [clock.stamp(f, fps, now=100.0 + (f - 1) / fps + rng.uniform(-0.02, 0.02)) for f in range(2, 200)]
     assert np.allclose(np.diff([t0, *stamps]), 1 / fps, atol=1e-9) and clock.anchors == 1
+    # Frames skipped to keep up (Blender's frame dropping, Sync to Audio) keep the timeline's stamps.
+    assert clock.stamp(203, fps, now=100.0 + 202 / fps + 0.01) == pytest.approx(stamps[-1] + 4 / fps)  # after 199
+    assert clock.anchors == 1
     # A scrub back re-anchors at now + lead.
     assert clock.stamp(50, fps, now=200.0) == pytest.approx(200.1) and clock.anchors == 2
     # Playback slower than real time: stamps fall behind now + lead, so the clock re-anchors within tolerance.
