@@ -33,6 +33,7 @@ class FrameClock:
     anchor_frame: float | None = None
     anchor_time: float = 0.0
     last_frame: float | None = None
+    last_time: float = -float("inf")
     anchors: int = 0
 
     def stamp(self, frame: float, fps: float, now: float) -> float:
@@ -44,11 +45,14 @@ class FrameClock:
         if self.anchor_frame is not None and not jumped:
             t = self.anchor_time + (frame - self.anchor_frame) * step
             if abs(t - (now + self.lead)) <= self.tolerance:
-                self.last_frame = frame
+                self.last_frame, self.last_time = frame, t
                 return t
-        self.anchor_frame, self.anchor_time, self.last_frame = frame, now + self.lead, frame
+        anchor = now + self.lead
+        if not jumped:  # playing on: never stamp before a frame already sent
+            anchor = max(anchor, self.last_time + 1e-3)
+        self.anchor_frame, self.anchor_time, self.last_frame, self.last_time = frame, anchor, frame, anchor
         self.anchors += 1
-        return self.anchor_time
+        return anchor
 
 
 @dataclass

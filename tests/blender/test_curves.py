@@ -108,6 +108,13 @@ def test_frame_clock_follows_the_timeline_without_drift_and_reanchors_on_jumps()
         t = clock.stamp(f, fps, now)
         assert abs(t - (now + 0.1)) <= 0.05 + 1e-9
     assert clock.anchors > 3
+    # Playback faster than real time: re-anchored, yet a later frame is never stamped before an earlier one.
+    last = clock.stamp(120, fps, now)
+    for f in range(121, 200):
+        now += 0.2 / fps
+        t = clock.stamp(f, fps, now)
+        assert t > last
+        last = t
 
 
 def test_recording_becomes_a_linear_clip_of_its_commanded_or_measured_curves(tmp_path: Path) -> None:
