@@ -15,18 +15,20 @@ ROOT = Path(__file__).resolve().parents[2]
 SAMPLE = ROOT / "heads" / "sample" / "head.toml"
 
 
-def _bpy() -> Any:
+def require_bpy(module_level: bool = False) -> Any:
+    """``bpy``, or skip (the test, or with ``module_level`` the whole module) saying why it cannot be imported."""
     try:
         import bpy
     except ImportError as exc:  # no wheel for this platform or Python, or the extra is not installed
-        pytest.skip(f"Blender as a Python module (bpy==5.0.1, Linux and Python 3.11 only) cannot be imported: {exc}")
+        pytest.skip(f"Blender as a Python module (bpy==5.0.1, Linux and Python 3.11 only) cannot be imported: {exc}",
+                    allow_module_level=module_level)
     return bpy
 
 
 @pytest.fixture
 def blender() -> Iterator[Any]:
     """An empty Blender scene with the add-on registered (unregistered afterwards)."""
-    bpy = _bpy()
+    bpy = require_bpy()
     bpy.ops.wm.read_factory_settings(use_empty=True)
     from studio.blender import addon
 
