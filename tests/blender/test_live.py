@@ -99,18 +99,23 @@ def test_playing_the_timeline_streams_frames_the_head_follows(blender: Any, daem
         assert lk.clock.anchors < 15, lk.clock
         assert np.median(np.diff(sent[:, 0]) / np.diff(sent[:, 1])) == pytest.approx(1 / 24, abs=1e-9)
         # The commanded jaw follows the streamed frames (the curve at each shown frame, interpolated linearly by the
-        # daemon between stamps) at the time each state played (daemon time − the stream delay).
+        # daemon between stamps) at the time each state played (daemon time − the stream delay), within a lag that a
+        # loaded host adds (the loop and the shaper starved of cycles): the best lag is found, then bounded.
         assert states, "no telemetry during playback"
         values = [fc.evaluate(f) for f in sent[:, 1]]
-        errs = []
-        for m in states:
-            played = m["t"] - delay
-            if sent[0, 0] + 0.15 < played < sent[-1, 0]:
-                errs.append(abs(m["commanded"]["jaw"] - float(np.interp(played, sent[:, 0], values))))
-        assert len(errs) > 20, len(errs)
-        # Most errors are hundredths of a degree; a loaded host stalls the sender and the daemon, and the jerk-limited
-        # shaper then lags a jump for a few cycles.
-        assert np.median(errs) < 0.5 and np.percentile(errs, 90) < 1.5, (np.median(errs), np.percentile(errs, 90))
+        t_state = np.array([m["t"] - delay for m in states])
+        jaw = np.array([m["commanded"]["jaw"] for m in states])
+        inside = (t_state > sent[0, 0] + 0.15) & (t_state < sent[-1, 0])
+        assert inside.sum() > 20, inside.sum()
+
+        def error(lag: float) -> float:
+            return float(np.median(np.abs(jaw[inside] - np.interp(t_state[inside] - lag, sent[:, 0], values))))
+
+        lags = np.arange(-0.1, 0.6, 0.005)
+        lag = float(lags[np.argmin([error(x) for x in lags])])
+        print(f"live: {len(sent)} frames, {lk.stats.late} late, lag {lag:.3f} s, median error {error(lag):.3f} deg "
+              f"(without the lag {error(0.0):.3f} deg)")
+        assert -0.02 <= lag <= 0.4 and error(lag) < 0.25, (lag, error(lag), error(0.0))
         # The head reached the highest streamed value, near the key at frame 25 (after the stream ends the daemon's
         # watchdog holds, then eases out).
         assert max(m["commanded"]["jaw"] for m in states) == pytest.approx(max(values), abs=0.3)
