@@ -4,8 +4,8 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 PIP    := $(PY) -m pip
 EXTRAS ?= offline,test
-# Blender as a Python module for tests/blender, where a wheel exists (Linux, Python 3.11). bpy declares numpy<2 for its
-# audio module alone, against the pinned numpy 2, so it installs without its declared dependencies (see docs/blender.md).
+# Blender as a Python module for tests/blender, where a wheel exists (Linux, Python 3.11). bpy declares numpy<2 against
+# the pinned numpy 2 (under 2 only its audio fails to start; the add-on needs none), so it installs with --no-deps.
 BLENDER_ON := python_version == "3.11" and platform_system == "Linux"
 BLENDER := 'bpy==5.0.1; $(BLENDER_ON)' 'requests; $(BLENDER_ON)' 'zstandard; $(BLENDER_ON)'
 
