@@ -21,6 +21,9 @@ from typing import Any
 import msgpack
 import zmq
 
+#: The daemon's jitter-buffer delay (``[runtime] stream_delay_s``, the sample head's default).
+STREAM_DELAY_S = 0.05
+
 #: ``in_osc_window(t)``: whether the cue sender drives the head at soak time ``t`` (seconds from the start).
 Schedule = Callable[[float], bool]
 
@@ -36,6 +39,9 @@ class StreamCounts:
     accepted_active: int = 0
     late: int = 0
     late_at: list[tuple[float, int]] = field(default_factory=list)  # (send time, frames late) of replies with late
+    #: late frames that reached the daemon's server already older than its jitter buffer's delay (the sender or the
+    #: machine held them, not the daemon's path to the loop)
+    late_on_arrival: int = 0
     refused: dict[str, int] = field(default_factory=dict)  # error code -> requests
 
 
@@ -100,6 +106,8 @@ class Streamer(threading.Thread):
                 c.late += int(reply.get("late", 0))
                 if reply.get("late"):
                     c.late_at.append((sent_at, int(reply["late"])))
+                    if float(reply.get("t_recv", math.inf)) - sent_at > STREAM_DELAY_S:
+                        c.late_on_arrival += int(reply["late"])
                 if was_active:
                     c.accepted_active += int(reply.get("accepted", 0))
             else:

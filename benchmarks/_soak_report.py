@@ -48,7 +48,8 @@ def recording_rows(path: str | None, period: float) -> dict[str, int]:
         return {"rows": 0, "absent_cycles": 0}
     with open(path, "rb") as fh:
         header = json.loads(fh.readline())
-        rows = np.frombuffer(fh.read(), "<f8")
+        body = fh.read()
+    rows = np.frombuffer(body[: len(body) // 8 * 8], "<f8")  # a record cut short at the end is left out
     cols = int(header["columns"])
     t = rows[: len(rows) // cols * cols].reshape(-1, cols)[:, 0]
     steps = np.rint(np.diff(t) / period).astype(int)
@@ -94,7 +95,8 @@ def summarize(raw: dict[str, Any], settings: dict[str, Any], settle_s: float) ->
                       "lost": lost_recorded, "dropped_by_writer": rec.get("dropped"), "path": rec.get("path")},
         "stream": {"sent": s.sent, "sent_while_active": s.sent_active, "accepted": s.accepted,
                    "accepted_of_sent_while_active": s.accepted_active, "late": s.late,
-                   "late_outside_fault_handling": late_outside, "refused": s.refused},
+                   "late_outside_fault_handling": late_outside, "late_on_arrival": s.late_on_arrival,
+                   "refused": s.refused},
         "osc": {"sent": raw["osc_sent"], "daemon_input": osc},
         "memory_mib": {"start": mem0, "end": mem1, "growth_total": round(growth, 2)},
         "loop_end": (raw.get("status_end") or {}).get("loop"),
@@ -120,7 +122,9 @@ def print_summary(result: dict[str, Any], path: Path) -> None:
     print(f"recording: {r['rows_in_file']} rows ({r['samples_reported']} reported), {r['cycles_absent']} cycles absent "
           f"for {r['deadlines_missed_while_recording']} missed deadlines: lost {r['lost']} (goal {GOAL_LOST}); "
           f"stream: {st['accepted']} of {st['sent']} frames accepted, {st['late']} late "
-          f"({st['late_outside_fault_handling']} outside fault handling, goal {GOAL_LOST}), refused {st['refused']}")
+          f"({st['late_outside_fault_handling']} outside fault handling, goal {GOAL_LOST}; "
+          f"{st['late_on_arrival']} already older than the 50 ms buffer when the daemon received them), "
+          f"refused {st['refused']}")
     print(f"daemon processes VmRSS: {mem['start']['total']:.1f} MiB after warm-up, {mem['end']['total']:.1f} MiB at "
           f"the end: growth {mem['growth_total']:+.2f} MiB (goal <= {GOAL_GROWTH_MIB:g})")
     print(f"goals: {result['goals']} -> {'met' if result['goals_met'] else 'NOT met'}; report {path}")
