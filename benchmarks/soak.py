@@ -111,7 +111,12 @@ def run_soak(args: argparse.Namespace, out: Path) -> dict[str, Any]:
     report: dict[str, Any] = {}
     try:
         c = operator.client
-        c.call("enable")
+        if (run := operator.recover_unexpected()) is not None:  # a starved emulator missed a heartbeat on the way up
+            runs.append(run)
+        start_up = FaultRun("start-up", "enable at start", time.monotonic(), False)
+        operator.recover(start_up)
+        if start_up.t_recovered is None:
+            raise RuntimeError(f"the head could not be enabled: {start_up.notes}")
         streamer.start()
         osc.start()
         def sleep_until(t: float) -> None:
