@@ -118,12 +118,16 @@ class Operator:
             time.sleep(0.05)
         run.notes.append(f"no fault event naming bus {bus} and {match!r} within {DETECT_TIMEOUT_S} s")
 
-    def recover_unexpected(self) -> FaultRun | None:
+    def recover_unexpected(self, ask: bool = False) -> FaultRun | None:
         """A fault nobody injected (the head in FAULT between the injected ones): note it and recover, as an operator
-        would."""
-        if self.collector.lifecycle != "fault":
+        would. ``ask``: ask the daemon rather than trust the telemetry seen so far, and enable an inactive head (done
+        before each injection, so that every injected fault meets an active head)."""
+        if not ask and self.collector.lifecycle != "fault":
             return None
         st = self.client.request("status")
+        if ask and st.get("lifecycle") == "inactive":
+            self.recover(FaultRun("enable", "inactive head enabled", time.monotonic(), False))
+            return None
         fault = st.get("fault")
         if st.get("lifecycle") != "fault" or not fault:
             return None

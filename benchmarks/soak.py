@@ -130,6 +130,8 @@ def run_soak(args: argparse.Namespace, out: Path) -> dict[str, Any]:
         slot = 0
         while (start := t0 + WARMUP_S + slot * interval) + interval <= end + 1e-6:
             sleep_until(start + INJECT_AT * interval)
+            if (pending := operator.recover_unexpected(ask=True)) is not None:  # the head must be active to fault
+                runs.append(pending)
             name = args.faults[slot % len(args.faults)]
             run = getattr(operator, name)()
             runs.append(run)
