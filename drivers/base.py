@@ -229,6 +229,12 @@ class MotorBus(abc.ABC):
             self._holding = set(self._last_command)  # until each motor's first written target
             self._state = LifecycleState.ACTIVE
 
+    def last_commands(self) -> dict[str, float]:
+        """Each motor's last commanded position (SI): right after :meth:`enable`, the position it holds. The rate
+        check measures the next target against it, so a controller starts commanding from here."""
+        with self._lock:
+            return {name: position for name, (position, _) in self._last_command.items()}
+
     def disable(self) -> None:
         """Torque off: active → inactive (a no-op when already inactive)."""
         with self._lock:

@@ -174,7 +174,7 @@ class Runner:
         for bus in self.buses:
             fb = bus.feedback()
             out.append(BusInput(bus.name, fb.state.value, fb.connected, fb.positions, fb.stamp, fb.faults,
-                                  fb.connection, fb.attempts, fb.retry_at))
+                                  fb.connection, fb.attempts, fb.retry_at, fb.written))
         return tuple(out)
 
     def _drain(self, deadline: float) -> list[Command]:

@@ -125,7 +125,9 @@ class SimProcess:
                     if not ready:
                         self._early.put(line)
                         ready = line.startswith("ready:")
-                    log.info("emulator %s: %s", self.bus_name, line)
+                    # an emulator's own warnings (it cannot keep its rate, a failed send) reach the daemon's log
+                    level = logging.WARNING if (" WARNING " in line or " ERROR " in line) else logging.INFO
+                    log.log(level, "emulator %s: %s", self.bus_name, line)
         self._early.put(None)
         code = self._proc.wait()
         if not self._closing:

@@ -11,6 +11,11 @@ bytes in unpadded hex) and receives ``< frame 205 1795238642.596493 01020304 >``
 the other clients, never back to the sender. Frames for a client are held for a few milliseconds
 after its ``< ok >`` to raw mode and then sent in order, because python-can's client reads that
 ``< ok >`` with a single ``recv`` and would fail if a frame arrived in the same segment.
+
+Two ways to reach the bus: a python-can bus (``bus`` or ``bus_kwargs``; a thread copies the bus's frames to the
+clients), or in-process callbacks (``on_frame`` receives each client frame, :meth:`SocketcandServer.publish` sends a
+frame to the clients). The emulator uses the second: a frame then crosses no python-can queue, deep copy or extra
+thread, which cost most of the emulator's CPU.
 """
 
 from __future__ import annotations
@@ -20,7 +25,7 @@ import logging
 import socket
 import threading
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import can
@@ -30,17 +35,24 @@ log = logging.getLogger(__name__)
 #: Delay after the raw-mode ``< ok >`` before frames (held meanwhile) are forwarded to a new client.
 RAWMODE_GRACE_S = 0.02
 MAX_COMMAND_CHARS = 256
+#: Frames the bus answers while one client segment is handled go out together up to this size (python-can's client
+#: reads 1024 bytes at a time and warns about a frame cut at that boundary).
+BATCH_BYTES = 900
+
+
+def format_fields(can_id: int, data: bytes, timestamp: float, extended: bool = False) -> bytes:
+    """``< frame ID SEC.USEC HEXDATA >`` from the parts of one frame (no message object needed)."""
+    text = f"{can_id:08X}" if extended else f"{can_id:03X}"
+    return f"< frame {text} {timestamp:.6f} {data.hex().upper()} >".encode("ascii")
 
 
 def format_frame(msg: can.Message) -> bytes:
     """``< frame ID SEC.USEC HEXDATA >`` for one CAN message."""
-    can_id = f"{msg.arbitration_id:08X}" if msg.is_extended_id else f"{msg.arbitration_id:03X}"
-    stamp = msg.timestamp or time.time()
-    return f"< frame {can_id} {stamp:.6f} {bytes(msg.data).hex().upper()} >".encode("ascii")
+    return format_fields(msg.arbitration_id, bytes(msg.data), msg.timestamp or time.time(), msg.is_extended_id)
 
 
-def parse_send(command: str) -> can.Message:
-    """Parse ``< send ID LEN B1 B2 ... >`` into a message; ValueError naming what is wrong."""
+def parse_send_fields(command: str) -> tuple[int, bool, bytes]:
+    """Parse ``< send ID LEN B1 B2 ... >`` into ``(can_id, extended, data)``; ValueError naming what is wrong."""
     parts = command.strip("<> ").split()
     if len(parts) < 3 or parts[0] != "send":
         raise ValueError(f"not a send command: {command!r}")
@@ -52,7 +64,17 @@ def parse_send(command: str) -> can.Message:
     extended = len(id_text) > 3
     if can_id > (0x1FFFFFFF if extended else 0x7FF):
         raise ValueError(f"CAN id {id_text} out of range in {command!r}")
+    return can_id, extended, data
+
+
+def parse_send(command: str) -> can.Message:
+    """Parse ``< send ID LEN B1 B2 ... >`` into a message; ValueError naming what is wrong."""
+    can_id, extended, data = parse_send_fields(command)
     return can.Message(arbitration_id=can_id, is_extended_id=extended, data=data, timestamp=time.time())
+
+
+#: ``on_frame(can_id, data, timestamp)``: a frame a client sent, for the in-process bus.
+FrameSink = Callable[[int, bytes, float], None]
 
 
 class _Client:
@@ -107,8 +129,9 @@ class _Client:
 class SocketcandServer:
     """Serve ``channel`` of a python-can bus in socketcand raw mode on ``host:port`` (0: any free port).
 
-    Pass an open ``bus`` (not closed by :meth:`stop`) or ``bus_kwargs`` for ``can.Bus`` (closed by
-    :meth:`stop`). The bus should not receive its own sends (python-can's default).
+    Pass an open ``bus`` (not closed by :meth:`stop`), ``bus_kwargs`` for ``can.Bus`` (closed by :meth:`stop`), or
+    ``on_frame`` (called on the client's thread with each frame a client sends; frames for the clients go through
+    :meth:`publish`). The bus should not receive its own sends (python-can's default).
     """
 
     def __init__(
@@ -116,12 +139,14 @@ class SocketcandServer:
         *,
         bus: can.BusABC | None = None,
         bus_kwargs: Mapping[str, Any] | None = None,
+        on_frame: FrameSink | None = None,
         host: str = "127.0.0.1",
         port: int = 0,
         channel: str = "can0",
     ) -> None:
-        if (bus is None) == (bus_kwargs is None):
-            raise ValueError("give exactly one of bus or bus_kwargs")
+        if sum(x is not None for x in (bus, bus_kwargs, on_frame)) != 1:
+            raise ValueError("give exactly one of bus, bus_kwargs or on_frame")
+        self._on_frame = on_frame
         self._bus_kwargs = dict(bus_kwargs or {})
         self._bus = bus
         self._owns_bus = bus is None
@@ -136,6 +161,7 @@ class SocketcandServer:
         self._threads: list[threading.Thread] = []
         self.frames_to_bus = 0
         self.frames_from_bus = 0
+        self._batch = threading.local()  # frames published while a client's segment is handled, sent in one write
 
     @property
     def address(self) -> tuple[str, int]:
@@ -143,11 +169,14 @@ class SocketcandServer:
 
     def start(self) -> SocketcandServer:
         """Open the bus (if needed), listen and start serving on background threads."""
-        if self._bus is None:
-            self._bus = can.Bus(**self._bus_kwargs)
+        loops: list[tuple[Callable[[], None], str]] = [(self._accept_loop, "socketcand-accept")]
+        if self._on_frame is None:
+            if self._bus is None:
+                self._bus = can.Bus(**self._bus_kwargs)
+            loops.append((self._bus_loop, "socketcand-bus"))
         self._listen.listen(16)
         self._listen.settimeout(0.2)
-        for target, name in ((self._accept_loop, "socketcand-accept"), (self._bus_loop, "socketcand-bus")):
+        for target, name in loops:
             thread = threading.Thread(target=target, name=name, daemon=True)
             thread.start()
             self._threads.append(thread)
@@ -215,6 +244,24 @@ class SocketcandServer:
             self.frames_from_bus += 1
             self._broadcast(format_frame(msg), exclude=None)
 
+    def publish(self, can_id: int, data: bytes, timestamp: float | None = None, extended: bool = False) -> None:
+        """Send one frame of the in-process bus to every client in raw mode (any thread)."""
+        self.frames_from_bus += 1
+        payload = format_fields(can_id, data, timestamp or time.time(), extended)
+        batch: list[bytes] | None = getattr(self._batch, "frames", None)
+        if batch is None:
+            self._broadcast(payload, exclude=None)
+            return
+        batch.append(payload)
+        if sum(map(len, batch)) >= BATCH_BYTES:
+            self._flush_batch()
+
+    def _flush_batch(self) -> None:
+        batch: list[bytes] | None = getattr(self._batch, "frames", None)
+        if batch:
+            self._broadcast(b"".join(batch), exclude=None)
+            batch.clear()
+
     def _broadcast(self, payload: bytes, exclude: _Client | None) -> None:
         with self._clients_lock:
             clients = [c for c in self._clients if c is not exclude and c.raw]
@@ -242,27 +289,35 @@ class SocketcandServer:
                 if not chunk:
                     break
                 buffer += chunk.decode("ascii", errors="replace")
-                while True:
-                    start = buffer.find("<")
-                    end = buffer.find(">", start + 1)
-                    if start < 0:
-                        buffer = ""
-                        break
-                    if end < 0:
-                        if len(buffer) - start > MAX_COMMAND_CHARS:
-                            log.warning("socketcand %s: discarding over-long command", client.peer)
-                            buffer = ""
-                        else:
-                            buffer = buffer[start:]
-                        break
-                    command, buffer = buffer[start : end + 1], buffer[end + 1 :]
-                    stage = self._handle(client, command, stage)
-                    if stage == "closed":
-                        return
+                self._batch.frames = []
+                try:
+                    buffer, stage = self._handle_buffer(client, buffer, stage)
+                finally:
+                    self._flush_batch()
+                    self._batch.frames = None
+                if stage == "closed":
+                    return
         except OSError:
             pass
         finally:
             self._drop(client)
+
+    def _handle_buffer(self, client: _Client, buffer: str, stage: str) -> tuple[str, str]:
+        """Handle every complete command in ``buffer``; returns what is left of it and the new stage."""
+        while True:
+            start = buffer.find("<")
+            end = buffer.find(">", start + 1)
+            if start < 0:
+                return "", stage
+            if end < 0:
+                if len(buffer) - start > MAX_COMMAND_CHARS:
+                    log.warning("socketcand %s: discarding over-long command", client.peer)
+                    return "", stage
+                return buffer[start:], stage
+            command, buffer = buffer[start : end + 1], buffer[end + 1 :]
+            stage = self._handle(client, command, stage)
+            if stage == "closed":
+                return "", stage
 
     def _handle(self, client: _Client, command: str, stage: str) -> str:
         words = command.strip("<> ").split()
@@ -290,19 +345,30 @@ class SocketcandServer:
         # raw mode
         if verb == "send":
             try:
-                msg = parse_send(command)
+                can_id, extended, data = parse_send_fields(command)
             except ValueError as exc:
                 log.warning("socketcand %s: %s", client.peer, exc)
                 client.send(b"< error malformed send >")
                 return stage
-            bus = self._bus
-            if bus is not None:
-                try:
-                    bus.send(msg)
-                except can.CanError as exc:
-                    log.warning("socketcand: bus send failed: %s", exc)
+            stamp = time.time()
             self.frames_to_bus += 1
-            self._broadcast(format_frame(msg), exclude=client)
+            self._broadcast(format_fields(can_id, data, stamp, extended), exclude=client)
+            self._to_bus(can_id, extended, data, stamp)
         elif verb == "echo":
             client.send(b"< echo >")
         return stage
+
+    def _to_bus(self, can_id: int, extended: bool, data: bytes, stamp: float) -> None:
+        """Hand a client's frame to the in-process bus or the python-can bus (failures logged, never raised)."""
+        if self._on_frame is not None:
+            try:
+                self._on_frame(can_id, data, stamp)
+            except Exception:
+                log.exception("socketcand: frame 0x%X could not be delivered", can_id)
+            return
+        bus = self._bus
+        if bus is not None:
+            try:
+                bus.send(can.Message(arbitration_id=can_id, is_extended_id=extended, data=data, timestamp=stamp))
+            except can.CanError as exc:
+                log.warning("socketcand: bus send failed: %s", exc)

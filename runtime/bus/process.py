@@ -236,6 +236,10 @@ class BusServer:
                 bus.enable()
             self.enabled_k = int(self.v.counters[L.C_TG_DONE])
             self.written_k = self.enabled_k
+            # what the motors hold now is the last command: the loop starts commanding from it (the driver measures
+            # the first target's step against it; the measured positions may have moved on since)
+            held = bus.last_commands()
+            self.written = np.array([held.get(name, np.nan) for name in self.names])  # (nothing written: no stamp)
         elif op == "disable":
             if bus.state is LifecycleState.ACTIVE:
                 bus.disable()

@@ -48,7 +48,7 @@ class BusFeedback:
     state: LifecycleState
     faults: Faults
     connected: bool  # process alive and bus open and reachable
-    written: np.ndarray  # last targets written to the bus (NaN before the first write)
+    written: np.ndarray  # last targets written to the bus; after an enable, the positions it holds (NaN before any)
     write_stamp: float  # time.monotonic() of that write (0.0 before)
     io_us: float  # duration of the last write + read transaction in the bus process
     connection: ConnectionState = "closed"

@@ -43,6 +43,7 @@ class BusesState:
     faults: dict[str, dict[str, tuple[int, str]]]
     connections: dict[str, ConnectionInfo] = field(default_factory=dict)
     announced: dict[str, str] = field(default_factory=dict)
+    written: np.ndarray | None = None  # the buses' last written targets (SI, NaN where not known)
 
     @classmethod
     def initial(cls, params: CoreParams) -> BusesState:
@@ -64,8 +65,11 @@ class BusesState:
 
 def read(fb: BusesState, params: CoreParams, buses: tuple[BusInput, ...], t: float) -> None:
     """Take each bus's feedback in (``buses`` in the order of ``params.buses``)."""
+    if fb.written is None:
+        fb.written = np.full(len(fb.measured), np.nan)
     for (name, idx), bus in zip(params.buses, buses, strict=True):
         fb.measured[idx] = bus.positions
+        fb.written[idx] = np.nan if bus.written is None else bus.written
         fb.reported[name] = bus.stamp
         fb.states[name] = bus.state
         fb.connected[name] = bus.connected

@@ -234,6 +234,6 @@ def _settle(state: CoreState, params: CoreParams, out: CycleOutputs, t: float) -
     if tr is None:
         return
     if tr.op == "enable" and not tr.failed:
-        shape.restart(state.shaper, state.safety, state.feedback.measured)
+        shape.restart(state.shaper, state.safety, state.feedback.measured, state.feedback.written)
         _halt(state)
     lifecycle.conclude(state.life, state.feedback, params, out, t, tr)

@@ -36,6 +36,8 @@ class BusInput:
     connection: str = ""
     attempts: int = 0  # reconnect attempts since the connection was lost
     retry_at: float = float("inf")  # when the bus process tries to reconnect next (monotonic)
+    #: the last targets the bus wrote (after an enable: the positions its motors hold); None when not known
+    written: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

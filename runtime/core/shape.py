@@ -29,8 +29,12 @@ def shape(shaper: Shaper, x: np.ndarray, speed: float, hold: np.ndarray) -> np.n
     return shaper.step(x, speed).copy()
 
 
-def restart(shaper: Shaper, safety: SafetyFilter, measured: np.ndarray) -> None:
-    """Start commanding from where the head is (its measured positions, within limits; the last command where
-    nothing was measured)."""
+def restart(shaper: Shaper, safety: SafetyFilter, measured: np.ndarray, held: np.ndarray | None = None) -> None:
+    """Start commanding from where the head is: the positions the buses hold since they enabled (``held``: the
+    drivers measure the first target's step against them), else the measured positions, within limits; the last
+    command where neither is known. Starting from positions measured a few milliseconds after the hold would make
+    any motion in between (a motor settling or still coasting) a step the drivers refuse as too fast."""
     q = np.where(np.isfinite(measured), measured, shaper.q)
+    if held is not None:
+        q = np.where(np.isfinite(held), held, q)
     shaper.reset(np.clip(q, safety.lo, safety.hi))

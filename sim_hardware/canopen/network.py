@@ -7,6 +7,13 @@ and steps their motor models at ``physics_hz`` against the real clock. Link impa
 corrupt, delay) are applied to every frame the drives send (``direction="tx"``), receive (``"rx"``)
 or both; "corrupt" delivers the frame one byte short, the form a receiver can detect (bit errors
 are rejected by the CAN controller's CRC and never reach software).
+
+Given a ``transport`` at :meth:`DriveSet.start` (the socketcand server's ``publish``), the drives open no python-can
+bus: their frames go straight to the transport and :meth:`DriveSet.deliver` hands them the clients' frames, so a
+frame costs one function call instead of a deep copy, a queue and a thread switch. The physics thread wakes every
+``tick_s`` (default 2 ms) and steps the motion at ``physics_hz`` in between; when it cannot keep that rate (the
+process waited for a CPU) it logs a warning with the achieved rate and the longest stall, at most once per
+:data:`RATE_WINDOW_S`, and :meth:`DriveSet.rate_report` gives the figures.
 """
 
 from __future__ import annotations
@@ -17,7 +24,7 @@ import logging
 import random
 import threading
 import time
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -28,6 +35,14 @@ from sim_hardware.canopen.drive import EMCY_GENERIC, EmulatedDrive
 from sim_hardware.canopen.motor import MotorParams
 
 log = logging.getLogger(__name__)
+
+#: Seconds over which the physics thread judges whether it keeps its rate (and the most often it warns).
+RATE_WINDOW_S = 2.0
+#: A tick this late (seconds past its deadline) counts as a stall that the emulator reports.
+STALL_WARN_S = 0.02
+
+#: ``transport(can_id, data)``: where the drives' frames go when the drive set has no python-can bus.
+Transport = Callable[[int, bytes], None]
 
 
 @dataclass
@@ -57,8 +72,9 @@ class _EmulatorNetwork(canopen.Network):
 
     NOTIFIER_CYCLE = 0.1  # bounded shutdown time
 
-    def __init__(self, bus: can.BusABC, seed: int | None) -> None:
+    def __init__(self, bus: can.BusABC | None, seed: int | None, transport: Transport | None = None) -> None:
         super().__init__(bus)
+        self.transport = transport
         self.impairment = LinkImpairment()
         self._rng = random.Random(seed)
         self._delayed: list[tuple[float, int, bool, int, bytes]] = []
@@ -88,7 +104,13 @@ class _EmulatorNetwork(canopen.Network):
         if delay > 0:
             self._defer(delay, can_id, out, rx=False)
             return
-        super().send_message(can_id, out, remote)
+        self._emit(can_id, out, remote)
+
+    def _emit(self, can_id: int, data: bytes, remote: bool = False) -> None:
+        if self.transport is not None:
+            self.transport(can_id, data)
+        else:
+            super().send_message(can_id, data, remote)
 
     def notify(self, can_id: int, data: bytearray, timestamp: float) -> None:
         out, delay = self._impair(can_id, bytes(data), rx=True)
@@ -114,7 +136,7 @@ class _EmulatorNetwork(canopen.Network):
                 if rx:
                     super().notify(can_id, bytearray(data), time.time())
                 else:
-                    super().send_message(can_id, data)
+                    self._emit(can_id, data)
             except Exception:
                 log.exception("delayed frame 0x%03X could not be delivered", can_id)
 
@@ -142,12 +164,16 @@ class DriveSet:
         params: MotorParams | None = None,
         seed: int | None = None,
         bus_kwargs: Mapping[str, Any] | None = None,
+        tick_s: float = 0.002,
     ) -> None:
         ids = sorted(set(node_ids))
         if not ids or any(not 1 <= n <= 127 for n in ids):
             raise ValueError(f"node ids must be 1..127, got {ids}")
         if physics_hz <= 0:
             raise ValueError(f"physics_hz must be positive, got {physics_hz}")
+        if not 0 < tick_s <= 0.05:
+            raise ValueError(f"tick_s must be in (0, 0.05], got {tick_s}")
+        self.tick_s = max(tick_s, 1.0 / physics_hz)
         self.channel = channel
         self.interface = interface
         self.physics_hz = physics_hz
@@ -170,15 +196,21 @@ class DriveSet:
         self.overruns = 0
         self._physics_lock = threading.Lock()
         self._physics_t = 0.0  # time.monotonic() the motion has been stepped to
+        self._deliver_lock = threading.Lock()
+        self._rate = _RateWatch(physics_hz)
 
     # ------------------------------------------------------------------ life cycle
-    def start(self) -> DriveSet:
-        """Open the bus, boot every drive (boot-up messages) and start the physics thread."""
+    def start(self, transport: Transport | None = None) -> DriveSet:
+        """Open the bus (or send through ``transport``, receiving through :meth:`deliver`), boot every drive (boot-up
+        messages) and start the physics thread."""
         if self.network is not None:
             return self
-        bus = can.Bus(interface=self.interface, channel=self.channel, **self._bus_kwargs)
-        net = _EmulatorNetwork(bus, self._seed)
-        net.connect()
+        if transport is None:
+            net = _EmulatorNetwork(can.Bus(interface=self.interface, channel=self.channel, **self._bus_kwargs),
+                                   self._seed)
+            net.connect()
+        else:
+            net = _EmulatorNetwork(None, self._seed, transport)
         self.network = net
         self._physics_t = time.monotonic()
         # Before the drives' own SYNC handlers: the motion is brought up to date, so the TPDOs a SYNC triggers report
@@ -201,9 +233,19 @@ class DriveSet:
             self._thread = None
         net, self.network = self.network, None
         if net is not None:
-            for drive in self.drives.values():
-                drive.detach()
-            net.disconnect()
+            with self._deliver_lock:
+                for drive in self.drives.values():
+                    drive.detach()
+            if net.transport is None:
+                net.disconnect()
+
+    def deliver(self, can_id: int, data: bytes, timestamp: float) -> None:
+        """A frame from the bus to the drives (the socketcand server's ``on_frame``); one frame at a time, as a CAN
+        controller hands them over. Remote and error frames never come here."""
+        with self._deliver_lock:
+            net = self.network
+            if net is not None:
+                net.notify(can_id, bytearray(data), timestamp)
 
     def __enter__(self) -> DriveSet:
         return self.start()
@@ -213,28 +255,37 @@ class DriveSet:
 
     def advance(self, now: float) -> None:
         """Step every drive's motion up to ``now`` (at most :data:`MAX_CATCHUP_STEPS` steps; time beyond that is
-        dropped and counted in ``overruns``)."""
+        dropped and counted in ``overruns`` and in the rate report)."""
         dt = 1.0 / self.physics_hz
         with self._physics_lock:
             steps = int((now - self._physics_t) / dt)
             if steps > self.MAX_CATCHUP_STEPS:
                 self.overruns += 1
+                self._rate.dropped += steps - self.MAX_CATCHUP_STEPS
                 self._physics_t = now - self.MAX_CATCHUP_STEPS * dt
                 steps = self.MAX_CATCHUP_STEPS
             if steps > 0:
                 for drive in self.drives.values():
                     drive.step(dt, steps)
                 self._physics_t += steps * dt
+                self._rate.stepped += steps
+
+    def rate_report(self) -> dict[str, float]:
+        """The physics rate kept over the last full window: ``physics_hz``, ``achieved_hz``, ``max_late_ms``,
+        ``dropped_steps``, ``windows_behind`` (how many windows fell short since start)."""
+        return self._rate.report()
 
     def _on_sync(self, can_id: int, data: bytes, timestamp: float) -> None:
         self.advance(time.monotonic())
 
     def _run(self) -> None:
-        dt = 1.0 / self.physics_hz
+        dt = self.tick_s
         drives = list(self.drives.values())
         deadline = time.monotonic()
+        self._rate.start(deadline)
         while not self._stop.is_set():
             now = time.monotonic()
+            self._rate.tick(now, now - deadline)
             self.advance(now)
             net = self.network
             if net is None:
@@ -248,7 +299,7 @@ class DriveSet:
                     log.exception("drive set: communication step failed")
             deadline += dt
             wait = deadline - time.monotonic()
-            if wait < -self.MAX_CATCHUP_STEPS * dt:
+            if wait < -STALL_WARN_S:
                 deadline = time.monotonic()
             self._stop.wait(max(wait, 0.0))
 
@@ -340,7 +391,7 @@ class DriveSet:
         req = dict(request)
         op = req.pop("op", "inject")
         if op == "status":
-            return {"drives": self.status()}
+            return {"drives": self.status(), "rate": self.rate_report()}
         if op == "positions":
             return {"positions": {str(n): d.position_counts for n, d in self.drives.items()}}
         if op != "inject":
@@ -365,6 +416,48 @@ class DriveSet:
             }
             for n, d in self.drives.items()
         }
+
+
+class _RateWatch:
+    """Whether the physics thread keeps ``physics_hz``: steps done and ticks' lateness per :data:`RATE_WINDOW_S`
+    window; a window that falls short (under 95 % of the rate, steps dropped, or a tick over :data:`STALL_WARN_S`
+    late) is logged as a warning with the achieved rate."""
+
+    def __init__(self, physics_hz: float) -> None:
+        self.physics_hz = physics_hz
+        self.stepped = 0  # counted by DriveSet.advance
+        self.dropped = 0
+        self._window_start = 0.0
+        self._max_late = 0.0
+        self.windows_behind = 0
+        self._last: dict[str, float] = {"physics_hz": physics_hz, "achieved_hz": physics_hz, "max_late_ms": 0.0,
+                                        "dropped_steps": 0, "windows_behind": 0}
+
+    def start(self, now: float) -> None:
+        self._window_start = now
+        self.stepped = self.dropped = 0
+        self._max_late = 0.0
+
+    def tick(self, now: float, late: float) -> None:
+        """One physics tick ``late`` seconds after its deadline; closes the window when it is over."""
+        self._max_late = max(self._max_late, late)
+        span = now - self._window_start
+        if span < RATE_WINDOW_S:
+            return
+        achieved = self.stepped / span
+        behind = achieved < 0.95 * self.physics_hz or self.dropped > 0 or self._max_late > STALL_WARN_S
+        self.windows_behind += behind
+        self._last = {"physics_hz": self.physics_hz, "achieved_hz": round(achieved, 1),
+                      "max_late_ms": round(1000.0 * self._max_late, 2), "dropped_steps": self.dropped,
+                      "windows_behind": self.windows_behind}
+        if behind:
+            log.warning("canopen emulator behind its %.0f Hz physics rate: achieved %.0f Hz over %.1f s, longest stall "
+                        "%.0f ms, %d steps dropped", self.physics_hz, achieved, span, 1000.0 * self._max_late,
+                        self.dropped)
+        self.start(now)
+
+    def report(self) -> dict[str, float]:
+        return dict(self._last)
 
 
 #: Fault names accepted by :meth:`DriveSet.inject` and their parameters.

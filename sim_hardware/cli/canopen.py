@@ -1,7 +1,7 @@
 """``likeness sim canopen``: serve emulated CiA 402 drives to other processes over socketcand.
 
-The drives live on an in-process python-can ``virtual`` bus; a socketcand-protocol server on
-loopback bridges it, so a master in another process connects with
+The drives and a socketcand-protocol server on loopback share one in-process bus (frames pass by
+function call, see :mod:`sim_hardware.socketcand`), so a master in another process connects with
 ``can.Bus(interface="socketcand", host=HOST, port=PORT, channel="can0")`` (for the ``canopen402``
 driver: options ``interface="socketcand", host, port, channel``). Prints one ready line, serves
 until SIGINT or SIGTERM, then exits 0.
@@ -114,13 +114,10 @@ def _serve(args: argparse.Namespace, nodes: list[int], initial: dict[int, float]
     server = control = None
     try:
         try:
-            server = SocketcandServer(
-                bus_kwargs={"interface": "virtual", "channel": internal}, host=args.host, port=args.port,
-                channel=args.channel,
-            )
+            server = SocketcandServer(on_frame=drives.deliver, host=args.host, port=args.port, channel=args.channel)
         except OSError as exc:
             raise UsageError(f"--port: cannot listen on {args.host}:{args.port}: {exc}") from exc
-        drives.start()
+        drives.start(transport=server.publish)
         server.start()
         if args.control:
             from models.emulator_control import ControlServer

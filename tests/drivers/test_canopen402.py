@@ -166,6 +166,21 @@ def test_targets_computed_before_the_enable_hold_are_rated_on_the_time_since_it(
         bus.write({"jaw": hold + 0.04}, stamp=t_before + 0.001)
 
 
+def test_last_commands_after_enable_are_the_hold_the_next_step_is_rated_from(bus, drives):
+    """After enable each motor holds where the driver read it; ``last_commands`` says where, and a controller that
+    starts from there has a zero first step whenever it comes. A position measured later that moved on (a motor
+    settling or still coasting) is a step from the hold, rated on the time between the stamps."""
+    bus.open()
+    bus.enable()
+    held = bus.last_commands()
+    t_hold = time.monotonic()
+    assert held["jaw"] == pytest.approx(drives.drives[1].position_counts * 2 * math.pi / 40960, abs=1e-3)
+    with pytest.raises(CommandRejected, match="max_velocity"):  # 0.05 rad one millisecond after the hold
+        bus.write({"jaw": held["jaw"] + 0.05, "lip": held["lip"]}, stamp=t_hold + 0.001)
+    bus.write(held, stamp=t_hold + 0.001)
+    assert bus.state is LifecycleState.ACTIVE and bus.last_commands() == held
+
+
 def test_limits_guard_rejects_and_sends_nothing(bus, drives):
     bus.open()
     bus.enable()

@@ -309,3 +309,35 @@ def test_every_command_kind_is_dispatched() -> None:
     out = rig.cycle(*cmds)
     codes = {tok: body["error"]["code"] for tok, body in out.replies if "error" in body}
     assert "internal" not in codes.values(), codes
+
+
+def test_enable_commands_from_the_positions_the_buses_hold() -> None:
+    """The drivers hold each motor where they read it while enabling and measure the first target's step against
+    that; feedback measured a few milliseconds later may have moved on (a motor settling or still coasting). The
+    first commands start from the held positions, so the drivers never see that motion as a step too fast to take
+    (their guard refused the jaw for it, a step over a 1 ms gap between write stamps)."""
+    rig = Rig(rate_hz=500.0)
+    jaw = HEAD.actuator_names.index("jaw")
+    held = rig.q.copy()
+    held[jaw] = math.radians(10.0)
+    drift = math.radians(1.5)  # measured positions ahead of the hold
+
+    def inputs() -> tuple[BusInput, ...]:
+        out = []
+        for b, idx in rig.params.buses:
+            measured = held[idx] + np.where(idx == jaw, drift, 0.0)
+            written = held[idx].copy() if rig.bus_state[b] == "active" else None
+            out.append(BusInput(b, rig.bus_state[b], True, measured, rig.t, written=written))
+        return tuple(out)
+
+    rig.bus_inputs = inputs  # type: ignore[method-assign]
+    rig.call(C.Enable)
+    assert rig.state.lifecycle is Lifecycle.ACTIVE
+    first = next(o.write for o in rig.outputs if o.write is not None)
+    assert first[jaw] == pytest.approx(held[jaw], abs=1e-12)
+    # without a hold reported (an older bus process, a fake bus), the measured positions are where it starts
+    rig2 = Rig(rate_hz=500.0)
+    rig2.q[jaw] = math.radians(4.0)
+    rig2.call(C.Enable)
+    first = next(o.write for o in rig2.outputs if o.write is not None)
+    assert first[jaw] == pytest.approx(math.radians(4.0), abs=1e-12)

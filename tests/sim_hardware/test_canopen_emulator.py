@@ -290,3 +290,45 @@ def test_physics_keeps_running_without_master():
         assert drive.position_counts > 10
     bus = can.Bus(interface="virtual", channel=channel)
     bus.shutdown()
+
+
+def test_drive_set_says_when_it_cannot_keep_its_physics_rate(monkeypatch, caplog):
+    """A stalled physics thread (here: its lock held, as a process waiting for a CPU) is reported with the achieved
+    rate, not slipped silently."""
+    from sim_hardware.canopen import network
+
+    monkeypatch.setattr(network, "RATE_WINDOW_S", 0.2)
+    caplog.set_level("WARNING", logger="sim_hardware.canopen.network")
+    with DriveSet([1], channel=_channel()) as drives:
+        assert wait_until(lambda: drives.rate_report()["achieved_hz"] > 0 and drives._rate.windows_behind == 0
+                          and drives._rate.stepped > 50, 5, "a first window")
+        with drives._physics_lock:
+            time.sleep(0.12)
+        assert wait_until(lambda: drives.rate_report()["windows_behind"] >= 1, 5, "a window that fell behind")
+        report = drives.rate_report()
+        assert report["max_late_ms"] >= 100 or report["dropped_steps"] >= 50
+        assert report["achieved_hz"] < 0.95 * report["physics_hz"]
+    assert any("behind its 1000 Hz physics rate: achieved" in r.getMessage() for r in caplog.records)
+
+
+def test_direct_transport_serves_a_master_over_socketcand():
+    """The emulator's own set-up (drives delivered by the socketcand server, no python-can bus between them): canopen's
+    master configures a drive over SDO and reads its TPDOs through python-can's socketcand client."""
+    from sim_hardware.socketcand import SocketcandServer
+
+    drives = DriveSet([4])
+    server = SocketcandServer(on_frame=drives.deliver, port=0)
+    drives.start(transport=server.publish)
+    server.start()
+    net = canopen.Network()
+    try:
+        net.connect(interface="socketcand", host=server.host, port=server.port, channel="can0")
+        node = net.add_node(4, build_od(4))
+        assert node.sdo[0x1000].raw == DEVICE_TYPE
+        node.sdo[0x6060].raw = 8
+        assert drives.drives[4]._mode == 8
+        assert wait_until(lambda: server.frames_to_bus >= 2 and server.frames_from_bus >= 2, 5, "frames both ways")
+    finally:
+        net.disconnect()
+        server.stop()
+        drives.stop()

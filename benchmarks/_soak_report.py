@@ -1,0 +1,172 @@
+"""The soak's figures against its goals, its printed summary and its timeline picture (matplotlib)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+#: Goals: missed deadlines outside fault handling, frames lost, memory growth of the daemon's processes.
+GOAL_MISSED = 0
+GOAL_LOST = 0
+GOAL_GROWTH_MIB = 10.0
+
+
+def _fault_windows(raw: dict[str, Any], settle_s: float, interval: float) -> list[tuple[float, float]]:
+    """From each injection to ``settle_s`` after the head was active again (or to the next slot if it never was)."""
+    out = []
+    for run in raw["runs"]:
+        end = run.t_recovered + settle_s if run.t_recovered is not None else run.t_inject + interval
+        out.append((run.t_inject - 0.2, end))
+    return out
+
+
+def _missed(states: list[tuple], windows: list[tuple[float, float]], t_from: float, t_to: float) -> dict[str, int]:
+    """Deadlines missed between ``t_from`` and ``t_to`` (from the loop's counter in the state telemetry), split into
+    inside and outside the fault windows."""
+    inside = outside = 0
+    prev = None
+    for t, _cycles, missed, *_ in states:
+        if prev is not None and t_from <= t <= t_to:
+            step = missed - prev[1]
+            if step > 0:
+                if any(a <= t and prev[0] <= b for a, b in windows):
+                    inside += step
+                else:
+                    outside += step
+        prev = (t, missed)
+    return {"outside_fault_handling": outside, "during_fault_handling": inside}
+
+
+def recording_rows(path: str | None, period: float) -> dict[str, int]:
+    """Rows in a ``.lrec`` file and the control cycles absent between them (gaps in its time column)."""
+    import json
+
+    import numpy as np
+
+    if not path or not Path(path).exists():
+        return {"rows": 0, "absent_cycles": 0}
+    with open(path, "rb") as fh:
+        header = json.loads(fh.readline())
+        body = fh.read()
+    rows = np.frombuffer(body[: len(body) // 8 * 8], "<f8")  # a record cut short at the end is left out
+    cols = int(header["columns"])
+    t = rows[: len(rows) // cols * cols].reshape(-1, cols)[:, 0]
+    steps = np.rint(np.diff(t) / period).astype(int)
+    return {"rows": len(t), "absent_cycles": int(np.sum(steps[steps > 1] - 1))}
+
+
+def summarize(raw: dict[str, Any], settings: dict[str, Any], settle_s: float) -> dict[str, Any]:
+    """The report: settings, figures and whether each goal is met."""
+    states = raw["collector"].states
+    windows = _fault_windows(raw, settle_s, float(settings["interval"]))
+    t_warm = raw["t0"] + float(settings["warmup_s"])
+    t_end = states[-1][0] if states else t_warm
+    missed = _missed(states, windows, t_warm, t_end)
+    runs = [r.summary() for r in raw["runs"]]
+    injected = [r for r in runs if r["fault"] != "unexpected"]
+    unexpected = [r for r in runs if r["fault"] == "unexpected"]
+    rec = raw["record_stop"]
+    period = 1.0 / float(settings["rate"])
+    file_rows = recording_rows(rec.get("path"), period)
+    # every cycle that ran while recording is a row: the cycles absent from the file must be deadlines the loop missed
+    rec_events = [e for e in raw["collector"].events if e.get("event") == "record"]
+    t_rec0 = next((e["t"] for e in rec_events if e.get("state") == "started"), t_warm)
+    t_rec1 = next((e["t"] for e in rec_events if e.get("state") == "stopped"), t_end)
+    missed_rec = _missed(states, [], t_rec0, t_rec1)["outside_fault_handling"]
+    lost_recorded = max(0, file_rows["absent_cycles"] - missed_rec)
+    s = raw["streamer"]
+    late_outside = sum(n for t, n in s.late_at if not any(a <= t <= b for a, b in windows))
+    mem0, mem1 = raw["memory_start"], raw["memory_end"]
+    growth = mem1["total"] - mem0["total"]
+    faults_ok = all((r["detected"] or r["detected_by"].startswith("nothing")) and r["recovered"] for r in injected)
+    goals = {"missed_outside_faults": missed["outside_fault_handling"] <= GOAL_MISSED,
+             "every_fault_detected_and_recovered": faults_ok,
+             "frames_lost": lost_recorded <= GOAL_LOST and late_outside <= GOAL_LOST,
+             "memory_growth": growth <= GOAL_GROWTH_MIB}
+    osc = ((raw.get("status_end") or {}).get("inputs") or {}).get("osc") or {}
+    return {
+        "settings": settings,
+        "missed_deadlines": missed,
+        "faults": injected,
+        "unexpected_faults": unexpected,
+        "recording": {"samples_reported": int(rec.get("samples", 0)), "rows_in_file": file_rows["rows"],
+                      "cycles_absent": file_rows["absent_cycles"], "deadlines_missed_while_recording": missed_rec,
+                      "lost": lost_recorded, "dropped_by_writer": rec.get("dropped"), "path": rec.get("path")},
+        "stream": {"sent": s.sent, "sent_while_active": s.sent_active, "accepted": s.accepted,
+                   "accepted_of_sent_while_active": s.accepted_active, "late": s.late,
+                   "late_outside_fault_handling": late_outside, "late_on_arrival": s.late_on_arrival,
+                   "refused": s.refused},
+        "osc": {"sent": raw["osc_sent"], "daemon_input": osc},
+        "memory_mib": {"start": mem0, "end": mem1, "growth_total": round(growth, 2)},
+        "loop_end": (raw.get("status_end") or {}).get("loop"),
+        "daemon_exit": raw["daemon_rc"],
+        "goals": goals,
+        "goals_met": all(goals.values()),
+    }
+
+
+def print_summary(result: dict[str, Any], path: Path) -> None:
+    """The figures against the goals, one line each."""
+    m, r, st, mem = result["missed_deadlines"], result["recording"], result["stream"], result["memory_mib"]
+    loop = result.get("loop_end") or {}
+    print(f"missed deadlines outside fault handling: {m['outside_fault_handling']} (goal {GOAL_MISSED}); during "
+          f"fault handling {m['during_fault_handling']}; loop total {loop.get('missed')} of {loop.get('cycles')}")
+    for f in result["faults"] + result["unexpected_faults"]:
+        ttf = "-" if f["time_to_fault_s"] is None else f"{f['time_to_fault_s']:.2f} s"
+        ttr = "-" if f["time_to_recover_s"] is None else f"{f['time_to_recover_s']:.2f} s"
+        print(f"  {f['fault']:<18} detected {f['detected']!s:<5} time to fault {ttf:>7}  recovered "
+              f"{f['recovered']!s:<5} time to recover {ttr:>7}  {f['detected_by'][:90]}")
+        if f["fault"] == "unexpected":
+            print(f"    (not injected: {f['what'][:110]})")
+    print(f"recording: {r['rows_in_file']} rows ({r['samples_reported']} reported), {r['cycles_absent']} cycles absent "
+          f"for {r['deadlines_missed_while_recording']} missed deadlines: lost {r['lost']} (goal {GOAL_LOST}); "
+          f"stream: {st['accepted']} of {st['sent']} frames accepted, {st['late']} late "
+          f"({st['late_outside_fault_handling']} outside fault handling, goal {GOAL_LOST}; "
+          f"{st['late_on_arrival']} already older than the 50 ms buffer when the daemon received them), "
+          f"refused {st['refused']}")
+    print(f"daemon processes VmRSS: {mem['start']['total']:.1f} MiB after warm-up, {mem['end']['total']:.1f} MiB at "
+          f"the end: growth {mem['growth_total']:+.2f} MiB (goal <= {GOAL_GROWTH_MIB:g})")
+    print(f"goals: {result['goals']} -> {'met' if result['goals_met'] else 'NOT met'}; report {path}")
+
+
+def write_timeline(raw: dict[str, Any], result: dict[str, Any], path: Path) -> None:
+    """Jaw commanded/measured, cumulative missed deadlines, feedback age and the daemon's memory over time, with
+    each fault's handling shaded and named."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t0 = raw["t0"]
+    states = raw["collector"].states
+    t = [s[0] - t0 for s in states]
+    fig, axes = plt.subplots(4, 1, figsize=(12, 9), sharex=True)
+    axes[0].plot(t, [s[4] for s in states], lw=0.8, label="jaw commanded")
+    axes[0].plot(t, [s[5] for s in states], lw=0.8, label="jaw measured")
+    axes[0].set_ylabel("jaw (deg)")
+    axes[0].legend(loc="upper right", fontsize=8)
+    missed0 = states[0][2] if states else 0
+    axes[1].step(t, [s[2] - missed0 for s in states], where="post", color="C3")
+    axes[1].set_ylabel("missed deadlines\n(cumulative)")
+    axes[2].plot(t, [1e3 * s[6] if not math.isnan(s[6]) else math.nan for s in states], lw=0.6, color="C2")
+    axes[2].set_ylabel("oldest bus\nfeedback (ms)")
+    axes[2].set_yscale("log")
+    axes[3].plot([m[0] - t0 for m in raw["memory"]], [m[1] for m in raw["memory"]], marker=".", color="C4")
+    axes[3].set_ylabel("daemon VmRSS (MiB)")
+    axes[3].set_xlabel("time (s)")
+    for run in raw["runs"]:
+        end = (run.t_recovered or run.t_inject + 5.0) - t0
+        color = "red" if run.name == "unexpected" or run.t_recovered is None else "C1"
+        for ax in axes:
+            ax.axvspan(run.t_inject - t0, end, color=color, alpha=0.15)
+        axes[0].annotate(run.name.replace("_", " "), (run.t_inject - t0, 1.0), xycoords=("data", "axes fraction"),
+                         fontsize=7, rotation=90, va="top")
+        if run.t_detected is not None:
+            axes[1].axvline(run.t_detected - t0, color="k", lw=0.6, ls=":")
+    s = result["settings"]
+    fig.suptitle(f"soak: sample head at {s['rate']:g} Hz, {s['minutes']:g} min, a fault every {s['interval']:g} s "
+                 f"(shaded: from injection to the head active again; red: not injected, or not recovered)", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
