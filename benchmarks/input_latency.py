@@ -69,7 +69,7 @@ def start_daemon(rate: float, tmp: Path, phase_lock: bool = False, extra: dict[s
     head = load_head(D.patient_head(tmp / "head" / "head.toml", FRAGMENT.replace("{sacn}", sacn_ip)))
     overrides = {"api.command": "tcp://127.0.0.1:*", "api.telemetry": "tcp://127.0.0.1:*",
                  "runtime.rate_hz": rate, "runtime.telemetry_hz": min(50, rate), "runtime.stream_delay_s": 0.001,
-                 "safety.feedback_timeout_s": 0.5, "safety.watchdog_hold_s": 5.0, "safety.watchdog_neutral_s": 10.0,
+                 "safety.feedback_timeout_s": 5.0, "safety.watchdog_hold_s": 5.0, "safety.watchdog_neutral_s": 10.0,
                  "runtime.stream_phase_lock": phase_lock, **(extra or {})}
     daemon = Daemon(head, overrides, target_solvers=())
     daemon.start()
@@ -263,11 +263,18 @@ def _steady_sender(kind: str, target: str, rate: float, steps: int, seed: int, o
 
 def steady(daemon: Any, kind: str, target: str, rate: float, steps: int) -> tuple[list[float], Any]:
     """Step packets of a steady sender (:func:`_steady_sender`) → the first bus write that moved the jaw (s), and
-    the phase lock's state at the end (``status`` → ``loop.stream_phase_lock``)."""
-    stamps, values, sent = D.run_sender_watching_jaw(daemon, _steady_sender, (kind, target, rate, steps, 3),
-                                                     f"{kind} sender")
+    the phase lock's state at the end (``status`` → ``loop.stream_phase_lock``). A run that timed fewer than half
+    the steps (the head faulted on a stalled emulator, steps that came while the jaw moved) is followed by another,
+    three at most, so a figure comes out on a busy machine too."""
+    lat: list[float] = []
+    for attempt in range(3):
+        ready(daemon)
+        stamps, values, sent = D.run_sender_watching_jaw(daemon, _steady_sender,
+                                                         (kind, target, rate, steps, 3 + attempt), f"{kind} sender")
+        lat += D.first_moves(stamps, values, sent)
+        if len(lat) >= steps // 2:
+            break
     lock = daemon.call("status").get("loop", {}).get("stream_phase_lock")
-    lat = D.first_moves(stamps, values, sent)
     return lat, lock
 
 

@@ -87,7 +87,7 @@ def kernel(name: str) -> Callable[..., Any]:
     if _RECORDING:
         from models import _skin_kernels
 
-        return _recorder(name, getattr(_skin_kernels, name), _RECORDING[-1])
+        return _recorder(name, getattr(_skin_kernels, name), list(_RECORDING))
     mod = module()
     if mod is None:
         from models import _skin_kernels
@@ -137,9 +137,10 @@ def recording(examples: dict[str, tuple[Any, ...]]) -> Any:
 _RECORDING: list[dict[str, tuple[Any, ...]]] = []
 
 
-def _recorder(name: str, fn: Callable[..., Any], examples: dict[str, tuple[Any, ...]]) -> Callable[..., Any]:
+def _recorder(name: str, fn: Callable[..., Any], into: list[dict[str, tuple[Any, ...]]]) -> Callable[..., Any]:
     def call(*args: Any) -> Any:
-        examples.setdefault(name, args)
+        for examples in into:
+            examples.setdefault(name, args)
         return fn(*args)
 
     return call

@@ -446,7 +446,7 @@ def _start_inputs(head: HeadSpec, channels: ChannelMap, ctx: zmq.Context, estop:
                   forward: Callable[[C.Command], bool] | None = None, priority: int = 0) -> InputHub | None:
     """The show-control inputs the head configures (``[inputs]``), started, handing their commands to ``forward``
     (None: queued for :meth:`InputHub.drain`), their receive threads at SCHED_FIFO ``priority`` within a CPU budget
-(:mod:`runtime.inputs.priority`; 0: normal scheduling); None when it configures none."""
+(:mod:`runtime.rtbudget`; 0: normal scheduling); None when it configures none."""
     from runtime.inputs.config import inputs_config
     from runtime.inputs.hub import InputHub
 

@@ -33,6 +33,7 @@ from drivers.errors import BusConnectionLost
 from runtime.bus.config import BusProcessConfig
 from runtime.bus.layout import ConnectionState, Faults
 from runtime.bus.messages import BusOp, ErrorInfo, Opened, OpRequest, OpResult, ToBusProcess
+from runtime.rtbudget import RealtimeBudget
 
 log = logging.getLogger(__name__)
 
@@ -66,6 +67,8 @@ class BusServer:
         self.connection: ConnectionState = "closed"
         self.attempts = 0
         self.retry_at = math.inf
+        # realtime while waiting and writing (not for the whole process: see BusProcessConfig.write_priority)
+        self.budget = RealtimeBudget(cfg.write_priority if cfg.realtime_priority is None else 0)
         self.reconnect_error = ""
         self.parent = os.getppid()
 
@@ -146,6 +149,7 @@ class BusServer:
                     self.bus.write(dict(zip(self.names, targets.tolist(), strict=True)), stamp=float(snap[0]))
                     self.written = targets
                     self.write_stamp = time.monotonic()
+            self.budget.lower()  # the read and its reply wait preempt nothing
             if self.bus.state is not LifecycleState.UNCONFIGURED:
                 states = self.bus.read()
         except Exception as exc:
@@ -285,7 +289,9 @@ class BusServer:
         poller.register(self.wake_fd, select.POLLIN)
         poller.register(self.ctrl.fileno(), select.POLLIN)
         next_idle = time.monotonic()
+        log.info("bus %s: targets written at %s", self.bus.name, self.budget.enter())
         while True:
+            self.budget.rearm()
             wait_ms = max(0.0, (min(next_idle, self.retry_at) - time.monotonic()) * 1e3)
             events = poller.poll(math.ceil(wait_ms)) if wait_ms > 0 else []
             woken = False
@@ -294,6 +300,8 @@ class BusServer:
                     with contextlib.suppress(BlockingIOError, OSError):
                         os.read(self.wake_fd, 4096)
                     woken = True
+            if not (woken and self.has_fresh_targets()):
+                self.budget.lower()  # requests, reconnects and idle reads at normal scheduling
             if not self.handle_requests():
                 return
             if os.getppid() != self.parent:

@@ -25,8 +25,8 @@ from runtime.core import commands as C
 from runtime.core.channels import ChannelMap
 from runtime.inputs.config import OscConfig
 from runtime.inputs.oscmap import OscMap
-from runtime.inputs.priority import InputPriority
 from runtime.inputs.refusals import Refusals
+from runtime.rtbudget import RealtimeBudget
 
 
 class _PacketDispatcher(Dispatcher):
@@ -61,7 +61,7 @@ class OscInput:
     def __init__(self, cfg: OscConfig, channels: ChannelMap, emit: Callable[[C.Command], None],
                  estop: Callable[[str], None], priority: int = 0) -> None:
         self.cfg = cfg
-        self.priority = InputPriority(priority)  # the UDP thread's scheduling (TCP connections keep normal)
+        self.priority = RealtimeBudget(priority)  # the UDP thread's scheduling (TCP connections keep normal)
         self._udp_thread: int | None = None
         self.map = OscMap(cfg.map, channels, cfg.control_prefix)
         self.emit = emit
@@ -90,7 +90,7 @@ class OscInput:
             self._threads.append(th)
 
     def _serve(self, server: Any, poll_interval: float) -> None:
-        """The UDP server's thread: realtime within its budget (:mod:`runtime.inputs.priority`), then serve."""
+        """The UDP server's thread: realtime within its budget (:mod:`runtime.rtbudget`), then serve."""
         self._udp_thread = threading.get_ident()
         self.priority.enter()
         server.serve_forever(poll_interval=poll_interval)

@@ -29,8 +29,8 @@ from runtime.core.channels import ChannelMap
 from runtime.inputs import e131
 from runtime.inputs.config import SacnConfig
 from runtime.inputs.dmx import Merger, SlotDecoder
-from runtime.inputs.priority import InputPriority
 from runtime.inputs.refusals import Refusals, log
+from runtime.rtbudget import RealtimeBudget
 
 
 class BoundReceiverSocket(ReceiverSocketBase):
@@ -38,7 +38,7 @@ class BoundReceiverSocket(ReceiverSocketBase):
     interface on Linux)."""
 
     def __init__(self, listener: ReceiverSocketListener, host: str, port: int, multicast_group: str | None = None,
-                 priority: InputPriority | None = None) -> None:
+                 priority: RealtimeBudget | None = None) -> None:
         super().__init__(listener=listener)
         self._socket = socket.socket(socket.AF_INET, socket.SOCK_DGRAM, socket.IPPROTO_UDP)
         self._socket.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -52,7 +52,7 @@ class BoundReceiverSocket(ReceiverSocketBase):
         self.address = self._socket.getsockname()
         self._run = False
         self._thread: threading.Thread | None = None
-        self.priority = priority or InputPriority(0)  # this thread's scheduling (runtime.inputs.priority)
+        self.priority = priority or RealtimeBudget(0)  # this thread's scheduling (runtime.rtbudget)
 
     def start(self) -> None:
         self._run = True
@@ -104,7 +104,7 @@ class SacnInput(ReceiverSocketListener):
     def __init__(self, cfg: SacnConfig, channels: ChannelMap, emit: Callable[[C.Command], None],
                  priority: int = 0) -> None:
         self.cfg = cfg
-        self.priority = InputPriority(priority)
+        self.priority = RealtimeBudget(priority)
         self.emit = emit
         self.decoder = SlotDecoder(cfg.slots)
         self.indices = channels.indices(self.decoder.channels)

@@ -1,6 +1,7 @@
-"""The daemon's own process (the control loop's) at rest imports neither numba's compiler nor the training, plotting
-or offline libraries: its in-cycle kernels come from the module compiled ahead of time (``models.kernels_aot``),
-so it rests at a fraction of the memory (``benchmarks/daemon_memory.py`` prints the figure)."""
+"""The daemon's own process (the control loop's) at rest imports neither numba's compiler nor onnxruntime, nor the
+training, plotting or offline libraries: its in-cycle kernels come from the module compiled ahead of time
+(``models.kernels_aot``) and its predictor opens no session (the loop runs on the weights), so it rests at a fraction
+of the memory (``benchmarks/daemon_memory.py`` prints the figure)."""
 
 from __future__ import annotations
 
@@ -17,7 +18,7 @@ from models.kernel_support import kernels_available
 ROOT = Path(__file__).resolve().parents[2]
 SAMPLE = ROOT / "heads" / "sample" / "head.toml"
 #: Top-level modules the loop process must not import.
-CUT = ("numba", "llvmlite", "torch", "matplotlib", "sklearn", "offline", "studio", "sim_hardware")
+CUT = ("numba", "llvmlite", "onnxruntime", "torch", "matplotlib", "sklearn", "offline", "studio", "sim_hardware")
 
 _SCRIPT = """
 import json, sys
