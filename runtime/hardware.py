@@ -119,8 +119,7 @@ class Hardware:
         ``idle_hz`` is the feedback rate of a bus that gets no targets; ``realtime_priority`` asks for SCHED_FIFO in
         the bus processes; ``emulator_nice`` is added to the emulator processes' niceness (default
         :data:`runtime.simhw.EMULATOR_NICE`); ``bus_nice`` is added to the bus processes' niceness;
-        ``write_priority`` runs them at SCHED_FIFO while they wait for and write targets
-        (:class:`runtime.bus.config.BusProcessConfig`).
+        ``write_priority`` runs them at SCHED_FIFO within a CPU budget (:class:`runtime.bus.config.BusProcessConfig`).
         """
         motors, options, sims = start_emulators(head, nice=emulator_nice)
         proxies = {

@@ -6,9 +6,8 @@ other work. Under SCHED_FIFO (below the control loop's priority) they run as soo
 arrive. A sender that floods a port, or a driver that spins, must not turn that into a core taken from everything
 else, so each keeps a budget: once its thread has used more than ``share`` of a ``window`` of CPU time it drops to
 normal scheduling for the rest of the window (its work still goes on, at normal priority), and takes realtime
-scheduling back in the next window. A bus process also drops to normal scheduling by itself for the long part of a
-transaction (:meth:`RealtimeBudget.lower` after the write, :meth:`RealtimeBudget.rearm` before it waits again).
-Without permission (no CAP_SYS_NICE) the thread keeps normal scheduling.
+scheduling back in the next window (:meth:`RealtimeBudget.spent` after each piece of work, :meth:`RealtimeBudget.rearm`
+before waiting again). Without permission (no CAP_SYS_NICE) the thread keeps normal scheduling.
 """
 
 from __future__ import annotations

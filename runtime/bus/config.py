@@ -18,8 +18,8 @@ class BusProcessConfig:
     """Everything the bus process needs, sent to it once at spawn (pickled).
 
     ``idle_hz`` is the feedback rate while no targets arrive; ``realtime_priority`` asks for SCHED_FIFO (None:
-    normal priority); ``write_priority`` > 0 (with ``realtime_priority`` None) runs the process at SCHED_FIFO only
-    while it waits for and writes new targets, within a CPU budget (:mod:`runtime.rtbudget`); ``open_attempts``
+    normal priority); ``write_priority`` > 0 (with ``realtime_priority`` None) runs the process at SCHED_FIFO within
+    a CPU budget (:mod:`runtime.rtbudget`), so new targets are written as soon as they are posted; ``open_attempts``
     retries opening on a driver error; ``nice`` is added to the process's niceness; ``reconnect_base_s`` is the wait
     before the first reconnect attempt after a lost connection, doubling up to ``reconnect_max_s``.
     """

@@ -67,7 +67,7 @@ class BusServer:
         self.connection: ConnectionState = "closed"
         self.attempts = 0
         self.retry_at = math.inf
-        # realtime while waiting and writing (not for the whole process: see BusProcessConfig.write_priority)
+        # realtime within a CPU budget (see BusProcessConfig.write_priority)
         self.budget = RealtimeBudget(cfg.write_priority if cfg.realtime_priority is None else 0)
         self.reconnect_error = ""
         self.parent = os.getppid()
@@ -149,7 +149,6 @@ class BusServer:
                     self.bus.write(dict(zip(self.names, targets.tolist(), strict=True)), stamp=float(snap[0]))
                     self.written = targets
                     self.write_stamp = time.monotonic()
-            self.budget.lower()  # the read and its reply wait preempt nothing
             if self.bus.state is not LifecycleState.UNCONFIGURED:
                 states = self.bus.read()
         except Exception as exc:
@@ -289,7 +288,7 @@ class BusServer:
         poller.register(self.wake_fd, select.POLLIN)
         poller.register(self.ctrl.fileno(), select.POLLIN)
         next_idle = time.monotonic()
-        log.info("bus %s: targets written at %s", self.bus.name, self.budget.enter())
+        log.info("bus %s: %s within a CPU budget", self.bus.name, self.budget.enter())
         while True:
             self.budget.rearm()
             wait_ms = max(0.0, (min(next_idle, self.retry_at) - time.monotonic()) * 1e3)
@@ -300,8 +299,6 @@ class BusServer:
                     with contextlib.suppress(BlockingIOError, OSError):
                         os.read(self.wake_fd, 4096)
                     woken = True
-            if not (woken and self.has_fresh_targets()):
-                self.budget.lower()  # requests, reconnects and idle reads at normal scheduling
             if not self.handle_requests():
                 return
             if os.getppid() != self.parent:
@@ -312,6 +309,7 @@ class BusServer:
             now = time.monotonic()
             if (woken and self.has_fresh_targets()) or now >= next_idle:
                 self.transaction()
+                self.budget.spent()  # over its CPU budget: normal scheduling for the rest of the window
                 next_idle = max(next_idle + period, time.monotonic()) if now >= next_idle else next_idle
 
     def close(self) -> None:

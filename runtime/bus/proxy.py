@@ -61,7 +61,7 @@ class BusProxy:
 
     ``post`` and ``feedback`` never block and never pickle; ``request``/``result`` carry lifecycle operations.
     ``realtime_priority`` asks for SCHED_FIFO in the bus process (normal priority by default), ``write_priority``
-    for SCHED_FIFO only while it waits for and writes targets (:class:`runtime.bus.config.BusProcessConfig`);
+    for SCHED_FIFO within a CPU budget (:class:`runtime.bus.config.BusProcessConfig`);
     ``nice`` is added to its niceness; ``open_attempts`` retries opening on a driver error (emulated buses that share
     a loaded CPU can miss a reply window).
     """
