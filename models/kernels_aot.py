@@ -4,10 +4,11 @@ Importing numba (its compiler, LLVM) costs a process about 110 MiB of resident m
 numba's own on-disk cache another 70 MiB (the code generator stays resident): most of a resting daemon's memory, for
 four small functions. :func:`build` compiles the functions the loop calls (:data:`EXPORTS`, from
 :mod:`models._skin_kernels`) with numba's ahead-of-time compiler (``numba.pycc``) into an ordinary extension module
-(about 1 MiB) under ``models/__pycache__/``, typed with the argument types a head's solver and strain guard pass
-(numba's own typing of real arguments, so the compiled code is the code the JIT would run). :func:`kernel` returns
-that module's function when it is built for these sources and library versions, else the JIT function (numba
-imported on first use, as before). ``python -m models.kernels`` (``make install``) builds it.
+(about 1 MiB, for the host CPU as the JIT compiles) under ``models/__pycache__/``, typed with the argument types a
+head's solver and strain guard pass (numba's own typing of real arguments, so the compiled code is the code the JIT
+would run). :func:`kernel` returns that module's function when it is built for these sources, library versions and
+CPU, else the JIT function (numba imported on first use, as before). ``python -m models.kernels`` (``make
+install``) builds it.
 """
 
 from __future__ import annotations
@@ -47,8 +48,22 @@ def key() -> str:
         numba_version = importlib.metadata.version("numba")
     except importlib.metadata.PackageNotFoundError:
         numba_version = "none"
-    h.update(f"{numba_version} {np.__version__} {sys.version} {sys.platform}".encode())
+    h.update(f"{numba_version} {np.__version__} {sys.version} {sys.platform} {_cpu()}".encode())
     return h.hexdigest()[:16]
+
+
+@functools.cache
+def _cpu() -> str:
+    """This CPU's model and instruction-set flags (the module is compiled for the host CPU, as numba's JIT is)."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        import platform
+
+        return platform.processor() or platform.machine()
+    first = text.split("\n\n", 1)[0]
+    keep = [line for line in first.splitlines() if line.split(":")[0].strip() in ("model name", "flags")]
+    return " ".join(keep)
 
 
 def build_dir() -> Path:
@@ -162,7 +177,10 @@ def build(examples: Mapping[str, Sequence[Any]]) -> Path:
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=".build-", dir=target.parent))
     try:
+        from llvmlite import binding
+
         cc = CC(MODULE)
+        cc.target_cpu = binding.get_host_cpu_name()  # as the JIT compiles (the key names this CPU)
         cc.output_dir = str(tmp)
         cc.verbose = False
         for name in EXPORTS:
