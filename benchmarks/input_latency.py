@@ -77,18 +77,21 @@ def start_daemon(rate: float, tmp: Path, phase_lock: bool = False, extra: dict[s
     return daemon
 
 
-def ready(daemon: Any) -> None:
-    """The head active (a bus fault an emulator caused earlier is reset first)."""
-    for _ in range(3):
-        s = daemon.call("status")
-        if s["lifecycle"] == "active":
-            return
-        if s["lifecycle"] in ("fault", "estop") or "fault" in s["buses"].values():
-            daemon.call("reset")
+def ready(daemon: Any, attempts: int = 10) -> bool:
+    """The head active (a bus fault an emulator caused earlier is reset first); False when it could not be made
+    active in ``attempts`` tries (an emulated drive stalled by a loaded host refuses a reset for a while)."""
+    for _ in range(attempts):
         try:
+            s = daemon.call("status")
+            if s["lifecycle"] == "active":
+                return True
+            if s["lifecycle"] in ("fault", "estop") or "fault" in s["buses"].values():
+                daemon.call("reset")
             daemon.call("enable")
         except Exception as exc:  # the next try resets it
-            print(f"(enable failed: {exc})")
+            print(f"(making the head active failed: {exc})")
+            time.sleep(1.0)
+    return daemon.lifecycle == "active"
 
 
 def _packet_sender(kind: str, target: Any, conn: Any) -> None:
@@ -180,8 +183,9 @@ def measure(daemon: Any, trials: int, kind: str, target: Any) -> list[Trial]:
         conn.recv()
         ready(daemon)
         for _ in range(trials):
-            if daemon.lifecycle != "active":
-                ready(daemon)
+            if daemon.lifecycle != "active" and not ready(daemon):
+                out.append((time.monotonic(), np.full(4, np.nan), np.nan))  # lost: the head would not move
+                continue
             settle = time.monotonic() + 1.0
             while np.any(np.abs(daemon.state.shaper.v) > 1e-9) and time.monotonic() < settle:
                 time.sleep(0.002)
@@ -274,8 +278,16 @@ def steady(daemon: Any, kind: str, target: str, rate: float, steps: int) -> tupl
         lat += D.first_moves(stamps, values, sent)
         if len(lat) >= steps // 2:
             break
-    lock = daemon.call("status").get("loop", {}).get("stream_phase_lock")
-    return lat, lock
+    return lat, _status(daemon).get("loop", {}).get("stream_phase_lock")
+
+
+def _status(daemon: Any) -> dict[str, Any]:
+    """The daemon's ``status`` ({} when it does not answer in time)."""
+    try:
+        return daemon.call("status")
+    except Exception as exc:
+        print(f"(status failed: {exc})")
+        return {}
 
 
 STAGES = ("send -> received", "received -> taken", "taken -> cycle", "cycle -> posted", "posted -> bus write")
@@ -310,7 +322,7 @@ def run_rate(rate: float, args: argparse.Namespace, extra: dict[str, Any], tmp: 
             "mtc locate": measure(daemon, args.trials, "mtc", inputs["timecode"]["bind"]),
         }
         res["state"] = daemon.lifecycle
-        res["loop"] = daemon.call("status").get("loop", {})
+        res["loop"] = _status(daemon).get("loop", {})
     finally:
         daemon.stop()
     res["single"] = single
