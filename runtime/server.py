@@ -174,6 +174,9 @@ class Server:
         L.send_ready(self.from_loop, L.ServerReady(self.clients.command_endpoint, self.clients.telemetry_endpoint))
 
     def close(self) -> None:
+        if self.inputs is not None:  # first: their threads write to the command pipe
+            self.inputs.close()
+            self.inputs = None
         self.telemetry.close()
         if self.recording is not None:  # the daemon stops while recording: the file is complete up to here
             self.recording.close()
@@ -182,8 +185,6 @@ class Server:
         self.clients.close()
         self.from_loop.close(0)
         self.to_loop.close()
-        if self.inputs is not None:
-            self.inputs.close()
         self.ctx.term()
         self.estop_flag.close()
 
