@@ -5,7 +5,8 @@ daemon solves it) and random sparse face-unit weights; a channel the frame does 
 on its own solver (the same frames, the same warm-start chain), interleaved so machine load hits them alike, and
 each after the same sweep over more memory than a core's cache (as a control cycle runs between other work):
 
-* kernel (the baseline): the bare compiled call (``models._skin_kernels.solve_values_measured``: weights from the
+* kernel (the baseline): the bare compiled call (``models._skin_kernels.solve_values_measured``, the build
+  ``models.kernels_aot.kernel`` gives the loop: ahead of time where built, else numba's JIT; weights from the
   channel values, the inverse, the guard's reduced measure) with its arguments gathered beforehand, on the array
   path's frame from the same start;
 * array path: ``SkinTargetSolver.solve_array``, what the core calls every cycle (plus the guard's verdict, the
@@ -89,7 +90,7 @@ class Paths:
     """The timed paths, each with its own solver and warm-start chain, run on one frame at a time."""
 
     def __init__(self, head: HeadSpec) -> None:
-        from models import _skin_kernels as K
+        from models.kernels_aot import kernel
 
         array, mapping, by_name = (SkinTargetSolver.from_head(head) for _ in range(3))
         assert array is not None and mapping is not None and by_name is not None
@@ -98,7 +99,7 @@ class Paths:
         self.adapter = ArraySolver(by_name, self.channels, head.actuator_names)
         inv, guard = self.array.inverse, self.array.strain_guard
         self.guard = guard
-        self.kernel_fn = K.solve_values_measured
+        self.kernel_fn = kernel("solve_values_measured")  # the code the loop runs (ahead of time where built)
         self.kernel_args = self.array.frame.kernel_args  # the settings the solver's frame solve has bound
         self.kernel_w = np.zeros(inv.n_units)
         self.kernel_p = np.empty(len(self.array.names))

@@ -11,6 +11,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from models.kernel_args import pack_frame_args  # noqa: F401 (the packing solve_values_measured unpacks)
+
 
 @njit(cache=True, fastmath=False)
 def _cholesky_solve(A: np.ndarray, b: np.ndarray, out: np.ndarray) -> bool:
@@ -227,24 +229,6 @@ def solve_frame_measured(wts: np.ndarray, p_prev: np.ndarray, p0: np.ndarray, lo
                                          W1b, Rb, xlo, xhi, mid, ihalf, mu, max_iterations, tol, xtol)
     s_lo, s_hi = reduced_measure(h, E, ge0, C, idet, S_ptr, S_idx, S_w)
     return p, h, fit, f, it, conv, s_lo, s_hi
-
-
-def pack_frame_args(solve: tuple, measure: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The constants of a frame solve (``KsnnInverse.kernel_arrays()`` + max iterations, tol, xtol) and of the
-    reduced measure (``StrainGuard.kernel_arrays()``) packed into four arrays, the layout
-    :func:`solve_values_measured` unpacks: a call then passes 8 arguments instead of 33, and the dispatcher's
-    per-argument typing (about 0.1 µs each, a few times that when its caches are cold) shrinks with them."""
-    (lo, hi, scale_in, const_b, e, M, q0, Qd, lam_s, W1, b1, W1b, Rb, xlo, xhi, mid, ihalf, mu, max_iterations, tol,
-     xtol) = solve
-    E, ge0, C, idet, S_ptr, S_idx, S_w = measure
-    f64 = np.concatenate([np.ravel(np.asarray(a, dtype=np.float64)) for a in (
-        lo, hi, scale_in, xlo, xhi, mid, ihalf, e, M, q0, Qd, W1, b1, W1b, Rb, C, idet, S_w,
-        [const_b, lam_s, mu, tol, xtol])])
-    f32 = np.concatenate([np.ravel(np.asarray(E, dtype=np.float32)), np.ravel(np.asarray(ge0, dtype=np.float32))])
-    i64 = np.concatenate([np.asarray(S_ptr, dtype=np.int64), np.asarray(S_idx, dtype=np.int64)])
-    dims = np.array([len(lo), len(e), Rb.shape[1], len(idet), len(S_ptr), len(S_idx), E.shape[2], int(max_iterations)],
-                    dtype=np.int64)
-    return f64, f32, i64, dims
 
 
 @njit(cache=True)

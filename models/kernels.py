@@ -1,33 +1,54 @@
 """Compiling the in-cycle kernels (:mod:`models._skin_kernels`) ahead of the first daemon start
-(``python -m models.kernels [HEAD]``, run by ``make install``).
+(``python -m models.kernels [HEAD]``, run by ``make install``): into numba's on-disk cache, and into an extension
+module the control loop loads without importing numba (:mod:`models.kernels_aot`).
 
 Whether they can run at all (they need numba) is :func:`models.kernel_support.kernels_available`.
 """
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from models.kernel_support import kernels_available
 
+if TYPE_CHECKING:
+    from models.headspec import HeadSpec
+    from models.predictor import SkinPredictor
 
-def warm(head_path: str) -> None:
+
+def warm(head_path: str, ahead_of_time: bool = True) -> None:
     """Compile every kernel into numba's on-disk cache with the argument types a head's solver and guard use
-    (``make install`` runs this, so the first daemon start does not spend seconds compiling); nothing to do
-    without numba."""
+    (``make install`` runs this, so the first daemon start does not spend seconds compiling), then, with
+    ``ahead_of_time``, the loop's kernels into :mod:`models.kernels_aot`'s module (unless built for these sources
+    already); nothing to do without numba."""
     if not kernels_available():
         return
     from models.headspec import load_head
-    from models.ksnn_solve import KsnnInverse
     from models.predictor import SkinPredictor
-    from models.strain_guard import StrainGuard
 
     head = load_head(head_path)
     path = head.path("predictor")
     if path is None:
         return
-    sp = SkinPredictor(path)
+    from models import kernels_aot
+
+    examples: dict[str, tuple] = {}
+    with kernels_aot.recording(examples):
+        _run_kernels(head, SkinPredictor(path))
+    if ahead_of_time and kernels_aot.module() is None and all(name in examples for name in kernels_aot.EXPORTS):
+        kernels_aot.build(examples)
+
+
+def _run_kernels(head: HeadSpec, sp: SkinPredictor) -> None:
+    """Call every in-cycle kernel once as a head's skin solver and strain guard do (compiling them)."""
+    from models.ksnn_solve import KsnnInverse
+    from models.strain_guard import StrainGuard
+
     guard = StrainGuard.for_head(head, sp)  # compiles the reduced measure
+    if guard is not None:
+        guard.check(0.5 * (guard.lo + guard.hi))
     if sp.face_unit_offsets is not None:
         lo = np.maximum([a.min for a in head.actuators], sp.lo)
         hi = np.minimum([a.max for a in head.actuators], sp.hi)

@@ -16,10 +16,9 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from scipy.linalg.lapack import dposv as _dposv
 
 from models.kernel_support import kernels_available
 from models.predictor import KsnnWeights
@@ -174,7 +173,7 @@ class KsnnInverse:
         if wts.shape != (self.n_units,) or not np.isfinite(wts @ wts):
             raise ValueError(f"unit_weights must be {self.n_units} finite numbers, got shape {wts.shape}")
         if self.compiled:
-            from models import _skin_kernels as K
+            from models.kernels_aot import kernel
 
             none = _EMPTY
             args = (wts, none if p_prev is None else np.asarray(p_prev, dtype=np.float64),
@@ -182,10 +181,10 @@ class KsnnInverse:
                     max_iterations, tol, xtol)
             strain = None
             if measure is not None and measure.compiled:
-                p, h, fit, f, it, conv, s_lo, s_hi = K.solve_frame_measured(*args, *measure.kernel_arrays())
+                p, h, fit, f, it, conv, s_lo, s_hi = kernel("solve_frame_measured")(*args, *measure.kernel_arrays())
                 strain = (float(s_lo), float(s_hi))
             else:
-                p, h, fit, f, it, conv = K.solve_frame(*args)
+                p, h, fit, f, it, conv = kernel("solve_frame")(*args)
                 if measure is not None:
                     strain = measure.measure_hidden(h)
             return SolveResult(p=p, residual_rms=float(np.sqrt(fit * self.scale)), iterations=it, converged=conv,
@@ -239,7 +238,7 @@ class KsnnInverse:
             base = (lam_s if smooth else 0.0) + 1e-14 * float(Hm.trace())
             accepted = False
             for _ in range(8):
-                _, step, info = _dposv(Hm + (base + mu) * eye, g)
+                _, step, info = _dposv()(Hm + (base + mu) * eye, g)
                 if info != 0:
                     mu = max(mu * 10.0, 1e-12 * max(abs(f), 1e-30))
                     continue
@@ -303,9 +302,10 @@ class FrameSolve:
         self._kernel = None
         self.kernel_args: tuple[np.ndarray, ...] = ()  # what the compiled call takes after values, weights, poses
         if inverse.compiled and measure.compiled:
-            from models._skin_kernels import pack_frame_args, solve_values_measured
+            from models.kernel_args import pack_frame_args
+            from models.kernels_aot import kernel
 
-            self._kernel = solve_values_measured
+            self._kernel = kernel("solve_values_measured")
             self.kernel_args = pack_frame_args((*inverse.kernel_arrays(), self.max_iterations, self.tol, self.xtol),
                                                measure.kernel_arrays())
         # the compiled call writes the pose into whichever of these the start is not
@@ -337,3 +337,11 @@ class FrameSolve:
         self.iterations = res.iterations
         self.strain = res.strain if res.strain is not None else self.measure.measure(res.p)
         return res.p
+
+
+def _dposv() -> Any:
+    """LAPACK's ``dposv`` (scipy), imported on the numpy path's first use: the compiled path never needs scipy.linalg,
+    whose import costs the loop process about 25 MiB."""
+    from scipy.linalg.lapack import dposv
+
+    return dposv

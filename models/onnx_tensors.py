@@ -27,7 +27,11 @@ _DTYPES: dict[int, np.dtype] = {
 
 # Field numbers from onnx.proto3.
 _MODEL_GRAPH = 7
+_MODEL_METADATA = 14
 _GRAPH_INITIALIZER = 5
+_GRAPH_INPUT, _GRAPH_OUTPUT = 11, 12
+_VALUE_INFO_NAME = 1
+_ENTRY_KEY, _ENTRY_VALUE = 1, 2
 _TENSOR_DIMS, _TENSOR_TYPE, _TENSOR_FLOAT, _TENSOR_INT32 = 1, 2, 4, 5
 _TENSOR_INT64, _TENSOR_NAME, _TENSOR_RAW, _TENSOR_DOUBLE = 7, 8, 9, 10
 _TENSOR_EXTERNAL, _TENSOR_LOCATION = 13, 14
@@ -131,3 +135,37 @@ def read_initializers(path: str | Path, names: set[str] | None = None) -> dict[s
     except (IndexError, ValueError) as exc:
         raise SpecError(source, "graph", f"not a readable ONNX model: {exc}") from exc
     return out
+
+
+def read_model_info(path: str | Path) -> tuple[tuple[str, ...], tuple[str, ...], dict[str, str]]:
+    """The graph's input names, output names and the model's metadata (``metadata_props``) of the ONNX file at
+    ``path``, read without onnxruntime (what :class:`models.predictor.SkinPredictor` checks before it needs a
+    session). A file that is not a readable ONNX model raises :class:`SpecError`."""
+    source = str(path)
+    data = memoryview(Path(path).read_bytes())
+    inputs: list[str] = []
+    outputs: list[str] = []
+    meta: dict[str, str] = {}
+    graphs = 0
+
+    def name_of(value_info: memoryview) -> str:
+        for f, w, v in _fields(value_info):
+            if f == _VALUE_INFO_NAME and w == 2:
+                return bytes(v).decode("utf-8")
+        return ""
+
+    try:
+        for field, wire, value in _fields(data):
+            if field == _MODEL_GRAPH and wire == 2:
+                graphs += 1
+                for gfield, gwire, item in _fields(value):
+                    if gwire == 2 and gfield in (_GRAPH_INPUT, _GRAPH_OUTPUT):
+                        (inputs if gfield == _GRAPH_INPUT else outputs).append(name_of(item))
+            elif field == _MODEL_METADATA and wire == 2:
+                entry = {f: bytes(v).decode("utf-8") for f, w, v in _fields(value) if w == 2}
+                meta[entry.get(_ENTRY_KEY, "")] = entry.get(_ENTRY_VALUE, "")
+    except (IndexError, ValueError) as exc:  # UnicodeDecodeError is a ValueError
+        raise SpecError(source, "graph", f"not a readable ONNX model: {exc}") from exc
+    if graphs != 1:
+        raise SpecError(source, "graph", f"not a readable ONNX model: {graphs} graphs")
+    return tuple(inputs), tuple(outputs), meta

@@ -122,17 +122,50 @@ class SkinPredictor:
     ``strain_violations`` measure surface stretch per triangle for the skin-strain guard.
     """
 
-    def __init__(self, path: str | Path, threads: int = 1) -> None:
-        import onnxruntime as ort
-
+    def __init__(self, path: str | Path, threads: int = 1, session: bool = True) -> None:
+        """``session=False`` reads the graph's names and metadata from the file itself and leaves onnxruntime (its
+        import, about 26 MiB, and the session, about 15 MiB) until the first full pass: for a process that only needs
+        the weights and the metadata, as the control loop's (its in-cycle solve and strain guard run on the
+        weights). The same checks run either way; only a graph onnxruntime itself refuses shows later."""
         self.path = Path(path)
         source = str(self.path)
         if not self.path.is_file():
             raise SpecError(source, "file", "predictor model not found")
         if threads < 1:
             raise ValueError(f"threads must be at least 1, got {threads!r}")
+        self.threads = threads
+        self._session_obj: Any = None
+        self._session_lock = threading.Lock()
+        if session:
+            self._open_session()
+            inputs = {i.name for i in self._session.get_inputs()}
+            outputs = {o.name for o in self._session.get_outputs()}
+            meta = dict(self._session.get_modelmeta().custom_metadata_map)
+        else:
+            from models.onnx_tensors import read_model_info
+
+            names_in, names_out, meta = read_model_info(self.path)
+            inputs, outputs = set(names_in), set(names_out)
+        if INPUT_NAME not in inputs or OUTPUT_NAME not in outputs:
+            raise SpecError(source, "graph", f"needs input {INPUT_NAME!r} and output {OUTPUT_NAME!r}",
+                            {"inputs": sorted(inputs), "outputs": sorted(outputs)})
+        self.metadata: Mapping[str, str] = meta
+        self._parse_metadata(meta, source)
+        self._weights: KsnnWeights | None = None
+        # One-pose calls reuse one input buffer bound once; a lock keeps concurrent callers off it.
+        self._lock = threading.Lock()
+        self._x1 = np.zeros((1, self.n_actuators), dtype=np.float32)
+        self._io1_obj: Any = None
+        self._bound_out = 0
+        self._bound_ref: np.ndarray | None = None
+
+    def _open_session(self) -> None:
+        """Load the graph into onnxruntime (one thread, prepacking off for float32: see the module docstring)."""
+        import onnxruntime as ort
+
+        source = str(self.path)
         opts = ort.SessionOptions()
-        opts.intra_op_num_threads = threads
+        opts.intra_op_num_threads = self.threads
         opts.inter_op_num_threads = 1
         opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
         opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
@@ -150,25 +183,29 @@ class SkinPredictor:
             for name, value in self._pooled.items():
                 opts.add_initializer(name, value)  # onnxruntime uses this memory: it lives as long as the session
         try:
-            self._session = ort.InferenceSession(source, sess_options=opts, providers=["CPUExecutionProvider"])
+            self._session_obj = ort.InferenceSession(source, sess_options=opts, providers=["CPUExecutionProvider"])
         except Exception as exc:  # onnxruntime raises its own exception types
             raise SpecError(source, "graph", f"onnxruntime cannot load the model: {exc}") from exc
-        inputs = {i.name: i for i in self._session.get_inputs()}
-        outputs = {o.name for o in self._session.get_outputs()}
-        if INPUT_NAME not in inputs or OUTPUT_NAME not in outputs:
-            raise SpecError(source, "graph", f"needs input {INPUT_NAME!r} and output {OUTPUT_NAME!r}",
-                            {"inputs": sorted(inputs), "outputs": sorted(outputs)})
-        meta = dict(self._session.get_modelmeta().custom_metadata_map)
-        self.metadata: Mapping[str, str] = meta
-        self._parse_metadata(meta, source)
-        self._weights: KsnnWeights | None = None
-        # One-pose calls reuse one input buffer bound once; a lock keeps concurrent callers off it.
-        self._lock = threading.Lock()
-        self._x1 = np.zeros((1, self.n_actuators), dtype=np.float32)
-        self._io1 = self._session.io_binding()
-        self._io1.bind_ortvalue_input(INPUT_NAME, ort.OrtValue.ortvalue_from_numpy(self._x1))
-        self._bound_out = 0
-        self._bound_ref: np.ndarray | None = None
+
+    @property
+    def _session(self) -> Any:
+        """The onnxruntime session, loaded on first use when the predictor was built without one."""
+        if self._session_obj is None:
+            with self._session_lock:
+                if self._session_obj is None:
+                    self._open_session()
+        return self._session_obj
+
+    @property
+    def _io1(self) -> Any:
+        """The one-pose I/O binding over ``_x1`` (made with the session)."""
+        if self._io1_obj is None:
+            import onnxruntime as ort
+
+            io = self._session.io_binding()
+            io.bind_ortvalue_input(INPUT_NAME, ort.OrtValue.ortvalue_from_numpy(self._x1))
+            self._io1_obj = io
+        return self._io1_obj
 
     # ------------------------------------------------------------------ metadata
     def _meta(self, meta: Mapping[str, str], key: str, source: str) -> str:

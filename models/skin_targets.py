@@ -82,7 +82,7 @@ def skin_targets(head: HeadSpec, predictor: SkinPredictor | str | Path,
     return SkinTargets(head, sp, units, inverse, lo, hi, max_iterations, tol, strain_guard)
 
 
-def skin_targets_for_head(head: HeadSpec) -> SkinTargets | None:
+def skin_targets_for_head(head: HeadSpec, session: bool = True) -> SkinTargets | None:
     """The target space of the head's ``paths.predictor`` with its ``[skin]`` settings, or None when it names none.
 
     A predictor file that is named but missing is a :class:`SpecError` unless ``[paths] predictor_optional = true``,
@@ -112,7 +112,7 @@ def skin_targets_for_head(head: HeadSpec) -> SkinTargets | None:
     iters = head.section("skin").get("iterations_per_frame", 3)
     if isinstance(iters, bool) or not isinstance(iters, int) or iters < 1:
         raise SpecError(str(head.source), "skin.iterations_per_frame", "must be a positive integer", iters)
-    sp = SkinPredictor(path)
+    sp = SkinPredictor(path, session=session)  # session=False: onnxruntime loaded on the first full pass only
     sp.check_against(head, require_full_range=False)
     guard = StrainGuard.for_head(head, predictor=sp)
     return skin_targets(head, sp, strain_range=(lo, hi), smoothness=(smooth * 1e-3) ** 2, max_iterations=iters,

@@ -464,9 +464,9 @@ class StrainGuard:
         """Reduced measure (min, max) from hidden activations (3H,) (for callers that already have them);
         compiled (:mod:`models._skin_kernels`) unless ``compiled`` is False."""
         if self.compiled:
-            from models._skin_kernels import reduced_measure
+            from models.kernels_aot import kernel
 
-            lo, hi = reduced_measure(np.asarray(h, dtype=np.float64), *self.kernel_arrays())
+            lo, hi = kernel("reduced_measure")(np.asarray(h, dtype=np.float64), *self.kernel_arrays())
             return float(lo), float(hi)
         return self.measure_hidden_numpy(h)
 

@@ -41,6 +41,16 @@ class RuntimeSettings:
     # a flood of requests then takes a core ahead of the bus processes (whose stale feedback faults the head: safe,
     # but a stop), so it is opt-in. Telemetry, the large-request decoder and the show-control inputs stay normal.
     api_priority: int = 0
+    # SCHED_FIFO priority of the show-control inputs' receive threads (OSC, sACN, timecode; 0: normal scheduling).
+    # Each keeps a CPU budget (runtime.rtbudget: 20 % of a core over 100 ms, then normal scheduling for the
+    # rest of the window), so a flood cannot take a core from the bus processes; a packet then reaches the loop
+    # without queueing behind the emulators and other work of a busy host (benchmarks/input_latency.py).
+    inputs_priority: int = 20
+    # SCHED_FIFO priority of each bus process within a CPU budget (runtime.rtbudget: 20 % of a core per 100 ms, then
+    # normal scheduling for the rest of the window), so a driver that spins cannot take a core; new targets then
+    # reach the bus at once instead of after the emulators and other work of a busy host (0: normal scheduling).
+    # Ignored when bus_priority > 0 (the whole process realtime without a budget) or realtime = false.
+    bus_write_priority: int = 30
     cpu: int = -1  # pin the control thread to this CPU (-1: no pinning)
     spin_us: float = 200.0  # sleep until this long before a deadline, then spin
     switch_interval_s: float = 0.0005  # sys.setswitchinterval while the loop runs (other threads yield sooner)
@@ -155,6 +165,10 @@ def _check(cfg: DaemonConfig, source: str, head: HeadSpec) -> None:
     need(1 <= rt.priority <= 99, "runtime.priority", "must lie in [1, 99]", rt.priority)
     need(0 <= rt.bus_priority < rt.priority, "runtime.bus_priority", "must lie in [0, priority)", rt.bus_priority)
     need(0 <= rt.api_priority < rt.priority, "runtime.api_priority", "must lie in [0, priority)", rt.api_priority)
+    need(0 <= rt.bus_write_priority < rt.priority, "runtime.bus_write_priority", "must lie in [0, priority)",
+         rt.bus_write_priority)
+    need(0 <= rt.inputs_priority < rt.priority, "runtime.inputs_priority", "must lie in [0, priority)",
+         rt.inputs_priority)
     need(0 <= rt.spin_us <= 1e6 / rt.rate_hz, "runtime.spin_us", "must lie in [0, one period]", rt.spin_us)
     need(1e-5 <= rt.switch_interval_s <= 0.1, "runtime.switch_interval_s", "must lie in [1e-5, 0.1]",
          rt.switch_interval_s)

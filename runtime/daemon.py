@@ -133,7 +133,8 @@ class Daemon:
         if self.hw is None:
             rt = self.cfg.runtime
             self.hw = Hardware.from_head(self.head, bus_nice=BUS_NICE,
-                                     realtime_priority=(rt.bus_priority or None) if rt.realtime else None)
+                                     realtime_priority=(rt.bus_priority or None) if rt.realtime else None,
+                                     write_priority=rt.bus_write_priority if rt.realtime else 0)
         self.hw.start()
         self.buses = list(self.hw.proxies.values())
 

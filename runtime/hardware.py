@@ -112,17 +112,19 @@ class Hardware:
         realtime_priority: int | None = None,
         emulator_nice: int | None = None,
         bus_nice: int = 0,
+        write_priority: int = 0,
     ) -> Hardware:
         """Start the emulators of simulated buses and create (not start) a bus proxy per bus.
 
         ``idle_hz`` is the feedback rate of a bus that gets no targets; ``realtime_priority`` asks for SCHED_FIFO in
         the bus processes; ``emulator_nice`` is added to the emulator processes' niceness (default
-        :data:`runtime.simhw.EMULATOR_NICE`); ``bus_nice`` is added to the bus processes' niceness.
+        :data:`runtime.simhw.EMULATOR_NICE`); ``bus_nice`` is added to the bus processes' niceness;
+        ``write_priority`` runs them at SCHED_FIFO within a CPU budget (:class:`runtime.bus.config.BusProcessConfig`).
         """
         motors, options, sims = start_emulators(head, nice=emulator_nice)
         proxies = {
             bus: BusProxy(head.buses[bus].driver, bus, options[bus], motors[bus], idle_hz=idle_hz,
-                          realtime_priority=realtime_priority, nice=bus_nice,
+                          realtime_priority=realtime_priority, nice=bus_nice, write_priority=write_priority,
                           open_attempts=cls.SIMULATED_OPEN_ATTEMPTS if bus in sims else 1)
             for bus in motors
         }

@@ -29,6 +29,7 @@ from runtime.core.commands import Command, Live, Stream
 from runtime.core.cycle import BusInput, CycleInputs, CycleOutputs
 from runtime.core.params import CoreParams
 from runtime.core.state import CoreState
+from runtime.input_trace import InputTrace
 from runtime.loop import LoopStats, RateScheduler, SwitchInterval, drop_realtime, freeze_heap, try_realtime
 from runtime.phaselock import PhaseLock
 
@@ -70,6 +71,7 @@ class Runner:
                         "frames arrive that late and will settle earlier than asked", rt.stream_phase_lead_s,
                         COMMAND_MARGIN_S)
         self._deadline = 0.0  # the deadline the loop is waiting for (commands taken meanwhile are due then)
+        self.trace = InputTrace()  # live values' and stream frames' stamps on their way to the bus
 
     def stop(self) -> None:
         self._stop.set()
@@ -102,6 +104,7 @@ class Runner:
                 while not self._stop.is_set():
                     self._deadline = sched.next
                     late, missed = sched.wait(self._idle)
+                    woke = self.clock()
                     # The cycle's time is its deadline: the core's trajectory advances in exact periods whatever
                     # the wake-up jitter, and the drivers' rate guard sees the same spacing in the stamps.
                     t = sched.next - self.params.period
@@ -114,6 +117,8 @@ class Runner:
                         K.fault(self.state, self.params, out, t, "control loop",
                               f"control cycle failed: {type(exc).__name__}: {exc}")
                     self._write(out, t)
+                    if self.trace.open_rows:
+                        self.trace.applied(woke, self.clock())
                     if missed:
                         self.stats.missed += missed
                         pending_misses += missed
@@ -185,9 +190,10 @@ class Runner:
         cycle's start for a frame that came later than that."""
         taken = self.clock()
         cmds = self.commands.recv(MAX_COMMANDS_PER_CYCLE)
-        if self.phase_lock is not None:
-            for cmd in cmds:
-                if isinstance(cmd, (Stream, Live)):
+        for cmd in cmds:
+            if isinstance(cmd, (Stream, Live)):
+                self.trace.taken(cmd.received, taken)
+                if self.phase_lock is not None:
                     self.phase_lock.arrival(taken, deadline)
         return cmds
 

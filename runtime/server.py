@@ -8,8 +8,9 @@ as :data:`runtime.loop_messages.FromLoop` and are formatted, published (:mod:`ru
 (:mod:`runtime.decoder`). Nothing it does can hold up the control loop: it runs in another process. An ``estop``
 also trips the shared e-stop flag before anything else is done with it, so it reaches the core within one cycle
 whatever is queued or being parsed. The show-control inputs a head configures (OSC, sACN, MIDI timecode:
-:mod:`runtime.inputs`) run on threads of this process and hand their commands to this thread, which sends them on
-the same pipe.
+:mod:`runtime.inputs`) run on threads of this process and write their commands to the same pipe from their own
+threads (:meth:`Server.forward`; one lock keeps every message on the pipe whole and in order), so a packet wakes
+one thread of this process on its way to the loop, not two.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, cast
 
@@ -160,16 +162,21 @@ class Server:
         self.from_loop.setsockopt(zmq.LINGER, 0)
         self.from_loop.connect(spec.loop_endpoint)
         self.to_loop = ipc.PipeWriter[L.ToLoop](spec.command_pipe)
+        self._pipe_lock = threading.Lock()  # the pipe is written by this thread and by the inputs' threads
         self.pending = PendingRequests()
         self.recording = None
         self.clients = bind_client_sockets(self.ctx, self.head, self.cfg)
         self.telemetry = Telemetry(self.clients.pub, self.head, self.units)
-        self.inputs = _start_inputs(self.head, self.channels, self.ctx, self.estop_flag)
+        self.inputs = _start_inputs(self.head, self.channels, self.ctx, self.estop_flag, self.forward,
+                                    self.cfg.runtime.inputs_priority)
         self.decoder = DecoderProcess(self.ctx, DecoderSpec(spec.channels, spec.safe_speed, spec.inline_bytes))
         _raise_request_threads(self.cfg.runtime.api_priority)  # logs what it did
         L.send_ready(self.from_loop, L.ServerReady(self.clients.command_endpoint, self.clients.telemetry_endpoint))
 
     def close(self) -> None:
+        if self.inputs is not None:  # first: their threads write to the command pipe
+            self.inputs.close()
+            self.inputs = None
         self.telemetry.close()
         if self.recording is not None:  # the daemon stops while recording: the file is complete up to here
             self.recording.close()
@@ -178,8 +185,6 @@ class Server:
         self.clients.close()
         self.from_loop.close(0)
         self.to_loop.close()
-        if self.inputs is not None:
-            self.inputs.close()
         self.ctx.term()
         self.estop_flag.close()
 
@@ -201,7 +206,8 @@ class Server:
             events = dict(poller.poll(200))
             if writing and self.to_loop.fileno() in events:
                 try:
-                    self.to_loop.flush()
+                    with self._pipe_lock:
+                        self.to_loop.flush()
                 except BrokenPipeError:
                     return
             if self.from_loop in events and not self._drain_loop():
@@ -285,9 +291,19 @@ class Server:
     def _to_core(self, cmd: L.ToLoop) -> None:
         """A ready command to the loop, in order; what the pipe cannot take now is written by :meth:`run` later."""
         try:
-            self.to_loop.send(cmd)
+            with self._pipe_lock:
+                self.to_loop.send(cmd)
         except BrokenPipeError:
             log.error("the control loop is gone; command dropped")
+
+    def forward(self, cmd: C.Command) -> bool:
+        """A show-control input's command, on the input's thread: a token, then on to the core at once. False when
+        part of it waits for room in the pipe (the input hub then wakes :meth:`run`, which writes the rest)."""
+        token = self.pending.token()
+        source, received = _input_origin(cmd)
+        self.pending.add(token, Pending([], None, f"input:{source}", received, input=source))
+        self._to_core(dataclasses.replace(cmd, token=token))
+        return not self.to_loop.wants_write
 
     def _drain_inputs(self) -> None:
         """Commands from the show-control inputs (OSC, sACN, timecode): a token each, then on to the core."""
@@ -427,15 +443,18 @@ def _input_origin(cmd: C.Command) -> tuple[str, float]:
     return "osc", now
 
 
-def _start_inputs(head: HeadSpec, channels: ChannelMap, ctx: zmq.Context, estop: ipc.EStopFlag) -> InputHub | None:
-    """The show-control inputs the head configures (``[inputs]``), started; None when it configures none."""
+def _start_inputs(head: HeadSpec, channels: ChannelMap, ctx: zmq.Context, estop: ipc.EStopFlag,
+                  forward: Callable[[C.Command], bool] | None = None, priority: int = 0) -> InputHub | None:
+    """The show-control inputs the head configures (``[inputs]``), started, handing their commands to ``forward``
+    (None: queued for :meth:`InputHub.drain`), their receive threads at SCHED_FIFO ``priority`` within a CPU budget
+(:mod:`runtime.rtbudget`; 0: normal scheduling); None when it configures none."""
     from runtime.inputs.config import inputs_config
     from runtime.inputs.hub import InputHub
 
     cfg = inputs_config(head, channels)
     if not cfg.any:
         return None
-    hub = InputHub(cfg, channels, ctx, estop.trip)
+    hub = InputHub(cfg, channels, ctx, estop.trip, forward, priority)
     try:
         hub.start()
     except Exception:

@@ -112,7 +112,8 @@ class SkinTargetSolver:
         """The solver for the head's ``paths.predictor`` with its ``[skin]`` settings, or None when it names none
         (:func:`models.skin_targets.skin_targets_for_head` says what each setting does and which files are
         required)."""
-        targets = skin_targets_for_head(head)
+        # the loop runs the solve and the guard on the predictor's weights, never a full pass: no onnxruntime session
+        targets = skin_targets_for_head(head, session=False)
         return None if targets is None else cls(targets)
 
     # ------------------------------------------------------------------ TargetSolver protocol

@@ -18,9 +18,10 @@ class BusProcessConfig:
     """Everything the bus process needs, sent to it once at spawn (pickled).
 
     ``idle_hz`` is the feedback rate while no targets arrive; ``realtime_priority`` asks for SCHED_FIFO (None:
-    normal priority); ``open_attempts`` retries opening on a driver error; ``nice`` is added to the process's
-    niceness; ``reconnect_base_s`` is the wait before the first reconnect attempt after a lost connection, doubling
-    up to ``reconnect_max_s``.
+    normal priority); ``write_priority`` > 0 (with ``realtime_priority`` None) runs the process at SCHED_FIFO within
+    a CPU budget (:mod:`runtime.rtbudget`), so new targets are written as soon as they are posted; ``open_attempts``
+    retries opening on a driver error; ``nice`` is added to the process's niceness; ``reconnect_base_s`` is the wait
+    before the first reconnect attempt after a lost connection, doubling up to ``reconnect_max_s``.
     """
 
     driver: str
@@ -29,6 +30,7 @@ class BusProcessConfig:
     motors: tuple[MotorConfig, ...]
     idle_hz: float = 100.0
     realtime_priority: int | None = None
+    write_priority: int = 0
     open_attempts: int = 1
     nice: int = 0
     log_level: int = logging.WARNING  # the daemon's: the drivers' libraries chatter at INFO

@@ -33,6 +33,7 @@ from drivers.errors import BusConnectionLost
 from runtime.bus.config import BusProcessConfig
 from runtime.bus.layout import ConnectionState, Faults
 from runtime.bus.messages import BusOp, ErrorInfo, Opened, OpRequest, OpResult, ToBusProcess
+from runtime.rtbudget import RealtimeBudget
 
 log = logging.getLogger(__name__)
 
@@ -66,6 +67,8 @@ class BusServer:
         self.connection: ConnectionState = "closed"
         self.attempts = 0
         self.retry_at = math.inf
+        # realtime within a CPU budget (see BusProcessConfig.write_priority)
+        self.budget = RealtimeBudget(cfg.write_priority if cfg.realtime_priority is None else 0)
         self.reconnect_error = ""
         self.parent = os.getppid()
 
@@ -289,7 +292,9 @@ class BusServer:
         poller.register(self.wake_fd, select.POLLIN)
         poller.register(self.ctrl.fileno(), select.POLLIN)
         next_idle = time.monotonic()
+        log.info("bus %s: %s within a CPU budget", self.bus.name, self.budget.enter())
         while True:
+            self.budget.rearm()
             wait_ms = max(0.0, (min(next_idle, self.retry_at) - time.monotonic()) * 1e3)
             events = poller.poll(math.ceil(wait_ms)) if wait_ms > 0 else []
             woken = False
@@ -308,6 +313,7 @@ class BusServer:
             now = time.monotonic()
             if (woken and self.has_fresh_targets()) or now >= next_idle:
                 self.transaction()
+                self.budget.spent()  # over its CPU budget: normal scheduling for the rest of the window
                 next_idle = max(next_idle + period, time.monotonic()) if now >= next_idle else next_idle
 
     def close(self) -> None:

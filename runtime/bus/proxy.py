@@ -60,9 +60,10 @@ class BusProxy:
     """The loop-side end of one bus running in its own process.
 
     ``post`` and ``feedback`` never block and never pickle; ``request``/``result`` carry lifecycle operations.
-    ``realtime_priority`` asks for SCHED_FIFO in the bus process (normal priority by default); ``nice`` is added to
-    its niceness; ``open_attempts`` retries opening on a driver error (emulated buses that share a loaded CPU can miss
-    a reply window).
+    ``realtime_priority`` asks for SCHED_FIFO in the bus process (normal priority by default), ``write_priority``
+    for SCHED_FIFO within a CPU budget (:class:`runtime.bus.config.BusProcessConfig`);
+    ``nice`` is added to its niceness; ``open_attempts`` retries opening on a driver error (emulated buses that share
+    a loaded CPU can miss a reply window).
     """
 
     def __init__(
@@ -74,13 +75,15 @@ class BusProxy:
         *,
         idle_hz: float = 100.0,
         realtime_priority: int | None = None,
+        write_priority: int = 0,
         open_attempts: int = 1,
         nice: int = 0,
     ) -> None:
         self._config = BusProcessConfig(
             driver=driver, name=name, options=dict(options),
             motors=tuple(dataclasses.replace(m, options=dict(m.options)) for m in motors),
-            idle_hz=float(idle_hz), realtime_priority=realtime_priority, open_attempts=max(1, int(open_attempts)),
+            idle_hz=float(idle_hz), realtime_priority=realtime_priority,
+            write_priority=int(write_priority), open_attempts=max(1, int(open_attempts)),
             nice=int(nice), log_level=max(logging.getLogger().getEffectiveLevel(), logging.INFO),
         )
         self.name = name

@@ -26,6 +26,7 @@ from runtime.core.channels import ChannelMap
 from runtime.inputs.config import OscConfig
 from runtime.inputs.oscmap import OscMap
 from runtime.inputs.refusals import Refusals
+from runtime.rtbudget import RealtimeBudget
 
 
 class _PacketDispatcher(Dispatcher):
@@ -58,8 +59,10 @@ class OscInput:
     name = "osc"
 
     def __init__(self, cfg: OscConfig, channels: ChannelMap, emit: Callable[[C.Command], None],
-                 estop: Callable[[str], None]) -> None:
+                 estop: Callable[[str], None], priority: int = 0) -> None:
         self.cfg = cfg
+        self.priority = RealtimeBudget(priority)  # the UDP thread's scheduling (TCP connections keep normal)
+        self._udp_thread: int | None = None
         self.map = OscMap(cfg.map, channels, cfg.control_prefix)
         self.emit = emit
         self.trip_estop = estop
@@ -80,11 +83,17 @@ class OscInput:
             tcp.daemon_threads = True
             self._servers.append(tcp)
             self.bound["tcp"] = _address(tcp)
-        for server in self._servers:
-            th = threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.2},
-                                  name="likeness-osc", daemon=True)
+        for i, server in enumerate(self._servers):
+            th = threading.Thread(target=self._serve if i == 0 else server.serve_forever, args=(server,) if i == 0
+                                  else (), kwargs={"poll_interval": 0.2}, name="likeness-osc", daemon=True)
             th.start()
             self._threads.append(th)
+
+    def _serve(self, server: Any, poll_interval: float) -> None:
+        """The UDP server's thread: realtime within its budget (:mod:`runtime.rtbudget`), then serve."""
+        self._udp_thread = threading.get_ident()
+        self.priority.enter()
+        server.serve_forever(poll_interval=poll_interval)
 
     def close(self) -> None:
         for server in self._servers:
@@ -99,7 +108,14 @@ class OscInput:
 
     # ------------------------------------------------------------------ packets
     def packet(self, data: bytes, client: tuple[str, int]) -> None:
-        """One OSC packet (a message or a bundle) from ``client``."""
+        """One OSC packet (a message or a bundle) from ``client``; the UDP thread's CPU budget is checked after."""
+        try:
+            self._packet(data, client)
+        finally:
+            if threading.get_ident() == self._udp_thread:
+                self.priority.spent()
+
+    def _packet(self, data: bytes, client: tuple[str, int]) -> None:
         received = time.monotonic()
         self.packets += 1
         try:

@@ -1,9 +1,9 @@
 """The sACN (E1.31) input: one universe, received on a thread of the API server process.
 
-Packets are parsed by the ``sacn`` library (:meth:`sacn.messages.data_packet.DataPacket.make_data_packet`) from a
-receiver socket plugged into its socket interface, bound exactly where the config says (loopback unless allowed;
-``multicast = true`` joins the universe's group on the bind interface). The library's own receiver handler keeps one
-priority and one sequence per universe, not per source, so the merge of several sources is
+Packets are read by :func:`runtime.inputs.e131.parse` (the ``sacn`` library's checks, without its per-slot copy)
+from a receiver socket plugged into the library's socket interface, bound exactly where the config says
+(loopback unless allowed; ``multicast = true`` joins the universe's group on the bind interface). The library's own
+receiver handler keeps one priority and one sequence per universe, not per source, so the merge of several sources is
 :class:`runtime.inputs.dmx.Merger` (highest priority, then HTP or LTP). Every packet that changes the merged values
 becomes a live command; one that repeats them keeps the input alive (the watchdog) without taking the head over
 from another source; a new source takes over. A silent source leaves the merge after ``source_timeout_s`` (E1.31's
@@ -21,22 +21,24 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
-from sacn.messages.data_packet import DataPacket, calculate_multicast_addr
+from sacn.messages.data_packet import calculate_multicast_addr
 from sacn.receiving.receiver_socket_base import ReceiverSocketBase, ReceiverSocketListener
 
 from runtime.core import commands as C
 from runtime.core.channels import ChannelMap
+from runtime.inputs import e131
 from runtime.inputs.config import SacnConfig
 from runtime.inputs.dmx import Merger, SlotDecoder
 from runtime.inputs.refusals import Refusals, log
+from runtime.rtbudget import RealtimeBudget
 
 
 class BoundReceiverSocket(ReceiverSocketBase):
     """A UDP receiver socket for the sacn library, bound to exactly one address (the library's binds every
     interface on Linux)."""
 
-    def __init__(self, listener: ReceiverSocketListener, host: str, port: int, multicast_group: str | None = None
-                 ) -> None:
+    def __init__(self, listener: ReceiverSocketListener, host: str, port: int, multicast_group: str | None = None,
+                 priority: RealtimeBudget | None = None) -> None:
         super().__init__(listener=listener)
         self._socket = socket.socket(socket.AF_INET, socket.SOCK_DGRAM, socket.IPPROTO_UDP)
         self._socket.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -50,6 +52,7 @@ class BoundReceiverSocket(ReceiverSocketBase):
         self.address = self._socket.getsockname()
         self._run = False
         self._thread: threading.Thread | None = None
+        self.priority = priority or RealtimeBudget(0)  # this thread's scheduling (runtime.rtbudget)
 
     def start(self) -> None:
         self._run = True
@@ -59,6 +62,7 @@ class BoundReceiverSocket(ReceiverSocketBase):
     def _loop(self) -> None:
         import select
 
+        self.priority.enter()
         while self._run:
             try:
                 data = self._socket.recv(2048)
@@ -77,6 +81,7 @@ class BoundReceiverSocket(ReceiverSocketBase):
                     self._listener.on_periodic_callback(time.monotonic())
             except Exception:  # a bug must not end the input: the packet is lost, the next one is taken
                 log.exception("sACN input: handling a packet failed")
+            self.priority.spent()
 
     def stop(self) -> None:
         self._run = False
@@ -96,8 +101,10 @@ class SacnInput(ReceiverSocketListener):
 
     name = "sacn"
 
-    def __init__(self, cfg: SacnConfig, channels: ChannelMap, emit: Callable[[C.Command], None]) -> None:
+    def __init__(self, cfg: SacnConfig, channels: ChannelMap, emit: Callable[[C.Command], None],
+                 priority: int = 0) -> None:
         self.cfg = cfg
+        self.priority = RealtimeBudget(priority)
         self.emit = emit
         self.decoder = SlotDecoder(cfg.slots)
         self.indices = channels.indices(self.decoder.channels)
@@ -111,7 +118,7 @@ class SacnInput(ReceiverSocketListener):
 
     def start(self) -> None:
         group = calculate_multicast_addr(self.cfg.universe) if self.cfg.multicast else None
-        self._socket = BoundReceiverSocket(self, self.cfg.host, self.cfg.port, group)
+        self._socket = BoundReceiverSocket(self, self.cfg.host, self.cfg.port, group, self.priority)
         host, port = self._socket.address[:2]
         self.bound = {"bind": f"{host}:{port}", "universe": self.cfg.universe}
         self._socket.start()
@@ -130,7 +137,7 @@ class SacnInput(ReceiverSocketListener):
     def on_data(self, data: bytes, current_time: float) -> None:
         self.packets += 1
         try:
-            packet = DataPacket.make_data_packet(data)
+            packet = e131.parse(data)
         except (TypeError, ValueError) as exc:
             self.refusals.refuse("not an sACN data packet", str(exc)[:120])
             return

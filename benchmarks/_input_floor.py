@@ -1,0 +1,105 @@
+"""What this machine itself costs a packet on the daemon's way to the bus, measured beside the daemon in one run.
+
+A show-control packet crosses three process wake-ups before a bus process writes it: the input's receive thread
+(UDP), the control loop (the command pipe) and the bus process (its wake-up pipe). The floor is the same chain with
+nothing else in it: a sender process (SCHED_FIFO, as the benchmark's senders) sends a UDP datagram carrying its send
+time to a receiver process at the input threads' priority, which writes it to a pipe read by a process at the loop's
+priority, which writes it to a pipe read by a process at normal scheduling (niceness -10, as the bus processes); the
+last stamps its arrival. A single packet waits, besides, for the next control cycle (up to one period).
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import socket
+import struct
+import time
+from typing import Any
+
+_STAMP = struct.Struct("<d")
+
+
+def _set_priority(fifo: int, nice: int = 0) -> None:
+    try:
+        if fifo > 0:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(fifo))
+        elif nice:
+            os.setpriority(os.PRIO_PROCESS, 0, nice)
+    except (AttributeError, OSError):
+        pass  # without permission the floor is measured at normal scheduling, as the daemon would run
+
+
+def _receiver(sock: socket.socket, w: int, fifo: int) -> None:
+    """Hop 1: UDP → pipe."""
+    _set_priority(fifo)
+    while True:
+        data = sock.recv(64)
+        os.write(w, data)
+        if _STAMP.unpack(data)[0] < 0:
+            return
+
+
+def _relay(r: int, w: int, fifo: int) -> None:
+    """Hop 2: pipe → pipe (the loop's wake-up)."""
+    _set_priority(fifo)
+    while True:
+        data = os.read(r, _STAMP.size)
+        os.write(w, data)
+        if _STAMP.unpack(data)[0] < 0:
+            return
+
+
+def _last(r: int, out: Any, nice: int) -> None:
+    """Hop 3: the bus process's wake-up; stamps each arrival."""
+    _set_priority(0, nice)
+    lat = []
+    while True:
+        data = os.read(r, _STAMP.size)
+        sent = _STAMP.unpack(data)[0]
+        if sent < 0:
+            out.put(lat)
+            return
+        lat.append(time.monotonic() - sent)
+
+
+def _sender(port: int, n: int, fifo: int, seed: int) -> None:
+    import random
+
+    _set_priority(fifo)
+    rng = random.Random(seed)
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    for _ in range(n):
+        time.sleep(rng.uniform(0.002, 0.006))
+        s.sendto(_STAMP.pack(time.monotonic()), ("127.0.0.1", port))
+    s.sendto(_STAMP.pack(-1.0), ("127.0.0.1", port))
+
+
+def floor(n: int = 300, input_fifo: int = 20, loop_fifo: int = 80, bus_nice: int = -10,
+          sender_fifo: int = 10) -> list[float]:
+    """Latencies (s) of ``n`` datagrams through the three-hop chain (see the module docstring)."""
+    ctx = mp.get_context("fork")
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", 0))
+    port = sock.getsockname()[1]
+    r1, w1 = os.pipe()
+    r2, w2 = os.pipe()
+    out = ctx.Queue()
+    procs = [ctx.Process(target=_receiver, args=(sock, w1, input_fifo), daemon=True),
+             ctx.Process(target=_relay, args=(r1, w2, loop_fifo), daemon=True),
+             ctx.Process(target=_last, args=(r2, out, bus_nice), daemon=True)]
+    for p in procs:
+        p.start()
+    sender = ctx.Process(target=_sender, args=(port, n, sender_fifo, 1), daemon=True)
+    sender.start()
+    try:
+        lat = out.get(timeout=60.0)
+    finally:
+        for p in (*procs, sender):
+            p.join(2.0)
+            if p.is_alive():
+                p.kill()
+        for fd in (r1, w1, r2, w2):
+            os.close(fd)
+        sock.close()
+    return lat

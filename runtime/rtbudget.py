@@ -1,0 +1,97 @@
+"""Realtime scheduling within a CPU budget, for the threads on an input's way to the bus besides the loop's own.
+
+A packet's way to the bus crosses the input's receive thread in the API server process and the bus process's
+wake-up; at normal scheduling on a busy two-core host each waits milliseconds for a CPU behind the emulators and
+other work. Under SCHED_FIFO (below the control loop's priority) they run as soon as their packet or their targets
+arrive. A sender that floods a port, or a driver that spins, must not turn that into a core taken from everything
+else, so each keeps a budget: once its thread has used more than ``share`` of a ``window`` of CPU time it drops to
+normal scheduling for the rest of the window (its work still goes on, at normal priority), and takes realtime
+scheduling back in the next window (:meth:`RealtimeBudget.spent` after each piece of work, :meth:`RealtimeBudget.rearm`
+before waiting again). Without permission (no CAP_SYS_NICE) the thread keeps normal scheduling.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+
+log = logging.getLogger(__name__)
+
+#: Share of one CPU an input thread may take at realtime priority, and the window it is measured over (s).
+SHARE = 0.2
+WINDOW_S = 0.1
+
+
+class RealtimeBudget:
+    """SCHED_FIFO at ``priority`` for the thread that calls :meth:`enter` (0: leave it), within a budget of CPU time
+    spent at that priority (``share`` of each ``window_s``)."""
+
+    def __init__(self, priority: int, share: float = SHARE, window_s: float = WINDOW_S) -> None:
+        self.priority = int(priority)
+        self.budget = share * window_s
+        self.window_s = window_s
+        self.realtime = False  # the calling thread is under SCHED_FIFO now
+        self.demoted = 0  # windows in which the budget ran out
+        self._window_end = 0.0
+        self._used = 0.0  # CPU time spent realtime in this window, up to the last change
+        self._since = 0.0  # thread CPU time when the thread last became realtime
+
+    def enter(self) -> str:
+        """Raise the calling thread (call it first thing on that thread); returns what happened."""
+        if self.priority <= 0:
+            return "normal scheduling"
+        self._window_end = time.monotonic() + self.window_s
+        self._used = 0.0
+        if not self._set(True):
+            self._window_end = 0.0
+            return "normal scheduling (SCHED_FIFO not permitted)"
+        return f"SCHED_FIFO {self.priority}"
+
+    def used(self) -> float:
+        """CPU time (s) spent realtime in the current window."""
+        return self._used + (time.thread_time() - self._since if self.realtime else 0.0)
+
+    def spent(self) -> None:
+        """After each packet: drop to normal scheduling while over budget, take realtime back in a new window."""
+        if self._window_end == 0.0:
+            return
+        if time.monotonic() >= self._window_end:
+            self.rearm()
+            return
+        if self.realtime and self.used() > self.budget:
+            self.demoted += 1
+            self.lower()
+
+    def lower(self) -> None:
+        """Normal scheduling until :meth:`rearm` (e.g. the rest of a transaction need not preempt anything)."""
+        if self.realtime:
+            self._used += time.thread_time() - self._since
+            self._set(False)
+
+    def rearm(self) -> None:
+        """Back to realtime scheduling unless this window's budget is spent (call it before waiting again)."""
+        if self._window_end == 0.0:
+            return
+        now = time.monotonic()
+        if now >= self._window_end:
+            if self.realtime:
+                self._since = time.thread_time()
+            self._window_end = now + self.window_s
+            self._used = 0.0
+        if not self.realtime and self._used <= self.budget:
+            self._set(True)
+
+    def _set(self, realtime: bool) -> bool:
+        try:
+            if realtime:
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.priority))
+            else:
+                os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        except (AttributeError, OSError) as exc:
+            log.debug("thread scheduling unchanged: %s", exc)
+            return False
+        self.realtime = realtime
+        if realtime:
+            self._since = time.thread_time()
+        return True

@@ -1,0 +1,72 @@
+"""The loop's input trace and the show-control threads' realtime budget."""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+
+import numpy as np
+
+from runtime.input_trace import POSTED, RECEIVED, TAKEN, WOKE, InputTrace
+from runtime.rtbudget import RealtimeBudget
+
+
+def test_trace_stamps_each_command_with_the_cycle_that_applied_it() -> None:
+    tr = InputTrace(rows=4)
+    tr.taken(1.0, 1.5)
+    tr.taken(None, 1.6)
+    tr.applied(2.0, 2.1)
+    tr.taken(3.0, 3.2)
+    rows = tr.last(3)
+    assert rows[0].tolist() == [1.0, 1.5, 2.0, 2.1]
+    assert np.isnan(rows[1, RECEIVED]) and rows[1, [TAKEN, WOKE, POSTED]].tolist() == [1.6, 2.0, 2.1]
+    assert rows[2, TAKEN] == 3.2 and np.isnan(rows[2, WOKE])  # not applied yet
+    for k in range(5):  # the ring wraps
+        tr.taken(10.0 + k, 10.5 + k)
+    tr.applied(20.0, 20.1)
+    assert tr.count == 8 and tr.last(1)[0].tolist() == [14.0, 14.5, 20.0, 20.1]
+    assert tr.last(10).shape == (4, 4)
+
+
+def _policy() -> int:
+    return os.sched_getscheduler(0)
+
+
+def test_input_thread_keeps_realtime_within_its_budget_and_drops_it_when_spent() -> None:
+    seen: dict[str, object] = {}
+
+    def thread() -> None:
+        p = RealtimeBudget(5, share=0.05, window_s=0.2)  # 10 ms of CPU per 200 ms window
+        seen["enter"] = p.enter()
+        seen["rt_at_start"] = p.realtime and _policy() == os.SCHED_FIFO
+        p.spent()
+        seen["rt_after_a_packet"] = p.realtime
+        end = time.thread_time() + 0.02  # a flood's worth of work: 20 ms of CPU
+        while time.thread_time() < end:
+            pass
+        p.spent()
+        seen["rt_after_the_flood"] = p.realtime or _policy() == os.SCHED_FIFO
+        seen["demoted"] = p.demoted
+        time.sleep(0.25)  # a new window
+        p.spent()
+        seen["rt_in_a_new_window"] = p.realtime and _policy() == os.SCHED_FIFO
+        p._set(False)
+
+    th = threading.Thread(target=thread)
+    th.start()
+    th.join(10)
+    if seen["enter"] != "SCHED_FIFO 5":  # no CAP_SYS_NICE here: the thread keeps normal scheduling
+        assert seen["enter"] == "normal scheduling (SCHED_FIFO not permitted)" and not seen["rt_at_start"]
+        return
+    assert seen["rt_at_start"] and seen["rt_after_a_packet"]
+    assert not seen["rt_after_the_flood"] and seen["demoted"] == 1
+    assert seen["rt_in_a_new_window"]
+    assert _policy() != os.SCHED_FIFO  # the test's own thread was never touched
+
+
+def test_priority_zero_leaves_scheduling_alone() -> None:
+    p = RealtimeBudget(0)
+    assert p.enter() == "normal scheduling"
+    p.spent()
+    assert not p.realtime
