@@ -144,11 +144,12 @@ def _calibrate_live(args: argparse.Namespace, head: HeadSpec) -> CalibrationResu
 
 
 def _sample_reference(head: HeadSpec) -> dict[str, np.ndarray]:
-    """The sample mechanism's design rest poses (the zero-offset reference); ``head`` must be the sample head."""
+    """The simulated mechanism's design rest poses (the zero-offset reference): the head's mechanism file (default
+    the sample head's), whose motors and links must be the head's."""
     from models.errors import BadValue
-    from models.mechanism import sample_linkages
+    from models.mechanism import SAMPLE_MECHANISM, Mechanism
 
-    mech = sample_linkages()
+    mech = Mechanism.load(head.path("mechanism") or SAMPLE_MECHANISM)
     missing = sorted(set(head.actuator_names) ^ set(mech.actuators))
     links = sorted({link.name for link in head.links} ^ set(mech.links))
     if missing or links:
