@@ -105,6 +105,8 @@ COMMANDS: tuple[Command, ...] = (
     Command("al-benchmark", OFFLINE, "offline.cli.al_benchmark",
             "benchmark GEN-LAL active learning against baselines (resumable)"),
     Command("studio", TOP, "studio.cli.studio", "pose, animate and perform a head in the browser"),
+    Command("mechanism", OFFLINE, "offline.cli.mechanism",
+            "check a head's mechanism file (bodies, joints, rods, motors) and draw it over the face"),
 )
 
 #: Exit status of a ``likeness`` command by kind of error, the one table from errors to exit codes. Kinds are named,

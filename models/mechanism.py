@@ -76,6 +76,9 @@ class Mechanism:
         self._state = State.neutral(len(self.structure.bodies))
         self._targets = joint_targets(spec, {})
         self._lock = threading.Lock()
+        # assemble at motor zero: a spec whose parameters moved (a fit, a design) no longer closes at s = 0
+        for g in self.structure.groups:
+            solve_group(self.structure, g, self._state, self._targets, self._targets)
 
     @classmethod
     def load(cls, path: str | Path) -> Mechanism:
