@@ -83,7 +83,7 @@ def test_quadratic_model_bias_is_below_the_tracker_noise(head, mech) -> None:
     names = head.actuator_names
     lo = np.array([a.min for a in head.actuators])
     hi = np.array([a.max for a in head.actuators])
-    X = rng.uniform(lo, hi, (600, len(names)))
+    X = rng.uniform(lo, hi, (300, len(names)))
     i, j = names.index("lip_corner_l_up"), names.index("lip_corner_l_back")
     X[:, j] = np.clip(X[:, j], X[:, i] - 45 * DEG, X[:, i] + 45 * DEG)
     poses = [mech.link_poses(dict(zip(names, x, strict=True))) for x in X]
