@@ -88,7 +88,7 @@ def fit_mechanism(spec: MechanismSpec, actuators: Sequence[str], P: np.ndarray,
     for g in base.structure.groups:
         bodies = [base.structure.bodies[b] for b in g.bodies]
         links = [n for n in spec.links if n in bodies and n in observations]
-        if not links or not g.motors:
+        if not g.motors or not any(observations[n].valid.any() for n in links):
             continue
         params = fit_parameters(spec, g, bodies, anchors)
         x0 = np.r_[np.zeros(len(g.motors)), [get_param(spec, p) for p in params]]
