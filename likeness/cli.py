@@ -107,6 +107,8 @@ COMMANDS: tuple[Command, ...] = (
     Command("studio", TOP, "studio.cli.studio", "pose, animate and perform a head in the browser"),
     Command("blender", TOP, "studio.cli.blender",
             "install the Blender add-on (animate a head on its predicted skin, export clips, stream live)"),
+    Command("mechanism", OFFLINE, "offline.cli.mechanism",
+            "check a head's mechanism file (bodies, joints, rods, motors) and draw it over the face"),
 )
 
 #: Exit status of a ``likeness`` command by kind of error, the one table from errors to exit codes. Kinds are named,

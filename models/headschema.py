@@ -88,6 +88,7 @@ class PathsTable(_Table, kw_only=True):
     predictor: str | None = None
     linkmap: str | None = None
     skin_guard: str | None = None  # attachment footprint of the skin for the strain guard
+    mechanism: str | None = None  # bodies, joints, couplers, motors (models/mechanism_file.py)
     predictor_optional: bool = False
 
 

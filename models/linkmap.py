@@ -14,6 +14,7 @@ All values are SI: actuators in rad (rotary) or m (linear), positions in m, rota
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 from collections.abc import Mapping, Sequence
@@ -40,34 +41,39 @@ VERSION = 1
 
 
 # ---------------------------------------------------------------------------- features
-def n_features(k: int) -> int:
-    """Number of quadratic features (constant, linear, products i<=j) of ``k`` inputs."""
-    return 1 + k + k * (k + 1) // 2
+def n_features(k: int, degree: int = 2) -> int:
+    """Number of polynomial features (all monomials up to ``degree``) of ``k`` inputs."""
+    return math.comb(k + degree, degree)
 
 
-def quad_features(x: np.ndarray) -> np.ndarray:
-    """Quadratic features ``[1, x_i, x_i x_j (i<=j)]`` of ``x`` with shape ``(n, k)`` → ``(n, F)``."""
+def _monomials(k: int, degree: int) -> list[tuple[int, ...]]:
+    """The monomials in feature order: constant, linear, then products i<=j (<=l ...) by degree."""
+    return [c for d in range(degree + 1) for c in itertools.combinations_with_replacement(range(k), d)]
+
+
+def quad_features(x: np.ndarray, degree: int = 2) -> np.ndarray:
+    """Polynomial features of ``x`` with shape ``(n, k)`` → ``(n, F)``; degree 2: ``[1, x_i, x_i x_j (i<=j)]``."""
     x = np.atleast_2d(np.asarray(x, dtype=float))
     n, k = x.shape
-    cols = [np.ones(n)]
-    cols.extend(x[:, i] for i in range(k))
-    cols.extend(x[:, i] * x[:, j] for i in range(k) for j in range(i, k))
+    cols = []
+    for combo in _monomials(k, degree):
+        c = np.ones(n)
+        for i in combo:
+            c = c * x[:, i]
+        cols.append(c)
     return np.stack(cols, axis=1)
 
 
-def quad_feature_gradient(x: np.ndarray) -> np.ndarray:
+def quad_feature_gradient(x: np.ndarray, degree: int = 2) -> np.ndarray:
     """d(features)/dx at one point ``x`` of shape ``(k,)`` → ``(F, k)``."""
     x = np.asarray(x, dtype=float)
     k = x.shape[0]
-    G = np.zeros((n_features(k), k))
-    for i in range(k):
-        G[1 + i, i] = 1.0
-    row = 1 + k
-    for i in range(k):
-        for j in range(i, k):
-            G[row, i] += x[j]
-            G[row, j] += x[i]
-            row += 1
+    monos = _monomials(k, degree)
+    G = np.zeros((len(monos), k))
+    for row, combo in enumerate(monos):
+        for pos, i in enumerate(combo):
+            rest = combo[:pos] + combo[pos + 1:]
+            G[row, i] += math.prod(float(x[j]) for j in rest)
     return G
 
 
@@ -107,8 +113,11 @@ class LinkMap:
         provenance: Mapping[str, Any] | None = None,
         source: str = "<linkmap>",
         units: Mapping[str, tuple[str, float]] | None = None,
+        degree: int = 2,
     ) -> None:
         self.actuators: tuple[str, ...] = tuple(actuators)
+        #: Polynomial degree of every link's fit (2: the calibrated quadratic; 3: a map tabulated from a mechanism).
+        self.degree = int(degree)
         self.neutral = np.asarray(neutral, dtype=float)
         self.scale = np.asarray(scale, dtype=float)
         if self.neutral.shape != (len(self.actuators),) or self.scale.shape != self.neutral.shape:
@@ -164,7 +173,7 @@ class LinkMap:
         X = self.normalise(np.atleast_2d(P))
         out = {}
         for name, fit in self.links.items():
-            phi = quad_features(X[:, self._link_idx[name]])
+            phi = quad_features(X[:, self._link_idx[name]], self.degree)
             out[name] = phi @ fit.coef
         return out
 
@@ -172,7 +181,7 @@ class LinkMap:
         x = self.normalise(p)
         out = {}
         for name, fit in self.links.items():
-            y = quad_features(x[self._link_idx[name]][None, :])[0] @ fit.coef
+            y = quad_features(x[self._link_idx[name]][None, :], self.degree)[0] @ fit.coef
             T = np.eye(4)
             T[:3, :3] = rotvec_to_matrix(y[3:]) @ fit.rotation0
             T[:3, 3] = y[:3]
@@ -202,7 +211,7 @@ class LinkMap:
             idx = self._link_idx[name]
             J = np.zeros((6, len(self.actuators)))
             if idx.size:
-                G = quad_feature_gradient(x[idx])  # (F, k)
+                G = quad_feature_gradient(x[idx], self.degree)  # (F, k)
                 J[:, idx] = (fit.coef.T @ G) / self.scale[idx]
             out[name] = J
         return out
@@ -255,7 +264,8 @@ class LinkMap:
             "version": VERSION,
             "head": self.head,
             "units": {"actuators": "SI (rad or m)", "position": "m", "rotation": "rad (rotation vector)"},
-            "model": "quadratic",
+            "model": "quadratic" if self.degree == 2 else "polynomial",
+            "degree": self.degree,
             "actuators": list(self.actuators),
             "neutral": self.neutral.tolist(),
             "scale": self.scale.tolist(),
@@ -304,6 +314,9 @@ class LinkMap:
         raw_links = doc.get("links")
         if not isinstance(raw_links, Mapping) or not raw_links:
             raise SpecError(source, "links", "must be a non-empty object")
+        degree = doc.get("degree", 2)
+        if not isinstance(degree, int) or isinstance(degree, bool) or not 2 <= degree <= 4:
+            raise SpecError(source, "degree", "must be an integer from 2 to 4", degree)
         links = {}
         for name, raw in raw_links.items():
             key = f"links.{name}"
@@ -317,9 +330,9 @@ class LinkMap:
                 q = np.asarray(raw.get("rotation0"), dtype=float)
             except (TypeError, ValueError) as exc:
                 raise SpecError(source, key, f"coefficients/rotation0 must be numbers: {exc}") from exc
-            if coef.shape != (n_features(len(la)), 6) or not np.all(np.isfinite(coef)):
+            if coef.shape != (n_features(len(la), degree), 6) or not np.all(np.isfinite(coef)):
                 raise SpecError(source, f"{key}.coefficients",
-                                f"must be {n_features(len(la))}x6 finite numbers", list(coef.shape))
+                                f"must be {n_features(len(la), degree)}x6 finite numbers", list(coef.shape))
             if q.shape != (4,) or not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-9:
                 raise SpecError(source, f"{key}.rotation0", "must be a quaternion [w, x, y, z]", raw.get("rotation0"))
             links[name] = LinkFit(
@@ -337,7 +350,7 @@ class LinkMap:
                                 list(f.actuators))
         return cls(acts, neutral, scale, links, head=str(doc.get("head", "")),
                    holdout_rms_mm=doc.get("holdout_rms_mm"), provenance=doc.get("provenance") or {}, source=source,
-                   units=_units(doc, acts, source))
+                   units=_units(doc, acts, source), degree=degree)
 
     @classmethod
     def load(cls, path: str | Path) -> LinkMap:
@@ -542,10 +555,10 @@ def _detect(
 
 
 def _fit_link(
-    X: np.ndarray, Y: np.ndarray, opts: FitOptions
+    X: np.ndarray, Y: np.ndarray, opts: FitOptions, degree: int = 2
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Robust quadratic LSQ: fit, drop samples beyond ``reject_sigmas`` robust sigmas, refit. Returns coef, kept."""
-    Phi = quad_features(X)
+    """Robust polynomial LSQ: fit, drop samples beyond ``reject_sigmas`` robust sigmas, refit. Returns coef, kept."""
+    Phi = quad_features(X, degree)
     keep = np.ones(len(X), dtype=bool)
     coef = _lstsq(Phi, Y)
     for _ in range(3):
@@ -575,6 +588,7 @@ def fit_linkmap(
     provenance: Mapping[str, Any] | None = None,
     options: FitOptions | None = None,
     units: Mapping[str, tuple[str, float]] | None = None,
+    degree: int = 2,
 ) -> LinkMap:
     """Fit m(p) from actuator samples ``P`` ``(n, A)`` (SI) and per-link observed poses.
 
@@ -614,17 +628,17 @@ def fit_linkmap(
                 sel = det[0]
                 selection = "data"
         idx = np.flatnonzero(sel)
-        if ok.sum() < n_features(idx.size) + 1:
+        if ok.sum() < n_features(idx.size, degree) + 1:
             raise ValueError(
                 f"link {name!r}: {ok.sum()} valid samples cannot fit a quadratic in {idx.size} actuators "
-                f"(need more than {n_features(idx.size)})"
+                f"(need more than {n_features(idx.size, degree)})"
             )
-        coef, keep = _fit_link(Xl[:, idx], Y, opts)
+        coef, keep = _fit_link(Xl[:, idx], Y, opts, degree)
         fit = LinkFit(
             name=name, actuators=tuple(actuators[i] for i in idx), coef=coef, rotation0=R0, rigid=name in rigid,
             samples=int(keep.sum()), rejected=int((~keep).sum()), config_actuators=cfg, selection=selection,
         )
-        pred = quad_features(Xl[:, idx][keep]) @ coef
+        pred = quad_features(Xl[:, idx][keep], degree) @ coef
         fit.residual = _errors(pred, R0, pos[keep], R[keep])
         links[name] = fit
-    return LinkMap(actuators, neutral, scale, links, head=head, provenance=provenance, units=units)
+    return LinkMap(actuators, neutral, scale, links, head=head, provenance=provenance, units=units, degree=degree)

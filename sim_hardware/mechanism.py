@@ -1,4 +1,4 @@
-"""The emulated sample head's "real" mechanism: the design linkages of :mod:`models.mechanism` with perturbations.
+"""The emulated sample head's "real" mechanism: its mechanism file (:mod:`models.mechanism`) with perturbations.
 
 Each motor has a mounting error (its encoder zero is off by a small angle) and hard stops a little beyond the
 configured limits, so calibration can discover zero offsets and travel limits; the simulated tracker
@@ -8,12 +8,11 @@ configured limits, so calibration can discover zero offsets and travel limits; t
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
 
 import numpy as np
 
 from models.headspec import HeadSpec
-from models.mechanism import Mechanism, sample_linkages
+from models.mechanism import SAMPLE_MECHANISM, Mechanism, load_mechanism
 
 
 def sample_mechanism(
@@ -21,15 +20,15 @@ def sample_mechanism(
     seed: int = 5,
     zero_error_deg: float = 1.5,
     stop_margin_deg: float = 4.0,
-    anchors: Mapping[str, tuple[float, float, float]] | None = None,
 ) -> Mechanism:
     """The sample head's mechanism (13 motors, 12 links) with seeded zero errors and hard stops.
 
-    ``head`` sets the hard stops ``stop_margin_deg`` beyond its configured limits (default: the sample head's
-    limits built in); ``seed`` draws each motor's zero error within ±``zero_error_deg``. ``anchors``: see
-    :func:`models.mechanism.sample_linkages`.
+    ``head`` names the mechanism file (``[paths] mechanism``; default the sample head's) and sets the hard stops
+    ``stop_margin_deg`` beyond its configured limits (default: the sample head's limits built in); ``seed`` draws
+    each motor's zero error within ±``zero_error_deg``.
     """
-    mech = sample_linkages(anchors)
+    path = head.path("mechanism") if head is not None else None
+    mech = Mechanism(load_mechanism(path or SAMPLE_MECHANISM))
     deg = math.pi / 180.0
     rng = np.random.default_rng(seed)
     limits = _limits(head)

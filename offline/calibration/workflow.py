@@ -56,6 +56,10 @@ class CalibrationSettings:
     tracker: str = ""
     tie_groups: bool = False  # move together/mirror groups as one (the daemon enforces them)
     driver: str = ""  # how the head was driven: hardware, daemon ENDPOINT, ideal-motors (provenance)
+    #: quadratic: the free quadratic map; auto: also fit the head's mechanism file, keep the smaller hold-out error;
+    #: mechanism: the fitted mechanism's map whatever the errors (offline/calibration/mechanism_fit.py).
+    link_model: str = "quadratic"
+    fit_joints: bool = False  # mechanism fit: joint positions too, besides zero offsets and rod lengths
 
 
 @dataclass
@@ -307,6 +311,11 @@ def _finish(
         rigid=[link.name for link in head.links if link.rigid], head=head.name, provenance=provenance,
         units={a.name: (a.unit, a.unit_scale) for a in head.actuators},
     )
+    models: dict[str, Any] = {"chosen": "quadratic"}
+    if s.link_model != "quadratic" and head.path("mechanism") is not None:
+        from offline.calibration.mechanism_fit import choose_link_map
+
+        lm, models = choose_link_map(head, lm, P, obs, fit_mask, holdout, s.link_model, s.fit_joints)
     per_link: dict[str, dict[str, float]] = {}
     hold_err: dict[str, np.ndarray] = {}
     if holdout.any():
@@ -343,6 +352,7 @@ def _finish(
         "limits": {n: r.to_json() for n, r in limits.items()},
         "zero_offsets_deg": {n: math.degrees(v) for n, v in offsets.items()},
         "provenance": provenance,
+        "link_model": models,
     }
     write_report(out / "report.json", report)
     write_plot(out / "report.png", report, hold_err)

@@ -37,6 +37,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, type=Path, help="run directory (outputs, journal; resumes if present)")
     p.add_argument("--samples", type=int, default=120, help="random poses after the sweeps (default 120)")
     p.add_argument("--seed", type=int, default=0, help="seed of the plan and the simulated tracker")
+    p.add_argument("--link-model", choices=("auto", "quadratic", "mechanism"), default="auto",
+                   help="auto: fit the free quadratic map and the head's mechanism file ([paths] mechanism), keep the "
+                   "smaller hold-out error (default); quadratic: the map only; mechanism: the fitted mechanism")
+    p.add_argument("--fit-joints", action="store_true",
+                   help="the mechanism fit moves joint positions too (slower), besides zero offsets and rod lengths")
     p.add_argument("--daemon", metavar="ENDPOINT",
                    help="drive through a running daemon (e.g. tcp://127.0.0.1:5555); default: start one")
     p.add_argument("--sweep-levels", type=int, default=5, help="levels per actuator sweep (default 5)")
@@ -99,6 +104,7 @@ def _settings(args: argparse.Namespace, driver: str) -> CalibrationSettings:
         samples=args.samples, seed=args.seed, sweep_levels=args.sweep_levels, holdout_fraction=args.holdout,
         frames_per_pose=args.frames, discover=not args.no_discover, discover_step=math.radians(args.discover_step),
         progress=not args.no_progress, tracker=args.tracker, tie_groups=not args.ideal_motors, driver=driver,
+        link_model=args.link_model, fit_joints=args.fit_joints,
     )
 
 
@@ -144,11 +150,12 @@ def _calibrate_live(args: argparse.Namespace, head: HeadSpec) -> CalibrationResu
 
 
 def _sample_reference(head: HeadSpec) -> dict[str, np.ndarray]:
-    """The sample mechanism's design rest poses (the zero-offset reference); ``head`` must be the sample head."""
+    """The simulated mechanism's design rest poses (the zero-offset reference): the head's mechanism file (default
+    the sample head's), whose motors and links must be the head's."""
     from models.errors import BadValue
-    from models.mechanism import sample_linkages
+    from models.mechanism import SAMPLE_MECHANISM, Mechanism
 
-    mech = sample_linkages()
+    mech = Mechanism.load(head.path("mechanism") or SAMPLE_MECHANISM)
     missing = sorted(set(head.actuator_names) ^ set(mech.actuators))
     links = sorted({link.name for link in head.links} ^ set(mech.links))
     if missing or links:
