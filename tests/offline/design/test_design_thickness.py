@@ -18,8 +18,10 @@ from offline.design.thickness import adjoint_gradient, optimize_adjoint, sensiti
 SMALL = BlockSettings(size_m=(0.04, 0.02, 0.006), divisions=(8, 3, 2), n_samples=5, n_poses=2)
 
 
-def test_adjoint_gradient_matches_finite_differences_and_sensitivities():
-    problem, _, _ = block_problem(SMALL, seed=3)
+@pytest.mark.parametrize("order", [1, 2])
+def test_adjoint_gradient_matches_finite_differences_and_sensitivities(order):
+    problem, _, _ = block_problem(replace(SMALL, element_order=order), seed=3)
+    assert problem.warp.mesh.order == order
     h = np.full(SMALL.n_samples, 0.006) * (1 + 0.05 * np.arange(SMALL.n_samples) / SMALL.n_samples)
     state = solve_poses(problem, h)
     g = adjoint_gradient(problem, state)
@@ -47,6 +49,15 @@ def test_bad_heights_are_refused():
 def test_quick_ground_truth_is_recovered(method):
     report = run_ground_truth(replace(BlockSettings.quick(), method=method), seed=1)
     assert report["surface_error_before_max_m"] > 1e-4  # the uniform start is visibly wrong
+    assert report["height_rel_error_max"] < 1e-3
+    assert report["surface_error_max_m"] < 1e-6
+
+
+def test_quick_ground_truth_is_recovered_on_quadratic_tets():
+    settings = replace(BlockSettings.quick(), element_order=2)
+    report = run_ground_truth(settings, seed=1)
+    assert report["settings"]["element_order"] == 2 and report["n_nodes"] > 2 * 117
+    assert report["surface_error_before_max_m"] > 1e-4
     assert report["height_rel_error_max"] < 1e-3
     assert report["surface_error_max_m"] < 1e-6
 
