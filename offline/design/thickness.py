@@ -311,7 +311,8 @@ def optimize_adjoint(problem: ThicknessProblem, h0: np.ndarray, *, method: str =
     Stops when the largest height step is below ``tol_step`` (m), E below ``tol_value``, or (Gauss-Newton) when
     the model predicts that the next step gains less than ``tol_gain`` × the matching term: the part of the
     objective thickness can still change is then spent (each log entry has ``predicted_gain``, the model's
-    decrease for the step taken, relative to the matching term). The barrier weight is
+    decrease for the step taken, relative to the matching term; each state linearized also has
+    ``match_per_pose`` and ``reachability_residual_per_pose``, see :func:`reachability_split`). The barrier weight is
     multiplied by ``barrier_decay`` after each iteration (interior-point continuation), so the bounds do not bias
     an interior optimum.
     """
@@ -340,6 +341,9 @@ def optimize_adjoint(problem: ThicknessProblem, h0: np.ndarray, *, method: str =
             H = H_reg + sum(J.T @ J for J in Js)
             H = H + 1e-12 * np.trace(H) / len(h) * np.eye(len(h))
             step = np.linalg.solve(H, -g)
+            resid, _ = reachability_split(rs, Js)
+            log[-1]["match_per_pose"] = [0.5 * float(r @ r) for r in rs]
+            log[-1]["reachability_residual_per_pose"] = resid.tolist()
             predicted = -float(g @ step + 0.5 * step @ H @ step) / max(state.match, 1e-300)
             if tol_gain > 0 and predicted < tol_gain:
                 log[-1]["next_predicted_gain"] = predicted
