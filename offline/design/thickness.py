@@ -309,7 +309,8 @@ def optimize_adjoint(problem: ThicknessProblem, h0: np.ndarray, *, method: str =
     ``warm``: one state (N, 3) per pose to start the first equilibrium solves from (e.g. the previous design's).
 
     Stops when the largest height step is below ``tol_step`` (m), E below ``tol_value``, or (Gauss-Newton) when
-    the model predicts that the next step gains less than ``tol_gain`` × the matching term: the part of the
+    the model predicts that the next step gains less than ``tol_gain`` × the matching term (heights at a bound
+    that the step would push through are held, see :func:`_projected_step`): the part of the
     objective thickness can still change is then spent (each log entry has ``predicted_gain``, the model's
     decrease for the step taken, relative to the matching term; each state linearized also has
     ``match_per_pose`` and ``reachability_residual_per_pose``, see :func:`reachability_split`). The barrier weight is
@@ -340,7 +341,7 @@ def optimize_adjoint(problem: ThicknessProblem, h0: np.ndarray, *, method: str =
             g = g_reg + sum(J.T @ r for J, r in zip(Js, rs, strict=True))
             H = H_reg + sum(J.T @ J for J in Js)
             H = H + 1e-12 * np.trace(H) / len(h) * np.eye(len(h))
-            step = np.linalg.solve(H, -g)
+            step = _projected_step(problem, state.h, g, H)
             resid, _ = reachability_split(rs, Js)
             log[-1]["match_per_pose"] = [0.5 * float(r @ r) for r in rs]
             log[-1]["reachability_residual_per_pose"] = resid.tolist()
@@ -382,6 +383,20 @@ def optimize_adjoint(problem: ThicknessProblem, h0: np.ndarray, *, method: str =
             break
     return OptimizeResult(state.h, state.xs, state.value, it, converged, log, counts["forward"],
                           time.perf_counter() - t0, f"adjoint-{method}")
+
+
+def _projected_step(problem: ThicknessProblem, h: np.ndarray, g: np.ndarray, H: np.ndarray,
+                    band: float = 0.01) -> np.ndarray:
+    """Gauss-Newton step with the heights held that sit within ``band`` (of the bound range) of a bound their
+    descent direction points through: without this, a step that leaves the box for some heights is cut by the
+    fraction-to-boundary rule to almost nothing for all of them, and the iteration stalls at the bounds."""
+    rng = problem.h_max - problem.h_min
+    held = (((h - problem.h_min) < band * rng) & (g > 0)) | (((problem.h_max - h) < band * rng) & (g < 0))
+    step = np.zeros_like(h)
+    free = np.flatnonzero(~held)
+    if free.size:
+        step[free] = np.linalg.solve(H[np.ix_(free, free)], -g[free])
+    return step
 
 
 def _solve_general(A: sp.spmatrix, b: np.ndarray) -> np.ndarray:
