@@ -4,9 +4,10 @@ against the width (as a factor of the mean sample spacing).
 Starts from a finished ``likeness offline clone`` run's checkpoint (``--from DIR``: the actuation optimized on the
 uniform skin, stage 2), places the samples as the run does (denser where those poses strain the skin most), and
 for each width factor runs the thickness step alone (Gauss-Newton to the predicted-gain stop, or
-``--iterations``) with the actuation fixed. Writes ``OUT/width_study.json`` (per width: the kernel width in mm,
-the matching term before and after, its reachable share at the start, iterations, seconds, |Δh| figures; the
-settings and the inputs' SHA-256) and ``OUT/width_study.png``. Run:
+``--iterations``) with the actuation fixed. With ``--element-order 2`` a linear run's states are lifted (mid-edge
+nodes at their edges' midpoints) to start the quadratic solves. Writes ``OUT/width_study.json`` (per width: the
+kernel width in mm, the matching term before and after, its reachable share at the start, iterations, seconds,
+|Δh| figures; the settings and the inputs' SHA-256) and ``OUT/width_study.png``. Run:
 ``python benchmarks/thickness_width.py --from runs/clone --out runs/width [--factors 0.6,0.9,1.2,1.8]``.
 """
 
@@ -56,6 +57,14 @@ def main(argv: list[str] | None = None) -> int:
                                         if k in CloneSettings.__dataclass_fields__}),
                        element_order=args.element_order)
     face = load_face(args.config, element_order=args.element_order)
+    if args.element_order == 2 and X.shape[1] < face.mesh.n_nodes:  # linear states: mid-edge nodes at midpoints
+        from offline.design.warp import _midpoint_map
+
+        n = X.shape[1]
+        lift = np.zeros((X.shape[0], face.mesh.n_nodes, 3))
+        lift[:, :n] = X
+        M = _midpoint_map(face.mesh)
+        X = np.stack([M @ x for x in lift])
     if X.shape[1] != face.mesh.n_nodes:
         raise SystemExit(f"{ck}: states have {X.shape[1]} nodes, the skin at order {args.element_order} has "
                          f"{face.mesh.n_nodes}: run the clone at the same --element-order")
@@ -72,6 +81,8 @@ def main(argv: list[str] | None = None) -> int:
         _, dh = thickness_change(warp, face, h0, res.h)
         row = {"width_factor": f, "width_mm": warp.width * 1e3, "match_before": res.log[0]["match"],
                "match_after": res.log[-1]["match"], "reachable_share_at_start": _split(res.log[0])["reachable_share"],
+               "match_per_target_before": res.log[0].get("match_per_pose"),
+               "reachability_residual_per_target": res.log[0].get("reachability_residual_per_pose"),
                "iterations": res.iterations, "seconds": time.perf_counter() - t0, "thickness_change": dh}
         rows.append(row)
         print(f"width {f:.2f} x spacing = {row['width_mm']:.1f} mm: match {row['match_before']:.4g} -> "

@@ -240,19 +240,27 @@ def sensitivities(problem: ThicknessProblem, state: State) -> tuple[list[np.ndar
     return rs, Js
 
 
-def reachability_split(rs: Sequence[np.ndarray], Js: Sequence[np.ndarray], rcond: float = 1e-10
-                       ) -> tuple[np.ndarray, np.ndarray]:
+def reachability_split(rs: Sequence[np.ndarray], Js: Sequence[np.ndarray], lower: np.ndarray | None = None,
+                       upper: np.ndarray | None = None, rcond: float = 1e-10) -> tuple[np.ndarray, np.ndarray]:
     """Split each pose's matching term ½‖r_k‖² into what thickness can change and what it cannot, to first order.
 
-    The best joint height change for the linearized residuals r_k + J_k dh (least squares over every pose, bounds
-    ignored) leaves ½‖r_k + J_k dh*‖² per pose: the reachability residual, the share no thickness field can remove
-    near the current design. Returns (residual per pose, the best change dh*) so that per pose
-    match_k − residual_k is what thickness can still gain (it may be negative for a pose that the joint optimum
-    sacrifices). Also usable per region DoF: ``(r + J dh*)`` is the residual vector.
+    The best joint height change for the linearized residuals r_k + J_k dh (least squares over every pose, within
+    ``lower`` <= dh <= ``upper`` when given: the bounds' room; unbounded otherwise) leaves ½‖r_k + J_k dh*‖² per
+    pose: the reachability residual, the share no thickness field can remove near the current design. Returns
+    (residual per pose, the best change dh*); match_k − residual_k is what thickness can still gain for pose k
+    (negative for a pose that the joint optimum sacrifices).
     """
     r = np.concatenate(rs)
     J = np.vstack(Js)
-    dh = np.linalg.lstsq(J, -r, rcond=rcond)[0]
+    if lower is None and upper is None:
+        dh = np.linalg.lstsq(J, -r, rcond=rcond)[0]
+    else:
+        from scipy.optimize import lsq_linear
+
+        S = J.shape[1]
+        lo = np.full(S, -np.inf) if lower is None else np.minimum(np.asarray(lower, dtype=np.float64), 0.0)
+        hi = np.full(S, np.inf) if upper is None else np.maximum(np.asarray(upper, dtype=np.float64), 0.0)
+        dh = lsq_linear(J, -r, bounds=(lo, hi), method="bvls", tol=1e-12).x
     return np.array([0.5 * float(np.sum((rk + Jk @ dh) ** 2)) for rk, Jk in zip(rs, Js, strict=True)]), dh
 
 
@@ -302,15 +310,17 @@ def _progress(method: str, it: int, state: State, step_norm: float, t0: float, v
 
 def optimize_adjoint(problem: ThicknessProblem, h0: np.ndarray, *, method: str = "gauss-newton",
                      max_iterations: int = 50, tol_step: float = 1e-9, tol_value: float = 1e-16,
-                     tol_gain: float = 0.0, barrier_decay: float = 0.1, verbose: bool = False,
+                     tol_gain: float = 0.0, trust_radius: float = 0.25, barrier_decay: float = 0.1,
+                     verbose: bool = False,
                      warm: Sequence[np.ndarray] | None = None) -> OptimizeResult:
     """Minimise E(h) with exact equilibrium per pose; ``method`` is ``gauss-newton`` or ``lbfgs``.
 
     ``warm``: one state (N, 3) per pose to start the first equilibrium solves from (e.g. the previous design's).
 
     Stops when the largest height step is below ``tol_step`` (m), E below ``tol_value``, or (Gauss-Newton) when
-    the model predicts that the next step gains less than ``tol_gain`` × the matching term (heights at a bound
-    that the step would push through are held, see :func:`_projected_step`): the part of the
+    the model predicts that the next step gains less than ``tol_gain`` × the matching term. Gauss-Newton steps
+    minimise the model over the bounds and a trust region (``trust_radius`` × the bound range at first, halved
+    after a poor step, doubled after a good one that reached it; :func:`_box_step`): the part of the
     objective thickness can still change is then spent (each log entry has ``predicted_gain``, the model's
     decrease for the step taken, relative to the matching term; each state linearized also has
     ``match_per_pose`` and ``reachability_residual_per_pose``, see :func:`reachability_split`). The barrier weight is
@@ -329,6 +339,7 @@ def optimize_adjoint(problem: ThicknessProblem, h0: np.ndarray, *, method: str =
     if state is None:
         raise ValueError("the starting heights give an inverted rest shape or a pose that does not converge")
     log = [_progress(method, 0, state, 0.0, t0, verbose)]
+    radius = trust_radius * (problem.h_max - problem.h_min)
     mem_s: list[np.ndarray] = []
     mem_y: list[np.ndarray] = []
     g_prev = None
@@ -340,9 +351,8 @@ def optimize_adjoint(problem: ThicknessProblem, h0: np.ndarray, *, method: str =
             g_reg, H_reg = _reg_derivatives(problem, state.h)
             g = g_reg + sum(J.T @ r for J, r in zip(Js, rs, strict=True))
             H = H_reg + sum(J.T @ J for J in Js)
-            H = H + 1e-12 * np.trace(H) / len(h) * np.eye(len(h))
-            step = _projected_step(problem, state.h, g, H)
-            resid, _ = reachability_split(rs, Js)
+            step = _box_step(problem, state.h, g, H, radius)
+            resid, _ = reachability_split(rs, Js, problem.h_min - state.h, problem.h_max - state.h)
             log[-1]["match_per_pose"] = [0.5 * float(r @ r) for r in rs]
             log[-1]["reachability_residual_per_pose"] = resid.tolist()
             predicted = -float(g @ step + 0.5 * step @ H @ step) / max(state.match, 1e-300)
@@ -375,6 +385,11 @@ def optimize_adjoint(problem: ThicknessProblem, h0: np.ndarray, *, method: str =
         log.append(_progress(method, it, state, dh, t0, verbose))
         if method == "gauss-newton":
             log[-1]["predicted_gain"] = predicted
+            actual = (log[-2]["objective"] - state.value) / max(log[-2]["match"], 1e-300)
+            if alpha < 1.0 or actual < 0.25 * predicted:
+                radius *= 0.5
+            elif actual > 0.75 * predicted and np.abs(alpha * step).max() > 0.9 * radius:
+                radius = min(2.0 * radius, problem.h_max - problem.h_min)
         problem = replace(problem, barrier_weight=problem.barrier_weight * barrier_decay)
         state.reg = _reg_value(problem, state.h)
         state.value = state.match + state.reg
@@ -385,18 +400,20 @@ def optimize_adjoint(problem: ThicknessProblem, h0: np.ndarray, *, method: str =
                           time.perf_counter() - t0, f"adjoint-{method}")
 
 
-def _projected_step(problem: ThicknessProblem, h: np.ndarray, g: np.ndarray, H: np.ndarray,
-                    band: float = 0.01) -> np.ndarray:
-    """Gauss-Newton step with the heights held that sit within ``band`` (of the bound range) of a bound their
-    descent direction points through: without this, a step that leaves the box for some heights is cut by the
-    fraction-to-boundary rule to almost nothing for all of them, and the iteration stalls at the bounds."""
+def _box_step(problem: ThicknessProblem, h: np.ndarray, g: np.ndarray, H: np.ndarray, radius: float,
+              band: float = 0.01) -> np.ndarray:
+    """The Gauss-Newton model's minimiser g·d + ½ dᵀ H d over the box: heights kept ``band`` (of the bound range)
+    inside their bounds and each changed by at most ``radius`` (a trust region). On the face the unconstrained
+    step is ill-conditioned (sample combinations with little effect get metre-sized changes), so the
+    fraction-to-boundary rule cut it to nothing; the box step stays meaningful."""
+    from scipy.optimize import lsq_linear
+
     rng = problem.h_max - problem.h_min
-    held = (((h - problem.h_min) < band * rng) & (g > 0)) | (((problem.h_max - h) < band * rng) & (g < 0))
-    step = np.zeros_like(h)
-    free = np.flatnonzero(~held)
-    if free.size:
-        step[free] = np.linalg.solve(H[np.ix_(free, free)], -g[free])
-    return step
+    lo = np.minimum(np.maximum(problem.h_min + band * rng - h, -radius), 0.0)
+    hi = np.maximum(np.minimum(problem.h_max - band * rng - h, radius), 0.0)
+    L = np.linalg.cholesky(H + 1e-12 * np.trace(H) / len(h) * np.eye(len(h)))
+    b = -np.linalg.solve(L, g)  # ½‖Lᵀ d − b‖² = g·d + ½ dᵀ H d + const
+    return lsq_linear(L.T, b, bounds=(lo, hi), method="bvls", tol=1e-12).x
 
 
 def _solve_general(A: sp.spmatrix, b: np.ndarray) -> np.ndarray:
