@@ -53,6 +53,7 @@ def test_quick_ground_truth_is_recovered(method):
     assert report["surface_error_max_m"] < 1e-6
 
 
+@pytest.mark.slow
 def test_quick_ground_truth_is_recovered_on_quadratic_tets():
     settings = replace(BlockSettings.quick(), element_order=2)
     report = run_ground_truth(settings, seed=1)
