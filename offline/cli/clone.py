@@ -38,6 +38,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-outer", type=int, default=4, help="thickness/actuation alternations at most (default 4)")
     p.add_argument("--min-thickness-mm", type=float, default=3.0)
     p.add_argument("--max-thickness-mm", type=float, default=12.0)
+    p.add_argument("--element-order", type=int, choices=(1, 2), default=1,
+                   help="design on linear (1) or quadratic (2) tets: quadratic tets represent the skin's bending "
+                        "and bulging through a thin skin (default 1)")
     p.add_argument("--fresh", action="store_true", help="ignore an existing checkpoint")
     p.add_argument("--threads", type=int, default=1, help="numba kernel threads (default 1)")
     p.add_argument("--backend", default="auto", help="sparse solver: auto, cholmod, pardiso or superlu")
@@ -68,9 +71,11 @@ def run(args: argparse.Namespace) -> int:
                          f"{args.max_thickness_mm}: need 0 < min < max")
     if args.threads < 1:
         raise UsageError(f"--threads {args.threads}: must be >= 1")
-    face, targets = load_clone_problem(args.config, args.mesh, args.targets, backend=args.backend)
+    face, targets = load_clone_problem(args.config, args.mesh, args.targets, backend=args.backend,
+                                       element_order=args.element_order)
     settings = CloneSettings(n_samples=args.samples, max_outer=args.max_outer, h_min=args.min_thickness_mm * 1e-3,
-                             h_max=args.max_thickness_mm * 1e-3, strain_constraint=not args.no_strain_constraint)
+                             h_max=args.max_thickness_mm * 1e-3, strain_constraint=not args.no_strain_constraint,
+                             element_order=args.element_order)
     say = (lambda line: None) if args.quiet else (lambda line: print(line, flush=True))
     with kernel_threads(args.threads):
         if args.dry_run:

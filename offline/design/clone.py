@@ -8,9 +8,15 @@ Stages (each outer iteration is checkpointed to ``DIR/checkpoint.npz``, so a kil
    Its errors are the report's "before".
 3. **outer iterations**: thickness (:func:`offline.design.thickness.optimize_adjoint`, Gauss-Newton, MLS samples
    placed denser where the target poses strain the skin most) with the actuation fixed, then the actuation again
-   on the new rest shape, until neither improves the total objective by more than ``tol`` (relative) or
-   ``max_outer`` is reached (an iteration that ends worse is discarded). The final errors are the report's
-   "after".
+   on the new rest shape. The thickness step matches the outer surface by region, weighted: vertices near the
+   links and the skull (``link_weight``) and the free skin between them (``free_weight``); outer vertices that
+   are attachment nodes themselves get weight 0 (no thickness moves them). It iterates until its Gauss-Newton
+   model predicts less than ``tol_gain`` of its matching term from a further step (the part thickness can change
+   is spent) or ``thickness_iterations``. The outer loop stops when a thickness step finds nothing to gain
+   (predicted gain below ``tol_gain`` at its start), when an iteration does not improve the total objective by
+   more than ``tol`` (relative; an iteration that ends worse is discarded) or after ``max_outer``. Each outer
+   log entry holds the reachability split of the thickness step's start (per target, the share of its matching
+   term that no thickness change can remove, to first order). The final errors are the report's "after".
 
 With ``strain_constraint`` (the default) every actuation solve keeps its pose inside the head's validated strain
 range, measured with the runtime guard's measure (:mod:`offline.design.strain_constraint`); the thickness step does
@@ -49,14 +55,18 @@ class CloneSettings:
     h_max: float = 0.012
     max_outer: int = 4
     actuation_iterations: int = 12
-    thickness_iterations: int = 3
+    thickness_iterations: int = 8
     tol: float = 2e-3
+    tol_gain: float = 1e-3  # thickness step: stop when its model predicts less than this share of its match
+    link_weight: float = 1.0  # thickness matching weight of outer vertices near a link or the skull
+    free_weight: float = 1.0  # ... of the free skin between attachments
     warp_weight: float = 1e-3
     goal_mean_m: float = 1.35e-3
     goal_max_m: float = 4e-3
     tol_force: float = 1e-8
     strain_constraint: bool = True  # every pose inside the head's validated strain range (the guard's measure)
     strain_margin: float = 0.01  # the constraint's hinge sits this far (strain) inside the range
+    element_order: int = 1  # of the design mesh (the face is loaded at this order; recorded for the checkpoint)
 
 
 Progress = Callable[[str], None]
@@ -172,6 +182,27 @@ class CloneRun:
 
             self.problem = replace(self.problem, strain=face_strain_constraint(face, margin=settings.strain_margin))
 
+    def region_weights(self) -> np.ndarray:
+        """Thickness matching weight per outer vertex: ``link_weight`` near links and skull, ``free_weight`` on the
+        free skin, 0 on outer vertices that are attachment nodes (their position is the link's, not the skin's)."""
+        from offline.dataset.regions import FREE
+
+        names, labels = self.face.skin.surface_regions()
+        free = labels == names.index(FREE) if FREE in names else np.zeros(labels.size, dtype=bool)
+        w = np.where(free, self.settings.free_weight, self.settings.link_weight)
+        w[np.isin(self.face.outer, self.face.locked)] = 0.0
+        return w
+
+    def thickness_problem(self, warp, P: np.ndarray) -> ThicknessProblem:
+        """The thickness step's problem: the targets posed at actuations ``P``, matched by region weights."""
+        s, face = self.settings, self.face
+        return ThicknessProblem(warp, face.skin.material,
+                                tuple(Pose(face.space.boundary(p), q) for p, q in zip(P, self.targets, strict=True)),
+                                face.outer, s.h_min, s.h_max, warp_weight=s.warp_weight,
+                                region_weights=self.region_weights(),
+                                solver=SolverOptions(backend=face.skin.spec.backend, tol_force=s.tol_force,
+                                                     max_iterations=60, load_steps=1))
+
     # ------------------------------------------------------------------ checkpoint
     def _save(self, state: dict) -> None:
         from models.atomic import atomic_path
@@ -284,17 +315,26 @@ class CloneRun:
         while state["stage"] != "done" and outer < s.max_outer:
             outer += 1
             t_it = time.perf_counter()
-            tp = ThicknessProblem(warp, face.skin.material,
-                                  tuple(Pose(face.space.boundary(p), q) for p, q in zip(P, self.targets, strict=True)),
-                                  face.outer, s.h_min, s.h_max, warp_weight=s.warp_weight,
-                                  solver=SolverOptions(backend=face.skin.spec.backend, tol_force=s.tol_force,
-                                                       max_iterations=60, load_steps=1))
+            tp = self.thickness_problem(warp, P)
             self.say(f"[clone] outer {outer}: thickness ({warp.n_samples} samples, {s.thickness_iterations} "
                      f"Gauss-Newton iterations at most)  {clock.eta()}")
             tres = optimize_adjoint(tp, np.clip(h, s.h_min + 1e-5, s.h_max - 1e-5), method="gauss-newton",
-                                    max_iterations=s.thickness_iterations, warm=list(X), verbose=False)
+                                    max_iterations=s.thickness_iterations, warm=list(X), verbose=False,
+                                    tol_gain=s.tol_gain)
             clock.done += n_t
             t_obj = float(tres.log[-1]["match"])
+            split = _split(tres.log[0])
+            self.say(f"[clone] outer {outer}: thickness step {tres.iterations} it; at its start "
+                     f"{split['reachable_share']:.1%} of its matching term was within thickness's reach "
+                     f"(first order)  {clock.eta()}")
+            if tres.iterations <= 1 and tres.converged and "next_predicted_gain" in tres.log[0]:
+                self.say(f"[clone] outer {outer}: the thickness step predicts less than {s.tol_gain:.1%} gain: "
+                         "thickness has nothing left to change; stopping")
+                state["log"] = [*state["log"], {"stage": "outer", "outer": outer, "objective": total,
+                                                "thickness_reachability": split, "converged": "thickness"}]
+                state.update(stage="done", outer=outer)
+                self._save(state)
+                break
             self.say(f"[clone] outer {outer}: thickness objective {total:.4g} -> {t_obj:.4g} "
                      f"(heights {tres.h.min() * 1e3:.2f}-{tres.h.max() * 1e3:.2f} mm)  {clock.eta()}")
             mesh = warp.rest_mesh(tres.h)
@@ -314,7 +354,9 @@ class CloneRun:
             actuation_gain = (t_obj - a_obj) / max(total, 1e-300)
             state["log"] = [*state["log"], {"stage": "outer", "outer": outer, "objective": a_obj,
                                                   "thickness_objective": t_obj, "seconds": time.perf_counter() - t_it,
-                                                  "thickness_gain": thickness_gain, "actuation_gain": actuation_gain}]
+                                                  "thickness_gain": thickness_gain, "actuation_gain": actuation_gain,
+                                                  "thickness_iterations": tres.iterations,
+                                                  "thickness_log": tres.log, "thickness_reachability": split}]
             total = min(total, a_obj)
             state.update(stage="outer" if improved else "done", outer=outer, h=h, P=P, X=X, W=W,
                          seconds=float(state["seconds"]) + time.perf_counter() - t_it)
@@ -328,6 +370,16 @@ class CloneRun:
         state["warp"] = warp
         state["h0"] = h0
         return state
+
+
+def _split(entry: dict) -> dict:
+    """The reachability split of a thickness log entry: per target the matching term and its first-order residual."""
+    match = np.asarray(entry.get("match_per_pose", []), dtype=np.float64)
+    resid = np.asarray(entry.get("reachability_residual_per_pose", []), dtype=np.float64)
+    total = float(match.sum())
+    share = float((total - resid.sum()) / total) if total > 0 else 0.0
+    return {"match_per_target": match.tolist(), "residual_per_target": resid.tolist(),
+            "reachable_share": share}
 
 
 def clock_elapsed(t0: float) -> float:

@@ -22,13 +22,13 @@ from .targets import DEFAULT_TARGETS, check_targets, load_targets
 
 
 def load_clone_problem(config: str, mesh: str | None, targets_file: str | None,
-                       backend: str = "auto") -> tuple[FaceSkin, Mapping[str, Any]]:
+                       backend: str = "auto", element_order: int = 1) -> tuple[FaceSkin, Mapping[str, Any]]:
     """The head's face skin and the target expressions (``targets_file``, else the default targets);
     :class:`models.errors.ConfigError` naming what is missing or wrong."""
     from models.errors import SpecError
 
     try:
-        face = load_face(config, mesh, backend=backend)
+        face = load_face(config, mesh, backend=backend, element_order=element_order)
         units, _ = face.skin.face_units()
         targets = (load_targets(targets_file, units) if targets_file
                    else check_targets(DEFAULT_TARGETS, units, "default targets"))

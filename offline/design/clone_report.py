@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from .clone import CloneRun, surface_distances, vertex_errors
+from .clone_regions import region_errors, region_summary, thickness_change, thickness_change_picture
 
 MM = 1e3
 
@@ -162,6 +163,12 @@ def write_skin_asset(run: CloneRun, mesh, folder: Path, provenance: dict) -> Non
     from offline.fem import save_mesh
 
     folder.mkdir(parents=True, exist_ok=True)
+    if mesh.order == 2:  # the asset is the corner mesh (linear nodes first), as the input skin was
+        from offline.fem import TetMesh
+
+        n = int(np.asarray(mesh.tets)[:, :4].max()) + 1
+        mesh = TetMesh(np.asarray(mesh.nodes)[:n], np.asarray(mesh.tets)[:, :4],
+                       {k: np.asarray(v)[np.asarray(v) < n] for k, v in mesh.node_sets.items()})
     save_mesh(folder / "skin.vtu", mesh)
     shutil.copyfile(run.face.mesh_dir / "face_units.npz", folder / "face_units.npz")
     src = run.face.mesh_dir / "mesh_report.json"
@@ -215,6 +222,7 @@ def write_report(run: CloneRun, state: dict, inputs: dict[str, Path | None]) -> 
             "actuation_after": {n: unit[n].to_config_units(float(v)) for n, v in
                                 zip(head.actuator_names, state["P"][k], strict=True)},
         }
+        row["regions"] = region_errors(run, sb, sa)
         panels = [("uniform skin, actuation optimized", sb), ("thickness + actuation optimized", sa)]
         if X_pred.size and np.all(np.isfinite(X_pred[k])):
             xp = X_pred[k][face.outer]
@@ -298,11 +306,15 @@ def write_report(run: CloneRun, state: dict, inputs: dict[str, Path | None]) -> 
                         "mean_met": summary["after"]["surface_mean_m"] <= s.goal_mean_m,
                         "max_met": summary["after"]["surface_max_m"] <= s.goal_max_m}
     summary["unreached_targets"] = [r["name"] for r in rows if not r["reached"]]
+    summary["regions"] = region_summary(rows, s.goal_mean_m)
+    _, dh_stats = thickness_change(warp, face, np.asarray(state["h0"]), h)
+    summary["thickness_change"] = dh_stats
     hashes = {k: _sha256(v) for k, v in inputs.items()}
     provenance = {"settings": state["settings"], "heights_m": h.tolist(), "samples_uv_m": warp.samples_uv.tolist(),
                   "mls_width_m": warp.width, "inputs_sha256": hashes}
     write_skin_asset(run, mesh_after, out / "skin", provenance)
     thickness_picture(out / "thickness.png", run, warp, np.asarray(state["h0"]), h)
+    thickness_change_picture(out / "thickness_change.png", run, warp, np.asarray(state["h0"]), h)
     report = {
         "head": str(head.source), "mesh": str(face.mesh_dir), "n_nodes": int(face.mesh.n_nodes),
         "n_tets": int(face.mesh.n_tets), "targets": rows, "summary": summary,
@@ -314,7 +326,11 @@ def write_report(run: CloneRun, state: dict, inputs: dict[str, Path | None]) -> 
                            "kept_area_fraction": surf_after.kept_area_fraction},
         "strain_constraint": _constraint_info(run),
         "thickness": {"h_min_m": s.h_min, "h_max_m": s.h_max, "start_m": np.asarray(state["h0"]).tolist(),
-                      "after_m": h.tolist(), "samples_uv_m": warp.samples_uv.tolist(), "mls_width_m": warp.width},
+                      "after_m": h.tolist(), "samples_uv_m": warp.samples_uv.tolist(), "mls_width_m": warp.width,
+                      "change": dh_stats, "change_picture": "thickness_change.png",
+                      "design_element_order": int(face.mesh.order), "design_n_nodes": int(face.mesh.n_nodes),
+                      "reachability": [e["thickness_reachability"] for e in state["log"]
+                                       if "thickness_reachability" in e]},
         "log": state["log"], "outer_iterations": int(state.get("outer", 0)),
         "seconds": float(state.get("seconds", 0.0)),
         "settings": state["settings"], "inputs_sha256": hashes,

@@ -49,8 +49,10 @@ class FaceSkin:
                                 solver=opts)
 
 
-def load_face(config: str | Path, mesh_dir: str | Path | None = None, backend: str = "auto") -> FaceSkin:
-    """The design problem of the head ``config`` on its skin (default: ``skin/`` beside the config)."""
+def load_face(config: str | Path, mesh_dir: str | Path | None = None, backend: str = "auto",
+              element_order: int = 1) -> FaceSkin:
+    """The design problem of the head ``config`` on its skin (default: ``skin/`` beside the config), on linear or
+    quadratic (``element_order`` 2: mid-edge nodes added, same surfaces and node sets) tets."""
     from models.errors import SpecError
     from models.headspec import load_head
 
@@ -60,7 +62,7 @@ def load_face(config: str | Path, mesh_dir: str | Path | None = None, backend: s
     if linkmap is None:
         raise SpecError(str(config), "paths.linkmap", "the head names no link map; actuation needs m(p)")
     spec = FemSpec(config=str(config), mesh=str(mdir), linkmap=str(linkmap), backend=backend,
-                   **material_fields(head.skin_material()))
+                   element_order=element_order, **material_fields(head.skin_material()))
     skin = spec.build()
     fu = mdir / "face_units.npz"
     with np.load(fu) as z:

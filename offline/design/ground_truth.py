@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from offline.fem import box_mesh, neo_hookean_from_E_nu
+from offline.fem import box_mesh, neo_hookean_from_E_nu, to_quadratic
 from offline.fem.solve import rigid_transform_dirichlet
 
 from .thickness import Pose, ThicknessProblem, optimize_adjoint, optimize_joint, solve_poses
@@ -36,6 +36,7 @@ class BlockSettings:
     poisson: float = 0.45
     method: str = "gauss-newton"  # adjoint step: gauss-newton | lbfgs; or "joint"
     max_iterations: int = 40
+    element_order: int = 1  # 1: linear tets, 2: quadratic tets (same corner mesh, mid-edge nodes added)
 
     @staticmethod
     def default() -> BlockSettings:
@@ -96,6 +97,10 @@ def block_problem(settings: BlockSettings, seed: int = 0) -> tuple[ThicknessProb
     """The recovery problem: (problem whose targets come from the true field, true heights, end-face motions)."""
     rng = np.random.default_rng(seed)
     mesh = box_mesh(settings.size_m, settings.divisions)
+    if settings.element_order not in (1, 2):
+        raise ValueError(f"element_order must be 1 or 2, got {settings.element_order}")
+    if settings.element_order == 2:
+        mesh = to_quadratic(mesh)
     warp = block_warp(mesh, n_samples=settings.n_samples)
     lz = settings.size_m[2]
     h_true = lz * (1.0 + settings.variation * rng.uniform(-1.0, 1.0, settings.n_samples))

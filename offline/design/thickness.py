@@ -1,7 +1,8 @@
 """Multi-pose skin thickness optimization: sample heights h such that the skin, posed by its attachments, matches
 target surfaces.
 
-Objective (dimensionless): E(h) = Σ_k ½ ‖x_k,R(h) − q_k‖² / (n_R ℓ²) (matching over the region R, per pose k)
+Objective (dimensionless): E(h) = Σ_k Σ_i∈R ½ w_i ‖x_k,i(h) − q_k,i‖² / (Σ_i w_i ℓ²) (matching over the region R
+with per-node weights w, 1 unless given, per pose k)
 + a log barrier keeping h inside [h_min, h_max] + a quadratic penalty once h comes within ``margin`` of a bound
 + a warp regularization W(X(h); X_ref) / (μ V): the elastic energy of the warped rest shape measured against the
 reference one, which grows without bound as a warped element flattens (keeps the warp well-conditioned).
@@ -57,6 +58,7 @@ class ThicknessProblem:
     margin: float = 0.05
     warp_weight: float = 1e-9
     length_scale: float = 1e-3
+    region_weights: np.ndarray | None = None  # (R,) per region node, >= 0; None: all 1
     solver: SolverOptions = field(default_factory=lambda: SolverOptions(tol_force=1e-11, load_steps="auto"))
 
     def __post_init__(self) -> None:
@@ -73,6 +75,17 @@ class ThicknessProblem:
                 raise ValueError(f"pose {k}: Dirichlet node {moved[0]} is not locked by the warp; constrained "
                                  "nodes must be attachment nodes whose rest geometry the warp keeps")
         object.__setattr__(self, "region", region)
+        if self.region_weights is not None:
+            w = np.asarray(self.region_weights, dtype=np.float64).reshape(-1)
+            if w.shape != (region.size,) or not np.all(np.isfinite(w)) or np.any(w < 0) or not w.sum() > 0:
+                raise ValueError(f"region_weights must be {region.size} finite values >= 0, not all 0 "
+                                 f"(got shape {w.shape})")
+            object.__setattr__(self, "region_weights", w)
+
+    @property
+    def node_weights(self) -> np.ndarray:
+        """Matching weight of every region node (R,): ``region_weights`` or all 1."""
+        return np.ones(self.region.size) if self.region_weights is None else self.region_weights
 
     def check_heights(self, h: np.ndarray) -> np.ndarray:
         """``h`` as a float array, refused when outside the open interval (h_min, h_max)."""
@@ -118,13 +131,18 @@ def solve_poses(problem: ThicknessProblem, h: np.ndarray, warm: Sequence[np.ndar
 
 
 def _match_scale(problem: ThicknessProblem) -> float:
-    return 1.0 / (problem.region.size * problem.length_scale ** 2)
+    return 1.0 / (float(problem.node_weights.sum()) * problem.length_scale ** 2)
+
+
+def _dof_weights(problem: ThicknessProblem) -> np.ndarray:
+    """s w_i repeated per coordinate (3R,): the matching term is ½ Σ (s w) (x − q)² over region DoFs."""
+    return np.repeat(_match_scale(problem) * problem.node_weights, 3)
 
 
 def _match_value(problem: ThicknessProblem, xs: Sequence[np.ndarray]) -> float:
-    s = _match_scale(problem)
+    w = _dof_weights(problem)
     pairs = zip(xs, problem.poses, strict=True)
-    return float(sum(0.5 * s * np.sum((x[problem.region] - p.target) ** 2) for x, p in pairs))
+    return float(sum(0.5 * np.sum(w * (x[problem.region] - p.target).ravel() ** 2) for x, p in pairs))
 
 
 def _warp_norm(problem: ThicknessProblem) -> float:
@@ -194,13 +212,13 @@ def _linearization(problem: ThicknessProblem, state: State, k: int):
 
 def adjoint_gradient(problem: ThicknessProblem, state: State) -> np.ndarray:
     """dE/dh by one adjoint solve per pose: K_ff λ = ∂E/∂x_f, dE/dh = −λᵀ ∂f_f/∂h (+ the regularization's)."""
-    s = _match_scale(problem)
+    w = _dof_weights(problem)
     g = _reg_derivatives(problem, state.h)[0].copy()
     rd = _region_dofs(problem)
     for k, pose in enumerate(problem.poses):
         fac, free_idx, dfdh, _ = _linearization(problem, state, k)
         dEdx = np.zeros(3 * problem.warp.mesh.n_nodes)
-        dEdx[rd] = s * (state.xs[k][problem.region] - pose.target).ravel()
+        dEdx[rd] = w * (state.xs[k][problem.region] - pose.target).ravel()
         lam = fac.solve(dEdx[free_idx])
         g -= np.asarray(dfdh.T @ lam).ravel()
     return g
@@ -208,7 +226,7 @@ def adjoint_gradient(problem: ThicknessProblem, state: State) -> np.ndarray:
 
 def sensitivities(problem: ThicknessProblem, state: State) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """Per pose, the matching residual r_k (3R,) and its Jacobian dr_k/dh (3R, S), both scaled so E_match = ½Σ‖r‖²."""
-    sq = np.sqrt(_match_scale(problem))
+    sq = np.sqrt(_dof_weights(problem))
     rs, Js = [], []
     N3 = 3 * problem.warp.mesh.n_nodes
     rd = _region_dofs(problem)
@@ -218,8 +236,32 @@ def sensitivities(problem: ThicknessProblem, state: State) -> tuple[list[np.ndar
         dx = np.zeros((N3, dxf.shape[1]))
         dx[free_idx] = dxf
         rs.append(sq * (state.xs[k][problem.region] - pose.target).ravel())
-        Js.append(sq * dx[rd])
+        Js.append(sq[:, None] * dx[rd])
     return rs, Js
+
+
+def reachability_split(rs: Sequence[np.ndarray], Js: Sequence[np.ndarray], lower: np.ndarray | None = None,
+                       upper: np.ndarray | None = None, rcond: float = 1e-10) -> tuple[np.ndarray, np.ndarray]:
+    """Split each pose's matching term ½‖r_k‖² into what thickness can change and what it cannot, to first order.
+
+    The best joint height change for the linearized residuals r_k + J_k dh (least squares over every pose, within
+    ``lower`` <= dh <= ``upper`` when given: the bounds' room; unbounded otherwise) leaves ½‖r_k + J_k dh*‖² per
+    pose: the reachability residual, the share no thickness field can remove near the current design. Returns
+    (residual per pose, the best change dh*); match_k − residual_k is what thickness can still gain for pose k
+    (negative for a pose that the joint optimum sacrifices).
+    """
+    r = np.concatenate(rs)
+    J = np.vstack(Js)
+    if lower is None and upper is None:
+        dh = np.linalg.lstsq(J, -r, rcond=rcond)[0]
+    else:
+        from scipy.optimize import lsq_linear
+
+        S = J.shape[1]
+        lo = np.full(S, -np.inf) if lower is None else np.minimum(np.asarray(lower, dtype=np.float64), 0.0)
+        hi = np.full(S, np.inf) if upper is None else np.maximum(np.asarray(upper, dtype=np.float64), 0.0)
+        dh = lsq_linear(J, -r, bounds=(lo, hi), method="bvls", tol=1e-12).x
+    return np.array([0.5 * float(np.sum((rk + Jk @ dh) ** 2)) for rk, Jk in zip(rs, Js, strict=True)]), dh
 
 
 # ------------------------------------------------------------------------------------------------ optimizers
@@ -268,13 +310,20 @@ def _progress(method: str, it: int, state: State, step_norm: float, t0: float, v
 
 def optimize_adjoint(problem: ThicknessProblem, h0: np.ndarray, *, method: str = "gauss-newton",
                      max_iterations: int = 50, tol_step: float = 1e-9, tol_value: float = 1e-16,
-                     barrier_decay: float = 0.1, verbose: bool = False,
+                     tol_gain: float = 0.0, trust_radius: float = 0.25, barrier_decay: float = 0.1,
+                     verbose: bool = False,
                      warm: Sequence[np.ndarray] | None = None) -> OptimizeResult:
     """Minimise E(h) with exact equilibrium per pose; ``method`` is ``gauss-newton`` or ``lbfgs``.
 
     ``warm``: one state (N, 3) per pose to start the first equilibrium solves from (e.g. the previous design's).
 
-    Stops when the largest height step is below ``tol_step`` (m) or E below ``tol_value``. The barrier weight is
+    Stops when the largest height step is below ``tol_step`` (m), E below ``tol_value``, or (Gauss-Newton) when
+    the model predicts that the next step gains less than ``tol_gain`` × the matching term. Gauss-Newton steps
+    minimise the model over the bounds and a trust region (``trust_radius`` × the bound range at first, halved
+    after a poor step, doubled after a good one that reached it; :func:`_box_step`): the part of the
+    objective thickness can still change is then spent (each log entry has ``predicted_gain``, the model's
+    decrease for the step taken, relative to the matching term; each state linearized also has
+    ``match_per_pose`` and ``reachability_residual_per_pose``, see :func:`reachability_split`). The barrier weight is
     multiplied by ``barrier_decay`` after each iteration (interior-point continuation), so the bounds do not bias
     an interior optimum.
     """
@@ -290,6 +339,7 @@ def optimize_adjoint(problem: ThicknessProblem, h0: np.ndarray, *, method: str =
     if state is None:
         raise ValueError("the starting heights give an inverted rest shape or a pose that does not converge")
     log = [_progress(method, 0, state, 0.0, t0, verbose)]
+    radius = trust_radius * (problem.h_max - problem.h_min)
     mem_s: list[np.ndarray] = []
     mem_y: list[np.ndarray] = []
     g_prev = None
@@ -301,8 +351,15 @@ def optimize_adjoint(problem: ThicknessProblem, h0: np.ndarray, *, method: str =
             g_reg, H_reg = _reg_derivatives(problem, state.h)
             g = g_reg + sum(J.T @ r for J, r in zip(Js, rs, strict=True))
             H = H_reg + sum(J.T @ J for J in Js)
-            H = H + 1e-12 * np.trace(H) / len(h) * np.eye(len(h))
-            step = np.linalg.solve(H, -g)
+            step = _box_step(problem, state.h, g, H, radius)
+            resid, _ = reachability_split(rs, Js, problem.h_min - state.h, problem.h_max - state.h)
+            log[-1]["match_per_pose"] = [0.5 * float(r @ r) for r in rs]
+            log[-1]["reachability_residual_per_pose"] = resid.tolist()
+            predicted = -float(g @ step + 0.5 * step @ H @ step) / max(state.match, 1e-300)
+            if tol_gain > 0 and predicted < tol_gain:
+                log[-1]["next_predicted_gain"] = predicted
+                converged = True
+                break
         else:
             g = adjoint_gradient(problem, state)
             if g_prev is not None and mem_s:
@@ -326,6 +383,13 @@ def optimize_adjoint(problem: ThicknessProblem, h0: np.ndarray, *, method: str =
         dh = float(np.abs(new.h - state.h).max())
         state = new
         log.append(_progress(method, it, state, dh, t0, verbose))
+        if method == "gauss-newton":
+            log[-1]["predicted_gain"] = predicted
+            actual = (log[-2]["objective"] - state.value) / max(log[-2]["match"], 1e-300)
+            if alpha < 1.0 or actual < 0.25 * predicted:
+                radius *= 0.5
+            elif actual > 0.75 * predicted and np.abs(alpha * step).max() > 0.9 * radius:
+                radius = min(2.0 * radius, problem.h_max - problem.h_min)
         problem = replace(problem, barrier_weight=problem.barrier_weight * barrier_decay)
         state.reg = _reg_value(problem, state.h)
         state.value = state.match + state.reg
@@ -334,6 +398,22 @@ def optimize_adjoint(problem: ThicknessProblem, h0: np.ndarray, *, method: str =
             break
     return OptimizeResult(state.h, state.xs, state.value, it, converged, log, counts["forward"],
                           time.perf_counter() - t0, f"adjoint-{method}")
+
+
+def _box_step(problem: ThicknessProblem, h: np.ndarray, g: np.ndarray, H: np.ndarray, radius: float,
+              band: float = 0.01) -> np.ndarray:
+    """The Gauss-Newton model's minimiser g·d + ½ dᵀ H d over the box: heights kept ``band`` (of the bound range)
+    inside their bounds and each changed by at most ``radius`` (a trust region). On the face the unconstrained
+    step is ill-conditioned (sample combinations with little effect get metre-sized changes), so the
+    fraction-to-boundary rule cut it to nothing; the box step stays meaningful."""
+    from scipy.optimize import lsq_linear
+
+    rng = problem.h_max - problem.h_min
+    lo = np.minimum(np.maximum(problem.h_min + band * rng - h, -radius), 0.0)
+    hi = np.maximum(np.minimum(problem.h_max - band * rng - h, radius), 0.0)
+    L = np.linalg.cholesky(H + 1e-12 * np.trace(H) / len(h) * np.eye(len(h)))
+    b = -np.linalg.solve(L, g)  # ½‖Lᵀ d − b‖² = g·d + ½ dᵀ H d + const
+    return lsq_linear(L.T, b, bounds=(lo, hi), method="bvls", tol=1e-12).x
 
 
 def _solve_general(A: sp.spmatrix, b: np.ndarray) -> np.ndarray:
@@ -385,7 +465,7 @@ def optimize_joint(problem: ThicknessProblem, h0: np.ndarray, *, max_iterations:
         free[pose.dirichlet.dofs] = False
         frees.append(np.flatnonzero(free))
     f_scale = equilibrium_weight / (problem.material.shear_modulus * problem.length_scale ** 2)
-    sq = np.sqrt(_match_scale(problem))
+    sq = np.sqrt(_dof_weights(problem))
     rd = _region_dofs(problem)
     S = len(h)
 
@@ -430,7 +510,7 @@ def optimize_joint(problem: ThicknessProblem, h0: np.ndarray, *, max_iterations:
                             sp.csr_matrix((nf[k], offs[-1] - offs[k + 1])), f_scale * dfdh])
             sel = np.searchsorted(frees[k], rd)
             ok = frees[k][np.minimum(sel, nf[k] - 1)] == rd
-            P = sp.csr_matrix((np.full(ok.sum(), sq), (np.flatnonzero(ok), sel[ok])), shape=(rd.size, nf[k]))
+            P = sp.csr_matrix((sq[ok], (np.flatnonzero(ok), sel[ok])), shape=(rd.size, nf[k]))
             Jm = sp.hstack([sp.csr_matrix((rd.size, offs[k])), P, sp.csr_matrix((rd.size, n_unk - offs[k + 1]))])
             rows += [Je, Jm]
             rhs += [rr[k][0], rr[k][1]]

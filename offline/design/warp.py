@@ -3,7 +3,9 @@
 The outer surface stays where it is; a node at through-thickness fraction t (0 on the outer surface, 1 on the inner
 one, a harmonic blend in between) moves along its unit direction n by t · (H(u) − H_ref(u)), where H is the MLS
 interpolation (:mod:`offline.design.mls`) of the sample heights over surface coordinates u. Attachment nodes get
-t = 0 and keep their geometry. So X(h) = X_ref + D (h − h_ref) with D = dX/dh a sparse matrix computed once.
+t = 0 and keep their geometry. On quadratic tets the corner nodes move so and each mid-edge node stays at its
+edge's midpoint (straight edges: the warped element is as valid as its corner tet).
+So X(h) = X_ref + D (h − h_ref) with D = dX/dh a sparse matrix computed once.
 """
 
 from __future__ import annotations
@@ -24,10 +26,13 @@ def harmonic_depth(mesh: TetMesh, outer: np.ndarray, inner: np.ndarray, locked: 
                    ) -> np.ndarray:
     """Through-thickness fraction t (N,): 0 on ``outer`` and ``locked`` nodes, 1 on ``inner``, harmonic between.
 
-    Uses the mesh-edge graph Laplacian with inverse-length weights; ``locked`` wins over ``inner``.
+    Uses the corner-edge graph Laplacian with inverse-length weights; ``locked`` wins over ``inner``. On a quadratic
+    mesh a mid-edge node takes the mean of its edge's two corners (then the surface and locked values).
     """
     N = mesh.n_nodes
     tets = np.asarray(mesh.tets)[:, :4]
+    corner = np.zeros(N, dtype=bool)
+    corner[tets.ravel()] = True
     pairs = np.concatenate([tets[:, [a, b]] for a in range(4) for b in range(a + 1, 4)])
     pairs = np.unique(np.sort(pairs, axis=1), axis=0)
     w = 1.0 / np.linalg.norm(mesh.nodes[pairs[:, 0]] - mesh.nodes[pairs[:, 1]], axis=1)
@@ -41,12 +46,22 @@ def harmonic_depth(mesh: TetMesh, outer: np.ndarray, inner: np.ndarray, locked: 
         t[np.asarray(locked)] = 0.0
     if np.intersect1d(outer, inner).size:
         raise ValueError("the outer and inner surfaces share nodes; the thickness direction is undefined there")
+    given = t.copy()
     known = ~np.isnan(t)
-    unk = np.flatnonzero(~known)
+    unk = np.flatnonzero(~known & corner)
     if unk.size:
         Luu = L[unk][:, unk].tocsc()
-        rhs = -L[unk][:, np.flatnonzero(known)] @ t[known]
+        kn = np.flatnonzero(known & corner)
+        rhs = -L[unk][:, kn] @ t[kn]
         t[unk] = spla.spsolve(Luu, rhs)
+    if mesh.order == 2:
+        from offline.fem.mesh import QUADRATIC_EDGES
+
+        full = np.asarray(mesh.tets)
+        ends = full[:, :4][:, QUADRATIC_EDGES]  # (M, 6, 2)
+        mids = full[:, 4:].ravel()
+        t[mids] = 0.5 * (t[ends[..., 0].ravel()] + t[ends[..., 1].ravel()])
+        t[known] = given[known]
     return np.clip(t, 0.0, 1.0)
 
 
@@ -123,9 +138,25 @@ def build_warp(mesh: TetMesh, *, outer: np.ndarray, inner: np.ndarray, uv: np.nd
     Cc = np.tile(cols, 3)
     V = np.concatenate([vals * t[node] * n[node, k] for k in range(3)])
     D = sp.csr_matrix((V, (R, Cc)), shape=(3 * N, h_ref.shape[0]))
+    if mesh.order == 2:  # mid-edge nodes follow their edge's corners: straight edges, the corner tet's Jacobian
+        D = (sp.kron(_midpoint_map(mesh), sp.identity(3)) @ D).tocsr()
     lk = np.zeros(N, dtype=bool)
     lk[locked_idx] = True
     return ThicknessWarp(mesh, samples_uv, float(width), h_ref, D, t, lk)
+
+
+def _midpoint_map(mesh: TetMesh) -> sp.csr_matrix:
+    """(N, N): identity on corner nodes, the mean of the edge's two corners on each mid-edge node."""
+    from offline.fem.mesh import QUADRATIC_EDGES
+
+    full = np.asarray(mesh.tets)
+    mids, first = np.unique(full[:, 4:].ravel(), return_index=True)
+    ends = full[:, :4][:, QUADRATIC_EDGES].reshape(-1, 2)[first]
+    corner = np.setdiff1d(np.arange(mesh.n_nodes), mids)
+    rows = np.r_[corner, mids, mids]
+    cols = np.r_[corner, ends[:, 0], ends[:, 1]]
+    vals = np.r_[np.ones(corner.size), np.full(2 * mids.size, 0.5)]
+    return sp.csr_matrix((vals, (rows, cols)), shape=(mesh.n_nodes, mesh.n_nodes))
 
 
 def strain_density(mesh: TetMesh, poses: Sequence[np.ndarray], floor: float = 0.2) -> np.ndarray:

@@ -88,3 +88,40 @@ def test_small_clone_resumes_and_its_skin_is_a_head_asset(tmp_path):
                    linkmap=str(ROOT / "heads" / "sample" / "linkmap.json")).build()
     assert skin.mesh.n_tets == face.mesh.n_tets
     assert np.allclose(skin.base_surface(), face.skin.base_surface())  # outer surface kept
+
+
+def test_region_summary_judges_the_free_skin_of_targets_within_reach():
+    from offline.design.clone_regions import region_summary
+
+    def row(name, link_before, free_before, free_after):
+        return {"name": name, "regions": {
+            "jaw": {"n_vertices": 10, "before_mean_m": link_before, "after_mean_m": link_before},
+            "free": {"n_vertices": 30, "before_mean_m": free_before, "after_mean_m": free_after}}}
+
+    rows = [row("a", 0.5e-3, 2e-3, 1e-3), row("b", 1e-3, 1e-3, 1.01e-3), row("c", 9e-3, 4e-3, 1e-3)]
+    sm = region_summary(rows, goal_mean_m=1.35e-3)
+    assert sm["reachable_targets"] == ["a", "b"] and sm["out_of_reach_targets"] == ["c"]
+    assert sm["free_region_before_mean_m"] == pytest.approx(1.5e-3)
+    assert sm["free_region_reduction"] == pytest.approx(1 - 1.005e-3 / 1.5e-3)
+    assert sm["worst_relative_change"] == pytest.approx(0.01)
+
+
+def test_thickness_change_is_signed_along_the_thickness():
+    from types import SimpleNamespace
+
+    from offline.design.clone_regions import thickness_change
+    from offline.design.warp import block_warp
+    from offline.fem import box_mesh
+
+    mesh = box_mesh((0.04, 0.02, 0.006), (8, 4, 2))
+    warp = block_warp(mesh, n_samples=6)
+    face = SimpleNamespace(inner=np.asarray(mesh.node_sets["z0"]),
+                           locked=np.r_[mesh.node_sets["x0"], mesh.node_sets["x1"]])
+    h = warp.h_ref.copy()
+    h[0] += 0.001
+    h[3] -= 0.0005
+    dh, stats = thickness_change(warp, face, warp.h_ref, h)
+    X = np.asarray(mesh.nodes)
+    free = np.setdiff1d(face.inner, face.locked)
+    assert np.allclose(dh, X[free, 2] - warp.rest_positions(h)[free, 2])  # thicker = bottom moved down
+    assert stats["max_mm"] > 0 > stats["min_mm"] and stats["abs_max_mm"] <= 1.0 + 1e-9

@@ -79,6 +79,32 @@ def test_harmonic_depth_runs_from_outer_to_inner():
     assert np.all((t[mid] > 0.3) & (t[mid] < 0.7))
 
 
+def test_harmonic_depth_on_quadratic_tets_interpolates_mid_edge_nodes():
+    from offline.fem import to_quadratic
+
+    lin = box_mesh((0.02, 0.02, 0.008), (3, 3, 2))
+    quad = to_quadratic(lin)
+    t1 = harmonic_depth(lin, lin.node_sets["z1"], lin.node_sets["z0"], lin.node_sets["x0"])
+    t2 = harmonic_depth(quad, quad.node_sets["z1"], quad.node_sets["z0"], quad.node_sets["x0"])
+    assert np.allclose(t2[:lin.n_nodes], t1)
+    assert np.all(t2[quad.node_sets["z0"][~np.isin(quad.node_sets["z0"], quad.node_sets["x0"])]] == 1)
+    assert np.all(t2[quad.node_sets["x0"]] == 0) and np.all(t2[quad.node_sets["z1"]] == 0)
+    from offline.fem.mesh import QUADRATIC_EDGES
+
+    tets = np.asarray(quad.tets)
+    ends = tets[:, :4][:, QUADRATIC_EDGES]
+    mids = tets[:, 4:]
+    inner_mid = ~np.isin(mids, np.r_[quad.node_sets["z0"], quad.node_sets["z1"], quad.node_sets["x0"]])
+    assert inner_mid.any()
+    assert np.allclose(t2[mids][inner_mid], 0.5 * (t2[ends[..., 0]] + t2[ends[..., 1]])[inner_mid])
+    # the warp keeps every edge straight: mid-edge nodes stay at their edge's midpoint
+    warp = block_warp(quad, n_samples=6)
+    rng = np.random.default_rng(0)
+    X = warp.rest_positions(warp.h_ref * (1 + 0.25 * rng.uniform(-1, 1, 6)))
+    assert np.allclose(X[mids], 0.5 * (X[ends[..., 0]] + X[ends[..., 1]]), atol=1e-15)
+    assert min_jacobian(quad, X) > 0
+
+
 def test_strain_density_places_samples_where_the_block_deforms():
     from offline.design.warp import strain_density
     from offline.fem import neo_hookean, rigid_transform_dirichlet, solve_static
