@@ -19,9 +19,13 @@ import viser
 from studio.clipdoc import ClipDoc
 from studio.daemon_client import DaemonConnection
 from studio.frontdoor import FrontDoor
+from studio.faceview import FaceView
 from studio.head import StudioHead
-from studio.scene import BandedSkin
-from studio.skin import STRAIN_COLORS, UNMEASURED, SkinFrame, SkinView
+from studio.scene import BandedView
+from studio.skin import SkinFrame, SkinView
+
+#: The skin views a studio can show (``StudioOptions.skin_view``).
+SKIN_VIEWS = ("face", "bands")
 
 log = logging.getLogger(__name__)
 
@@ -37,6 +41,8 @@ class StudioOptions:
     client_key: str | None = None
     server_key: str | None = None
     clips_dir: Path = Path("clips")
+    skin_view: str = "face"  # "face": the page-owned smooth mesh; "bands": viser scene meshes per strain band
+    subdivisions: int = 2  # Loop subdivisions of the simulated surface for the face view
 
 
 class Studio:
@@ -69,7 +75,14 @@ class Studio:
         self.server.scene.add_light_directional("/light", color=(255, 255, 255), intensity=2.0,
                                                 position=(0.0, 1.0, 1.0))
         first = self.skin.frame(self.p)
-        self.view = BandedSkin(self.server, first.positions, self.skin.faces, len(STRAIN_COLORS) + 1)
+        if options.skin_view not in SKIN_VIEWS:
+            raise ValueError(f"skin view must be one of {', '.join(SKIN_VIEWS)}, got {options.skin_view!r}")
+        self.view: FaceView | BandedView
+        if options.skin_view == "face":
+            self.view = FaceView(self.server, self.skin.faces, head.predictor.n_vertices, options.host,
+                                 first.positions, options.subdivisions)
+        else:
+            self.view = BandedView(self.server, self.skin, first.positions)
 
         gui = self.server.gui
         self.estop_button = gui.add_button("E-stop", color="red", icon=viser.Icon.HAND_STOP, order=-100,
@@ -84,7 +97,8 @@ class Studio:
         with tabs.add_tab("Perform", viser.Icon.PLAYER_PLAY):
             self.perform_tab = PerformTab(self)
         self.show_frame(first)
-        self.door = FrontDoor(options.host, options.port, self.server.get_port(), f"Likeness Studio — {head.spec.name}")
+        self.door = FrontDoor(options.host, options.port, self.server.get_port(), f"Likeness Studio — {head.spec.name}",
+                              skin_port=self.view.port if isinstance(self.view, FaceView) else None)
         self.door.start()
 
     # ------------------------------------------------------------------ page
@@ -119,7 +133,7 @@ class Studio:
         return frame
 
     def show_frame(self, frame: SkinFrame) -> None:
-        self.view.show(frame.positions, frame.band_faces, (*STRAIN_COLORS, UNMEASURED))
+        self.view.show_strain(frame)
         if hasattr(self, "pose_tab"):
             self.pose_tab.show_verdict(frame)
 
@@ -145,6 +159,8 @@ class Studio:
                 tab.close()
         if hasattr(self, "door"):
             self.door.stop()
+        if hasattr(self, "view"):
+            self.view.close()
         self.server.stop()
         if self.daemon is not None:
             self.daemon.close()

@@ -1,0 +1,1 @@
+// timeline editor (below)
