@@ -18,11 +18,12 @@ import viser
 
 from studio.clipdoc import ClipDoc
 from studio.daemon_client import DaemonConnection
-from studio.frontdoor import FrontDoor
 from studio.faceview import FaceView
+from studio.frontdoor import FrontDoor
 from studio.head import StudioHead
 from studio.scene import BandedView
 from studio.skin import SkinFrame, SkinView
+from studio.skinsocket import SkinSocket
 
 #: The skin views a studio can show (``StudioOptions.skin_view``).
 SKIN_VIEWS = ("face", "bands")
@@ -78,9 +79,13 @@ class Studio:
         if options.skin_view not in SKIN_VIEWS:
             raise ValueError(f"skin view must be one of {', '.join(SKIN_VIEWS)}, got {options.skin_view!r}")
         self.view: FaceView | BandedView
+        # The page's own socket: the skin's frames (face view) and the timeline editor.
+        self.socket = SkinSocket(options.host)
         if options.skin_view == "face":
-            self.view = FaceView(self.server, self.skin.faces, head.predictor.n_vertices, options.host,
-                                 first.positions, options.subdivisions)
+            face = FaceView(self.server, self.socket, self.skin.faces, head.predictor.n_vertices, first.positions,
+                            options.subdivisions)
+            self.socket.first_message = face.mesh_message
+            self.view = face
         else:
             self.view = BandedView(self.server, self.skin, first.positions)
 
@@ -97,8 +102,9 @@ class Studio:
         with tabs.add_tab("Perform", viser.Icon.PLAYER_PLAY):
             self.perform_tab = PerformTab(self)
         self.show_frame(first)
+        self.socket.start()
         self.door = FrontDoor(options.host, options.port, self.server.get_port(), f"Likeness Studio — {head.spec.name}",
-                              skin_port=self.view.port if isinstance(self.view, FaceView) else None)
+                              skin_port=self.socket.port)
         self.door.start()
 
     # ------------------------------------------------------------------ page
@@ -111,6 +117,7 @@ class Studio:
         centre = 0.5 * (base.min(axis=0) + base.max(axis=0))
         size = float(np.max(base.max(axis=0) - base.min(axis=0)))
         cam = self.server.initial_camera
+        centre[1] -= 0.18 * size  # the face sits above the timeline docked under the view
         cam.look_at = tuple(float(x) for x in centre)
         cam.position = (float(centre[0] + 0.35 * size), float(centre[1] + 0.15 * size), float(centre[2] + 1.2 * size))
         cam.up = (0.0, 1.0, 0.0)
@@ -159,8 +166,8 @@ class Studio:
                 tab.close()
         if hasattr(self, "door"):
             self.door.stop()
-        if hasattr(self, "view"):
-            self.view.close()
+        if hasattr(self, "socket"):
+            self.socket.stop()
         self.server.stop()
         if self.daemon is not None:
             self.daemon.close()

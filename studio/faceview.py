@@ -34,6 +34,23 @@ def ramp(values: np.ndarray, stops: Sequence[float], colors: Sequence[tuple[int,
     return np.stack([np.interp(v, stops, c[:, k]) for k in range(3)], axis=1)
 
 
+#: Entries of a colour ramp's lookup table (its stops' span in this many steps).
+LUT_SIZE = 1024
+
+
+class ColorRamp:
+    """A continuous colour map as a lookup table: :meth:`__call__` gives RGB (float32, 0–255) of values (clamped to
+    the stops' span)."""
+
+    def __init__(self, stops: Sequence[float], colors: Sequence[tuple[int, int, int]]) -> None:
+        self.lo, self.hi = float(stops[0]), float(stops[-1])
+        self.table = ramp(np.linspace(self.lo, self.hi, LUT_SIZE + 1), stops, colors).astype(np.float32)
+
+    def __call__(self, values: np.ndarray) -> np.ndarray:
+        scaled = (np.asarray(values, dtype=np.float32) - self.lo) * (LUT_SIZE / (self.hi - self.lo))
+        return self.table[np.clip(np.rint(scaled), 0, LUT_SIZE).astype(np.intp)]
+
+
 def _strain_stops() -> tuple[list[float], list[tuple[int, int, int]]]:
     """Green up to half the range, then through the bands' colours to orange at the limit and red just past it."""
     e = STRAIN_EDGES
@@ -49,23 +66,26 @@ def _error_stops() -> tuple[list[float], list[tuple[int, int, int]]]:
 class FaceView:
     """The page-owned face mesh: fine surface, per-vertex colours, frames over :class:`SkinSocket`."""
 
-    def __init__(self, server: viser.ViserServer, faces: np.ndarray, n_vertices: int, host: str,
+    def __init__(self, server: viser.ViserServer, socket: SkinSocket, faces: np.ndarray, n_vertices: int,
                  positions: np.ndarray, levels: int = DEFAULT_LEVELS) -> None:
         self.sub = loop_subdivision(faces, n_vertices, levels)
+        self._matrix = self.sub.matrix.astype(np.float32)
+        self.strain_ramp, self.error_ramp = ColorRamp(*_strain_stops()), ColorRamp(*_error_stops())
+        self._cols = np.empty((n_vertices, 5), dtype=np.float32)  # x, y, z, known, value
         faces = np.asarray(faces, dtype=np.intp)
         self._n = n_vertices
         self._faces = faces
         self._seq = 0
-        self._latest = self._pack(FRAME, positions, np.full((n_vertices,), np.nan), _strain_stops())
+        self._pack(FRAME, positions, np.full((n_vertices,), np.nan), self.strain_ramp)
         self.anchor = server.scene.add_mesh_simple("/skin/anchor", np.array([ANCHOR_POINT] * 3, dtype=np.float32),
                                                    np.array([[0, 1, 2]], dtype=np.uint32), color=(200, 200, 200),
                                                    cast_shadow=False, receive_shadow=False)
-        self.socket = SkinSocket(host, self._mesh_message)
-        self.socket.start()
+        self.socket = socket
 
-    @property
-    def port(self) -> int:
-        return self.socket.port
+    def mesh_message(self) -> bytes:
+        """The first message a page gets: the fine surface's triangles with the present frame."""
+        pos, col = self._last
+        return pack(MESH, pos, col, self._seq, self.sub.faces)
 
     def vertex_max(self, face_values: np.ndarray) -> np.ndarray:
         """Per simulated vertex, the largest finite value of the triangles around it (NaN where none is finite)."""
@@ -78,43 +98,36 @@ class FaceView:
         return out
 
     def fine(self, positions: np.ndarray, vertex_values: np.ndarray,
-             stops: tuple[list[float], list[tuple[int, int, int]]]) -> tuple[np.ndarray, np.ndarray]:
+             colors: ColorRamp) -> tuple[np.ndarray, np.ndarray]:
         """The fine surface's positions (float32) and colours (uint8) for a simulated surface and per-vertex values
-        (NaN: unmeasured, grey)."""
-        m = self.sub.matrix
-        pos = (m @ np.asarray(positions, dtype=np.float64)).astype(np.float32)
+        (NaN: unmeasured, grey); one sparse product carries positions, the measured share and the values."""
+        cols = self._cols
+        cols[:, :3] = positions
         known = np.isfinite(vertex_values)
-        weight = m @ known.astype(np.float64)
-        vals = m @ np.where(known, vertex_values, 0.0)
-        u = np.divide(vals, weight, out=np.zeros_like(vals), where=weight > 1e-9)
-        rgb = ramp(u, *stops) * weight[:, None] + np.asarray(UNMEASURED, dtype=np.float64) * (1.0 - weight[:, None])
-        return pos, np.clip(np.rint(rgb), 0, 255).astype(np.uint8)
+        cols[:, 3] = known
+        cols[:, 4] = np.where(known, vertex_values, 0.0)
+        out = self._matrix @ cols
+        weight = out[:, 3:4]
+        u = out[:, 4] / np.maximum(out[:, 3], 1e-9)
+        rgb = colors(u) * weight + np.asarray(UNMEASURED, dtype=np.float32) * (1.0 - weight)
+        return np.ascontiguousarray(out[:, :3]), np.clip(rgb + 0.5, 0, 255).astype(np.uint8)
 
-    def _pack(self, kind: int, positions: np.ndarray, vertex_values: np.ndarray,
-              stops: tuple[list[float], list[tuple[int, int, int]]]) -> bytes:
-        pos, col = self.fine(positions, vertex_values, stops)
+    def _pack(self, kind: int, positions: np.ndarray, vertex_values: np.ndarray, colors: ColorRamp) -> bytes:
+        pos, col = self.fine(positions, vertex_values, colors)
         self._seq += 1
         self._last = (pos, col)
         return pack(kind, pos, col, self._seq)
 
-    def _mesh_message(self) -> bytes:
-        pos, col = self._last
-        return pack(MESH, pos, col, self._seq, self.sub.faces)
-
     def show_strain(self, frame: SkinFrame) -> None:
         """Show a pose's predicted surface coloured by the guard's strain utilisation."""
-        self._send(self._pack(FRAME, frame.positions, self.vertex_max(frame.face_utilisation), _strain_stops()))
+        self._send(self._pack(FRAME, frame.positions, self.vertex_max(frame.face_utilisation), self.strain_ramp))
 
     def show_error(self, predicted: np.ndarray, exact: np.ndarray) -> tuple[float, float]:
         """Show the predicted surface coloured by its distance to the exact one; the largest and mean error (mm)."""
         err_mm = np.linalg.norm(np.asarray(predicted, dtype=np.float64) - np.asarray(exact, dtype=np.float64),
                                 axis=1) * 1e3
-        self._send(self._pack(FRAME, predicted, err_mm, _error_stops()))
+        self._send(self._pack(FRAME, predicted, err_mm, self.error_ramp))
         return float(err_mm.max()), float(err_mm.mean())
 
     def _send(self, message: bytes) -> None:
-        self._latest = message
         self.socket.send_frame(message)
-
-    def close(self) -> None:
-        self.socket.stop()

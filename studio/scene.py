@@ -75,6 +75,3 @@ class BandedView:
         bands, worst, mean = self.skin.error_bands(exact, predicted)
         self.bands.show(predicted, [*bands, np.zeros((0, 3), dtype=np.uint32)], (*ERROR_COLORS, (0, 0, 0)))
         return worst, mean
-
-    def close(self) -> None:
-        pass

@@ -93,8 +93,8 @@ class _Peer:
 class SkinSocket:
     """WebSocket server on ``host`` (any free port) for the page's skin mesh and timeline."""
 
-    def __init__(self, host: str, first_message: Callable[[], bytes]) -> None:
-        self._first = first_message
+    def __init__(self, host: str) -> None:
+        self.first_message: Callable[[], bytes | None] = lambda: None  # what a page gets first (the mesh)
         self._peers: set[_Peer] = set()
         self._lock = threading.Lock()
         self._handler: Handler | None = None
@@ -135,7 +135,7 @@ class SkinSocket:
         with self._lock:
             self._peers.add(peer)
             texts = dict(self._texts)
-        peer.offer(binary=self._first())
+        peer.offer(binary=self.first_message())
         for topic, text in texts.items():
             peer.offer(topic=topic, text=text)
         peer.thread.start()
