@@ -56,8 +56,7 @@ def timeline_state(doc: ClipDoc, ranges: Mapping[str, tuple[float, float]], chan
         x = np.union1d(np.linspace(0.0, end, SAMPLES), [k.t for k in tr.keys])
         curve = curves[ch]
         tracks.append({"name": ch, "interp": tr.interp, "lo": float(lo), "hi": float(hi), "keys": tr.rows(),
-                       "curve": {"t": [round(float(t), 6) for t in x],
-                                 "v": [round(curve.value(float(t)), 6) for t in x]}})
+                       "curve": {"t": [float(t) for t in x], "v": [curve.value(float(t)) for t in x]}})
     sel = None
     if selected is not None and selected[0] in doc.tracks and 0 <= selected[1] < len(doc.tracks[selected[0]].keys):
         sel = [selected[0], selected[1]]
