@@ -1,22 +1,23 @@
-"""Studio latency in headless Chromium: slider move → rendered skin change, where the time goes, and E-stop.
+"""Studio latency in headless Chromium: slider move → skin drawn, for the face view against the old path, and where
+the time goes.
 
-The studio runs on the sample head; Debian's Chromium (software WebGL, SwiftShader) loads its page through
-Playwright. Each trial presses a key on the jaw slider (End and Home in turn: the jaw's two limits).
+Two studios run on the sample head: the face view (the default: the page owns a three.js mesh of the subdivided
+skin and writes each frame's vertex positions and colours into it from the studio's own WebSocket) and the old path
+(``--skin-view bands``: the simulation triangles as viser scene meshes per strain band, rebuilt by viser's client on
+every update). One page is open at a time, in blocks that alternate between the two (``--rounds``), so both see the
+same machine load. Each trial presses a key on the jaw slider (End and Home in turn: the jaw's two limits).
 
-The figure: an in-page timeline (``TIMELINE_SCRIPT``) from the keydown through the message sent, the WebSocket frames
-in viser's worker, the decoded batch with the skin on the page, the vertex uploads and the draw call after the last
-of them, to the next animation frame (the frame with the new skin drawn and handed on); stages as medians and p90s.
-The server's share of a move is timed in ``Studio.set_pose`` (predict, bands, verdict, send).
+The figure: an in-page timeline (``TIMELINE_SCRIPT``, plus the face view's own stamps: buffer received, written into
+the mesh) from the keydown through the message sent, the skin arriving, the vertex uploads and the draw call after
+the last of them, to the next animation frame (the frame with the new skin drawn and handed on); stages as medians
+and p90s. Goal: face view ≤ 50 ms median and ≤ 80 ms p90; the ratio old / face is printed from the same run.
+Cross-check, on pages whose WebGL frames stay readable (``preserveDrawingBuffer``): from the keydown to the first
+animation frame whose face pixels differ (``readPixels`` every frame, which itself costs time); and a baseline page
+round trip without a mesh (a key on the Animate tab's time slider to the server's text reply). With the E-stop
+figure (default) a simulated daemon runs in a process of its own and the E-stop button is clicked: from the click
+event in the page to the daemon's ``estop`` event time.
 
-Cross-check and baseline, on a second page whose WebGL frames stay readable (``preserveDrawingBuffer``): from the
-keydown to the first animation frame whose face pixels differ (``readPixels`` every frame, which itself costs time),
-and a key on the Animate tab's time slider with an empty clip, from the keydown to the server's text reply in the
-page (browser → server → browser, no mesh). With the E-stop figure (default) a simulated daemon runs in a process of
-its own and the E-stop button is clicked: from the click event in the page to the daemon's ``estop`` event time
-(the page's wall clock and the daemon's monotonic clock related through this process's reading of both). The goal
-is ≤ 50 ms slider-to-render on the sample head.
-
-Run: ``python benchmarks/studio_latency.py [--trials 30] [--no-estop] [--chromium-arg=--disable-gpu-vsync ...]``.
+Run: ``python benchmarks/studio_latency.py [--trials 30] [--rounds 2] [--subdivisions 2] [--no-estop]``.
 """
 
 from __future__ import annotations
@@ -387,11 +388,47 @@ def _report(view: str, label: str, stages: list[dict], incomplete: int, pixels: 
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the benchmark; with ``--record``, the report is also written (atomically) to a file."""
+    import contextlib
+    import io
+
+    args_list = sys.argv[1:] if argv is None else argv
+    out = io.StringIO()
+
+    class Tee(io.TextIOBase):
+        def write(self, text: str) -> int:
+            sys.__stdout__.write(text)
+            return out.write(text)
+
+    with contextlib.redirect_stdout(Tee()):
+        rc = _run(args_list)
+    record = next((Path(a.split("=", 1)[1]) for a in args_list if a.startswith("--record=")), None)
+    if "--record" in args_list:
+        record = Path(args_list[args_list.index("--record") + 1])
+    if record is not None and rc == 0:
+        import hashlib
+
+        from models.headspec import load_head
+
+        predictor = Path(str(load_head(SAMPLE).paths.get("predictor", "predictor.onnx")))
+        inputs = [SAMPLE, predictor if predictor.is_absolute() else SAMPLE.parent / predictor]
+        hashes = " ".join(f"{p.name}:{hashlib.sha256(p.read_bytes()).hexdigest()[:16]}" for p in inputs if p.is_file())
+        text = (f"# python benchmarks/studio_latency.py {' '.join(args_list)}\n# inputs (sha256): {hashes}\n"
+                + out.getvalue())
+        tmp = record.with_suffix(record.suffix + ".tmp")
+        tmp.write_text(text, encoding="utf-8")
+        tmp.replace(record)
+    return rc
+
+
+def _run(argv: list[str]) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--trials", type=int, default=30, help="moves per skin view (and pixel cross-checks)")
     ap.add_argument("--rounds", type=int, default=2, help="blocks per view, alternating face and bands")
     ap.add_argument("--subdivisions", type=int, default=2, help="Loop subdivisions of the face view")
     ap.add_argument("--no-estop", action="store_true", help="skip the E-stop figure (no daemon started)")
+    ap.add_argument("--record", type=Path, default=None,
+                    help="also write the report (with the command, settings and input hashes) to this file")
     ap.add_argument("--chromium", default="/usr/bin/chromium")
     ap.add_argument("--chromium-arg", action="append", default=[],
                     help="an extra Chromium flag (repeatable), e.g. --disable-gpu-vsync")
