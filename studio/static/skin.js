@@ -76,7 +76,7 @@
   }
 
   function tick() {
-    if (!anchor) anchor = findAnchor();
+    if (!anchor && faces) anchor = findAnchor();  // only once the studio sends a mesh (the face view)
     if (anchor && faces && pending) { const f = pending; pending = null; apply(f); }
     requestAnimationFrame(tick);
   }
