@@ -17,7 +17,7 @@ round trip without a mesh (a key on the Animate tab's time slider to the server'
 figure (default) a simulated daemon runs in a process of its own and the E-stop button is clicked: from the click
 event in the page to the daemon's ``estop`` event time.
 
-Run: ``python benchmarks/studio_latency.py [--trials 30] [--rounds 2] [--subdivisions 2] [--no-estop]``.
+Run: ``python benchmarks/studio_latency.py [--trials 30] [--rounds 2] [--subdivisions 1] [--no-estop]``.
 """
 
 from __future__ import annotations
@@ -425,7 +425,7 @@ def _run(argv: list[str]) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--trials", type=int, default=30, help="moves per skin view (and pixel cross-checks)")
     ap.add_argument("--rounds", type=int, default=2, help="blocks per view, alternating face and bands")
-    ap.add_argument("--subdivisions", type=int, default=2, help="Loop subdivisions of the face view")
+    ap.add_argument("--subdivisions", type=int, default=1, help="Loop subdivisions of the face view")
     ap.add_argument("--no-estop", action="store_true", help="skip the E-stop figure (no daemon started)")
     ap.add_argument("--record", type=Path, default=None,
                     help="also write the report (with the command, settings and input hashes) to this file")

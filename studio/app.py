@@ -43,7 +43,7 @@ class StudioOptions:
     server_key: str | None = None
     clips_dir: Path = Path("clips")
     skin_view: str = "face"  # "face": the page-owned smooth mesh; "bands": viser scene meshes per strain band
-    subdivisions: int = 2  # Loop subdivisions of the simulated surface for the face view
+    subdivisions: int = 1  # Loop subdivisions of the simulated surface for the face view
 
 
 class Studio:

@@ -23,8 +23,9 @@ from studio.subdivide import loop_subdivision
 
 #: Where the page finds the anchor: a degenerate triangle at this point (nothing is drawn).
 ANCHOR_POINT = (0.123456, -0.654321, 0.0)
-#: Loop subdivisions of the simulated surface (1117 → about 16 800 vertices on the sample head at 2).
-DEFAULT_LEVELS = 2
+#: Loop subdivisions of the simulated surface (1117 → 4 288 vertices on the sample head at 1; 16 786 at 2, whose
+#: 33 000 triangles slow software WebGL to 0.3–0.7 s a frame on the two-core machine).
+DEFAULT_LEVELS = 1
 
 
 def ramp(values: np.ndarray, stops: Sequence[float], colors: Sequence[tuple[int, int, int]]) -> np.ndarray:

@@ -32,8 +32,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--skin-view", choices=("face", "bands"), default="face",
                    help="face: the smooth subdivided skin in a mesh the page owns (default); bands: the simulation "
                         "triangles as viser scene meshes per strain band (slower; for comparison)")
-    p.add_argument("--subdivisions", type=int, default=2, choices=range(0, 4), metavar="N",
-                   help="Loop subdivisions of the simulated surface for the face view (0-3, default 2)")
+    p.add_argument("--subdivisions", type=int, default=1, choices=range(0, 4), metavar="N",
+                   help="Loop subdivisions of the simulated surface for the face view (0-3, default 1)")
 
 
 def _is_loopback(host: str) -> bool:
