@@ -4,7 +4,8 @@
 // one exists; this script provides one and so sees viser's scene. The server puts a tiny degenerate triangle at
 // /skin/anchor (a known point); once it appears, this script hangs its own mesh beside it (same world transform),
 // built with the classes of the anchor itself (the client's three.js), and writes every frame from the socket into
-// that mesh's position and colour buffers in place, then recomputes the normals. No React re-render, no new geometry.
+// that mesh's position and colour buffers in place, then recomputes the normals and asks the canvas (which draws on
+// demand) for a frame. No React re-render, no new geometry.
 // The socket also carries JSON messages (the timeline): `Likeness.on(type, fn)` and `Likeness.send(object)`.
 (function () {
   "use strict";
@@ -70,6 +71,10 @@
     g.attributes.color.needsUpdate = true;
     g.computeVertexNormals();
     if (!g.boundingSphere) g.computeBoundingSphere();
+    // viser's canvas draws on demand (react-three-fiber, frameloop "demand"): ask it for a frame, through the store
+    // of the anchor's react-three-fiber root.
+    const root = anchor.__r3f && anchor.__r3f.root, store = root && root.getState ? root.getState() : null;
+    if (store && store.invalidate) store.invalidate();
     L.frames++;
     L.seq = frame.seq;
     stamp("skin", frame.seq);
