@@ -144,7 +144,9 @@ class TimelineEditor:
 
     def _play(self, r: dict[str, Any]) -> dict[str, Any]:
         """Start playing from clip time ``t``; with ``head``, on the daemon at a scheduled time too. The reply's
-        ``delay_s`` is when (after the reply) the page starts its sound."""
+        ``after_request_s`` is when, after sending the request, the page starts its sound (``delay_s``: after the
+        reply)."""
+        received = time.monotonic()
         t0 = max(_finite(r.get("t", 0.0), "t"), 0.0)
         if not r.get("head"):
             return {"type": "play", "t": t0, "delay_s": 0.0, "head": False}
@@ -156,8 +158,9 @@ class TimelineEditor:
         start = time.monotonic() + PLAY_LEAD_S
         answer = daemon.call("play", clip=self.studio.doc.name, at=start + offset, **{"from": t0})
         self.head_playing = True
+        # The page times its start from when it sent the request (its reply may wait behind the page's drawing).
         return {"type": "play", "t": t0, "delay_s": max(start - time.monotonic(), 0.0), "head": True,
-                "at": float(answer.get("start", start + offset))}
+                "after_request_s": start - received, "at": float(answer.get("start", start + offset))}
 
     def _daemon_offset(self) -> float:
         """Daemon clock minus this host's monotonic clock, from the ``clock`` sample with the smallest round trip."""

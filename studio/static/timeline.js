@@ -272,13 +272,17 @@
     await actx.resume();
     if (playhead >= Math.max(length(), audio.buffer ? audio.buffer.duration : 0) - 1e-3) movePlayhead(0);
     T.pending = true;
+    T.sentAt = performance.now();
     L.send({op: "play", t: playhead, head: !!(headBox && headBox.checked && !headBox.disabled)});
   }
 
   function start(msg) {
     T.pending = false;
     const lead = actx.outputLatency || actx.baseLatency || 0;  // the sound is heard this long after it is played
-    const delay = Math.max(0, msg.delay_s - lead);
+    // Timed from the request (sent at once on the click), not from the reply, which may wait behind drawing.
+    const due = msg.after_request_s !== undefined ? (T.sentAt + 1000 * msg.after_request_s - performance.now()) / 1000
+                                                   : msg.delay_s;
+    const delay = Math.max(0, due - lead);
     const when = actx.currentTime + delay;
     if (audio.buffer && msg.t < audio.buffer.duration) {
       source = actx.createBufferSource();

@@ -225,7 +225,9 @@ def test_the_e_stop_reaches_the_daemon_and_reset_clears_it(page: Any, studio: An
 
 def _drag(page: Any, name: str, dx: float, dy: float) -> None:
     """Drag the timeline control named ``name`` by (dx, dy) pixels with the mouse."""
-    box = page.get_by_role("button", name=name, exact=True).bounding_box()
+    control = page.get_by_role("button", name=name, exact=True)
+    # The timeline redraws from the server's state after each edit: take the box once the redrawn control is there.
+    box = wait_until(control.bounding_box, 30, f"{name!r} on screen")
     x, y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
     page.mouse.move(x, y)
     page.mouse.down()
