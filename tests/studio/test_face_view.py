@@ -101,6 +101,12 @@ def test_face_view_colours_are_interpolated_per_vertex(studio_offline) -> None:
     # refused region is red.
     assert len(np.unique(col, axis=0)) > 50
     assert np.any(np.all(col == (215, 35, 35), axis=1))
+    # The exact pose's error map: the vertex distance in mm on its own continuous scale (1.5 mm: between the 1 mm
+    # and 2 mm stops, teal to green).
+    worst, mean = view.show_error(frame.positions + np.array([0.0, 0.0015, 0.0]), frame.positions)
+    assert worst == pytest.approx(1.5, abs=1e-3) and mean == pytest.approx(1.5, abs=1e-3)
+    _, err_col = view.fine(frame.positions, np.full(len(frame.positions), 1.5), view.error_ramp)
+    assert np.all(err_col == err_col[0]) and tuple(err_col[0]) == (80, 180, 130)
 
 
 def test_socket_sends_the_mesh_first_then_the_newest_frame_and_answers_requests() -> None:
