@@ -1,22 +1,23 @@
-"""Studio latency in headless Chromium: slider move → rendered skin change, where the time goes, and E-stop.
+"""Studio latency in headless Chromium: slider move → skin drawn, for the face view against the old path, and where
+the time goes.
 
-The studio runs on the sample head; Debian's Chromium (software WebGL, SwiftShader) loads its page through
-Playwright. Each trial presses a key on the jaw slider (End and Home in turn: the jaw's two limits).
+Two studios run on the sample head: the face view (the default: the page owns a three.js mesh of the subdivided
+skin and writes each frame's vertex positions and colours into it from the studio's own WebSocket) and the old path
+(``--skin-view bands``: the simulation triangles as viser scene meshes per strain band, rebuilt by viser's client on
+every update). One page is open at a time, in blocks that alternate between the two (``--rounds``), so both see the
+same machine load. Each trial presses a key on the jaw slider (End and Home in turn: the jaw's two limits).
 
-The figure: an in-page timeline (``TIMELINE_SCRIPT``) from the keydown through the message sent, the WebSocket frames
-in viser's worker, the decoded batch with the skin on the page, the vertex uploads and the draw call after the last
-of them, to the next animation frame (the frame with the new skin drawn and handed on); stages as medians and p90s.
-The server's share of a move is timed in ``Studio.set_pose`` (predict, bands, verdict, send).
+The figure: an in-page timeline (``TIMELINE_SCRIPT``, plus the face view's own stamps: buffer received, written into
+the mesh) from the keydown through the message sent, the skin arriving, the vertex uploads and the draw call after
+the last of them, to the next animation frame (the frame with the new skin drawn and handed on); stages as medians
+and p90s. Goal: face view ≤ 50 ms median and ≤ 80 ms p90; the ratio old / face is printed from the same run.
+Cross-check, on pages whose WebGL frames stay readable (``preserveDrawingBuffer``): from the keydown to the first
+animation frame whose face pixels differ (``readPixels`` every frame, which itself costs time); and a baseline page
+round trip without a mesh (a key on the Animate tab's time slider to the server's text reply). With the E-stop
+figure (default) a simulated daemon runs in a process of its own and the E-stop button is clicked: from the click
+event in the page to the daemon's ``estop`` event time.
 
-Cross-check and baseline, on a second page whose WebGL frames stay readable (``preserveDrawingBuffer``): from the
-keydown to the first animation frame whose face pixels differ (``readPixels`` every frame, which itself costs time),
-and a key on the Animate tab's time slider with an empty clip, from the keydown to the server's text reply in the
-page (browser → server → browser, no mesh). With the E-stop figure (default) a simulated daemon runs in a process of
-its own and the E-stop button is clicked: from the click event in the page to the daemon's ``estop`` event time
-(the page's wall clock and the daemon's monotonic clock related through this process's reading of both). The goal
-is ≤ 50 ms slider-to-render on the sample head.
-
-Run: ``python benchmarks/studio_latency.py [--trials 30] [--no-estop] [--chromium-arg=--disable-gpu-vsync ...]``.
+Run: ``python benchmarks/studio_latency.py [--trials 30] [--rounds 2] [--subdivisions 1] [--no-estop]``.
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ sys.path.insert(0, str(ROOT))
 
 SAMPLE = ROOT / "heads" / "sample" / "head.toml"
 GOAL_MS = 50.0
+GOAL_P90_MS = 80.0
 CHROMIUM_ARGS = ("--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist",
                  "--no-sandbox", "--disable-dev-shm-usage")
 
@@ -100,10 +102,11 @@ TIMELINE_SCRIPT = """
     if (!C) continue;
     for (const fn of ["bufferData", "bufferSubData"]) {
       const o = C.prototype[fn];
-      C.prototype[fn] = function (target, data, ...rest) {
+      C.prototype[fn] = function (...args) {  // bufferData(target, data, ...), bufferSubData(target, offset, data, ...)
+        const data = args[fn === "bufferData" ? 1 : 2];
         const n = data && data.byteLength !== undefined ? data.byteLength : 0;
         if (n >= window.__bigUpload) { ev.push(["upload", now(), n]); armed = true; }
-        return o.call(this, target, data, ...rest);
+        return o.apply(this, args);
       };
     }
     for (const fn of ["drawElements", "drawArrays"]) {
@@ -178,21 +181,31 @@ def _p90(xs: list[float]) -> float:
     return float(np.percentile(good, 90)) if good else float("nan")
 
 
-#: The stages of a slider move, in order, as (label, from event, to event) over :func:`_stages`' event times.
-STAGES = (("key → message handed to the WebSocket worker", "key", "send"),
-          ("worker → frame sent", "send", "wsout"),
-          ("frame sent → skin frame received (server, loopback)", "wsout", "wsin"),
-          ("worker: decompress, decode, pace → batch on the page", "wsin", "recv"),
-          ("  (message handed on → skin batch on the page, all of the above)", "send", "recv"),
-          ("batch → first vertex upload (viser frame clock, React commit)", "recv", "upload0"),
-          ("first → last vertex upload", "upload0", "upload"),
-          ("last upload → its draw call", "upload", "draw"),
-          ("draw → next animation frame (frame handed on)", "draw", "raf"))
+#: The stages of a slider move per skin view, in order, as (label, from event, to event) over :func:`_stages`' times.
+STAGES = {
+    "bands": (("key → message handed to the WebSocket worker", "key", "send"),
+              ("worker → frame sent", "send", "wsout"),
+              ("frame sent → skin frame received (server, loopback)", "wsout", "wsin"),
+              ("worker: decompress, decode, pace → batch on the page", "wsin", "recv"),
+              ("  (message handed on → skin batch on the page, all of the above)", "send", "recv"),
+              ("batch → first vertex upload (viser frame clock, React commit)", "recv", "upload0"),
+              ("first → last vertex upload", "upload0", "upload"),
+              ("last upload → its draw call", "upload", "draw"),
+              ("draw → next animation frame (frame handed on)", "draw", "raf")),
+    "face": (("key → message handed to viser's WebSocket worker", "key", "send"),
+             ("message handed on → skin buffer received (server, loopback)", "send", "recv"),
+             ("buffer → written into the page's mesh (normals recomputed)", "recv", "applied"),
+             ("written → first vertex upload (renderer's next frame)", "applied", "upload0"),
+             ("first → last vertex upload", "upload0", "upload"),
+             ("last upload → its draw call", "upload", "draw"),
+             ("draw → next animation frame (frame handed on)", "draw", "raf")),
+}
 
 
-def _stages(ev: list[list]) -> dict[str, float] | None:
-    """Event times (page ms) of one slider move: the key, the message out, the skin's batch back, its uploads, the
-    draw after the last upload and the animation frame after that draw; None when the move did not complete."""
+def _stages(ev: list[list], view: str) -> dict[str, float] | None:
+    """Event times (page ms) of one slider move: the key, the message out, the skin back (viser's batch, or the
+    studio socket's buffer and its write into the mesh), its uploads, the draw after the last upload and the
+    animation frame after that draw; None when the move did not complete."""
     def first(name: str, after: float, pred: Any = None) -> float | None:
         for e in ev:
             if e[0] == name and e[1] >= after and (pred is None or pred(e[2])):
@@ -206,7 +219,14 @@ def _stages(ev: list[list]) -> dict[str, float] | None:
     send = first("send", key, lambda d: d == "GuiUpdateMessage")
     if send is None:
         return None
-    recv = first("recv", send, lambda d: any("/skin/" in m for m in d))
+    if view == "face":
+        recv = first("skinrecv", send)
+        applied = first("skin", recv) if recv is not None else None
+        if applied is None:
+            return None
+        out["applied"] = applied
+    else:
+        recv = first("recv", send, lambda d: any("/skin/" in m for m in d))
     if recv is None:
         return None
     uploads = [float(e[1]) for e in ev if e[0] == "upload" and e[1] >= recv]
@@ -218,7 +238,7 @@ def _stages(ev: list[list]) -> dict[str, float] | None:
         return None
     out.update(key=key, send=send, recv=recv, upload0=uploads[0], upload=uploads[-1], draw=draw, raf=raf)
     wsout = first("wsout", send)
-    if wsout is not None:  # the frame that brought the skin: the largest received between the send and the batch
+    if view == "bands" and wsout is not None:  # the frame that brought the skin: the largest between send and batch
         ins = [e for e in ev if e[0] == "wsin" and wsout <= e[1] <= recv]
         if ins:
             out.update(wsout=wsout, wsin=float(max(ins, key=lambda e: e[2])[1]))
@@ -263,21 +283,159 @@ def _start_daemon() -> tuple[subprocess.Popen, str, str]:
     raise RuntimeError("the daemon did not answer within 120 s")
 
 
+def _open(browser: Any, url: str, script: str) -> Any:
+    page = browser.new_page(viewport={"width": 1200, "height": 800})
+    page.add_init_script(script)
+    page.set_default_timeout(120_000)
+    page.goto(url)
+    page.get_by_role("slider", name="jaw", exact=True).wait_for()
+    page.wait_for_timeout(3000)
+    page.get_by_role("tab", name="Pose").click()
+    return page
+
+
+def _moves(page: Any, view: str, upload_bytes: int, trials: int, first: int) -> tuple[list[dict], int]:
+    """``trials`` jaw moves (End, Home in turn) on a page with the timeline script; their stages and how many did
+    not complete within 10 s."""
+    page.evaluate(f"window.__bigUpload = {upload_bytes}")
+    slider = page.get_by_role("slider", name="jaw", exact=True)
+    out, incomplete = [], 0
+    for i in range(first, first + trials):
+        slider.focus()
+        page.wait_for_timeout(300)
+        page.evaluate("window.__ev.length = 0")
+        page.keyboard.press("End" if i % 2 == 0 else "Home")
+        st = None
+        end = time.monotonic() + 10
+        while time.monotonic() < end:
+            page.wait_for_timeout(150)
+            st = _stages(page.evaluate("window.__ev"), view)
+            if st is not None:
+                page.wait_for_timeout(250)  # later uploads of the same move, if any
+                st = _stages(page.evaluate("window.__ev"), view)
+                break
+        if st is None:
+            incomplete += 1
+        else:
+            out.append(st)
+    return out, incomplete
+
+
+def _pixels(page: Any, trials: int, first: int) -> list[float]:
+    """Key → first frame whose face pixels differ, on a page whose WebGL frames stay readable."""
+    slider = page.get_by_role("slider", name="jaw", exact=True)
+    out = []
+    for i in range(first, first + trials):
+        slider.focus()
+        page.wait_for_timeout(300)
+        page.evaluate(ARM_RENDER)
+        page.keyboard.press("End" if i % 2 == 0 else "Home")
+        out.append(page.evaluate("window.__lat"))
+    return out
+
+
+def _round_trip(page: Any, trials: int) -> list[float]:
+    """The baseline: a key on the Animate tab's time slider (empty clip) to the server's text reply in the page."""
+    page.get_by_role("tab", name="Animate").click()
+    time_slider = page.get_by_role("slider", name="Time (s)", exact=True)
+    out = []
+    for i in range(trials):
+        time_slider.focus()
+        page.wait_for_timeout(300)
+        page.evaluate(ARM_TEXT)
+        page.keyboard.press("End" if i % 2 == 0 else "Home")
+        out.append(page.evaluate("window.__lat"))
+    page.get_by_role("tab", name="Pose").click()
+    return out
+
+
+def _estop_ms(browser: Any, url: str, telemetry: str) -> float | None:
+    """E-stop click in the page → the daemon's ``estop`` event (page wall clock against the daemon's monotonic one
+    through this process's reading of both)."""
+    from models.client import Telemetry
+
+    page = _open(browser, url, "")
+    try:
+        with Telemetry(telemetry) as tel:
+            time.sleep(0.5)
+            page.evaluate("document.addEventListener('click', () => { window.__click = "
+                          "performance.timeOrigin + performance.now(); }, {once: true, capture: true})")
+            page.get_by_role("button", name="E-stop", exact=True).click()
+            ev = tel.wait_for(lambda topic, m: topic == "event" and m.get("event") == "estop", 10.0)
+            clicked = page.evaluate("window.__click") / 1e3
+    finally:
+        page.close()
+    if ev is None:
+        return None
+    return (ev[1]["t"] + time.time() - time.monotonic() - clicked) * 1e3
+
+
+def _report(view: str, label: str, stages: list[dict], incomplete: int, pixels: list[float]) -> float:
+    total = [s["raf"] - s["key"] for s in stages]
+    print(f"{label}: {len(stages)} complete moves ({incomplete} incomplete within 10 s), median / p90 ms:")
+    for name, a, b in STAGES[view]:
+        xs = [s[b] - s[a] for s in stages if a in s and b in s]
+        text = f"{_median(xs):7.1f} / {_p90(xs):7.1f}   (n={len(xs)})" if xs else "    n/a"
+        print(f"  {name:<66} {text}")
+    if stages:
+        print(f"  vertex-sized uploads per move: median {_median([s['uploads'] for s in stages]):.0f}")
+    print(f"  {'total: key → frame with the new skin drawn and handed on':<66} {_median(total):7.1f} / "
+          f"{_p90(total):7.1f}")
+    fails = sum(x < 0 for x in pixels)
+    print(f"  cross-check, key → face pixels changed (readPixels every frame; {fails} unchanged within 10 s): "
+          f"{_median(pixels):.1f} / {_p90(pixels):.1f}")
+    return _median(total)
+
+
 def main(argv: list[str] | None = None) -> int:
+    """Run the benchmark; with ``--record``, the report is also written (atomically) to a file."""
+    import contextlib
+    import io
+
+    args_list = sys.argv[1:] if argv is None else argv
+    out = io.StringIO()
+
+    class Tee(io.TextIOBase):
+        def write(self, text: str) -> int:
+            sys.__stdout__.write(text)
+            return out.write(text)
+
+    with contextlib.redirect_stdout(Tee()):
+        rc = _run(args_list)
+    record = next((Path(a.split("=", 1)[1]) for a in args_list if a.startswith("--record=")), None)
+    if "--record" in args_list:
+        record = Path(args_list[args_list.index("--record") + 1])
+    if record is not None and rc == 0:
+        import hashlib
+
+        from models.headspec import load_head
+
+        predictor = Path(str(load_head(SAMPLE).paths.get("predictor", "predictor.onnx")))
+        inputs = [SAMPLE, predictor if predictor.is_absolute() else SAMPLE.parent / predictor]
+        hashes = " ".join(f"{p.name}:{hashlib.sha256(p.read_bytes()).hexdigest()[:16]}" for p in inputs if p.is_file())
+        text = (f"# python benchmarks/studio_latency.py {' '.join(args_list)}\n# inputs (sha256): {hashes}\n"
+                + out.getvalue())
+        tmp = record.with_suffix(record.suffix + ".tmp")
+        tmp.write_text(text, encoding="utf-8")
+        tmp.replace(record)
+    return rc
+
+
+def _run(argv: list[str]) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--trials", type=int, default=30)
+    ap.add_argument("--trials", type=int, default=30, help="moves per skin view (and pixel cross-checks)")
+    ap.add_argument("--rounds", type=int, default=2, help="blocks per view, alternating face and bands")
+    ap.add_argument("--subdivisions", type=int, default=1, help="Loop subdivisions of the face view")
     ap.add_argument("--no-estop", action="store_true", help="skip the E-stop figure (no daemon started)")
+    ap.add_argument("--record", type=Path, default=None,
+                    help="also write the report (with the command, settings and input hashes) to this file")
     ap.add_argument("--chromium", default="/usr/bin/chromium")
     ap.add_argument("--chromium-arg", action="append", default=[],
                     help="an extra Chromium flag (repeatable), e.g. --disable-gpu-vsync")
-    ap.add_argument("--viser-lighting", action="store_true",
-                    help="for comparison: viser's default scene lighting (shadow-casting lights, environment map) "
-                         "and shadow-casting skin meshes instead of the studio's")
     args = ap.parse_args(argv)
     if not Path(args.chromium).is_file():
         print(f"studio_latency: {args.chromium} not found (apt-get install -y chromium)")
         return 1
-    import numpy as np
     from playwright.sync_api import sync_playwright
 
     from studio.app import Studio, StudioOptions
@@ -287,150 +445,71 @@ def main(argv: list[str] | None = None) -> int:
     print(f"chromium flags: {' '.join((*CHROMIUM_ARGS, *args.chromium_arg))}")
     daemon = None if args.no_estop else _start_daemon()
     head = StudioHead.load(SAMPLE)
-    studio = Studio(head, StudioOptions(port=0, daemon=daemon[1] if daemon else None,
-                                        telemetry=daemon[2] if daemon else None))
-    # The server's share of a page slider move: the pose handler from the pose to the flushed messages.
-    set_pose, in_set_pose = studio.set_pose, []
-
-    def timed_set_pose(*a: Any, **kw: Any) -> Any:
-        t0 = time.perf_counter()
-        try:
-            return set_pose(*a, **kw)
-        finally:
-            in_set_pose.append((time.perf_counter() - t0) * 1e3)
-
-    studio.set_pose = timed_set_pose  # type: ignore[method-assign]
-    if args.viser_lighting:
-        studio.server.scene.configure_default_lights(enabled=True, cast_shadow=True)
-        studio.server.scene.configure_environment_map("warehouse")
-        for h in studio.view.handles:
-            h.cast_shadow, h.receive_shadow = True, True
-    print(f"scene lighting: {'viser default (shadows, environment map)' if args.viser_lighting else 'studio'}")
-    n_vertices = head.predictor.n_vertices
-    try:
-        # The server's share: one pose's prediction, strain bands and verdict.
-        jaw = head.names.index("jaw")
-        poses = [head.neutral.copy(), head.neutral.copy()]
-        poses[1][jaw] = head.hi[jaw]
-        server = []
-        for i in range(100):
+    studios = {view: Studio(head, StudioOptions(port=0, skin_view=view, subdivisions=args.subdivisions,
+                                                daemon=daemon[1] if daemon else None,
+                                                telemetry=daemon[2] if daemon else None))
+               for view in ("face", "bands")}
+    in_set_pose: dict[str, list[float]] = {v: [] for v in studios}
+    for view, studio in studios.items():
+        def timed(*a: Any, _f: Any = studio.set_pose, _v: str = view, **kw: Any) -> Any:
             t0 = time.perf_counter()
-            studio.skin.frame(poses[i % 2])
-            server.append((time.perf_counter() - t0) * 1e3)
-        with sync_playwright() as pw:
-            browser = pw.chromium.launch(executable_path=args.chromium,
-                                         args=[*CHROMIUM_ARGS, *args.chromium_arg])
-            page = browser.new_page(viewport={"width": 1200, "height": 800})
-            page.add_init_script(TIMELINE_SCRIPT)
-            page.set_default_timeout(120_000)
-            page.goto(studio.url())
-            slider = page.get_by_role("slider", name="jaw", exact=True)
-            slider.wait_for()
-            page.wait_for_timeout(3000)
-            page.evaluate(f"window.__bigUpload = {n_vertices * 12}")  # one float32 xyz per vertex
-            # The page's idle frame clock: intervals between animation frames over one second.
-            frame_ms = page.evaluate("""() => new Promise((resolve) => { const ts = [];
-                const f = (t) => { ts.push(t); if (ts.length < 61) requestAnimationFrame(f);
-                                   else resolve(ts.slice(1).map((x, i) => x - ts[i])); };
-                requestAnimationFrame(f); })""")
-            stages: list[dict[str, float]] = []
-            incomplete = 0
-            page.get_by_role("tab", name="Pose").click()
-            for i in range(args.trials + 2):  # two warm-up trials
-                slider.focus()
-                page.wait_for_timeout(300)
-                page.evaluate("window.__ev.length = 0")
-                page.keyboard.press("End" if i % 2 == 0 else "Home")
-                st = None
-                end = time.monotonic() + 10
-                while time.monotonic() < end:
-                    page.wait_for_timeout(200)
-                    st = _stages(page.evaluate("window.__ev"))
-                    if st is not None:
-                        page.wait_for_timeout(300)  # later uploads of the same move, if any
-                        st = _stages(page.evaluate("window.__ev"))
-                        break
-                if i >= 2:
-                    if st is None:
-                        incomplete += 1
-                    else:
-                        stages.append(st)
-            if args.trials and not stages:
-                print("no complete move; first events of the last:", page.evaluate("window.__ev")[:40])
-            page.close()
-            # The pixel cross-check and the baseline, on a page of their own whose WebGL frames stay readable.
-            page = browser.new_page(viewport={"width": 1200, "height": 800})
-            page.add_init_script(PRESERVE_SCRIPT)
-            page.set_default_timeout(120_000)
-            page.goto(studio.url())
-            slider = page.get_by_role("slider", name="jaw", exact=True)
-            slider.wait_for()
-            page.wait_for_timeout(3000)
-            render, trip = [], []
-            for i in range(args.trials + 2):  # the pixel cross-check and the baseline, two warm-up trials each
-                page.get_by_role("tab", name="Pose").click()
-                slider.focus()
-                page.wait_for_timeout(300)
-                page.evaluate(ARM_RENDER)
-                page.keyboard.press("End" if i % 2 == 0 else "Home")
-                ms = page.evaluate("window.__lat")
-                if i >= 2:
-                    render.append(ms)
-                page.get_by_role("tab", name="Animate").click()
-                time_slider = page.get_by_role("slider", name="Time (s)", exact=True)
-                time_slider.focus()
-                page.wait_for_timeout(300)
-                page.evaluate(ARM_TEXT)
-                page.keyboard.press("End" if i % 2 == 0 else "Home")
-                ms = page.evaluate("window.__lat")
-                if i >= 2:
-                    trip.append(ms)
-            estop_ms = None
-            if daemon is not None:
-                from models.client import Telemetry
+            try:
+                return _f(*a, **kw)
+            finally:
+                in_set_pose[_v].append((time.perf_counter() - t0) * 1e3)
 
-                with Telemetry(daemon[2]) as tel:
-                    time.sleep(0.5)
-                    page.evaluate("document.addEventListener('click', () => { window.__click = "
-                                  "performance.timeOrigin + performance.now(); }, {once: true, capture: true})")
-                    page.get_by_role("button", name="E-stop", exact=True).click()
-                    ev = tel.wait_for(lambda topic, m: topic == "event" and m.get("event") == "estop", 10.0)
-                    clicked = page.evaluate("window.__click") / 1e3  # wall clock, s
-                if ev is not None:
-                    wall_minus_mono = time.time() - time.monotonic()
-                    estop_ms = (ev[1]["t"] + wall_minus_mono - clicked) * 1e3
+        studio.set_pose = timed  # type: ignore[method-assign]
+    n_fine = studios["face"].view.sub.n_vertices  # type: ignore[union-attr]
+    upload_bytes = {"face": n_fine * 12, "bands": head.predictor.n_vertices * 12}  # float32 xyz per vertex
+    stages: dict[str, list[dict]] = {v: [] for v in studios}
+    incomplete = dict.fromkeys(studios, 0)
+    pixels: dict[str, list[float]] = {v: [] for v in studios}
+    per_round = max(1, args.trials // max(args.rounds, 1))
+    estop_ms = None
+    try:
+        with sync_playwright() as pw:
+            browser = pw.chromium.launch(executable_path=args.chromium, args=[*CHROMIUM_ARGS, *args.chromium_arg])
+            for r in range(args.rounds):
+                for view in (("face", "bands") if r % 2 == 0 else ("bands", "face")):  # one page open at a time
+                    page = _open(browser, studios[view].url(), TIMELINE_SCRIPT)
+                    _moves(page, view, upload_bytes[view], 2, 0)  # warm-up
+                    got, bad = _moves(page, view, upload_bytes[view], per_round, 0)
+                    stages[view] += got
+                    incomplete[view] += bad
+                    page.close()
+                    page = _open(browser, studios[view].url(), PRESERVE_SCRIPT)
+                    _pixels(page, 2, 0)
+                    pixels[view] += _pixels(page, per_round, 0)
+                    if view == "face" and r == 0:
+                        trip = _round_trip(page, per_round)
+                    page.close()
+            if daemon is not None:
+                estop_ms = _estop_ms(browser, studios["face"].url(), daemon[2])
             browser.close()
     finally:
-        studio.close()
+        for studio in studios.values():
+            studio.close()
         if daemon is not None:
             daemon[0].terminate()
             daemon[0].wait(timeout=30)
-    print(f"sample head: {n_vertices} vertices, {len(studio.skin.faces)} triangles; {args.trials} trials")
-    print(f"page frame clock while idle: median {_median(frame_ms):.1f} ms between animation frames "
-          f"(p90 {_p90(frame_ms):.1f} ms)")
-    total = [s["raf"] - s["key"] for s in stages]
-    print(f"in-page timeline, {len(stages)} complete moves ({incomplete} incomplete within 10 s), "
-          f"median / p90 ms:")
-    for label, a, b in STAGES:
-        xs = [s[b] - s[a] for s in stages if a in s and b in s]
-        if xs:
-            print(f"  {label:<62} {_median(xs):7.1f} / {_p90(xs):7.1f}   (n={len(xs)})")
-        else:
-            print(f"  {label:<62}     n/a (no WebSocket timestamps from the worker)")
-    if stages:
-        print(f"  vertex uploads per move: median {_median([s['uploads'] for s in stages]):.0f}")
-    print(f"  {'total: key → frame with the new skin drawn and handed on':<62} {_median(total):7.1f} / "
-          f"{_p90(total):7.1f}   goal ≤ {GOAL_MS:.0f} ms: {'met' if _median(total) <= GOAL_MS else 'NOT met'}")
-    print(f"  server: set_pose (predict, bands, verdict, send) median {_median(in_set_pose):.2f} ms "
-          f"(p90 {_p90(in_set_pose):.2f} ms); SkinView.frame alone median {float(np.median(server)):.2f} ms")
-    failed = sum(x < 0 for x in render) + sum(x < 0 for x in trip)
-    r, b = _median(render), _median(trip)
-    print(f"cross-check by pixels (readPixels every frame; {failed} without a change within 10 s):")
-    print(f"  slider → face pixels changed: median {r:.1f} ms (p90 {_p90(render):.1f} ms)")
-    print(f"  baseline, page round trip without a mesh (slider → server → text): median {b:.1f} ms")
-    print(f"  ratio pixels / round trip: {r / b:.2f}; in-page total / round trip: {_median(total) / b:.2f}")
+    print(f"sample head: {head.predictor.n_vertices} simulated vertices, {len(studios['face'].skin.faces)} "
+          f"triangles; face view: {args.subdivisions} Loop subdivisions, {n_fine} vertices; "
+          f"{args.rounds} rounds of {per_round} moves per view, alternating")
+    new = _report("face", "FACE VIEW (page-owned mesh, one binary buffer per frame)", stages["face"],
+                  incomplete["face"], pixels["face"])
+    old = _report("bands", "OLD PATH (viser scene meshes per strain band)", stages["bands"], incomplete["bands"],
+                  pixels["bands"])
+    total = [s["raf"] - s["key"] for s in stages["face"]]
+    med, p90 = _median(total), _p90(total)
+    for view in studios:
+        print(f"server: set_pose ({view}) median {_median(in_set_pose[view]):.2f} ms "
+              f"(p90 {_p90(in_set_pose[view]):.2f} ms)")
+    print(f"baseline, page round trip without a mesh (slider → server → text): median {_median(trip):.1f} ms")
+    print(f"RESULT face view key → frame drawn: median {med:.1f} ms (goal ≤ {GOAL_MS:.0f}: "
+          f"{'met' if med <= GOAL_MS else 'NOT met'}), p90 {p90:.1f} ms (goal ≤ {GOAL_P90_MS:.0f}: "
+          f"{'met' if p90 <= GOAL_P90_MS else 'NOT met'}); old path median {old:.1f} ms; old / face {old / new:.2f}")
     if daemon is not None:
-        print(f"E-stop click → daemon estop event: {estop_ms:.1f} ms (goal ≤ 100 ms)" if estop_ms is not None
+        print(f"E-stop click → daemon estop event: {estop_ms:.1f} ms" if estop_ms is not None
               else "E-stop: no estop event within 10 s")
     print(f"load average after: {_load_average()}")
     return 0

@@ -2,9 +2,10 @@
 
 The clip is :class:`studio.clipdoc.ClipDoc` (the protocol's clip schema). "Key channel" keys the selected channel's
 present value (from the Pose tab) at the time slider's time; "Key pose" keys every actuator. Scrubbing and preview
-show the clip's pose on the predicted skin. The timeline chart shows every keyed channel as a track with its keys, the
-selected key and the playhead; the "Selected key" controls pick a key of the selected channel and move it in time
-and value (typed or nudged a frame at a time) and set a Bezier key's handles.
+show the clip's pose on the predicted skin. The page's timeline editor (``static/timeline.js``, served by
+:class:`studio.timeline_editor.TimelineEditor`) shows every keyed channel as a track, where keys and Bezier handles
+are dragged, with undo, redo and an audio track; the "Selected key" controls here pick a key of the selected channel
+and move it in time and value (typed or nudged a frame at a time) and set a Bezier key's handles.
 """
 
 from __future__ import annotations
@@ -17,7 +18,8 @@ import viser
 
 from studio.arkit_csv import clip_from_live_link_csv
 from studio.clipdoc import ClipDoc, ClipError
-from studio.timeline import timeline_chart
+from studio.timeline import track_order
+from studio.timeline_editor import TimelineEditor
 
 if TYPE_CHECKING:
     from studio.app import Studio
@@ -26,8 +28,6 @@ if TYPE_CHECKING:
 PREVIEW_HZ = 30.0
 #: Time step of the nudge buttons (s): one preview frame.
 NUDGE_S = 1.0 / PREVIEW_HZ
-#: Playhead redraws of the timeline while the time moves (Hz): the chart carries every track.
-PLAYHEAD_HZ = 5.0
 #: The key dropdown's entry when the selected channel has no keys.
 NO_KEY = "(no keys)"
 
@@ -62,13 +62,13 @@ class AnimateTab:
                                                 hint="Delete the selected channel's key at this time")
             self.delete_button.on_click(lambda _: self.delete_key())
             self.keys_text = gui.add_markdown("")
-        # The chart is made anew when the tracks change (the client's chart keeps the series it was made with);
-        # between, playhead and key moves only send new data.
-        self.timeline_folder = gui.add_folder("Timeline")
-        self.plot: Any = None
-        self._plot_series: tuple[tuple[dict, ...], dict] | None = None
-        with self.timeline_folder:
-            self.tracks_text = gui.add_markdown("", order=1.0)
+        with gui.add_folder("Tracks"):
+            self.undo_button = gui.add_button("Undo edit", icon=viser.Icon.ARROW_BACK_UP, hint="Undo the last edit")
+            self.undo_button.on_click(lambda _: self._history(self.studio.doc.undo))
+            self.redo_button = gui.add_button("Redo edit", icon=viser.Icon.ARROW_FORWARD_UP,
+                                              hint="Redo the edit last undone")
+            self.redo_button.on_click(lambda _: self._history(self.studio.doc.redo))
+            self.tracks_text = gui.add_markdown("")
         with gui.add_folder("Selected key"):
             self.key_pick = gui.add_dropdown("Key", options=(NO_KEY,), initial_value=NO_KEY,
                                              hint="A key of the selected channel")
@@ -89,7 +89,7 @@ class AnimateTab:
                 box.on_update(self._on_handles)
             self.key_text = gui.add_markdown("")
         self._selected: tuple[str, int] | None = None
-        self._last_playhead = 0.0
+        self.editor = TimelineEditor(self)
         with gui.add_folder("Preview"):
             self.play_button = gui.add_button("Play preview", icon=viser.Icon.PLAYER_PLAY)
             self.play_button.on_click(lambda _: self.play())
@@ -148,9 +148,10 @@ class AnimateTab:
 
     def key_pose(self) -> None:
         at = float(self.time.value)
-        for name in self.studio.head.names:
-            self.studio.doc.set_key(name, at, round(self.present_value(name), 6),
-                                    str(self.interp.value) if name not in self.studio.doc.tracks else None)
+        with self.studio.doc.batch():  # one undo step
+            for name in self.studio.head.names:
+                self.studio.doc.set_key(name, at, round(self.present_value(name), 6),
+                                        str(self.interp.value) if name not in self.studio.doc.tracks else None)
         self.redraw()
 
     def delete_key(self) -> None:
@@ -182,27 +183,17 @@ class AnimateTab:
         self._sync_key_controls()
         self.draw_timeline()
 
+    def _history(self, step: Any) -> None:
+        with self.studio.pose_lock:
+            step()
+            self.redraw()
+
     def draw_timeline(self) -> None:
-        """Redraw the timeline chart (every track, the selected key, the playhead)."""
-        head = self.studio.head
+        """Publish the timeline to the page's editor and list the tracks in words."""
         doc = self.studio.doc
-        ranges = {c.name: (c.min, c.max) for c in head.channels}
-        chart = timeline_chart(doc, ranges, tuple(c.name for c in head.channels), float(self.time.max),
-                               float(self.time.value), self._selected)
-        with self.studio.server.atomic():
-            if self.plot is None or (chart.series, chart.scales) != self._plot_series:
-                if self.plot is not None:
-                    self.plot.remove()
-                with self.timeline_folder:
-                    self.plot = self.studio.server.gui.add_uplot(
-                        data=chart.data, series=chart.series, title="Every keyed channel, one row each; playhead",
-                        aspect=1.6, legend={"show": False}, scales=chart.scales, order=0.0)
-                self._plot_series = (chart.series, chart.scales)
-            else:
-                self.plot.data = chart.data
-        self._last_playhead = time.monotonic()
+        self.editor.publish()
         rows = []
-        for ch in chart.tracks:
+        for ch in track_order(doc, tuple(c.name for c in self.studio.head.channels)):
             tr = doc.tracks[ch]
             keys = ", ".join(("**" if self._selected == (ch, i) else "") + f"{k.t:.2f} s"
                              + ("**" if self._selected == (ch, i) else "") for i, k in enumerate(tr.keys[:8]))
@@ -307,13 +298,14 @@ class AnimateTab:
             return
         self.show_time(float(self.time.value))
 
-    def show_time(self, t: float) -> None:
-        """Pose the skin as the clip stands at time ``t`` (channels the clip does not key keep their values)."""
+    def show_time(self, t: float, playhead: bool = True) -> None:
+        """Pose the skin as the clip stands at time ``t`` (channels the clip does not key keep their values); the
+        page's playhead follows unless the page itself drives it (``playhead=False``)."""
         values = self.studio.doc.sample(t)
         ch = str(self.channel.value)
         self.scrub_text.content = f"t = {t:.2f} s" + (f" · `{ch}` = {values[ch]:.3g}" if ch in values else "")
-        if not self._playing.is_set() or time.monotonic() - self._last_playhead >= 1.0 / PLAYHEAD_HZ:
-            self.draw_timeline()  # the playhead (throttled while the preview plays)
+        if playhead:
+            self.editor.publish_playhead(t)
         if not values:
             return
         p = self.studio.head.pose_from_channels(values, self.studio.p)
@@ -356,7 +348,6 @@ class AnimateTab:
             self.show_time(t)
             time.sleep(max(0.0, 1.0 / PREVIEW_HZ - (time.monotonic() - start - t)))
         self._playing.clear()
-        self.draw_timeline()  # the playhead where the preview stopped
 
     # ------------------------------------------------------------------ files
     def save(self, client: Any = None) -> None:

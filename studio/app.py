@@ -18,10 +18,15 @@ import viser
 
 from studio.clipdoc import ClipDoc
 from studio.daemon_client import DaemonConnection
+from studio.faceview import FaceView
 from studio.frontdoor import FrontDoor
 from studio.head import StudioHead
-from studio.scene import BandedSkin
-from studio.skin import STRAIN_COLORS, UNMEASURED, SkinFrame, SkinView
+from studio.scene import BandedView
+from studio.skin import SkinFrame, SkinView
+from studio.skinsocket import SkinSocket
+
+#: The skin views a studio can show (``StudioOptions.skin_view``).
+SKIN_VIEWS = ("face", "bands")
 
 log = logging.getLogger(__name__)
 
@@ -37,6 +42,8 @@ class StudioOptions:
     client_key: str | None = None
     server_key: str | None = None
     clips_dir: Path = Path("clips")
+    skin_view: str = "face"  # "face": the page-owned smooth mesh; "bands": viser scene meshes per strain band
+    subdivisions: int = 1  # Loop subdivisions of the simulated surface for the face view
 
 
 class Studio:
@@ -69,7 +76,18 @@ class Studio:
         self.server.scene.add_light_directional("/light", color=(255, 255, 255), intensity=2.0,
                                                 position=(0.0, 1.0, 1.0))
         first = self.skin.frame(self.p)
-        self.view = BandedSkin(self.server, first.positions, self.skin.faces, len(STRAIN_COLORS) + 1)
+        if options.skin_view not in SKIN_VIEWS:
+            raise ValueError(f"skin view must be one of {', '.join(SKIN_VIEWS)}, got {options.skin_view!r}")
+        self.view: FaceView | BandedView
+        # The page's own socket: the skin's frames (face view) and the timeline editor.
+        self.socket = SkinSocket(options.host)
+        if options.skin_view == "face":
+            face = FaceView(self.server, self.socket, self.skin.faces, head.predictor.n_vertices, first.positions,
+                            options.subdivisions)
+            self.socket.first_message = face.mesh_message
+            self.view = face
+        else:
+            self.view = BandedView(self.server, self.skin, first.positions)
 
         gui = self.server.gui
         self.estop_button = gui.add_button("E-stop", color="red", icon=viser.Icon.HAND_STOP, order=-100,
@@ -84,7 +102,9 @@ class Studio:
         with tabs.add_tab("Perform", viser.Icon.PLAYER_PLAY):
             self.perform_tab = PerformTab(self)
         self.show_frame(first)
-        self.door = FrontDoor(options.host, options.port, self.server.get_port(), f"Likeness Studio — {head.spec.name}")
+        self.socket.start()
+        self.door = FrontDoor(options.host, options.port, self.server.get_port(), f"Likeness Studio — {head.spec.name}",
+                              skin_port=self.socket.port)
         self.door.start()
 
     # ------------------------------------------------------------------ page
@@ -97,6 +117,7 @@ class Studio:
         centre = 0.5 * (base.min(axis=0) + base.max(axis=0))
         size = float(np.max(base.max(axis=0) - base.min(axis=0)))
         cam = self.server.initial_camera
+        centre[1] -= 0.18 * size  # the face sits above the timeline docked under the view
         cam.look_at = tuple(float(x) for x in centre)
         cam.position = (float(centre[0] + 0.35 * size), float(centre[1] + 0.15 * size), float(centre[2] + 1.2 * size))
         cam.up = (0.0, 1.0, 0.0)
@@ -119,7 +140,7 @@ class Studio:
         return frame
 
     def show_frame(self, frame: SkinFrame) -> None:
-        self.view.show(frame.positions, frame.band_faces, (*STRAIN_COLORS, UNMEASURED))
+        self.view.show_strain(frame)
         if hasattr(self, "pose_tab"):
             self.pose_tab.show_verdict(frame)
 
@@ -145,6 +166,8 @@ class Studio:
                 tab.close()
         if hasattr(self, "door"):
             self.door.stop()
+        if hasattr(self, "socket"):
+            self.socket.stop()
         self.server.stop()
         if self.daemon is not None:
             self.daemon.close()

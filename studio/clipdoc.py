@@ -5,13 +5,16 @@ protocol's clip map (``docs/protocol.md``, ``load_clip``), ``from_dict`` reads o
 :func:`models.clip.clip_from_dict`, so a file the daemon would refuse is refused here with the same message).
 Bezier keys keep tangent handles read from a file; keys made in the studio get flat handles a third of the way to
 their neighbours (ease in and out), recomputed as keys move. Values are in each channel's configured unit.
+Every edit can be undone and redone (:meth:`ClipDoc.undo`, :meth:`ClipDoc.redo`); edits made inside
+:meth:`ClipDoc.batch` (e.g. keying every actuator at once) are one step.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -20,6 +23,12 @@ from models.clip import INTERPS, Curve, clip_from_dict, make_curve
 
 #: Two keys closer than this (s) are the same key.
 TIME_EPS = 1e-6
+#: Undo steps kept.
+UNDO_DEPTH = 200
+
+#: A document's content as plain immutable values (an undo step): name and per channel interpolation and keys.
+State = tuple[str, tuple[tuple[str, str, tuple[tuple[float, float, tuple[float, float, float, float] | None], ...]],
+                         ...]]
 
 
 @dataclass
@@ -65,11 +74,72 @@ class ClipDoc:
         self.tracks: dict[str, Track] = {}
         self.version = 0
         self._curves: dict[str, Curve] | None = None
+        self._saved: State = self._state()
+        self._undo: list[State] = []
+        self._redo: list[State] = []
+        self._batch = 0
+
+    # ------------------------------------------------------------------ history
+    def _state(self) -> State:
+        return (self.name, tuple((ch, tr.interp, tuple((k.t, k.value, k.handles) for k in tr.keys))
+                                 for ch, tr in self.tracks.items()))
+
+    def _restore(self, state: State) -> None:
+        self.name = state[0]
+        self.tracks = {ch: Track(interp, [Key(t, v, h) for t, v, h in keys]) for ch, interp, keys in state[1]}
+        self._saved = state
+        self.version += 1
+        self._curves = None
+
+    @property
+    def can_undo(self) -> bool:
+        return bool(self._undo)
+
+    @property
+    def can_redo(self) -> bool:
+        return bool(self._redo)
+
+    def undo(self) -> bool:
+        """Go back one edit; False when there is none."""
+        if not self._undo:
+            return False
+        self._redo.append(self._saved)
+        self._restore(self._undo.pop())
+        return True
+
+    def redo(self) -> bool:
+        """Repeat the edit last undone; False when there is none."""
+        if not self._redo:
+            return False
+        self._undo.append(self._saved)
+        self._restore(self._redo.pop())
+        return True
+
+    @contextlib.contextmanager
+    def batch(self) -> Iterator[None]:
+        """Edits inside are one undo step."""
+        self._batch += 1
+        try:
+            yield
+        finally:
+            self._batch -= 1
+            if self._batch == 0:
+                self._record()
+
+    def _record(self) -> None:
+        state = self._state()
+        if state != self._saved:
+            self._undo.append(self._saved)
+            del self._undo[:-UNDO_DEPTH]
+            self._redo.clear()
+            self._saved = state
 
     # ------------------------------------------------------------------ edits
     def _changed(self) -> None:
         self.version += 1
         self._curves = None
+        if self._batch == 0:
+            self._record()
 
     def rename(self, name: str) -> None:
         self.name = check_name(name)
@@ -217,6 +287,7 @@ class ClipDoc:
                     for r in spec["keys"]]
             doc.tracks[ch] = Track(interp, keys)
         doc._changed()
+        doc._undo.clear()  # a document read from a file starts its own history
         return doc
 
     @classmethod

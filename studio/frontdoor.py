@@ -17,6 +17,8 @@ from urllib.parse import urlsplit
 
 #: The script every page loads (``studio/static/studio.js``).
 SCRIPT_NAME = "studio.js"
+#: Run before viser's client (to see three.js's scene as it is made): the page-owned skin mesh and the timeline editor.
+EARLY_SCRIPTS = ("skin.js", "timeline.js")
 
 
 def viser_client_page() -> str:
@@ -27,26 +29,32 @@ def viser_client_page() -> str:
     return path.read_text(encoding="utf-8")
 
 
-def studio_script() -> bytes:
-    return resources.files("studio").joinpath("static", SCRIPT_NAME).read_bytes()
+def studio_script(name: str = SCRIPT_NAME) -> bytes:
+    return resources.files("studio").joinpath("static", name).read_bytes()
 
 
-def page_with_script(html: str, title: str) -> bytes:
-    """The client page with the studio's script tag and title (the script runs after the client's)."""
+def page_with_script(html: str, title: str, early: tuple[str, ...] = ()) -> bytes:
+    """The client page with the studio's script tag and title (the script runs after the client's); ``early``
+    scripts run before the client's (the first thing in ``<head>``)."""
     tag = f'<script src="/{SCRIPT_NAME}" defer></script>'
-    if "</head>" not in html:
-        raise ValueError("viser's client page has no </head>: cannot add the studio script")
+    if "</head>" not in html or "<head>" not in html:
+        raise ValueError("viser's client page has no <head> … </head>: cannot add the studio script")
     html = html.replace("<title>Viser</title>", f"<title>{title}</title>", 1)
-    return html.replace("</head>", tag + "</head>", 1).encode("utf-8")
+    first = "".join(f'<script src="/{name}"></script>' for name in early)
+    return html.replace("<head>", "<head>" + first, 1).replace("</head>", tag + "</head>", 1).encode("utf-8")
 
 
 class FrontDoor:
     """HTTP server on ``host:port`` for the page; the WebSocket stays on viser's own port ``ws_port``."""
 
-    def __init__(self, host: str, port: int, ws_port: int, title: str = "Likeness Studio") -> None:
+    def __init__(self, host: str, port: int, ws_port: int, title: str = "Likeness Studio",
+                 skin_port: int | None = None) -> None:
         self.ws_port = ws_port
-        page = page_with_script(viser_client_page(), title)
-        script = studio_script()
+        early = EARLY_SCRIPTS if skin_port is not None else ()
+        page = page_with_script(viser_client_page(), title, early)
+        scripts = {f"/{SCRIPT_NAME}": studio_script()}
+        for name in early:  # the page's own socket: its port goes first in each early script
+            scripts[f"/{name}"] = f"window.LIKENESS_SKIN_PORT = {int(skin_port or 0)};\n".encode() + studio_script(name)
         door = self
 
         class Handler(BaseHTTPRequestHandler):
@@ -61,8 +69,8 @@ class FrontDoor:
                         self.end_headers()
                         return
                     self._send(page, "text/html; charset=utf-8")
-                elif url.path == f"/{SCRIPT_NAME}":
-                    self._send(script, "application/javascript")
+                elif url.path in scripts:
+                    self._send(scripts[url.path], "application/javascript")
                 else:
                     self.send_error(HTTPStatus.NOT_FOUND)
 

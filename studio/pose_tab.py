@@ -127,9 +127,7 @@ class PoseTab:
             try:
                 exact, converged, iterations = fut.result()
                 predicted = self.studio.head.predictor.predict(p)
-                bands, worst, mean = self.studio.skin.error_bands(exact, predicted)
-                self.studio.view.show(predicted, [*bands, np.zeros((0, 3), dtype=np.uint32)],
-                                      (*ERROR_COLORS, (0, 0, 0)))
+                worst, mean = self.studio.view.show_error(predicted, exact)
                 legend = " ".join(_swatch(c, f"{lo:.0f}–{hi:.0f} mm" if hi < 99 else f">{lo:.0f} mm")
                                   for c, lo, hi in zip(ERROR_COLORS, (0.0, *ERROR_EDGES_MM),
                                                        (*ERROR_EDGES_MM, 99.0), strict=True))

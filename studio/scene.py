@@ -12,6 +12,8 @@ from collections.abc import Sequence
 import numpy as np
 import viser
 
+from studio.skin import ERROR_COLORS, STRAIN_COLORS, UNMEASURED, SkinFrame, SkinView
+
 RGB = tuple[int, int, int]
 
 
@@ -56,3 +58,20 @@ class BandedSkin:
                     h.color = color
                 if not h.visible:
                     h.visible = True
+
+
+class BandedView:
+    """The skin as simulation triangles in viser's scene (one mesh per colour band): the studio's first view, kept
+    for comparison (``--skin-view bands``; the latency benchmark measures it beside the face view)."""
+
+    def __init__(self, server: viser.ViserServer, skin: SkinView, positions: np.ndarray) -> None:
+        self.skin = skin
+        self.bands = BandedSkin(server, positions, skin.faces, len(STRAIN_COLORS) + 1)
+
+    def show_strain(self, frame: SkinFrame) -> None:
+        self.bands.show(frame.positions, frame.band_faces, (*STRAIN_COLORS, UNMEASURED))
+
+    def show_error(self, predicted: np.ndarray, exact: np.ndarray) -> tuple[float, float]:
+        bands, worst, mean = self.skin.error_bands(exact, predicted)
+        self.bands.show(predicted, [*bands, np.zeros((0, 3), dtype=np.uint32)], (*ERROR_COLORS, (0, 0, 0)))
+        return worst, mean

@@ -53,6 +53,7 @@ class SkinFrame:
     utilisation: float  # largest u over the kept skin
     passes: bool  # the guard's in-cycle check accepts the pose
     verdict: str  # the verdict in words
+    face_utilisation: np.ndarray  # per triangle u (NaN where unmeasured)
 
 
 class SkinView:
@@ -83,7 +84,7 @@ class SkinView:
         passes = bool(self.guard.check(p))
         umax = float(np.nanmax(u))
         return SkinFrame(pos, faces_by_band(self.faces, bands, len(STRAIN_COLORS)), strain, umax, passes,
-                         self.verdict(p, strain, passes))
+                         self.verdict(p, strain, passes), u)
 
     def verdict(self, p: np.ndarray, strain: tuple[float, float], passes: bool) -> str:
         """The guard's decision on pose ``p`` in words, with the measure against the validated range."""

@@ -1,43 +1,32 @@
-"""The multi-track timeline chart: every keyed channel of a clip as one row, its keys, the selected key and the
-playhead, as uPlot data and series for viser's chart.
+"""The timeline's content for the page's editor: every keyed channel as a track with its keys, Bezier handles and
+curve, the playhead, the selected key, the audio and what undo and redo can do, as one JSON-ready map.
 
-Each track occupies a row of height 1 (the first track on top); its curve is drawn within the row from the channel's
-lower limit (row bottom + 0.1) to its upper limit (row top - 0.1), so channels of different units share one chart.
-The playhead is a vertical line: its time appears twice in the x values, once at the chart's bottom and once at the
-top (uPlot draws a series in the order of its points).
+The page (``static/timeline.js``) draws each track in a row of its own, from the channel's lower limit at the row's
+bottom to its upper limit at the top, so channels of different units share one view; keys and handles are dragged
+there and sent back as edits. Curves are sampled here with the clip's own evaluation (``models.clip``), so what the
+page draws is what the daemon plays; the key times are among the samples, so every key lies on its curve.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from studio.clipdoc import ClipDoc
 
-#: Colours of the tracks, in turn.
-TRACK_COLORS = ("#1f77b4", "#2ca02c", "#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22", "#7f7f7f")
-KEY_COLOR = "#d62728"
-SELECTED_COLOR = "#ff7f0e"
-PLAYHEAD_COLOR = "#444444"
-#: Curve samples over the clip's length (key times are added to them).
-SAMPLES = 200
+#: Curve samples over the timeline's length (key times are added to them).
+SAMPLES = 240
 
 
 @dataclass(frozen=True)
-class Chart:
-    """uPlot data (x first), series and scales for :class:`viser.GuiUplotHandle`, and the tracks top to bottom."""
+class Audio:
+    """The sound loaded in the page: its file name and length (s)."""
 
-    data: tuple[np.ndarray, ...]
-    series: tuple[dict, ...]
-    tracks: tuple[str, ...]
-
-    @property
-    def scales(self) -> dict:
-        """A fixed height (one unit per row): uPlot's automatic range would fail on the key series, which are NaN
-        (gaps) away from their keys."""
-        return {"x": {"time": False}, "y": {"auto": False, "range": [0.0, float(max(len(self.tracks), 1))]}}
+    name: str
+    duration: float
 
 
 def track_order(doc: ClipDoc, channel_order: tuple[str, ...]) -> tuple[str, ...]:
@@ -46,51 +35,31 @@ def track_order(doc: ClipDoc, channel_order: tuple[str, ...]) -> tuple[str, ...]
     return tuple(sorted(doc.tracks, key=lambda ch: (rank.get(ch, len(rank)), ch)))
 
 
-def row_y(value: np.ndarray | float, row: int, n_rows: int, lo: float, hi: float) -> np.ndarray:
-    """Chart height of ``value`` on track ``row`` (0 = top) of ``n_rows``, with the channel's range [lo, hi]."""
-    span = hi - lo if hi > lo else 1.0
-    frac = np.clip((np.asarray(value, dtype=np.float64) - lo) / span, 0.0, 1.0)
-    return (n_rows - 1 - row) + 0.1 + 0.8 * frac
+def timeline_length(doc: ClipDoc, length: float, audio: Audio | None) -> float:
+    """The span the timeline shows (s): the clip's set length, its last key and the audio, whichever is longest."""
+    return max(float(length), doc.duration, audio.duration if audio else 0.0, 0.1)
 
 
-def timeline_chart(doc: ClipDoc, ranges: Mapping[str, tuple[float, float]], channel_order: tuple[str, ...],
-                   end: float, playhead: float, selected: tuple[str, int] | None = None) -> Chart:
-    """The chart of ``doc`` over [0, ``end``] s with the playhead at ``playhead`` s and key ``selected`` (channel,
-    index) marked. ``ranges`` gives each channel's (min, max) in its unit."""
-    if not end > 0:
-        raise ValueError(f"timeline length must be > 0 s, got {end!r}")
-    tracks = track_order(doc, channel_order)
-    n = max(len(tracks), 1)
-    times = [k.t for ch in tracks for k in doc.tracks[ch].keys]
-    x = np.union1d(np.linspace(0.0, end, SAMPLES), np.asarray(times, dtype=np.float64))
-    t_play = float(np.clip(playhead, 0.0, end))
-    at = int(np.searchsorted(x, t_play))
-    x = np.insert(x, at, [t_play, t_play])  # the playhead's two points
+def timeline_state(doc: ClipDoc, ranges: Mapping[str, tuple[float, float]], channel_order: tuple[str, ...],
+                   length: float, playhead: float, selected: tuple[str, int] | None = None,
+                   audio: Audio | None = None) -> dict[str, Any]:
+    """The map the page's timeline draws: ``tracks`` top to bottom, each with ``name``, ``interp``, ``lo``/``hi``
+    (the channel's range), ``keys`` (rows as in the clip schema, Bezier ones with their handles as the clip uses
+    them) and ``curve`` (``t`` and ``v`` samples); ``length``, ``playhead``, ``selected``, ``audio``, ``can_undo``,
+    ``can_redo`` and the document's ``version``."""
+    end = timeline_length(doc, length, audio)
+    tracks = []
     curves = doc.curves()
-    data: list[np.ndarray] = [x]
-    series: list[dict] = [{"label": "t (s)"}]
-    for row, ch in enumerate(tracks):
+    for ch in track_order(doc, channel_order):
+        tr = doc.tracks[ch]
         lo, hi = ranges.get(ch, (0.0, 1.0))
-        color = TRACK_COLORS[row % len(TRACK_COLORS)]
-        values = np.array([curves[ch].value(float(t)) for t in x])
-        data.append(row_y(values, row, n, lo, hi))
-        series.append({"label": ch, "stroke": color, "width": 2})
-        keys = np.full(len(x), np.nan)
-        for k in doc.tracks[ch].keys:
-            keys[int(np.argmin(np.abs(x - k.t)))] = row_y(k.value, row, n, lo, hi)
-        data.append(keys)
-        series.append({"label": f"{ch} keys", "stroke": KEY_COLOR, "width": 0, "points": {"show": True, "size": 7}})
-    sel = np.full(len(x), np.nan)
+        x = np.union1d(np.linspace(0.0, end, SAMPLES), [k.t for k in tr.keys])
+        curve = curves[ch]
+        tracks.append({"name": ch, "interp": tr.interp, "lo": float(lo), "hi": float(hi), "keys": tr.rows(),
+                       "curve": {"t": [float(t) for t in x], "v": [curve.value(float(t)) for t in x]}})
+    sel = None
     if selected is not None and selected[0] in doc.tracks and 0 <= selected[1] < len(doc.tracks[selected[0]].keys):
-        ch, i = selected
-        k = doc.tracks[ch].keys[i]
-        lo, hi = ranges.get(ch, (0.0, 1.0))
-        sel[int(np.argmin(np.abs(x - k.t)))] = row_y(k.value, tracks.index(ch), n, lo, hi)
-    data.append(sel)
-    series.append({"label": "selected key", "stroke": SELECTED_COLOR, "width": 0,
-                   "points": {"show": True, "size": 13, "fill": SELECTED_COLOR}})
-    head = np.full(len(x), np.nan)
-    head[at], head[at + 1] = 0.0, float(n)
-    data.append(head)
-    series.append({"label": "playhead", "stroke": PLAYHEAD_COLOR, "width": 1.5, "spanGaps": False})
-    return Chart(tuple(data), tuple(series), tracks)
+        sel = [selected[0], selected[1]]
+    return {"version": doc.version, "name": doc.name, "length": end, "playhead": float(playhead), "selected": sel,
+            "tracks": tracks, "audio": {"name": audio.name, "duration": audio.duration} if audio else None,
+            "can_undo": doc.can_undo, "can_redo": doc.can_redo}

@@ -29,6 +29,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--client-key", default=None, help="CURVE client secret key file (daemon with CURVE)")
     p.add_argument("--server-key", default=None, help="CURVE server public key file (daemon with CURVE)")
     p.add_argument("--clips-dir", type=Path, default=Path("clips"), help="where 'Save clip' writes (default ./clips)")
+    p.add_argument("--skin-view", choices=("face", "bands"), default="face",
+                   help="face: the smooth subdivided skin in a mesh the page owns (default); bands: the simulation "
+                        "triangles as viser scene meshes per strain band (slower; for comparison)")
+    p.add_argument("--subdivisions", type=int, default=1, choices=range(0, 4), metavar="N",
+                   help="Loop subdivisions of the simulated surface for the face view (0-3, default 1)")
 
 
 def _is_loopback(host: str) -> bool:
@@ -73,7 +78,8 @@ def run(args: argparse.Namespace) -> int:
     except (SpecError, ValueError) as exc:
         raise UsageError(str(exc)) from None
     options = StudioOptions(host=args.host, port=args.port, daemon=args.daemon, telemetry=args.telemetry,
-                            client_key=args.client_key, server_key=args.server_key, clips_dir=args.clips_dir)
+                            client_key=args.client_key, server_key=args.server_key, clips_dir=args.clips_dir,
+                            skin_view=args.skin_view, subdivisions=args.subdivisions)
     try:
         studio = Studio(head, options)
     except (DaemonError, DaemonTimeout) as exc:

@@ -93,6 +93,9 @@ def test_every_control_is_named_and_the_jaw_slider_changes_the_rendered_skin(pag
     assert wait_until(lambda: abs(math.degrees(studio.p[jaw_k]) - head.by_name["jaw"].max) < 1e-6, 30)
     wait_until(lambda: _changed_fraction(_face(page), before) > 0.01, 60,
                "the rendered skin to change after the jaw slider moved", interval=0.5)
+    # The page draws the skin as its own smooth mesh (the subdivided surface), fed by the studio's socket.
+    assert page.evaluate("Likeness.mesh.geometry.attributes.position.count") == studio.view.sub.n_vertices
+    assert page.evaluate("Likeness.frames") >= 2
     # The sample head's jaw at its limit stretches the skin past the validated range: the guard says so.
     assert wait_until(lambda: page.get_by_text("Refused:").count() > 0, 30)
     page.screenshot(path=str(image_dir / "studio-pose.png"))
@@ -191,7 +194,7 @@ def test_select_a_key_on_the_timeline_and_move_it(page: Any, studio: Any, image_
     value_box = page.get_by_role("textbox", name="Key value", exact=True)
     wait_until(lambda: value_box.input_value() == "4", 30,
                lambda: f"the key-value box to show 4, not {value_box.input_value()!r}")
-    page.get_by_text("Every keyed channel, one row each").scroll_into_view_if_needed()
+    page.get_by_text("Tracks, top to bottom:").scroll_into_view_if_needed()
     page.screenshot(path=str(image_dir / "studio-timeline.png"))
     page.get_by_role("button", name="Save clip").click()
     saved = studio.options.clips_dir / "take.json"
@@ -218,6 +221,127 @@ def test_the_e_stop_reaches_the_daemon_and_reset_clears_it(page: Any, studio: An
     _tab(page, "Perform")
     page.get_by_role("button", name="Reset", exact=True).click()
     assert wait_until(lambda: _status(daemon)["lifecycle"] == "inactive", 60, interval=0.5)
+
+
+def _drag(page: Any, name: str, dx: float, dy: float) -> None:
+    """Drag the timeline control named ``name`` by (dx, dy) pixels with the mouse."""
+    control = page.get_by_role("button", name=name, exact=True)
+    # The timeline redraws from the server's state after each edit: take the box once the redrawn control is there.
+    box = wait_until(control.bounding_box, 30, f"{name!r} on screen")
+    x, y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+    page.mouse.move(x, y)
+    page.mouse.down()
+    page.mouse.move(x + dx / 2, y + dy / 2, steps=3)
+    page.mouse.move(x + dx, y + dy, steps=3)
+    page.mouse.up()
+
+
+def _wav(path: Path, seconds: float, rate: int = 8000) -> Path:
+    """A mono 16-bit WAV: a 220 Hz tone, loud and soft in turn every quarter second (a visible waveform)."""
+    import wave
+
+    t = np.arange(int(seconds * rate)) / rate
+    loud = np.where((t * 4).astype(int) % 2 == 0, 0.8, 0.15)
+    samples = (loud * np.sin(2 * np.pi * 220 * t) * 32767).astype("<i2")
+    with wave.open(str(path), "wb") as w:
+        w.setnchannels(1)
+        w.setsampwidth(2)
+        w.setframerate(rate)
+        w.writeframes(samples.tobytes())
+    return path
+
+
+def test_the_timeline_edits_tracks_keys_and_handles_with_undo_and_plays_audio_with_the_head(
+        page: Any, studio: Any, daemon: Any, image_dir: Path, tmp_path: Path) -> None:
+    import time
+
+    from models.clip import clip_from_dict
+
+    doc = studio.doc
+    doc.clear()
+    with doc.batch():
+        doc.set_key("jaw", 0.0, 0.0, "bezier")
+        doc.set_key("jaw", 1.0, 4.0)
+        doc.set_key("jaw", 2.0, 1.0)
+        doc.set_key("blink", 0.5, 0.0, "linear")
+        doc.set_key("blink", 1.5, 20.0)
+    studio.animate_tab.length.value = 2.0
+    studio.animate_tab.redraw()
+    _tab(page, "Animate")
+    page.get_by_role("button", name="jaw key 2", exact=True).wait_for()
+    width = page.evaluate("document.querySelector('#likeness-timeline svg').clientWidth")
+    s_per_px = 2.0 / (width - 150 - 14)  # the timeline spans the clip's 2 s right of the track names
+
+    # Drag a key of the jaw track later and higher, then one of the blink track earlier.
+    _drag(page, "jaw key 2", 40, -12)
+    assert wait_until(lambda: doc.tracks["jaw"].keys[1].t != 1.0, 30)
+    jaw2 = doc.tracks["jaw"].keys[1]
+    assert jaw2.t == pytest.approx(1.0 + 40 * s_per_px, abs=3 * s_per_px) and jaw2.value > 4.0
+    _drag(page, "blink key 1", -30, 0)
+    assert wait_until(lambda: doc.tracks["blink"].keys[0].t < 0.5, 30)
+    assert doc.tracks["blink"].keys[0].t == pytest.approx(0.5 - 30 * s_per_px, abs=3 * s_per_px)
+    # The keyboard moves a focused key a frame.
+    blink2 = page.get_by_role("button", name="blink key 2", exact=True)
+    blink2.focus()
+    page.keyboard.press("ArrowRight")
+    assert wait_until(lambda: doc.tracks["blink"].keys[1].t == pytest.approx(1.5 + 1 / 30), 30)
+
+    # Select the jaw's key 2: its Bezier handles show; drag the out handle up and out.
+    _drag(page, "jaw key 2", 0, 0)  # a click selects
+    out = page.get_by_role("button", name="jaw key 2 out handle", exact=True)
+    out.wait_for()
+    before = doc.handles("jaw", 1)
+    _drag(page, "jaw key 2 out handle", 25, -20)
+    assert wait_until(lambda: doc.handles("jaw", 1) != before, 30)
+    after = doc.handles("jaw", 1)
+    assert after[:2] == before[:2] and after[2] > before[2] and after[3] > 0  # the in handle stays
+    clip_from_dict(doc.to_dict())  # the daemon accepts the edited clip
+    edited = doc.to_dict()
+
+    # Undo takes the handle edit back, redo repeats it.
+    page.get_by_role("button", name="Undo", exact=True).click()
+    assert wait_until(lambda: doc.handles("jaw", 1) == before, 30)
+    page.get_by_role("button", name="Redo", exact=True).click()
+    assert wait_until(lambda: doc.to_dict() == edited, 30)
+
+    # Audio: load a WAV in the browser; its waveform shows and the timeline spans it.
+    wav = _wav(tmp_path / "line.wav", 2.5)
+    page.get_by_label("Load audio").set_input_files(str(wav))
+    assert wait_until(lambda: studio.animate_tab.editor.audio is not None, 30)
+    assert studio.animate_tab.editor.audio.duration == pytest.approx(2.5)
+    assert page.get_by_role("img", name="Waveform of line.wav").count() == 1
+    page.screenshot(path=str(image_dir / "studio-timeline-editor.png"))
+
+    # Play from the start with the head: the daemon starts the clip at the moment the page starts the sound, and
+    # the preview follows the sound's clock.
+    _inactive(daemon)
+    with Client(daemon.command_endpoint, timeout=30) as c:
+        c.call("enable")
+    page.get_by_label("Play on head").check()
+    with Telemetry(daemon.telemetry_endpoint) as tel:
+        page.get_by_role("button", name="Play timeline", exact=True).click()
+        assert wait_until(lambda: page.evaluate("Likeness.timeline.lastPlay") is not None, 30)
+        seen = tel.wait_for(lambda topic, m: topic == "state" and m.get("mode") == "clip"
+                            and ((m.get("clip") or {}).get("time") or 0.0) > 0.5, timeout=30)
+        wall_minus_mono = time.time() - time.monotonic()  # the daemon's clock is this host's monotonic clock
+    assert seen is not None, "the daemon did not play the clip"
+    played = page.evaluate("Likeness.timeline.lastPlay")
+    assert played["head"] and played["audio"]
+    start_wall = played["startWall"] / 1e3
+    assert abs((played["at"] + wall_minus_mono) - start_wall) < 0.05  # sound and head start together
+    state = seen[1]
+    heard = (state["t"] + wall_minus_mono) - start_wall  # the sound's clip time when the daemon sent this state
+    assert abs(state["clip"]["time"] - (played["t"] + heard)) < 0.05  # played from the page's playhead
+    # The preview follows the page's audio clock (the server poses the skin at the time the page plays).
+    samples = []
+    for _ in range(5):
+        page_t = page.evaluate("Likeness.timeline.playhead")
+        samples.append(abs(page_t - float(studio.animate_tab.time.value)))
+        page.wait_for_timeout(150)
+    assert min(samples) < 0.2, samples
+    page.get_by_role("button", name="Stop timeline", exact=True).click()
+    assert wait_until(lambda: page.evaluate("Likeness.timeline.playing") is None, 30)
+    _inactive(daemon)
 
 
 def _number(text: str) -> float | None:

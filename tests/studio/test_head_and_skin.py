@@ -71,6 +71,21 @@ def test_the_page_is_viser_s_client_with_the_studio_script(head) -> None:
             assert b"aria-label" in r.read()
     finally:
         door.stop()
+    # With the studio's socket, the skin and timeline scripts run first (before viser's client makes its scene),
+    # each told the socket's port.
+    door = FrontDoor("127.0.0.1", 0, ws_port=45678, title="T", skin_port=45999)
+    door.start()
+    try:
+        with urllib.request.urlopen(f"http://127.0.0.1:{door.port}/?websocket=ws://127.0.0.1:45678", timeout=30) as r:
+            html = r.read().decode()
+        early = '<script src="/skin.js"></script><script src="/timeline.js"></script>'
+        assert html.index(early) < html.index("<title>")
+        for name, marker in (("skin.js", b"__THREE_DEVTOOLS__"), ("timeline.js", b"Play on head")):
+            with urllib.request.urlopen(f"http://127.0.0.1:{door.port}/{name}", timeout=30) as r:
+                body = r.read()
+            assert body.startswith(b"window.LIKENESS_SKIN_PORT = 45999;") and marker in body
+    finally:
+        door.stop()
 
 
 def test_serving_beyond_loopback_needs_the_head_s_opt_in() -> None:

@@ -1,4 +1,4 @@
-"""Moving keys and setting Bezier handles in a clip, and the multi-track timeline chart built from it."""
+"""Moving keys and setting Bezier handles in a clip, undo and redo, and the timeline state the page draws."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 
 from models.clip import clip_from_dict
 from studio.clipdoc import ClipDoc, ClipError
-from studio.timeline import row_y, timeline_chart
+from studio.timeline import Audio, timeline_length, timeline_state
 
 RANGES = {"jaw": (0.0, 20.0), "blink": (0.0, 1.0), "brow_l": (-10.0, 10.0)}
 ORDER = ("jaw", "brow_l", "blink")
@@ -59,23 +59,49 @@ def test_bezier_handles_are_set_validated_and_kept_when_a_neighbour_moves() -> N
         doc.set_handles("blink", 0, (-0.1, float("nan"), 0.1, 0.0))
 
 
-def test_the_timeline_has_a_row_per_track_keys_the_selected_key_and_the_playhead() -> None:
+def test_the_timeline_state_has_every_track_its_keys_handles_and_curve() -> None:
     doc = _doc()
-    chart = timeline_chart(doc, RANGES, ORDER, end=3.0, playhead=1.25, selected=("blink", 1))
-    assert chart.tracks == ("jaw", "blink")  # the head's channel order
-    x = chart.data[0]
-    assert len(chart.data) == len(chart.series) == 1 + 2 * 2 + 2
-    assert all(len(d) == len(x) for d in chart.data) and np.all(np.diff(x) >= 0)
-    jaw_curve, jaw_keys, blink_curve, blink_keys, selected, playhead = chart.data[1:]
-    # jaw on the top row (1..2), blink below (0..1), each within its row
-    assert np.nanmin(jaw_curve) >= 1.0 and np.nanmax(jaw_curve) <= 2.0
-    assert np.nanmin(blink_curve) >= 0.0 and np.nanmax(blink_curve) <= 1.0
-    assert jaw_curve[np.argmin(np.abs(x - 1.0))] == pytest.approx(row_y(10.0, 0, 2, 0.0, 20.0))
-    assert np.count_nonzero(np.isfinite(jaw_keys)) == 3 and np.count_nonzero(np.isfinite(blink_keys)) == 2
-    (sel,) = np.flatnonzero(np.isfinite(selected))
-    assert x[sel] == pytest.approx(1.5) and selected[sel] == pytest.approx(row_y(0.0, 1, 2, 0.0, 1.0))
-    ph = np.flatnonzero(np.isfinite(playhead))
-    assert list(x[ph]) == [1.25, 1.25] and list(playhead[ph]) == [0.0, 2.0]  # a vertical line across both rows
-    assert chart.scales["y"] == {"auto": False, "range": [0.0, 2.0]}  # fixed: the key series are mostly gaps
-    with pytest.raises(ValueError, match="length"):
-        timeline_chart(doc, RANGES, ORDER, end=0.0, playhead=0.0)
+    state = timeline_state(doc, RANGES, ORDER, length=3.0, playhead=1.25, selected=("blink", 1),
+                           audio=Audio("take.wav", 4.5))
+    assert [t["name"] for t in state["tracks"]] == ["jaw", "blink"]  # the head's channel order
+    jaw, blink = state["tracks"]
+    assert (jaw["interp"], jaw["lo"], jaw["hi"]) == ("linear", 0.0, 20.0)
+    assert jaw["keys"] == [[0.0, 0.0], [1.0, 10.0], [2.0, 5.0]]
+    assert blink["keys"][0] == pytest.approx([0.5, 1.0, 0.0, 0.0, 1.0 / 3.0, 0.0])  # handles as the clip uses them
+    assert state["length"] == 4.5 and state["playhead"] == 1.25 and state["selected"] == ["blink", 1]
+    assert state["audio"] == {"name": "take.wav", "duration": 4.5}
+    # The curve is the clip's own evaluation, through every key.
+    t, v = np.array(jaw["curve"]["t"]), np.array(jaw["curve"]["v"])
+    assert np.all(np.diff(t) > 0) and t[0] == 0.0 and t[-1] == pytest.approx(4.5)
+    for key_t, key_v in jaw["keys"]:
+        assert v[np.flatnonzero(t == key_t)[0]] == pytest.approx(key_v)
+    curve = clip_from_dict(doc.to_dict()).channels["blink"]
+    bt, bv = blink["curve"]["t"], blink["curve"]["v"]
+    assert all(abs(curve.value(x) - y) < 1e-6 for x, y in zip(bt, bv, strict=True))
+    assert timeline_state(doc, RANGES, ORDER, 3.0, 0.0, selected=("jaw", 7))["selected"] is None
+    assert timeline_length(doc, 1.0, None) == 2.0  # the last key
+
+
+def test_every_edit_undoes_and_redoes_and_a_batch_is_one_step() -> None:
+    doc = ClipDoc("u")
+    assert not doc.can_undo
+    doc.set_key("jaw", 0.0, 0.0)
+    doc.set_key("jaw", 1.0, 5.0)
+    doc.move_key("jaw", 1, 1.5, 4.0)
+    assert doc.undo() and doc.to_dict()["channels"]["jaw"]["keys"] == [[0.0, 0.0], [1.0, 5.0]]
+    assert doc.undo() and doc.key_times("jaw") == [0.0]
+    assert doc.redo() and doc.redo() and doc.to_dict()["channels"]["jaw"]["keys"] == [[0.0, 0.0], [1.5, 4.0]]
+    assert not doc.redo()
+    doc.undo()
+    doc.set_key("blink", 0.0, 1.0)  # a new edit drops what could be redone
+    assert not doc.can_redo
+    with doc.batch():
+        doc.set_key("brow_l", 0.0, 1.0)
+        doc.set_key("brow_l", 1.0, 2.0)
+        doc.set_interp("brow_l", "bezier")
+    doc.undo()
+    assert "brow_l" not in doc.tracks and "blink" in doc.tracks
+    version = doc.version
+    assert doc.undo() and doc.version > version  # views redraw after an undo
+    assert "blink" not in doc.tracks
+    assert not ClipDoc.from_dict(doc.to_dict()).can_undo  # a loaded clip starts its own history
