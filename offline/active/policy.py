@@ -292,15 +292,18 @@ def learn_policy(x: np.ndarray, y: np.ndarray, base: np.ndarray, settings: Polic
             "learner": asdict(cfg), "n_samples": len(rows.target), "policy_pool_hash": digest, "n_pool": len(x),
             "n_simulation": len(sim), "n_validation": len(val), "n_vertices": len(base), "heldout_fit": fit_stats}
     policy = Policy(_fit(rows, settings, log), order, scale, int(x.shape[1]), info)
-    choices = {"random": [float(np.mean(np.log(validation_curve(None, x[val], y[val], settings, cfg, s))))
-                          for s in range(settings.validation_seeds)]}
-    for lam in settings.diversity:
-        pol = policy.with_diversity(lam)
-        choices[str(lam)] = [float(np.mean(np.log(validation_curve(pol, x[val], y[val], settings, cfg, s))))
-                             for s in range(settings.validation_seeds)]
-    best = min(settings.diversity, key=lambda lam: np.mean(choices[str(lam)]))
-    log("policy: validation mean log error per diversity weight: " +
-        ", ".join(f"{k} {np.mean(v):.4f}" for k, v in choices.items()) + f"; chose {best}")
+    choices: dict[str, list[float]] | None = None
+    best = settings.diversity[0]
+    if len(settings.diversity) > 1:  # one value needs no choosing
+        choices = {"random": [float(np.mean(np.log(validation_curve(None, x[val], y[val], settings, cfg, s))))
+                              for s in range(settings.validation_seeds)]}
+        for lam in settings.diversity:
+            pol = policy.with_diversity(lam)
+            choices[str(lam)] = [float(np.mean(np.log(validation_curve(pol, x[val], y[val], settings, cfg, s))))
+                                 for s in range(settings.validation_seeds)]
+        best = min(settings.diversity, key=lambda lam: np.mean(choices[str(lam)]))
+        log("policy: validation mean log error per diversity weight: " +
+            ", ".join(f"{k} {np.mean(v):.4f}" for k, v in choices.items()) + f"; chose {best}")
     policy = policy.with_diversity(float(best))
     policy.info.update({"validation_mean_log_error": choices, "seconds": round(time.perf_counter() - t0, 1)})
     log(f"policy: {settings.model} regressor on {len(rows.target)} labelled candidates ({policy.info['seconds']} s)")

@@ -21,7 +21,7 @@ from offline.engine import SerialEngine
 ROOT = Path(__file__).resolve().parents[3]
 SMALL = PolicySettings(n_runs=2, init=5, batch=5, budget=15, candidates_per_step=4, pseudo_test=8, epochs=3,
                        committee=2, diversity=(0.0, 1.0), validation_seeds=1)
-CNN = PolicySettings(**{**SMALL.__dict__, "model": "cnn"})
+CNN = PolicySettings(**{**SMALL.__dict__, "model": "cnn", "diversity": (0.0,)})
 
 
 @pytest.fixture(scope="module")
