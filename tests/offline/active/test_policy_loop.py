@@ -43,12 +43,13 @@ def test_morton_order_is_a_permutation_that_keeps_neighbours_close():
 def test_policy_learning_resumes_from_its_simulated_runs_and_the_policy_survives_a_round_trip(tiny, cfg, policy,
                                                                                               tmp_path):
     work = tmp_path / "runs"
-    first = learn_policy(tiny.policy.x, tiny.policy.y, tiny.base, SMALL, cfg, work, log=lambda m: None)
+    one = PolicySettings(**{**SMALL.__dict__, "diversity": (1.0,)})  # no validation runs: only resuming is tested
+    first = learn_policy(tiny.policy.x, tiny.policy.y, tiny.base, one, cfg, work, log=lambda m: None)
     (work / "run_001.npz").unlink()  # as if killed during the second simulated run
     messages: list[str] = []
-    again = learn_policy(tiny.policy.x, tiny.policy.y, tiny.base, SMALL, cfg, work, log=messages.append)
+    again = learn_policy(tiny.policy.x, tiny.policy.y, tiny.base, one, cfg, work, log=messages.append)
     assert any("1/2 loaded" in m for m in messages) and not any("2/2 loaded" in m for m in messages)
-    assert again.regressor == first.regressor  # the recomputed run is identical, so is the regressor
+    assert again.regressor == first.regressor and again.diversity == 1.0  # the recomputed run is identical
     policy.save(tmp_path / "p.npz")
     back = Policy.load(tmp_path / "p.npz")
     state = learner.fit(tiny.pool.x[:10], tiny.pool.y[:10], cfg)
