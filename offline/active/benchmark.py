@@ -39,7 +39,7 @@ class BenchmarkSettings:
     init: int = 10
     batch: int = 10
     budget: int = 100
-    seeds: int = 3
+    seeds: int = 10
 
 
 def run_method(name: str, selector: Selector, data: BenchmarkData, seed: int, settings: BenchmarkSettings,
@@ -76,7 +76,7 @@ def run_method(name: str, selector: Selector, data: BenchmarkData, seed: int, se
         b = min(settings.batch, settings.budget - len(labelled), len(cand))
         ctx = SelectionContext(x=pool.x, labelled=labelled, candidates=cand, y_labelled=pool.y[labelled],
                                state=state, batch=b, rng=rng, config=cfg,
-                               oracle_y=pool.y if name == "greedy" else None)
+                               oracle_y=pool.y if name.startswith("greedy") else None)
         t1 = time.perf_counter()
         chosen = np.asarray(selector(ctx), dtype=np.int64)
         if len(np.unique(chosen)) != b or np.isin(chosen, labelled).any():
@@ -105,8 +105,41 @@ def first_reach(n: Sequence[float], err: Sequence[float], target: float) -> floa
     return None
 
 
+def ci95(values: Sequence[float]) -> list[float] | None:
+    """Student-t 95 % interval of the mean of ``values`` (None for fewer than two)."""
+    from scipy import stats
+
+    v = np.asarray([x for x in values if x is not None], dtype=float)
+    if len(v) < 2:
+        return None
+    h = float(stats.t.ppf(0.975, len(v) - 1) * v.std(ddof=1) / np.sqrt(len(v)))
+    return [float(v.mean() - h), float(v.mean() + h)]
+
+
+def mean_curve(rs: list[dict[str, Any]], key: str = "mean_euclidean_um") -> dict[str, list]:
+    """The mean curve over seeds with its pointwise 95 % interval (runs of the full length only)."""
+    n = max((r["n_labelled"] for r in rs), key=len)
+    curves = np.array([r[key] for r in rs if len(r[key]) == len(n)])
+    cis = [ci95(curves[:, i]) for i in range(len(n))]
+    return {"n_labelled": list(n), "mean": curves.mean(axis=0).tolist(),
+            "ci95_lo": [c[0] if c else None for c in cis], "ci95_hi": [c[1] if c else None for c in cis]}
+
+
+def paired_differences(summary: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """Per pair of methods (A vs B): mean per-seed fraction of A minus B, its 95 % interval, seeds counted."""
+    out: dict[str, dict[str, Any]] = {}
+    for a, sa in summary.items():
+        for b, sb in summary.items():
+            if a == b:
+                continue
+            pa, pb = sa["fraction_to_random_final_per_seed"], sb["fraction_to_random_final_per_seed"]
+            d = [pa[k] - pb[k] for k in pa if pa.get(k) is not None and pb.get(k) is not None]
+            out[f"{a} - {b}"] = {"mean": float(np.mean(d)) if d else None, "ci95": ci95(d), "seeds": len(d)}
+    return out
+
+
 def summarize(runs: dict[str, list[dict[str, Any]]]) -> dict[str, Any]:
-    """Per-method summary: final errors over seeds and ``fraction_to_random_final``."""
+    """Per-method summary: final errors over seeds, ``fraction_to_random_final``, intervals and mean curves."""
     random_by_seed = {r["seed"]: r for r in runs.get("random", [])}
     out: dict[str, Any] = {}
     for name, rs in runs.items():
@@ -122,12 +155,14 @@ def summarize(runs: dict[str, list[dict[str, Any]]]) -> dict[str, Any]:
         reached = [v for v in per_seed.values() if v is not None]
         out[name] = {
             "final_mean_euclidean_um": {"mean": float(finals.mean()), "std": float(finals.std()),
-                                        "per_seed": finals.tolist()},
+                                        "ci95": ci95(finals.tolist()), "per_seed": finals.tolist()},
             "final_l1_um_mean": float(np.mean([r["l1_um"][-1] for r in rs])),
             "fraction_to_random_final": float(np.mean(reached)) if reached else None,
+            "fraction_to_random_final_ci95": ci95(reached),
             "fraction_to_random_final_per_seed": per_seed,
             "seeds_reaching_random_final": len(reached),
             "select_seconds_total_mean": float(np.mean([sum(r["select_seconds"]) for r in rs])),
+            "curve_mean_euclidean_um": mean_curve(rs),
         }
     return out
 

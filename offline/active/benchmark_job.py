@@ -21,8 +21,8 @@ from offline.active.selectors import METHODS
 #: The quick sizes (analytic skin, small pool and budget: seconds; what tests run).
 QUICK = {"pool": {"poses": 150, "seed": 11, "synthetic": True, "synthetic_grid": 12},
          "bench": {"init": 6, "batch": 6, "budget": 36, "seeds": 2},
-         "policy": {"n_runs": 2, "init": 6, "batch": 8, "budget": 30, "candidates_per_step": 5, "pseudo_test": 20,
-                    "epochs": 8},
+         "policy": {"n_runs": 2, "init": 6, "batch": 8, "budget": 22, "candidates_per_step": 4, "pseudo_test": 12,
+                    "epochs": 8, "committee": 2, "diversity": (0.0, 1.0), "validation_seeds": 1},
          "learner": {"iterations": 25, "fine_tune_iterations": 4}}
 #: The FEM pool shipped beside a head's config (``likeness offline dataset-pack`` of the default pool's dataset).
 PACK_NAME = "al_pool.npz"
@@ -55,6 +55,10 @@ class BenchmarkJob:
     skin_nu: float | None = None
     workers: int | None = None
     engine: str = "local"
+    pool_poses: int | None = None
+    clusters: int | None = None
+    cluster_spread: float | None = None
+    policy_model: str | None = None
 
 
 def settings_of(job: BenchmarkJob) -> tuple[PoolSettings, BenchmarkSettings, PolicySettings, LearnerConfig]:
@@ -83,6 +87,19 @@ def settings_of(job: BenchmarkJob) -> tuple[PoolSettings, BenchmarkSettings, Pol
              if v is not None}
     if job.synthetic or sheet:
         pool = replace(pool, synthetic=True, **sheet)
+    pool_over = {k: v for k, v in (("poses", job.pool_poses), ("clusters", job.clusters),
+                                   ("cluster_spread", job.cluster_spread)) if v is not None}
+    if job.pool_poses is not None and job.pool_poses < 10:
+        raise UsageError(f"--pool-poses must be at least 10, got {job.pool_poses}")
+    if (job.clusters is not None and job.clusters < 0) or (job.cluster_spread is not None and job.cluster_spread <= 0):
+        raise UsageError("--clusters must be >= 0 and --cluster-spread positive")
+    pool = replace(pool, **pool_over, policy_fraction=job.policy_fraction)
+    if job.policy_model is not None:
+        from offline.active.policy import MODELS
+
+        if job.policy_model not in MODELS:
+            raise UsageError(f"--policy-model must be one of {', '.join(MODELS)}, got {job.policy_model}")
+        policy = replace(policy, model=job.policy_model)
     if job.skin_nu is not None:
         if not 0.0 < job.skin_nu < 0.5:
             raise UsageError(f"--skin-nu must lie in (0, 0.5), got {job.skin_nu}")
@@ -97,7 +114,7 @@ def pool_pack(job: BenchmarkJob, settings: PoolSettings) -> str | None:
     the default FEM pool; None to simulate (or for ``pool``, ``quick``, ``synthetic``)."""
     from offline.dataset.pack import read_header
 
-    if job.pool is not None or job.simulate_pool or settings.synthetic or settings.nu is not None:
+    if job.pool is not None or job.simulate_pool or settings.synthetic or settings.nu is not None or settings.clusters:
         if job.pool_pack and (job.pool is not None or job.simulate_pool or settings.nu is not None):
             raise UsageError("--pool-pack cannot be combined with --pool, --simulate-pool or --skin-nu")
         return None

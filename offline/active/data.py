@@ -3,6 +3,13 @@
 The default is FEM poses of the head on its skin mesh, sampled over each actuator's full range (10 % of the values
 at a range end, as the sample predictor's dataset): one resumable ``likeness offline dataset`` run, so a killed
 benchmark picks the pool up where it stopped. ``--quick`` uses the analytic test sheet (seconds).
+
+With ``clusters`` > 0 the candidate poses (the rows the benchmark pool is cut from) are redundant, as poses taken
+from recorded performances are: ``clusters`` centres drawn by the sampler, heavy-tailed cluster sizes (a few
+clusters hold most poses, like a neutral face held for long), each pose its centre jittered by ``cluster_spread``
+of every actuator's range. The test rows and the policy pool stay the sampler's i.i.d. poses over the range of
+use (the policy learns on labelled poses of the range it must serve), so the benchmark measures how well a
+selection rule covers the poses the predictor will be asked for from a redundant candidate set.
 """
 
 from __future__ import annotations
@@ -11,6 +18,8 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TextIO
+
+import numpy as np
 
 from offline.dataset.generate import generate_dataset
 from offline.dataset.sampling import sample_poses, sample_ranges
@@ -30,6 +39,33 @@ class PoolSettings:
     synthetic_stiffening: float = 2.0e4
     #: Poisson ratio replacing the head's skin material's (a changed skin, for the policy-reuse experiment).
     nu: float | None = None
+    #: Candidate poses in this many clusters (0: the sampler's i.i.d. poses everywhere); see the module text.
+    clusters: int = 0
+    cluster_spread: float = 0.05
+    policy_fraction: float = 0.35  # the benchmark's, so the clustered rows are the benchmark pool's
+
+
+def clustered_candidates(head, samples: np.ndarray, settings: PoolSettings) -> np.ndarray:
+    """``samples`` with the benchmark pool's rows replaced by clustered poses (test and policy pool unchanged)."""
+    from offline.active.pool import partition
+    from offline.dataset.sampling import _apply_groups
+    from offline.dataset.splits import assign_splits
+
+    split = assign_splits(len(samples), settings.seed)
+    rows = partition(np.union1d(split.train, split.validation), settings.policy_fraction)[1]
+    rng = np.random.default_rng([settings.seed, 0xC1A5])
+    lo, hi = sample_ranges(head, settings.range_fraction)
+    centres = sample_poses(head, settings.clusters, seed=settings.seed + 7717, boundary_prob=settings.boundary_prob,
+                           range_fraction=settings.range_fraction)
+    weight = rng.pareto(1.0, settings.clusters) + 1.0
+    which = rng.choice(settings.clusters, size=len(rows), p=weight / weight.sum())
+    index = {a.name: i for i, a in enumerate(head.actuators)}
+    out = np.array(samples, dtype=np.float64)
+    for r, c in zip(rows, which, strict=True):
+        p = np.clip(centres[c] + settings.cluster_spread * (hi - lo) * rng.normal(size=len(lo)), lo, hi)
+        _apply_groups(p, head, index, lo, hi)
+        out[r] = p
+    return out
 
 
 def ensure_pool(head, config: str, mesh: str | None, out: str | Path, settings: PoolSettings,
@@ -60,9 +96,12 @@ def ensure_pool(head, config: str, mesh: str | None, out: str | Path, settings: 
         spec.check()
     samples = sample_poses(head, settings.poses, seed=settings.seed, boundary_prob=settings.boundary_prob,
                            range_fraction=settings.range_fraction)
+    sampling = {"boundary_prob": settings.boundary_prob, "range_fraction": settings.range_fraction}
+    if settings.clusters:
+        samples = clustered_candidates(head, samples, settings)
+        sampling.update(clusters=settings.clusters, cluster_spread=settings.cluster_spread)
     with make_engine(engine_name, workers, 1) as engine:
         return generate_dataset(out, spec, samples, head=head.name, names=head.actuator_names, units=units, lo=lo,
                                 hi=hi, engine=engine, seed=settings.seed,
-                                sampling={"boundary_prob": settings.boundary_prob,
-                                          "range_fraction": settings.range_fraction},
+                                sampling=sampling,
                                 progress_stream=progress)

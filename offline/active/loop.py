@@ -107,7 +107,7 @@ def grow_dataset(root: str | Path, spec: ProblemSpec, samples: np.ndarray, *, se
             if select == "genlal":
                 if local_policy is None:
                     local_policy = policy.for_mesh(store.base()["vertices"], policy.scale)
-                pick = cand[local_policy.select(state, x_lab, x_cand, size)]
+                pick = cand[local_policy.select(state, x_lab, y_lab, x_cand, size, cfg)]
             else:
                 pick = np.random.default_rng([seed, 0x100B, len(batches)]).choice(cand, size=size, replace=False)
             log(f"selection {select}: predictor retrained on {len(idx)} poses; batch {len(batches)} of {size} "

@@ -1,4 +1,4 @@
-"""The benchmark figure (the paper's Fig. 5): test error against labelled samples, mean and spread over seeds."""
+"""The benchmark figure (the paper's Fig. 5): test error against labelled samples, mean and 95 % band over seeds."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ STYLE = {"random": ("black", "-"), "greedy": ("tab:gray", ":"), "space_filling":
 
 
 def plot_curves(runs: dict[str, list[dict[str, Any]]], path: str | Path, title: str = "") -> Path:
-    """PNG with two panels (mean Euclidean error, L1) against samples: mean over seeds, band min-max; atomic."""
+    """PNG with two panels (mean Euclidean error, L1) against samples: mean over seeds, band its 95 % interval."""
     import matplotlib
 
     matplotlib.use("Agg", force=True)
@@ -31,7 +31,11 @@ def plot_curves(runs: dict[str, list[dict[str, Any]]], path: str | Path, title: 
             curves = np.array([r[key] for r in rs if len(r[key]) == len(n)])
             ax.plot(n, curves.mean(axis=0), color=color, ls=ls, lw=2 if name == "genlal" else 1.4,
                     label=f"{name} ({len(curves)} seeds)")
-            ax.fill_between(n, curves.min(axis=0), curves.max(axis=0), color=color, alpha=0.12)
+            if len(curves) > 1:
+                from scipy import stats
+
+                h = stats.t.ppf(0.975, len(curves) - 1) * curves.std(axis=0, ddof=1) / np.sqrt(len(curves))
+                ax.fill_between(n, curves.mean(axis=0) - h, curves.mean(axis=0) + h, color=color, alpha=0.15)
     axes[0].set_ylabel("test mean Euclidean vertex error (µm)")
     axes[1].set_ylabel("test L1, mean |coordinate error| (µm)")
     axes[1].set_xlabel("labelled poses (simulated)")

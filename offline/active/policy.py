@@ -1,20 +1,22 @@
-"""GEN-LAL: learn a selection policy from simulated AL runs (Algorithm 1) and select with it (Algorithm 2).
+"""GEN-LAL: learn a selection policy from simulated AL runs (Algorithm 1) and select batches with it (Algorithm 2).
 
-Learning (``learn_policy``): for each simulation configuration τ, a random partition of the labelled policy pool
-gives a pseudo-test set, an initial labelled set and a simulated unlabelled pool. The simulated random AL run
-(``simulate_run``, the paper's Algorithm 2) trains the predictor on the labelled set, and at every step records,
-for candidates drawn at random from the simulated pool, the features (``offline.active.features``) and the
-reduction of the pseudo-test error that adding that one candidate brings; then it adds a random batch and goes on.
-A reduction is measured against a control: the current predictor fine-tuned for the same iterations on the
-labelled set alone, so the gain of training longer is not credited to the candidate. Reductions are relative to the
-control's error and centred per step (Algorithm 2 only ranks candidates of one state), then standardized; the CNN
-regressor (``offline.active.regressor``) learns features → reduction.
+Learning (``learn_policy``): the policy pool is split once into a simulation part and a validation part. On the
+simulation part, simulated random AL runs (``offline.active.labels``) record, for candidates at each step, their
+features and the pseudo-test error reduction that adding each one brings under the benchmark's own from-scratch
+training, averaged over training seeds and ranked within the step. A regressor learns features → ranked reduction:
 
-Selection (``Policy.select``): predict the reduction of every pool candidate and take the top batch.
+- ``features`` (default): ridge regression on the ranked uncertainty features (``offline.active.uncertainty``:
+  committee disagreement, distance to labelled poses, predicted strain, ...), their squares and pairwise products;
+- ``cnn``: the paper's 1-D CNN over the predicted mesh (``offline.active.regressor``), kept as an option.
 
-The paper adds one sample per simulated step; here the walk adds a batch per step (the benchmark's granularity)
-and several candidates are measured per step, which covers labelled-set sizes up to the budget with far fewer
-retrainings. Each simulated run is checkpointed to its own file, so a killed policy learning resumes.
+Its held-out fit (leave one simulated run out; one step, with a single run) is measured per labelled-set size:
+R² and rank correlation.
+
+Selection (``Policy.select``): score every candidate, then build the batch greedily with a diversity term: each pick
+maximizes the score's rank plus ``diversity`` × the candidate's distance to the labelled and already chosen poses
+(over its median), so a batch does not pile up on similar poses. ``diversity`` is chosen among the settings'
+values by short simulated AL runs on the validation part of the policy pool (never on the benchmark's pool or
+test set); 0 is plain top-k.
 """
 
 from __future__ import annotations
@@ -31,67 +33,91 @@ import numpy as np
 
 from models.atomic import write_bytes
 from offline.active import learner
-from offline.active.features import CandidateFeatures, candidate_features, concat, morton_order
+from offline.active.features import candidate_features, morton_order
+from offline.active.labels import LabelSettings, RunLabels, concat_runs, simulate_run
 from offline.active.learner import KsnnState, LearnerConfig
 from offline.active.regressor import predict_reduction, train_regressor
+from offline.active.uncertainty import committee, rank01, state_features
 
 POLICY_FORMAT = "likeness-genlal-policy"
+MODELS = ("features", "cnn")
 
 
 @dataclass(frozen=True)
 class PolicySettings:
-    """How the policy is learned: simulated runs, their sizes, candidates measured per step, regressor epochs."""
+    """How the policy is learned: simulated runs and their labels, the regressor, the validated diversity."""
 
-    n_runs: int = 6
+    n_runs: int = 4
     init: int = 10
     batch: int = 10
     budget: int = 100
     candidates_per_step: int = 12
-    pseudo_test: int = 40
-    epochs: int = 60
+    pseudo_test: int = 150
+    label_seeds: int = 2
+    committee: int = 3
+    model: str = "features"
+    epochs: int = 60  # cnn only
+    ridge: float = 1e-2
+    diversity: tuple[float, ...] = (0.0, 0.5, 2.0)
+    validation_fraction: float = 0.4
+    validation_seeds: int = 1
     seed: int = 0
 
+    def labels(self) -> LabelSettings:
+        return LabelSettings(init=self.init, batch=self.batch, budget=self.budget,
+                             candidates_per_step=self.candidates_per_step, pseudo_test=self.pseudo_test,
+                             label_seeds=self.label_seeds, committee=self.committee, seed=self.seed)
 
-def simulate_run(x: np.ndarray, y: np.ndarray, tau: int, settings: PolicySettings, cfg: LearnerConfig,
-                 order: np.ndarray, scale: np.ndarray) -> tuple[CandidateFeatures, np.ndarray, np.ndarray]:
-    """One simulated random AL run on the policy pool (x, y) for configuration ``tau``.
 
-    Returns the candidates' features, their relative pseudo-test error reductions and the step each belongs to.
-    """
-    rng = np.random.default_rng([settings.seed, tau, 0x1A1])
-    perm = rng.permutation(len(x))
-    n_test = min(settings.pseudo_test, len(x) // 3)
-    test, rest = perm[:n_test], perm[n_test:]
-    labelled = list(rest[:settings.init])
-    unlabelled = list(rest[settings.init:])
-    feats: list[CandidateFeatures] = []
-    deltas: list[np.ndarray] = []
-    steps: list[np.ndarray] = []
-    step = 0
-    while len(labelled) < settings.budget and len(unlabelled) > settings.candidates_per_step:
-        lab = np.asarray(labelled)
-        state = learner.fit(x[lab], y[lab], cfg, seed=cfg.seed + tau)
-        control = learner.mean_error(learner.fine_tune(state, x[lab], y[lab], cfg), x[test], y[test])
-        cand = rng.choice(np.asarray(unlabelled), size=settings.candidates_per_step, replace=False)
-        delta = np.empty(len(cand))
-        for j, c in enumerate(cand):
-            idx = np.append(lab, c)
-            delta[j] = (control - learner.mean_error(learner.fine_tune(state, x[idx], y[idx], cfg),
-                                                     x[test], y[test])) / control
-        feats.append(candidate_features(state, x[lab], x[cand], order, scale))
-        deltas.append(delta)
-        steps.append(np.full(len(cand), step))
-        add = rng.choice(np.asarray(unlabelled), size=min(settings.batch, len(unlabelled)), replace=False)
-        labelled.extend(int(a) for a in add)
-        added = set(add.tolist())
-        unlabelled = [u for u in unlabelled if u not in added]
-        step += 1
-    return concat(feats), np.concatenate(deltas), np.concatenate(steps)
+def _quad(f: np.ndarray) -> np.ndarray:
+    """[1, f, f_i f_j (i <= j)]: the ridge model's terms."""
+    i, j = np.triu_indices(f.shape[1])
+    return np.concatenate([np.ones((len(f), 1)), f, f[:, i] * f[:, j]], axis=1)
+
+
+def fit_ridge(f: np.ndarray, t: np.ndarray, ridge: float) -> np.ndarray:
+    """Coefficients of the quadratic ridge model (no penalty on the constant)."""
+    q = _quad(np.asarray(f, np.float64))
+    pen = ridge * len(q) * np.eye(q.shape[1])
+    pen[0, 0] = 0.0
+    return np.linalg.solve(q.T @ q + pen, q.T @ np.asarray(t, np.float64))
+
+
+def _fit(rows: RunLabels, settings: PolicySettings, log: Callable[[str], None] | None = None) -> bytes:
+    if settings.model == "features":
+        return fit_ridge(rows.feats, rows.target, settings.ridge).tobytes()
+    return train_regressor(rows.cnn, rows.target * 2.0, epochs=settings.epochs, seed=settings.seed, log=log)
+
+
+def _predict(model: str, regressor: bytes, feats: np.ndarray | None, cnn) -> np.ndarray:
+    if model == "features":
+        return _quad(np.asarray(feats, np.float64)) @ np.frombuffer(regressor, dtype=np.float64)
+    return predict_reduction(regressor, cnn)
+
+
+def diverse_batch(scores: np.ndarray, x_lab: np.ndarray, x_cand: np.ndarray, batch: int,
+                  diversity: float) -> np.ndarray:
+    """Greedy batch: each pick maximizes rank(score) + diversity × distance to labelled and chosen / its median."""
+    s = rank01(np.asarray(scores, np.float64))
+    d = np.full(len(x_cand), np.inf)
+    for k in range(0, len(x_lab), 256):
+        d = np.minimum(d, np.sqrt(((x_cand[:, None, :] - x_lab[None, k:k + 256, :]) ** 2).sum(-1)).min(axis=1))
+    if not np.isfinite(d).all():
+        d = np.ones(len(x_cand))
+    med = float(np.median(d)) or 1.0
+    chosen: list[int] = []
+    for _ in range(min(batch, len(x_cand))):
+        v = s + diversity * d / med
+        v[chosen] = -np.inf
+        j = int(np.argmax(v))
+        chosen.append(j)
+        d = np.minimum(d, np.sqrt(((x_cand - x_cand[j]) ** 2).sum(-1)))
+    return np.asarray(chosen, dtype=np.int64)
 
 
 @dataclass
 class Policy:
-    """A learned GEN-LAL policy: the regressor's state, the vertex order and offset scale its features use."""
+    """A learned GEN-LAL policy: the regressor, its kind and diversity, and the CNN's vertex order and scale."""
 
     regressor: bytes
     order: np.ndarray
@@ -99,18 +125,34 @@ class Policy:
     n_actuators: int
     info: dict
 
-    def scores(self, state: KsnnState, x_labelled: np.ndarray, x_cand: np.ndarray) -> np.ndarray:
-        """Predicted error reduction of each candidate (higher is better)."""
-        if len(self.order) != state.W2.shape[2]:
-            raise ValueError(f"policy learned on {len(self.order)} vertices; the predictor has {state.W2.shape[2]} "
-                             "(give the policy the base surface of this mesh with Policy.for_mesh)")
-        return predict_reduction(self.regressor, candidate_features(state, x_labelled, x_cand, self.order,
-                                                                    self.scale))
+    @property
+    def model(self) -> str:
+        return self.info.get("model", "cnn")
 
-    def select(self, state: KsnnState, x_labelled: np.ndarray, x_cand: np.ndarray, batch: int) -> np.ndarray:
-        """Algorithm 2: positions in ``x_cand`` of the ``batch`` candidates with the largest predicted reduction."""
-        s = self.scores(state, x_labelled, x_cand)
-        return np.argsort(-s, kind="stable")[:batch]
+    @property
+    def diversity(self) -> float:
+        return float(self.info.get("diversity", 0.0))
+
+    def scores(self, state: KsnnState, x_labelled: np.ndarray, y_labelled: np.ndarray, x_cand: np.ndarray,
+               cfg: LearnerConfig) -> np.ndarray:
+        """Predicted (ranked) error reduction of each candidate under ``state`` (higher is better)."""
+        if self.model == "cnn":
+            if len(self.order) != state.W2.shape[2]:
+                raise ValueError(f"policy learned on {len(self.order)} vertices; the predictor has "
+                                 f"{state.W2.shape[2]} (give the policy this mesh's base surface with for_mesh)")
+            return predict_reduction(self.regressor, candidate_features(state, x_labelled, x_cand, self.order,
+                                                                        self.scale))
+        members = committee(state, x_labelled, y_labelled, cfg, int(self.info.get("committee", 3)))
+        return _predict("features", self.regressor, state_features(members, x_labelled, x_cand), None)
+
+    def select(self, state: KsnnState, x_labelled: np.ndarray, y_labelled: np.ndarray, x_cand: np.ndarray,
+               batch: int, cfg: LearnerConfig) -> np.ndarray:
+        """Algorithm 2 with diversity: positions in ``x_cand`` of the chosen batch."""
+        s = self.scores(state, x_labelled, y_labelled, x_cand, cfg)
+        return diverse_batch(s, x_labelled, x_cand, batch, self.diversity)
+
+    def with_diversity(self, diversity: float) -> Policy:
+        return Policy(self.regressor, self.order, self.scale, self.n_actuators, {**self.info, "diversity": diversity})
 
     def for_mesh(self, base: np.ndarray, scale: np.ndarray) -> Policy:
         """The same regressor applied to another mesh (vertex order and offset scale of that mesh)."""
@@ -153,9 +195,69 @@ def pool_digest(x: np.ndarray, y: np.ndarray) -> str:
     return "sha256:" + h.hexdigest()
 
 
+def _split_groups(runs: list[RunLabels]) -> list[tuple[RunLabels, RunLabels]]:
+    """(training rows, held-out rows) pairs: leave one simulated run out; with a single run, leave one step out."""
+    if len(runs) >= 2:
+        return [(concat_runs([o for k, o in enumerate(runs) if k != r]), held) for r, held in enumerate(runs)]
+    (run,) = runs
+    pairs = []
+    for n in np.unique(run.n_labelled):
+        pairs.append((run.subset(run.n_labelled != n), run.subset(run.n_labelled == n)))
+    return pairs
+
+
+def heldout_fit(runs: list[RunLabels], settings: PolicySettings) -> list[dict]:
+    """Held-out fit of the regressor (leave one simulated run out, or one step of a single run), per labelled-set
+    size: R² of the ranked targets, rank correlation (Spearman) of predicted and measured reductions, and the
+    measured reductions' mean and spread (%)."""
+    if not runs or (len(runs) == 1 and len(np.unique(runs[0].n_labelled)) < 2):
+        return []
+    per: dict[int, dict[str, list[float]]] = {}
+    for train, held in _split_groups(runs):
+        reg = _fit(train, settings)
+        pred = _predict(settings.model, reg, held.feats, held.cnn)
+        for n in np.unique(held.n_labelled):
+            m = held.n_labelled == n
+            t, p = held.target[m], pred[m]
+            ss = float(((t - t.mean()) ** 2).sum())
+            pt = p - p.mean() + t.mean()  # a rank target: only the within-step order and scale matter
+            rec = per.setdefault(int(n), {"r2": [], "spearman": [], "delta": []})
+            rec["r2"].append(1.0 - float(((t - pt) ** 2).sum()) / ss if ss > 0 else 0.0)
+            rec["spearman"].append(float(np.corrcoef(rank01(p), rank01(t))[0, 1]) if p.std() > 0 else 0.0)
+            rec["delta"].extend((100 * held.delta[m]).tolist())
+    return [{"n_labelled": n, "r2": float(np.mean(v["r2"])), "spearman": float(np.mean(v["spearman"])),
+             "reduction_mean_pct": float(np.mean(v["delta"])), "reduction_sd_pct": float(np.std(v["delta"])),
+             "n_candidates": len(v["delta"]), "held_out": "run" if len(runs) >= 2 else "step"}
+            for n, v in sorted(per.items())]
+
+
+def validation_curve(policy: Policy | None, x: np.ndarray, y: np.ndarray, settings: PolicySettings,
+                     cfg: LearnerConfig, seed: int) -> list[float]:
+    """A short AL run on the validation part: its pseudo-test mean errors (µm) per step (``policy`` None: random)."""
+    rng = np.random.default_rng([settings.seed, seed, 0x7A1])
+    perm = rng.permutation(len(x))
+    n_test = min(settings.pseudo_test, len(x) // 3)
+    test, pool = perm[:n_test], perm[n_test:]
+    lab = pool[:settings.init]
+    errs = []
+    while True:
+        state = learner.fit(x[lab], y[lab], cfg)
+        errs.append(1e6 * learner.mean_error(state, x[test], y[test]))
+        cand = np.setdiff1d(pool, lab)
+        if len(lab) >= settings.budget or len(cand) == 0:
+            return errs
+        b = min(settings.batch, settings.budget - len(lab), len(cand))
+        pos = rng.choice(len(cand), size=b, replace=False) if policy is None else \
+            policy.select(state, x[lab], y[lab], x[cand], b, cfg)
+        lab = np.concatenate([lab, cand[pos]])
+
+
 def learn_policy(x: np.ndarray, y: np.ndarray, base: np.ndarray, settings: PolicySettings, cfg: LearnerConfig,
                  work_dir: str | Path, log: Callable[[str], None] = print) -> Policy:
-    """Algorithm 1 on the policy pool (x, y): simulated runs (checkpointed in ``work_dir``), then the regressor."""
+    """Algorithm 1 on the policy pool (x, y): simulated runs (checkpointed in ``work_dir``), the regressor, its
+    held-out fit, and the diversity chosen on the validation part."""
+    if settings.model not in MODELS:
+        raise ValueError(f"unknown policy model {settings.model!r}; choose from {', '.join(MODELS)}")
     work = Path(work_dir)
     work.mkdir(parents=True, exist_ok=True)
     stamp = work / "pool.json"
@@ -163,37 +265,46 @@ def learn_policy(x: np.ndarray, y: np.ndarray, base: np.ndarray, settings: Polic
     if stamp.exists() and json.loads(stamp.read_text()).get("policy_pool_hash") != digest:
         raise ValueError(f"{work}: simulated runs of a different policy pool; use a new output folder")
     write_bytes(stamp, json.dumps({"policy_pool_hash": digest, "settings": asdict(settings)}).encode())
-    order = morton_order(base)
-    scale = offset_scale(y)
-    parts: list[CandidateFeatures] = []
-    targets: list[np.ndarray] = []
+    perm = np.random.default_rng([settings.seed, 0x5A1]).permutation(len(x))
+    n_val = round(settings.validation_fraction * len(x))
+    sim, val = perm[n_val:], perm[:n_val]
+    order, scale = morton_order(base), offset_scale(y)
+    runs: list[RunLabels] = []
     t0 = time.perf_counter()
     for tau in range(settings.n_runs):
         path = work / f"run_{tau:03d}.npz"
         if path.exists():
-            with np.load(path) as z:
-                f = CandidateFeatures(mesh=z["mesh"], act=z["act"], extra=z["extra"])
-                delta, step = z["delta"], z["step"]
+            runs.append(RunLabels.load(path))
             log(f"policy: simulated run {tau + 1}/{settings.n_runs} loaded from {path}")
-        else:
-            t1 = time.perf_counter()
-            f, delta, step = simulate_run(x, y, tau, settings, cfg, order, scale)
-            buf = io.BytesIO()
-            np.savez(buf, mesh=f.mesh, act=f.act, extra=f.extra, delta=delta, step=step)
-            write_bytes(path, buf.getvalue())
-            log(f"policy: simulated run {tau + 1}/{settings.n_runs}: {len(delta)} candidates measured in "
-                f"{time.perf_counter() - t1:.0f} s (mean reduction {100 * delta.mean():.2f} %)")
-        centred = delta.copy()
-        for s in np.unique(step):
-            centred[step == s] -= delta[step == s].mean()
-        parts.append(f)
-        targets.append(centred)
-    feats = concat(parts)
-    target = np.concatenate(targets)
-    std = float(target.std()) or 1.0
-    regressor = train_regressor(feats, target / std, epochs=settings.epochs, seed=settings.seed, log=log)
-    info = {"settings": asdict(settings), "learner": asdict(cfg), "n_samples": len(target),
-            "policy_pool_hash": pool_digest(x, y),
-            "n_pool": len(x), "n_vertices": len(base), "seconds": round(time.perf_counter() - t0, 1)}
-    log(f"policy: regressor trained on {len(target)} measured candidates ({info['seconds']} s in all)")
-    return Policy(regressor=regressor, order=order, scale=scale, n_actuators=int(x.shape[1]), info=info)
+            continue
+        t1 = time.perf_counter()
+        run = simulate_run(x[sim], y[sim], tau, settings.labels(), cfg, order, scale)
+        run.save(path)
+        runs.append(run)
+        log(f"policy: simulated run {tau + 1}/{settings.n_runs}: {len(run.delta)} candidates labelled in "
+            f"{time.perf_counter() - t1:.0f} s (mean reduction {100 * run.delta.mean():.2f} %)")
+    fit_stats = heldout_fit(runs, settings)
+    for f in fit_stats:
+        log(f"policy: held-out fit at {f['n_labelled']} labelled: R² {f['r2']:+.3f}, rank correlation "
+            f"{f['spearman']:+.3f} (reduction {f['reduction_mean_pct']:+.2f} ± {f['reduction_sd_pct']:.2f} %)")
+    rows = concat_runs(runs)
+    info = {"model": settings.model, "committee": settings.committee, "settings": asdict(settings),
+            "learner": asdict(cfg), "n_samples": len(rows.target), "policy_pool_hash": digest, "n_pool": len(x),
+            "n_simulation": len(sim), "n_validation": len(val), "n_vertices": len(base), "heldout_fit": fit_stats}
+    policy = Policy(_fit(rows, settings, log), order, scale, int(x.shape[1]), info)
+    choices: dict[str, list[float]] | None = None
+    best = settings.diversity[0]
+    if len(settings.diversity) > 1:  # one value needs no choosing
+        choices = {"random": [float(np.mean(np.log(validation_curve(None, x[val], y[val], settings, cfg, s))))
+                              for s in range(settings.validation_seeds)]}
+        for lam in settings.diversity:
+            pol = policy.with_diversity(lam)
+            choices[str(lam)] = [float(np.mean(np.log(validation_curve(pol, x[val], y[val], settings, cfg, s))))
+                                 for s in range(settings.validation_seeds)]
+        best = min(settings.diversity, key=lambda lam: np.mean(choices[str(lam)]))
+        log("policy: validation mean log error per diversity weight: " +
+            ", ".join(f"{k} {np.mean(v):.4f}" for k, v in choices.items()) + f"; chose {best}")
+    policy = policy.with_diversity(float(best))
+    policy.info.update({"validation_mean_log_error": choices, "seconds": round(time.perf_counter() - t0, 1)})
+    log(f"policy: {settings.model} regressor on {len(rows.target)} labelled candidates ({policy.info['seconds']} s)")
+    return policy

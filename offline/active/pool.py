@@ -61,6 +61,13 @@ def _rows(ds: PoseDataset, idx: np.ndarray) -> LabelledSet:
     return LabelledSet(x=x, y=y, index=idx)
 
 
+def partition(rest: np.ndarray, policy_fraction: float, partition_seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(policy pool rows, benchmark pool rows) of the dataset's train and validation rows ``rest``."""
+    perm = np.random.default_rng([int(partition_seed), 0xA1]).permutation(rest)
+    n_policy = round(policy_fraction * len(rest))
+    return perm[:n_policy], perm[n_policy:]
+
+
 def load_benchmark_data(dataset_dir: str | Path, policy_fraction: float = 0.35,
                         partition_seed: int = 0) -> BenchmarkData:
     """Open a dataset and cut it into pool, policy pool and test set (converged poses only).
@@ -83,8 +90,8 @@ def load_benchmark_data(dataset_dir: str | Path, policy_fraction: float = 0.35,
     ds = PoseDataset(dataset_dir)
     test = ds.split("test")
     rest = np.union1d(ds.split("train"), ds.split("validation"))
-    perm = np.random.default_rng([int(partition_seed), 0xA1]).permutation(rest)
-    n_policy = round(policy_fraction * len(rest))
+    policy_rows, pool_rows = partition(rest, policy_fraction, partition_seed)
+    n_policy = len(policy_rows)
     if len(test) < 2 or n_policy < 4 or len(rest) - n_policy < 4:
         raise ValueError(f"{dataset_dir}: too few converged poses for a benchmark ({len(rest)} train/validation, "
                          f"{len(test)} test)")
@@ -93,5 +100,5 @@ def load_benchmark_data(dataset_dir: str | Path, policy_fraction: float = 0.35,
             "problem": ds.manifest.get("problem", {}).get("kind"), "mesh": ds.manifest.get("mesh"),
             "partition": {"policy_fraction": policy_fraction, "seed": partition_seed,
                           "test": "the dataset's test split", "pool_and_policy": "its train and validation splits"}}
-    return BenchmarkData(pool=_rows(ds, perm[n_policy:]), policy=_rows(ds, perm[:n_policy]), test=_rows(ds, test),
+    return BenchmarkData(pool=_rows(ds, pool_rows), policy=_rows(ds, policy_rows), test=_rows(ds, test),
                          base=np.asarray(ds.base_vertices, dtype=np.float64), dataset=info)

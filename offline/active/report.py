@@ -15,7 +15,13 @@ from pathlib import Path
 from typing import Any
 
 from models.atomic import write_bytes
-from offline.active.benchmark import REPORT_FORMAT, REPORT_VERSION, BenchmarkSettings, run_benchmark
+from offline.active.benchmark import (
+    REPORT_FORMAT,
+    REPORT_VERSION,
+    BenchmarkSettings,
+    paired_differences,
+    run_benchmark,
+)
 from offline.active.learner import LearnerConfig
 from offline.active.plot import plot_curves
 from offline.active.policy import Policy, PolicySettings, learn_policy, pool_digest
@@ -76,6 +82,10 @@ def run_and_report(pool_dir: str | Path, out: str | Path, methods: Sequence[str]
         "policy": policy_info, "policy_settings": asdict(policy_settings),
         "methods": list(methods),
         "summary": result["summary"],
+        "oracle_fraction_to_random_final": result["summary"].get("greedy", {}).get("fraction_to_random_final"),
+        "oracle_fraction_to_random_final_ci95": result["summary"].get("greedy", {}).get(
+            "fraction_to_random_final_ci95"),
+        "paired_fraction_difference": paired_differences(result["summary"]),
         "runs": {name: [{k: r[k] for k in ("seed", "n_labelled", "mean_euclidean_um", "l1_um", "select_seconds",
                                             "seconds")} | {"labelled_pool_rows": r["labelled"]} for r in rs]
                  for name, rs in result["runs"].items()},
@@ -92,8 +102,9 @@ def run_and_report(pool_dir: str | Path, out: str | Path, methods: Sequence[str]
                 title=f"{data.dataset['id']}: {len(data.pool)}-pose pool, {len(data.test)} test poses, "
                       f"{bench.seeds} seeds")
     for name, s in result["summary"].items():
-        f = s["fraction_to_random_final"]
+        f, ci = s["fraction_to_random_final"], s["fraction_to_random_final_ci95"]
         log(f"{name:14s} final {s['final_mean_euclidean_um']['mean']:8.1f} ± {s['final_mean_euclidean_um']['std']:6.1f}"
             f" µm   fraction to random's final: {'not reached' if f is None else f'{f:.2f}'}"
+            f"{'' if ci is None else f' [{ci[0]:.2f}, {ci[1]:.2f}]'}"
             f" ({s['seeds_reaching_random_final']}/{len(result['runs'][name])} seeds)")
     return report

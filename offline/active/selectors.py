@@ -153,7 +153,8 @@ def genlal_selector(policy) -> Selector:
     """Algorithm 2 with a learned :class:`~offline.active.policy.Policy`."""
 
     def select(ctx: SelectionContext) -> np.ndarray:
-        pos = policy.select(ctx.state, ctx.x[ctx.labelled], ctx.x[ctx.candidates], ctx.batch)
+        pos = policy.select(ctx.state, ctx.x[ctx.labelled], ctx.y_labelled, ctx.x[ctx.candidates], ctx.batch,
+                            ctx.config)
         return ctx.candidates[pos]
 
     return select

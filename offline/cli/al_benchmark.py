@@ -15,7 +15,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", required=True, help="head spec TOML (e.g. heads/sample/head.toml)")
     p.add_argument("--out", required=True, help="output folder (created, or resumed)")
     p.add_argument("--quick", action="store_true", help="analytic skin, small pool and budget (tests; seconds)")
-    p.add_argument("--seeds", type=int, default=None, help="seeds per method (default 3; quick 2)")
+    p.add_argument("--seeds", type=int, default=None, help="seeds per method (default 10; quick 2)")
     p.add_argument("--mesh", default=None, help="skin mesh folder (default: skin/ beside the config)")
     p.add_argument("--pool", default=None, help="use this consolidated pose dataset instead of DIR/pool")
     p.add_argument("--pool-pack", default=None,
@@ -29,7 +29,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--batch", type=int, default=None, help="poses per batch (default 10; quick 6)")
     p.add_argument("--budget", type=int, default=None, help="labelled poses at the end (default 100; quick 36)")
     p.add_argument("--policy-runs", type=int, default=None, help="simulated AL runs the policy learns from "
-                   "(default 6; quick 2)")
+                   "(default 4; quick 2)")
     p.add_argument("--policy-fraction", type=float, default=0.35,
                    help="share of the dataset's train and validation poses set aside as the policy pool (default 0.35)")
     p.add_argument("--synthetic", action="store_true",
@@ -41,6 +41,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--skin-nu", type=float, default=None,
                    help="simulate the FEM pool with this Poisson ratio instead of the head's skin material's "
                    "(a changed skin: with --policy, measures a policy learned on one skin selecting for another)")
+    p.add_argument("--pool-poses", type=int, default=None,
+                   help="poses in the pool dataset (default 480, the shipped FEM pack's; quick 150)")
+    p.add_argument("--clusters", type=int, default=None,
+                   help="candidate poses in this many clusters of heavy-tailed sizes (redundant candidates, as from "
+                   "recorded performances); the test poses stay i.i.d. (default 0: i.i.d. candidates)")
+    p.add_argument("--cluster-spread", type=float, default=None,
+                   help="with --clusters: jitter of a pose around its centre, share of each range (default 0.05)")
+    p.add_argument("--policy-model", default=None,
+                   help="GEN-LAL regressor: features (ridge on uncertainty features, default) or cnn (the paper's)")
     p.add_argument("--workers", type=int, default=None, help="FEM worker processes for the pool (default: CPUs)")
     p.add_argument("--engine", default="local", help="engine for the pool's FEM poses: local, dask-local, dask://")
 
@@ -56,7 +65,9 @@ def run(args: argparse.Namespace) -> int:
         pool_pack=args.pool_pack, simulate_pool=args.simulate_pool, policy=args.policy, methods=args.methods,
         init=args.init, batch=args.batch, budget=args.budget, policy_runs=args.policy_runs,
         policy_fraction=args.policy_fraction, synthetic=args.synthetic, sheet_grid=args.sheet_grid,
-        sheet_stiffening=args.sheet_stiffening, skin_nu=args.skin_nu, workers=args.workers, engine=args.engine)
+        sheet_stiffening=args.sheet_stiffening, skin_nu=args.skin_nu, workers=args.workers, engine=args.engine,
+        pool_poses=args.pool_poses, clusters=args.clusters, cluster_spread=args.cluster_spread,
+        policy_model=args.policy_model)
     try:
         run_al_benchmark(job)
     except KeyboardInterrupt:

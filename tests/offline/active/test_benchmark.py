@@ -10,7 +10,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from offline.active.benchmark import BenchmarkSettings, first_reach, run_method, summarize
+from offline.active.benchmark import (
+    BenchmarkSettings,
+    ci95,
+    first_reach,
+    paired_differences,
+    run_method,
+    summarize,
+)
 from offline.active.selectors import BASELINES
 
 ROOT = Path(__file__).resolve().parents[3]
@@ -67,6 +74,28 @@ def test_fraction_to_random_final_interpolates_and_reports_methods_that_never_re
     assert s["random"]["fraction_to_random_final"] == pytest.approx(1.0)
     assert s["fast"]["fraction_to_random_final"] == pytest.approx(20 / 30)
     assert s["slow"]["fraction_to_random_final"] is None and s["slow"]["seeds_reaching_random_final"] == 0
+    assert s["fast"]["fraction_to_random_final_ci95"] is None  # one seed: no interval
+
+
+def test_intervals_over_seeds_and_paired_fraction_differences():
+    assert ci95([1.0]) is None and ci95([2.0, 2.0, 2.0]) == [2.0, 2.0]
+    lo, hi = ci95([1.0, 2.0, 3.0])  # mean 2, sd 1, t(0.975, 2) = 4.303
+    assert lo == pytest.approx(2 - 4.303 / 3 ** 0.5, abs=1e-3) and hi == pytest.approx(2 + 4.303 / 3 ** 0.5, abs=1e-3)
+
+    def run(seed, curve):
+        return {"seed": seed, "n_labelled": [10, 20, 30], "mean_euclidean_um": curve, "l1_um": [1, 1, 1],
+                "select_seconds": [0, 0]}
+
+    runs = {"random": [run(s, [100, 60, 50 + s]) for s in range(4)],
+            "fast": [run(s, [100, 45 + 2 * s, 40]) for s in range(4)]}
+    s = summarize(runs)
+    lo, hi = s["fast"]["fraction_to_random_final_ci95"]
+    assert lo < s["fast"]["fraction_to_random_final"] < hi < 1.0
+    curve = s["fast"]["curve_mean_euclidean_um"]
+    assert curve["n_labelled"] == [10, 20, 30] and curve["mean"][1] == pytest.approx(48.0)
+    assert curve["ci95_lo"][0] == curve["ci95_hi"][0] == 100 and curve["ci95_lo"][1] < 48.0 < curve["ci95_hi"][1]
+    diff = paired_differences(s)["fast - random"]
+    assert diff["seeds"] == 4 and diff["mean"] < 0 and diff["ci95"][1] < 0
 
 
 def test_quick_benchmark_writes_a_well_formed_report_and_resumes_from_its_checkpoints(tmp_path):
@@ -87,6 +116,8 @@ def test_quick_benchmark_writes_a_well_formed_report_and_resumes_from_its_checkp
         assert all(np.isfinite(run["mean_euclidean_um"])) and all(e > 0 for e in run["l1_um"])
         assert len(set(run["labelled_pool_rows"])) == 36
     assert report["summary"]["random"]["fraction_to_random_final"] <= 1.0
+    assert "oracle_fraction_to_random_final" in report and "genlal - lcmd" in report["paired_fraction_difference"]
+    assert report["policy"]["learned"]["model"] == "features"
     hashes = report["inputs"]["hashes"]
     assert len({hashes["pool"], hashes["policy"], hashes["test"]}) == 3
     assert report["inputs"]["config_hash"].startswith("sha256:") and report["policy"]["hash"].startswith("sha256:")

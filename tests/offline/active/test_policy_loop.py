@@ -12,14 +12,16 @@ from models.headspec import load_head
 from offline.active import learner
 from offline.active.features import morton_order
 from offline.active.loop import grow_dataset
-from offline.active.policy import Policy, PolicySettings, learn_policy
+from offline.active.policy import Policy, PolicySettings, diverse_batch, learn_policy
 from offline.dataset.sampling import sample_poses, sample_ranges
 from offline.dataset.store import PoseDataset
 from offline.dataset.synthetic import SyntheticSpec
 from offline.engine import SerialEngine
 
 ROOT = Path(__file__).resolve().parents[3]
-SMALL = PolicySettings(n_runs=2, init=5, batch=5, budget=20, candidates_per_step=3, pseudo_test=10, epochs=3)
+SMALL = PolicySettings(n_runs=2, init=5, batch=5, budget=15, candidates_per_step=4, pseudo_test=8, epochs=3,
+                       committee=2, diversity=(0.0, 1.0), validation_seeds=1)
+CNN = PolicySettings(**{**SMALL.__dict__, "model": "cnn", "diversity": (0.0,)})
 
 
 @pytest.fixture(scope="module")
@@ -41,31 +43,45 @@ def test_morton_order_is_a_permutation_that_keeps_neighbours_close():
 def test_policy_learning_resumes_from_its_simulated_runs_and_the_policy_survives_a_round_trip(tiny, cfg, policy,
                                                                                               tmp_path):
     work = tmp_path / "runs"
-    first = learn_policy(tiny.policy.x, tiny.policy.y, tiny.base, SMALL, cfg, work, log=lambda m: None)
+    one = PolicySettings(**{**SMALL.__dict__, "diversity": (1.0,)})  # no validation runs: only resuming is tested
+    first = learn_policy(tiny.policy.x, tiny.policy.y, tiny.base, one, cfg, work, log=lambda m: None)
     (work / "run_001.npz").unlink()  # as if killed during the second simulated run
     messages: list[str] = []
-    again = learn_policy(tiny.policy.x, tiny.policy.y, tiny.base, SMALL, cfg, work, log=messages.append)
+    again = learn_policy(tiny.policy.x, tiny.policy.y, tiny.base, one, cfg, work, log=messages.append)
     assert any("1/2 loaded" in m for m in messages) and not any("2/2 loaded" in m for m in messages)
-    assert again.regressor == first.regressor  # the recomputed run is identical, so is the regressor
+    assert again.regressor == first.regressor and again.diversity == 1.0  # the recomputed run is identical
     policy.save(tmp_path / "p.npz")
     back = Policy.load(tmp_path / "p.npz")
     state = learner.fit(tiny.pool.x[:10], tiny.pool.y[:10], cfg)
-    np.testing.assert_array_equal(back.scores(state, tiny.pool.x[:10], tiny.pool.x[10:]),
-                                  policy.scores(state, tiny.pool.x[:10], tiny.pool.x[10:]))
+    args = (state, tiny.pool.x[:10], tiny.pool.y[:10], tiny.pool.x[10:], cfg)
+    np.testing.assert_array_equal(back.scores(*args), policy.scores(*args))
+    assert back.diversity in SMALL.diversity and back.info["heldout_fit"]  # chosen on validation; fit measured
+    fit = back.info["heldout_fit"][0]
+    assert -10 < fit["r2"] <= 1 and -1 <= fit["spearman"] <= 1 and fit["n_candidates"] > 0
     with pytest.raises(ValueError, match="not a GEN-LAL policy"):
         np.savez(tmp_path / "bad.npz", info=np.array(json.dumps({"format": "other"})))
         Policy.load(tmp_path / "bad.npz")
 
 
-def test_a_policy_scores_candidates_on_another_mesh_only_once_adapted_to_it(tiny, cfg, policy):
+def test_the_cnn_policy_scores_candidates_on_another_mesh_only_once_adapted_to_it(tiny, cfg, tmp_path):
+    cnn = learn_policy(tiny.policy.x, tiny.policy.y, tiny.base, CNN, cfg, tmp_path, log=lambda m: None)
     skin = SyntheticSpec(tuple([0.0] * 4), tuple([1.0] * 4), grid=11).build()
     x = np.random.default_rng(1).random((12, 4))
     y = np.stack([skin.solve(p, None).surface - skin.base_surface() for p in x])
     state = learner.fit(x[:6], y[:6], cfg)
     with pytest.raises(ValueError, match="vertices"):
-        policy.scores(state, x[:6], x[6:])
-    chosen = policy.for_mesh(skin.base_surface(), policy.scale).select(state, x[:6], x[6:], 3)
+        cnn.scores(state, x[:6], y[:6], x[6:], cfg)
+    chosen = cnn.for_mesh(skin.base_surface(), cnn.scale).select(state, x[:6], y[:6], x[6:], 3, cfg)
     assert len(set(chosen.tolist())) == 3 and chosen.max() < 6
+
+
+def test_diverse_batch_spreads_out_where_top_k_piles_up():
+    x_lab = np.zeros((1, 2))
+    x_cand = np.array([[1.0, 1.0], [1.0, 0.99], [0.99, 1.0], [0.0, 1.0], [1.0, 0.0]])
+    scores = np.array([5.0, 4.9, 4.8, 1.0, 0.9])  # the three best candidates are nearly the same pose
+    assert sorted(diverse_batch(scores, x_lab, x_cand, 3, 0.0).tolist()) == [0, 1, 2]
+    spread = diverse_batch(scores, x_lab, x_cand, 3, 2.0)
+    assert spread[0] == 0 and set(spread[1:].tolist()) == {3, 4}
 
 
 @pytest.mark.parametrize("select", ["genlal", "random"])
@@ -88,6 +104,12 @@ def test_selection_in_the_loop_grows_a_dataset_batch_by_batch_and_resumes(tmp_pa
     assert first["simulated"] == 12 and first["batches"] == 3 and first["retrained_this_run"] == 2
     batches = json.loads((root / "selection.json").read_text())["batches"]
     assert [len(b) for b in batches] == [4, 4, 4] and len({i for b in batches for i in b}) == 12
+    other = "random" if select == "genlal" else "genlal"
+    if other == "random":  # the same pool, the same initial batch: the policy chooses other poses than random
+        theirs = grow_dataset(tmp_path / "ds-random", spec, samples, budget=12, **{**kw, "select": "random"})
+        assert theirs["simulated"] == 12
+        rand = json.loads((tmp_path / "ds-random" / "selection.json").read_text())["batches"]
+        assert rand[0] == batches[0] and set(rand[1] + rand[2]) != set(batches[1] + batches[2])
     more = grow_dataset(root, spec, samples, budget=20, **kw)  # rerun with a larger budget: grows the same dataset
     assert more["simulated"] == 20 and more["retrained_this_run"] == 2
     again = json.loads((root / "selection.json").read_text())["batches"]
