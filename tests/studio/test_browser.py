@@ -305,10 +305,10 @@ def test_the_timeline_edits_tracks_keys_and_handles_with_undo_and_plays_audio_wi
     assert wait_until(lambda: doc.to_dict() == edited, 30)
 
     # Audio: load a WAV in the browser; its waveform shows and the timeline spans it.
-    wav = _wav(tmp_path / "line.wav", 2.5)
+    wav = _wav(tmp_path / "line.wav", 8.0)  # outlasts the checks below, so the timeline still plays at the end
     page.get_by_label("Load audio").set_input_files(str(wav))
     assert wait_until(lambda: studio.animate_tab.editor.audio is not None, 30)
-    assert studio.animate_tab.editor.audio.duration == pytest.approx(2.5)
+    assert studio.animate_tab.editor.audio.duration == pytest.approx(8.0)
     assert page.get_by_role("img", name="Waveform of line.wav").count() == 1
     page.screenshot(path=str(image_dir / "studio-timeline-editor.png"))
 
