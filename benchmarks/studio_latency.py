@@ -192,10 +192,10 @@ STAGES = {
               ("first → last vertex upload", "upload0", "upload"),
               ("last upload → its draw call", "upload", "draw"),
               ("draw → next animation frame (frame handed on)", "draw", "raf")),
-    "face": (("key → message handed to viser's WebSocket worker", "key", "send"),
-             ("message handed on → skin buffer received (server, loopback)", "send", "recv"),
+    "face": (("key → slider value sent on the studio's socket", "key", "send"),
+             ("value sent → skin buffer received (server, loopback)", "send", "recv"),
              ("buffer → written into the page's mesh (normals recomputed)", "recv", "applied"),
-             ("written → first vertex upload (renderer's next frame)", "applied", "upload0"),
+             ("written → first vertex upload (drawn at once)", "applied", "upload0"),
              ("first → last vertex upload", "upload0", "upload"),
              ("last upload → its draw call", "upload", "draw"),
              ("draw → next animation frame (frame handed on)", "draw", "raf")),
@@ -216,7 +216,10 @@ def _stages(ev: list[list], view: str) -> dict[str, float] | None:
     key = first("key", -1e18)
     if key is None:
         return None
-    send = first("send", key, lambda d: d == "GuiUpdateMessage")
+    # The face view's page sends the value on the studio's own socket ("fastsend"); viser's copy follows later.
+    send = first("fastsend", key) if view == "face" else None
+    if send is None:
+        send = first("send", key, lambda d: d == "GuiUpdateMessage")
     if send is None:
         return None
     if view == "face":

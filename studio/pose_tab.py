@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import threading
 import time
+from collections import deque
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -74,21 +76,64 @@ class PoseTab:
             self.strain_button.on_click(lambda _: self.studio.set_pose(self.studio.p))
         self._poser = ExactPoser(head.spec.source)
         self._exact_lock = threading.Lock()
+        #: Per slider, the values the page sent on the studio's socket that viser's own update has not yet repeated.
+        self._fast: dict[str, deque[float]] = {}
+        studio.socket.on_request(self._on_fast_slider, ops=("slider",))
 
     # ------------------------------------------------------------------ sliders
     def _on_slider(self, name: str, kind: str) -> Any:
         def handler(event: viser.GuiEvent) -> None:
             if event.client_id is None:  # set by the studio itself (following a pose)
                 return
-            head = self.studio.head
+            value = float(event.target.value)
             with self.studio.pose_lock:
-                if kind == "target":
-                    weights = {n: float(s.value) for n, s in self.sliders.items() if head.by_name[n].kind == "target"}
-                    p, _ = head.solve_targets(weights, self.studio.p)
-                else:
-                    p = head.apply(self.studio.p, {name: float(event.target.value)})
-                self.studio.set_pose(p, source=event.target)
+                if self._already_fast(name, value):
+                    return
+                self._move(name, kind, value, source=event.target)
         return handler
+
+    def _move(self, name: str, kind: str, value: float, source: object, fast: bool = False) -> bool:
+        """Set the pose a slider's new value gives (caller holds the pose lock); False when it changes nothing: a
+        pose already there, or (``fast``, from the page's socket) a target weight viser's update already brought."""
+        head = self.studio.head
+        if kind == "target":
+            weights = {n: float(s.value) for n, s in self.sliders.items() if head.by_name[n].kind == "target"}
+            if fast and weights[name] == value:
+                return False
+            weights[name] = value
+            p, _ = head.solve_targets(weights, self.studio.p)
+        else:
+            p = head.apply(self.studio.p, {name: value})
+            if np.array_equal(p, self.studio.p):
+                return False
+        self.studio.set_pose(p, source=source)
+        return True
+
+    def _on_fast_slider(self, request: dict[str, Any], reply: Callable[[dict[str, Any]], None]) -> None:
+        """A slider value from the page's own socket (``{"op": "slider", "name", "value"}``), ahead of viser's copy
+        of the same move. Names that are not pose channels (other tabs' sliders) are ignored."""
+        name, value = request.get("name"), request.get("value")
+        slider = self.sliders.get(str(name))
+        if slider is None or not isinstance(value, int | float) or not np.isfinite(value):
+            return
+        c = self.studio.head.by_name[str(name)]
+        value = float(np.clip(value, c.min, c.max))
+        with self.studio.pose_lock:
+            if self._move(c.name, c.kind, value, source=slider, fast=True):
+                self._fast.setdefault(c.name, deque(maxlen=64)).append(value)
+
+    def _already_fast(self, name: str, value: float) -> bool:
+        """True when viser's update repeats a value the page's socket already brought (then it and every older
+        pending value are dropped: a late copy must not take the slider back)."""
+        pending = self._fast.get(name)
+        if not pending:
+            return False
+        for i, v in enumerate(pending):
+            if abs(v - value) <= 1e-9 * max(1.0, abs(v)):
+                for _ in range(i + 1):
+                    pending.popleft()
+                return True
+        return False
 
     def follow(self, p: np.ndarray, source: object = None) -> None:
         """Move the actuator and group sliders to pose ``p`` (SI) without re-triggering a pose."""

@@ -98,6 +98,7 @@ class SkinSocket:
         self._peers: set[_Peer] = set()
         self._lock = threading.Lock()
         self._handler: Handler | None = None
+        self._routes: dict[str, Handler] = {}
         self._texts: dict[str, str] = {}
         self._server = serve(self._serve, host, 0, compression=None, max_size=MAX_REQUEST)
         self._thread = threading.Thread(target=self._server.serve_forever, name="studio-skin-ws", daemon=True)
@@ -109,9 +110,13 @@ class SkinSocket:
     def start(self) -> None:
         self._thread.start()
 
-    def on_request(self, handler: Handler) -> None:
-        """``handler(request, reply)`` runs for each JSON request from a page (on that page's thread)."""
-        self._handler = handler
+    def on_request(self, handler: Handler, ops: tuple[str, ...] = ()) -> None:
+        """``handler(request, reply)`` runs for each JSON request from a page (on that page's thread): for requests
+        whose ``op`` is in ``ops``, or, with no ``ops``, for every request no other handler takes."""
+        if ops:
+            self._routes.update(dict.fromkeys(ops, handler))
+        else:
+            self._handler = handler
 
     def send_frame(self, message: bytes) -> None:
         """Offer a binary frame to every page (each sends the newest it has when it is ready)."""
@@ -152,10 +157,12 @@ class SkinSocket:
                 except ValueError:
                     reply({"type": "error", "error": "request is not JSON"})
                     continue
-                if not isinstance(request, dict) or self._handler is None:
+                handler = self._routes.get(str(request.get("op"))) if isinstance(request, dict) else None
+                handler = handler or self._handler
+                if not isinstance(request, dict) or handler is None:
                     continue
                 try:
-                    self._handler(request, reply)
+                    handler(request, reply)
                 except Exception as exc:  # the page is told; the studio keeps serving
                     log.exception("page request %r failed", request.get("op"))
                     reply({"type": "error", "error": f"{request.get('op')}: {exc}"})

@@ -71,13 +71,14 @@
     g.attributes.color.needsUpdate = true;
     g.computeVertexNormals();
     if (!g.boundingSphere) g.computeBoundingSphere();
-    // viser's canvas draws on demand (react-three-fiber, frameloop "demand"): ask it for a frame, through the store
-    // of the anchor's react-three-fiber root.
-    const root = anchor.__r3f && anchor.__r3f.root, store = root && root.getState ? root.getState() : null;
-    if (store && store.invalidate) store.invalidate();
+    // viser's canvas draws on demand (react-three-fiber, frameloop "demand"). Draw the new skin now, as viser does
+    // when its canvas resizes, rather than on the renderer's next frame; without the renderer's state, ask for one.
     L.frames++;
     L.seq = frame.seq;
     stamp("skin", frame.seq);
+    const root = anchor.__r3f && anchor.__r3f.root, store = root && root.getState ? root.getState() : null;
+    if (store && store.gl && store.scene && store.camera) store.gl.render(store.scene, store.camera);
+    else if (store && store.invalidate) store.invalidate();
   }
 
   function tick() {
@@ -113,6 +114,42 @@
       if (anchor && faces) { const f = pending; pending = null; apply(f); }
     };
   }
+  // Sliders: a value the user gives a slider goes to the studio on this socket at once, ahead of viser's own update
+  // (which passes through viser's worker and arrives tens of milliseconds later; the studio then skips it). Only a
+  // slider the user is touching counts: the studio moves the others to follow a pose, and those must not echo back.
+  let touched = null, touchedUntil = 0;
+  const TOUCH_MS = 500;
+  function sliderZone(el) {  // the largest element around `el` holding exactly one slider (its row), or null
+    let zone = null;
+    for (let e = el; e && e !== document.body; e = e.parentElement) {
+      const n = e.matches("[role=slider]") ? 1 : e.querySelectorAll("[role=slider]").length;
+      if (n > 1) break;
+      if (n === 1) zone = e;
+    }
+    return zone;
+  }
+  function touch(e) {
+    if (e.type === "pointermove" && !e.buttons) return;
+    const z = e.target && e.target.nodeType === 1 ? sliderZone(e.target) : null;
+    if (z) { touched = z; touchedUntil = performance.now() + TOUCH_MS; }
+  }
+  for (const t of ["keydown", "pointerdown", "pointermove", "input"]) document.addEventListener(t, touch, {capture: true});
+  function sliderName(thumb) {
+    const root = thumb.closest("[id]");
+    const label = root && document.querySelector(`label[for="${CSS.escape(root.id)}"]`);
+    return label ? label.textContent.trim() : thumb.getAttribute("aria-label");
+  }
+  new MutationObserver((records) => {
+    if (!touched || performance.now() > touchedUntil) return;
+    for (const r of records) {
+      const thumb = r.target;
+      if (!touched.contains(thumb)) continue;
+      const value = parseFloat(thumb.getAttribute("aria-valuenow"));
+      const name = sliderName(thumb);
+      if (name && Number.isFinite(value) && L.send({op: "slider", name, value})) stamp("fastsend", name);
+    }
+  }).observe(document.documentElement, {subtree: true, attributes: true, attributeFilter: ["aria-valuenow"]});
+
   connect();
   requestAnimationFrame(tick);
 })();

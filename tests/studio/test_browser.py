@@ -104,6 +104,41 @@ def test_every_control_is_named_and_the_jaw_slider_changes_the_rendered_skin(pag
     assert _on_top(page, page.get_by_role("button", name="E-stop", exact=True))
 
 
+def test_a_slider_move_reaches_the_skin_on_the_studio_socket_once(page: Any, studio: Any) -> None:
+    """The page sends a slider's value on the studio's own socket ahead of viser's update; the studio poses once
+    for the move (viser's later copy of the same value is recognised), and sliders it moves itself do not echo."""
+    head = studio.head
+    jaw_k, lid_k = head.names.index("jaw"), head.names.index("lid_l")
+    _tab(page, "Pose")
+    page.get_by_role("button", name="Neutral pose").click()
+    assert wait_until(lambda: abs(studio.p[jaw_k] - head.neutral[jaw_k]) < 1e-9, 30)
+    page.wait_for_timeout(1000)
+    calls: list[np.ndarray] = []
+    original = studio.set_pose
+
+    def counted(p: Any, source: object = None) -> Any:
+        calls.append(np.array(p))
+        return original(p, source)
+
+    studio.set_pose = counted
+    try:
+        page.evaluate("window.__ev = []")
+        jaw = page.get_by_role("slider", name="jaw", exact=True)
+        jaw.focus()
+        page.keyboard.press("ArrowRight")
+        assert wait_until(lambda: studio.p[jaw_k] > head.neutral[jaw_k] + 1e-6, 30)
+        # viser's own update of the same move arrives later: wait until the server's slider has it.
+        assert wait_until(lambda: abs(float(studio.pose_tab.sliders["jaw"].value)
+                                      - math.degrees(studio.p[jaw_k])) < 1e-6, 30)
+        page.wait_for_timeout(1000)
+        sent = page.evaluate("window.__ev.filter(e => e[0] === 'fastsend').map(e => e[2])")
+        assert sent == ["jaw"]
+        assert len(calls) == 1, f"{len(calls)} poses for one slider move"
+        assert abs(studio.p[lid_k] - head.neutral[lid_k]) < 1e-12
+    finally:
+        studio.set_pose = original
+
+
 def test_key_two_frames_and_play_them_on_the_daemon(page: Any, studio: Any, daemon: Any, image_dir: Path) -> None:
     head = studio.head
     jaw_k = head.names.index("jaw")
