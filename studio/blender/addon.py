@@ -18,7 +18,7 @@ from models.atomic import write_text
 from models.client import DaemonError
 from models.clip import ClipError, clip_file_as_dict
 from models.errors import LikenessError
-from studio.blender import anim, scene
+from studio.blender import anim, audio, scene
 from studio.blender.live import LiveLink
 from studio.blender.recording import recording_clip
 
@@ -186,6 +186,24 @@ class LIKENESS_OT_live_disconnect(bpy.types.Operator):
         return {"FINISHED"}
 
 
+class LIKENESS_OT_add_audio(bpy.types.Operator, ImportHelper):
+    """Add a sound file (WAV, MP3, ...) to the sequencer at the first frame, played with the timeline"""
+
+    bl_idname = "likeness.add_audio"
+    bl_label = "Add Audio"
+    filter_glob: StringProperty(default="*.wav;*.mp3;*.ogg;*.flac;*.aac;*.m4a", options={"HIDDEN"})  # type: ignore[valid-type]
+
+    def execute(self, context: Any) -> set[str]:
+        try:
+            strip = audio.add_sound(context.scene, self.filepath)
+        except LikenessError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        self.report({"INFO"}, f"{strip.name}: frames {strip.frame_final_start}–{strip.frame_final_end - 1}, "
+                              f"timeline synced to audio")
+        return {"FINISHED"}
+
+
 class LIKENESS_OT_estop(bpy.types.Operator):
     """E-stop: latch the daemon's e-stop now, on a socket of its own"""
 
@@ -247,6 +265,7 @@ class LIKENESS_PT_panel(bpy.types.Panel):
             col.operator(LIKENESS_OT_scan_guard.bl_idname, icon="MARKER_HLT")
             col.operator(LIKENESS_OT_import_clip.bl_idname, icon="ANIM")
             col.operator(LIKENESS_OT_export_clip.bl_idname, icon="EXPORT")
+        col.operator(LIKENESS_OT_add_audio.bl_idname, icon="SOUND")
         live = col.box()
         live.prop(context.scene, "likeness_endpoint")
         live.prop(context.scene, "likeness_lead")
@@ -273,7 +292,8 @@ def _menu_export(self: Any, context: Any) -> None:
 
 
 CLASSES = (LIKENESS_OT_import_head, LIKENESS_OT_export_clip, LIKENESS_OT_import_clip, LIKENESS_OT_scan_guard,
-           LIKENESS_OT_live_connect, LIKENESS_OT_live_disconnect, LIKENESS_OT_estop, LIKENESS_PT_panel)
+           LIKENESS_OT_live_connect, LIKENESS_OT_live_disconnect, LIKENESS_OT_estop, LIKENESS_OT_add_audio,
+           LIKENESS_PT_panel)
 HANDLERS = ((bpy.app.handlers.frame_change_post, on_frame_change),
             (bpy.app.handlers.depsgraph_update_post, on_depsgraph_update))
 

@@ -166,6 +166,34 @@ def test_a_recording_comes_back_as_an_action(blender: Any, tmp_path: Path) -> No
     assert obj["jaw"] == pytest.approx(5 * 1.0 - 0.3, abs=1e-3) and obj["brow_l"] == pytest.approx(2.1)
 
 
+def test_audio_goes_into_the_sequencer_and_the_timeline_syncs_to_it(blender: Any, tmp_path: Path) -> None:
+    import wave
+
+    rate, seconds = 22050, 2.5
+    t = np.arange(int(rate * seconds)) / rate
+    with wave.open(str(tmp_path / "line.wav"), "wb") as w:
+        w.setnchannels(1)
+        w.setsampwidth(2)
+        w.setframerate(rate)
+        w.writeframes((0.5 * np.sin(2 * np.pi * 220 * t) * 32767).astype("<i2").tobytes())
+    sc = blender.context.scene
+    sc.frame_start, sc.frame_end = 1, 10
+    assert blender.ops.likeness.add_audio(filepath=str(tmp_path / "line.wav")) == {"FINISHED"}
+    editor = sc.sequence_editor
+    strips = [s for s in (editor.strips if hasattr(editor, "strips") else editor.sequences) if s.type == "SOUND"]
+    assert [s.name for s in strips] == ["line"]
+    fps = sc.render.fps / sc.render.fps_base
+    assert strips[0].frame_final_start == 1
+    assert strips[0].frame_final_duration == pytest.approx(seconds * fps, abs=1)
+    assert sc.frame_end == strips[0].frame_final_end - 1  # the range reaches the sound's end
+    assert sc.sync_mode == "AUDIO_SYNC"
+    (tmp_path / "noise.wav").write_bytes(b"not a sound")
+    with pytest.raises(RuntimeError, match="noise.wav"):
+        blender.ops.likeness.add_audio(filepath=str(tmp_path / "noise.wav"))
+    with pytest.raises(RuntimeError, match="no such sound file"):
+        blender.ops.likeness.add_audio(filepath=str(tmp_path / "missing.wav"))
+
+
 def test_unknown_channels_and_missing_head_files_are_named(blender: Any) -> None:
     from models.clip import ClipError
     from studio.blender import anim, scene

@@ -385,3 +385,38 @@ def _number(text: str) -> float | None:
         return float(text)
     except ValueError:
         return None
+
+
+_MP3_SCRIPT = """
+import sys
+import bpy
+wav, mp3 = sys.argv[-2:]
+scene = bpy.context.scene
+editor = scene.sequence_editor_create()
+strip = (editor.strips if hasattr(editor, "strips") else editor.sequences).new_sound("line", wav, 1, 1)
+scene.frame_start, scene.frame_end = 1, strip.frame_final_end - 1
+assert bpy.ops.sound.mixdown(filepath=mp3, container="MP3", codec="MP3", format="S16", bitrate=64) == {"FINISHED"}
+"""
+
+
+def _mp3(tmp_path: Path, seconds: float) -> Path:
+    """An MP3 of the test tone, encoded by Blender's sound mixdown (its FFmpeg), or a skip where bpy is missing."""
+    import subprocess
+    import sys
+
+    pytest.importorskip("bpy", reason="MP3 encoding uses Blender as a module (make install adds it where it exists)")
+    wav, mp3 = _wav(tmp_path / "line.wav", seconds, rate=44100), tmp_path / "line.mp3"
+    subprocess.run([sys.executable, "-c", _MP3_SCRIPT, str(wav), str(mp3)], check=True, timeout=300,
+                   capture_output=True)
+    return mp3
+
+
+def test_an_mp3_loads_into_the_timeline(page: Any, studio: Any, tmp_path: Path) -> None:
+    mp3 = _mp3(tmp_path, 3.0)
+    _tab(page, "Animate")
+    page.get_by_label("Load audio").set_input_files(str(mp3))
+    assert wait_until(lambda: studio.animate_tab.editor.audio is not None
+                      and studio.animate_tab.editor.audio.name == "line.mp3", 30)
+    # An MP3 decodes to its length plus the encoder's padding (a frame of 1152 samples at each end, at most).
+    assert 3.0 - 0.01 <= studio.animate_tab.editor.audio.duration <= 3.0 + 3 * 1152 / 44100
+    assert page.get_by_role("img", name="Waveform of line.mp3").count() == 1
