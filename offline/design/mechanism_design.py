@@ -97,7 +97,7 @@ class LayoutSettings:
     """Layout-design settings: Gauss-Newton iterations, the pull toward the current design ρ, the stopping tolerance
     (relative decrease of F over an iteration) and the actuation iterations of the before/after stages."""
 
-    iterations: int = 12
+    iterations: int = 25
     regularization: float = 1e-3
     tol: float = 1e-3
     actuation_iterations: int = 12

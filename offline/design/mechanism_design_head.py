@@ -49,10 +49,10 @@ def neutral_tables(dm: DesignedMechanism) -> dict[str, dict[str, dict[str, Any]]
     T0 = dm.T0
     bodies: dict[str, dict[str, Any]] = {}
     points: dict[str, list[np.ndarray]] = {n: [] for n in spec.bodies}
-    for name, j in spec.joints.items():
+    for j in spec.joints.values():
         points[j.parent].append(_at(T0[j.child], j.anchor))
         points[j.child].append(_at(T0[j.child], j.anchor))
-    for name, c in spec.couplers.items():
+    for c in spec.couplers.values():
         if c.kind == "rod":
             points[c.a].append(_at(T0[c.a], c.a_point))
             points[c.b].append(_at(T0[c.b], c.b_point))
@@ -154,8 +154,8 @@ def write_head(config: str | Path, dm: DesignedMechanism, out: str | Path, note:
     hi = np.array([a.max for a in head.actuators])
     file_err = file_vs_design_mm(out / mech_name, dm, names, lo, hi)
     written = Mechanism.load(out / mech_name)
-    lm = linkmap_from_mechanism(written, head, samples=map_samples, provenance={"model": "mechanism", "mechanism": str(out / mech_name),
-                                                           "source": "layout design"})
+    prov = {"model": "mechanism", "mechanism": str(out / mech_name), "source": "layout design"}
+    lm = linkmap_from_mechanism(written, head, samples=map_samples, provenance=prov)
     lm_name = Path(head.path("linkmap")).name if head.path("linkmap") else "linkmap.json"
     lm.save(out / lm_name)
     Pt = np.random.default_rng(1).uniform(lo, hi, (40, len(names)))
