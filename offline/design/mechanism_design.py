@@ -133,7 +133,9 @@ class LayoutProblem:
         self.aspace = ActuationSpace.from_head(face.skin.head, self.boundary)
         opts = SolverOptions(backend=face.skin.spec.backend, tol_force=settings.tol_force, max_iterations=60,
                              load_steps=1)
-        con = face_strain_constraint(face, margin=settings.strain_margin) if strain else None
+        con = face_strain_constraint(face, margin=settings.strain_margin)
+        self.measure = con  # the guard's measure, reported whether or not it constrains the poses
+        con = con if strain else None
         self.problem = ActuationProblem(face.mesh, face.skin.material, self.aspace, face.outer, solver=opts,
                                         strain=con)
 

@@ -76,16 +76,18 @@ def _results(P: np.ndarray, X: np.ndarray, W: np.ndarray) -> list[TargetResult]:
 def run_layout_design(face: FaceSkin, targets: Mapping[str, Mapping[str, float]], out: str | Path,
                       settings: LayoutSettings, *, config: str | Path, envelope: str | Path | None = None,
                       targets_file: str | None = None, resume: bool = True, write_head_folder: bool = True,
-                      map_samples: int = 300, progress: Progress = print) -> dict[str, Any]:
+                      map_samples: int = 300, strain: bool = True, progress: Progress = print) -> dict[str, Any]:
     """Run (or resume) the layout design of ``face`` for ``targets`` and write ``out``/report.json, report.md,
     the pictures and ``out/head/``; returns the report."""
     from .mechanism_design_report import write_layout_report
 
     out = Path(out)
     names = list(targets)
-    lp, space = layout_problem(face, targets, envelope, settings)
+    lp, space = layout_problem(face, targets, envelope, settings, strain=strain)
     meta = {"targets": {n: dict(w) for n, w in targets.items()}, "settings": settings_json(settings),
             "envelope": space.envelope.to_json(), "variables": list(space.names)}
+    if not strain:
+        meta["strain_constraint"] = False
     loaded = load_checkpoint(out, meta) if resume else None
     arrays: dict[str, np.ndarray] = {}
     t_start = time.perf_counter()
@@ -168,7 +170,8 @@ def run_layout_command(args: Any, face: FaceSkin, targets: Mapping[str, Mapping[
               f"estimated time about {est['estimate_s'] / 60:.0f} min (rough upper bound)")
         return 0
     report = run_layout_design(face, targets, args.out, settings, config=args.config, envelope=args.envelope,
-                               targets_file=args.targets, resume=not args.fresh, progress=say)
+                               targets_file=args.targets, resume=not args.fresh,
+                               strain=not args.no_strain_constraint, progress=say)
     sm = report["summary"]
     mm = 1e3
     for label in ("before", "after"):

@@ -39,7 +39,7 @@ def _sha256(path: str | Path | None) -> str | None:
 def target_errors(lp: LayoutProblem, X: np.ndarray) -> list[dict[str, Any]]:
     """Per target: vertex and surface errors (m) and the guard's exact strain measure."""
     face = lp.face
-    con = lp.problem.strain
+    con = lp.measure
     out = []
     for x, q in zip(X, lp.targets, strict=True):
         ev = vertex_errors(x[face.outer], q)
@@ -56,9 +56,7 @@ def target_errors(lp: LayoutProblem, X: np.ndarray) -> list[dict[str, Any]]:
 def target_strains(lp: LayoutProblem) -> list[tuple[float, float] | None]:
     """The guard's strain measure of each target surface itself (the outer surface placed on the target): a target
     outside the validated range cannot be reached exactly by any pose inside it, whatever the mechanism."""
-    con = lp.problem.strain
-    if con is None:
-        return [None] * len(lp.targets)
+    con = lp.measure
     x = np.asarray(lp.face.mesh.nodes, dtype=np.float64).copy()
     out = []
     for q in lp.targets:
@@ -167,7 +165,7 @@ def write_layout_report(lp: LayoutProblem, state: LayoutState, arrays: Mapping[s
     before = target_errors(lp, arrays["X_before"])
     after = target_errors(lp, arrays["X_after"])
     head = lp.face.skin.head
-    con = lp.problem.strain
+    con = lp.measure
     Z_after = np.array([lp.aspace.reduce(p) for p in arrays["P_after"]])
     progress("[layout] binding limits: the Gauss-Newton model at the final design")
     binding = binding_limits(lp, state.theta, Z_after, arrays["X_after"], arrays["W_after"], names)
@@ -221,7 +219,8 @@ def write_layout_report(lp: LayoutProblem, state: LayoutState, arrays: Mapping[s
                           "targets": _sha256(targets_file), "envelope": _sha256(envelope)},
         "settings": dict(settings), "envelope": lp.space.envelope.to_json(),
         "design_variables": lp.space.size, "iterations": state.iteration, "log": state.log,
-        "strain_range": [con.strain_min, con.strain_max] if con is not None else None,
+        "strain_range": [con.strain_min, con.strain_max],
+        "strain_constraint": lp.problem.strain is not None,
         "summary": {"before": sb, "after": sa,
                     "goal": {"mean_m": GOAL_MEAN_M, "max_m": GOAL_MAX_M,
                              "mean_met": sa["surface_mean_m"] <= GOAL_MEAN_M,
