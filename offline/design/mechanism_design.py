@@ -52,8 +52,13 @@ class DesignBoundary:
         self.set_design(np.zeros(space.size) if theta is None else theta)
 
     def set_design(self, theta: np.ndarray) -> None:
-        """Rebuild the mechanism at design θ (AssemblyError when it cannot assemble at motor zero)."""
-        self.dm = DesignedMechanism(self.space, theta)
+        """Rebuild the mechanism at design θ; AssemblyError when a linkage cannot assemble anywhere in its motors'
+        range (a design that works at the targets' poses but locks or comes apart elsewhere is no design)."""
+        dm = DesignedMechanism(self.space, theta)
+        if np.any(dm.theta):
+            head = self.skin.head
+            dm.check_range({a.name: a.min for a in head.actuators}, {a.name: a.max for a in head.actuators})
+        self.dm = dm
 
     @property
     def theta(self) -> np.ndarray:

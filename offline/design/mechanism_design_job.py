@@ -17,6 +17,8 @@ from typing import Any
 
 import numpy as np
 
+from models.mechanism_kin import AssemblyError
+
 from .actuation import TargetResult, optimize_targets
 from .face import FaceSkin
 from .mechanism_design import (
@@ -73,6 +75,14 @@ def _results(P: np.ndarray, X: np.ndarray, W: np.ndarray) -> list[TargetResult]:
             for p, x, w in zip(P, X, W, strict=True)]
 
 
+def _fresh_state(lp: LayoutProblem, space: DesignSpace, arrays: Mapping[str, np.ndarray]) -> LayoutState:
+    """The design's start: today's layout, the before stage's actuation and equilibria."""
+    con = lp.problem.strain
+    w0 = np.maximum(arrays["W_before"], con.weight if con is not None else 0.0)
+    return LayoutState(np.zeros(space.size), np.array([lp.aspace.reduce(p) for p in arrays["P_before"]]),
+                       list(arrays["X_before"]), w0, [])
+
+
 def run_layout_design(face: FaceSkin, targets: Mapping[str, Mapping[str, float]], out: str | Path,
                       settings: LayoutSettings, *, config: str | Path, envelope: str | Path | None = None,
                       targets_file: str | None = None, resume: bool = True, write_head_folder: bool = True,
@@ -95,15 +105,19 @@ def run_layout_design(face: FaceSkin, targets: Mapping[str, Mapping[str, float]]
         state, arrays, _info = loaded
         progress(f"[layout] resuming from {out / 'layout_checkpoint.npz'} (iteration {state.iteration}"
                  f"{', design done' if state.done else ''})")
+        try:
+            lp.boundary.set_design(state.theta)
+        except AssemblyError as exc:
+            progress(f"[layout] the checkpoint's design does not assemble over the motors' range ({exc}); "
+                     "designing again from today's layout, keeping the before stage")
+            arrays = {k: v for k, v in arrays.items() if k.endswith("_before")}
+            state = _fresh_state(lp, space, arrays)
     else:
         progress(f"[layout] before: actuation on today's mechanism, {len(names)} targets")
         before = _actuation(lp, names, None, "before", settings.actuation_iterations, progress)
         arrays = {"P_before": np.array([r.p for r in before]), "X_before": np.array([r.x for r in before]),
                   "W_before": np.array([r.strain_weight for r in before])}
-        con = lp.problem.strain
-        w0 = np.maximum(arrays["W_before"], con.weight if con is not None else 0.0)
-        state = LayoutState(np.zeros(space.size), np.array([lp.aspace.reduce(p) for p in arrays["P_before"]]),
-                            list(arrays["X_before"]), w0, [])
+        state = _fresh_state(lp, space, arrays)
         save_checkpoint(out, state, meta, arrays)
     progress(f"[layout] design: {space.size} design variables in {len(space.groups)} groups, "
              f"{len(names)} x {lp.aspace.n_free} actuation variables, up to {settings.iterations} iterations")

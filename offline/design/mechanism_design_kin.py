@@ -102,6 +102,20 @@ class DesignedMechanism:
             chain[r, c] += v
         return params, chain
 
+    def check_range(self, lo: Mapping[str, float], hi: Mapping[str, float], n: int = 7) -> None:
+        """Raise AssemblyError unless every linkage assembles over its motors' whole range (``n`` values per motor,
+        a grid for linkages with several motors, swept by continuation from motor zero and back)."""
+        import itertools
+
+        for g in self.mech.structure.groups:
+            if not g.motors:
+                continue
+            k = n if len(g.motors) == 1 else max(3, n // 2 + 1)
+            axes = [np.linspace(lo[m], hi[m], k) for m in g.motors]
+            for point in itertools.product(*axes):
+                self.mech.solve({**self.zero, **dict(zip(g.motors, point, strict=True))})
+            self.mech.solve(self.zero)
+
     def transforms(self, values: Mapping[str, float]) -> dict[str, np.ndarray]:
         """Each link's rigid motion from the new neutral: T(p, θ) · T(0, θ)⁻¹ (4x4)."""
         T = self.mech.body_transforms(values)
