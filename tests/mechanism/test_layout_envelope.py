@@ -99,3 +99,20 @@ def test_a_design_sets_the_named_parameters_and_the_axis_tilt_is_exact(spec) -> 
     dm = DesignedMechanism(space, theta)
     for T in dm.transforms(dm.zero).values():
         assert np.allclose(T, np.eye(4), atol=1e-12)
+
+
+def test_a_design_that_locks_inside_the_motor_range_is_refused() -> None:
+    from models.mechanism import AssemblyError, mechanism_from_dict
+    from tests.mechanism._builders import four_bar
+
+    spec = mechanism_from_dict(four_bar())  # a Grashof crank-rocker: the crank turns all the way round
+    space = design_space(spec, Envelope())
+    full = ({"m": 0.0}, {"m": 2 * math.pi})
+    DesignedMechanism(space, np.zeros(space.size)).check_range(*full)
+    theta = np.zeros(space.size)
+    end = next(g for g in space.groups if g.item == "couplers.coupler" and g.what == "a_point")
+    a = spec.couplers["coupler"].a_point
+    theta[list(end.index)] = 0.004 * a / np.linalg.norm(a)  # a 24 mm crank: no longer Grashof
+    dm = DesignedMechanism(space, theta)  # it assembles at motor zero ...
+    with pytest.raises(AssemblyError, match="cannot assemble"):
+        dm.check_range(*full)  # ... but not over the whole turn
