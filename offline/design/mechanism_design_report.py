@@ -315,6 +315,8 @@ def report_markdown(r: Mapping[str, Any]) -> str:
     if r.get("head_folder"):
         h = r["head_folder"]
         lines += ["", f"Head folder: `{h['head']}` (mechanism file vs design {h['file_vs_design_max_mm']:.2g} mm, "
-                  f"cubic link map vs mechanism {h['map_vs_mechanism_max_mm']:.3f} mm)."]
+                  f"link map (degree {h['map_degree']}) vs mechanism {h['map_vs_mechanism_max_mm']:.3f} mm"
+                  + ("" if h["map_within_tolerance"] else f", MORE than the {h['map_tolerance_mm']} mm the runtime "
+                     "needs") + ")."]
     lines += ["", "![before](pictures/mechanism_before.png)", "![after](pictures/mechanism_after.png)", ""]
     return "\n".join(lines)
