@@ -237,6 +237,7 @@ class LayoutState:
     mu: float = 1e-3
     iteration: int = 0
     done: bool = False
+    seconds: float = 0.0  # time spent on this design over every invocation (resumed runs add up)
 
 
 Progress = Callable[[str], None]
@@ -325,7 +326,8 @@ def save_checkpoint(out: Path, state: LayoutState, meta: Mapping[str, Any], extr
     from models.atomic import atomic_path
 
     out.mkdir(parents=True, exist_ok=True)
-    info = {**meta, "log": state.log, "mu": state.mu, "iteration": state.iteration, "done": state.done}
+    info = {**meta, "log": state.log, "mu": state.mu, "iteration": state.iteration, "done": state.done,
+            "seconds": state.seconds}
     with atomic_path(out / CHECKPOINT, suffix=".npz") as tmp:
         np.savez(tmp, meta=np.array(json.dumps(info, default=float)), theta=state.theta, Z=state.Z,
                  X=np.asarray(state.X), weights=state.weights, **extra)
@@ -342,7 +344,8 @@ def load_checkpoint(out: Path, meta: Mapping[str, Any]) -> tuple[LayoutState, di
     if any(info.get(k) != v for k, v in json.loads(json.dumps(dict(meta), default=float)).items()):
         return None
     state = LayoutState(arrays.pop("theta"), arrays.pop("Z"), list(arrays.pop("X")), arrays.pop("weights"),
-                        list(info["log"]), float(info["mu"]), int(info["iteration"]), bool(info["done"]))
+                        list(info["log"]), float(info["mu"]), int(info["iteration"]), bool(info["done"]),
+                        float(info.get("seconds", 0.0)))
     return state, arrays, info
 
 

@@ -118,11 +118,16 @@ def run_layout_design(face: FaceSkin, targets: Mapping[str, Mapping[str, float]]
         arrays = {"P_before": np.array([r.p for r in before]), "X_before": np.array([r.x for r in before]),
                   "W_before": np.array([r.strain_weight for r in before])}
         state = _fresh_state(lp, space, arrays)
+        state.seconds = time.perf_counter() - t_start
         save_checkpoint(out, state, meta, arrays)
     progress(f"[layout] design: {space.size} design variables in {len(space.groups)} groups, "
              f"{len(names)} x {lp.aspace.n_free} actuation variables, up to {settings.iterations} iterations")
 
+    base = state.seconds
+    t_mark = time.perf_counter()
+
     def checkpoint(s: LayoutState) -> None:
+        s.seconds = base + time.perf_counter() - t_mark
         save_checkpoint(out, s, meta, arrays)
 
     state = design_layout(lp, state, progress=progress, checkpoint=checkpoint)
@@ -136,7 +141,7 @@ def run_layout_design(face: FaceSkin, targets: Mapping[str, Mapping[str, float]]
         arrays.update(P_after=np.array([r.p for r in after]), X_after=np.array([r.x for r in after]),
                       W_after=np.array([r.strain_weight for r in after]))
         checkpoint(state)
-    seconds = time.perf_counter() - t_start
+    seconds = base + time.perf_counter() - t_mark
     head_dir = out / "head"
     report = write_layout_report(lp, state, arrays, out, names=names, config=config, targets_file=targets_file,
                                  envelope=envelope, settings=asdict(settings), seconds=seconds,
