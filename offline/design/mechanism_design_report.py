@@ -40,12 +40,18 @@ def target_errors(lp: LayoutProblem, X: np.ndarray) -> list[dict[str, Any]]:
     """Per target: vertex and surface errors (m) and the guard's exact strain measure."""
     face = lp.face
     con = lp.measure
+    rest = np.asarray(face.mesh.nodes)[face.outer]
+    region_names, labels = face.skin.surface_regions()
     out = []
     for x, q in zip(X, lp.targets, strict=True):
         ev = vertex_errors(x[face.outer], q)
         sd = surface_distances(x[face.outer], q, face.faces)
+        i = int(np.argmax(ev))
         row = {"vertex_mean_m": float(ev.mean()), "vertex_max_m": float(ev.max()),
-               "surface_mean_m": float(sd.mean()), "surface_max_m": float(sd.max())}
+               "surface_mean_m": float(sd.mean()), "surface_max_m": float(sd.max()),
+               "vertices_over_4mm": int((ev > GOAL_MAX_M).sum()), "vertices": int(ev.size),
+               "worst_vertex": {"index": i, "region": str(region_names[labels[i]]), "rest_m": rest[i].tolist(),
+                                "target_moves_it_m": float(np.linalg.norm(q[i] - rest[i]))}}
         if con is not None:
             smin, smax = con.measure(x)
             row.update(strain_min=float(smin), strain_max=float(smax), strain_inside=bool(con.inside((smin, smax))))
@@ -310,8 +316,13 @@ def report_markdown(r: Mapping[str, Any]) -> str:
             why = ("the target itself lies outside the validated strain range (guard measure "
                    f"{t['target_strain'][0]:+.1%} .. {t['target_strain'][1]:+.1%}): no pose inside the range matches "
                    "it exactly, whatever the mechanism" + (f"; also {why}" if why else ""))
-        lines.append(f"- {t['target']}: " + (why or "no envelope limit binds for it (actuator limits, the strain "
-                                             "range or the skin's own deformation hold it)"))
+        if not t.get("binding"):
+            why += ("; " if why else "") + "no envelope limit binds for it"
+        wv = t["after"]["worst_vertex"]
+        why = (f"largest vertex error {t['after']['vertex_max_m'] * mm:.1f} mm in region {wv['region']} (the target "
+               f"moves that vertex {wv['target_moves_it_m'] * mm:.1f} mm), {t['after']['vertices_over_4mm']} of "
+               f"{t['after']['vertices']} outer vertices more than 4 mm off; ") + why
+        lines.append(f"- {t['target']}: {why}")
     if r.get("head_folder"):
         h = r["head_folder"]
         lines += ["", f"Head folder: `{h['head']}` (mechanism file vs design {h['file_vs_design_max_mm']:.2g} mm, "
