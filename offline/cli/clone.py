@@ -49,6 +49,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "(poses beyond it are then only reported, and pulled back toward neutral)")
     p.add_argument("--no-mold", action="store_true", help="skip the STL export of the optimized skin's mold")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
+    p.add_argument("--design-mechanism", action="store_true",
+                   help="design the link layout (the mechanism's joint positions, axes, rod lengths and ratios within "
+                        "--envelope) together with the actuation, and write DIR/head/, a complete redesigned head "
+                        "folder (docs/mechanism.md, layout design); thickness is not designed in this mode")
+    p.add_argument("--envelope", default=None,
+                   help="mechanical envelope TOML of the layout design (default: joints move <= 15 mm, axes tilt "
+                        "<= 20 deg, rod lengths and ratios +-20 %%)")
+    p.add_argument("--design-iterations", type=int, default=25,
+                   help="layout design: joint Gauss-Newton iterations at most (default 25)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -77,6 +86,11 @@ def run(args: argparse.Namespace) -> int:
                              h_max=args.max_thickness_mm * 1e-3, strain_constraint=not args.no_strain_constraint,
                              element_order=args.element_order)
     say = (lambda line: None) if args.quiet else (lambda line: print(line, flush=True))
+    if args.design_mechanism:
+        from offline.design.mechanism_design_job import run_layout_command
+
+        with kernel_threads(args.threads):
+            return run_layout_command(args, face, targets, say)
     with kernel_threads(args.threads):
         if args.dry_run:
             _print_estimate(face, targets, settings)

@@ -1,0 +1,60 @@
+"""``likeness offline clone --design-mechanism``: the dry run, a bad envelope, and (slow) a small run that writes
+the report and the head folder and resumes from its checkpoint."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from likeness.cli import main
+from tests.runtime.conftest import SAMPLE
+
+
+def _targets(tmp_path, targets: dict) -> str:
+    path = tmp_path / "targets.json"
+    path.write_text(json.dumps(targets))
+    return str(path)
+
+
+def test_the_dry_run_states_the_problem_and_stops(tmp_path, capsys) -> None:
+    out = tmp_path / "run"
+    rc = main(["offline", "clone", "--config", str(SAMPLE), "--targets", _targets(tmp_path, {"blink": {
+        "eyeBlinkLeft": 1.0, "eyeBlinkRight": 1.0}}), "--design-mechanism", "--dry-run", "--out", str(out)])
+    text = capsys.readouterr().out
+    assert rc == 0
+    assert "layout design: 222 design variables in 100 groups" in text and "estimated time" in text
+    assert not out.exists()
+
+
+def test_a_bad_envelope_is_refused_naming_the_file_and_key(tmp_path, capsys) -> None:
+    env = tmp_path / "env.toml"
+    env.write_text("[envelope]\njoint_move_mm = -3\n")
+    rc = main(["offline", "clone", "--config", str(SAMPLE), "--design-mechanism", "--dry-run", "--envelope", str(env),
+               "--out", str(tmp_path / "run")])
+    assert rc == 2
+    assert f"{env}: envelope.joint_move_mm: must be a finite number >= 0" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_a_small_layout_design_writes_its_report_and_head_and_resumes(tmp_path, capsys) -> None:
+    out = tmp_path / "run"
+    env = tmp_path / "env.toml"
+    env.write_text("[envelope]\njoint_move_mm = 5\n[motors.jaw]\nfixed = true\n")
+    args = ["offline", "clone", "--config", str(SAMPLE), "--targets", _targets(tmp_path, {"jaw_smile": {
+        "jawOpen": 0.4, "mouthSmileLeft": 0.6}}), "--design-mechanism", "--design-iterations", "2",
+        "--envelope", str(env), "--out", str(out)]
+    assert main(args) == 0
+    report = json.loads((out / "report.json").read_text())
+    row = report["per_target"][0]
+    assert row["after"]["surface_mean_m"] > 0 and "target_strain" in row
+    assert report["inputs_sha256"]["envelope"] is not None
+    assert all(p["item"] != "motors.jaw" for p in report["moved_parameters"])
+    assert all(p.get("move", 0.0) <= 5.0 + 1e-9 for p in report["moved_parameters"])
+    assert report["head_folder"]["file_vs_design_max_mm"] < 1e-3
+    assert (out / "head" / "head.toml").is_file() and (out / "pictures" / "mechanism_after.png").is_file()
+    capsys.readouterr()
+    assert main(args) == 0  # again: resumed from the checkpoint, nothing recomputed but the report
+    assert "resuming from" in capsys.readouterr().out
+    again = json.loads((out / "report.json").read_text())
+    assert again["per_target"][0]["after"] == row["after"]
