@@ -45,6 +45,7 @@ from runtime.core.state import CoreState
 from runtime.hardware import Hardware
 from runtime.runner import Runner
 from runtime.solve import TargetSolver
+from runtime.strain_check import FullStrainCheck
 
 if TYPE_CHECKING:
     from models.strain_guard import StrainGuard
@@ -155,7 +156,8 @@ class Daemon:
         spec = server_mod.ServerSpec(str(self.head.source), self.overrides, self.channels, f"ipc://{self._tmp}/loop",
                                      f"{self._tmp}/commands",
                                      self._estop.name, self.cfg.safety.safe_speed,
-                                     logging.getLogger().getEffectiveLevel())
+                                     logging.getLogger().getEffectiveLevel(),
+                                     strain_check=None if self.guard is None else FullStrainCheck.of(self.guard))
         # A fresh interpreter (not multiprocessing's spawn, which re-imports the caller's main script): the spec
         # travels pickled on its standard input.
         self._server = subprocess.Popen([sys.executable, "-m", "runtime.server"], stdin=subprocess.PIPE,
