@@ -62,8 +62,9 @@ class FullStrainCheck:
         p = np.clip(np.asarray(q, dtype=np.float64), self.lo, self.hi)
         pos = self.base + self.weights.offsets(p)
         eps = principal_strains(self.g0, triangle_metric(pos, self.faces))
-        picked = eps[self.cols] * self.vals[:, None]
-        return np.stack([np.bincount(self.rows, picked[:, k], self.n_kept) for k in range(2)], axis=1)
+        # one column at a time: a gather and a weighted bincount on contiguous arrays (half the time of both at once)
+        return np.stack([np.bincount(self.rows, eps[:, k][self.cols] * self.vals, self.n_kept) for k in range(2)],
+                        axis=1)
 
     def full(self, q: np.ndarray) -> tuple[float, float]:
         """The full measure of pose ``q``: (smallest smoothed ε_min, largest smoothed ε_max)."""
