@@ -71,3 +71,41 @@ def test_half_rate_stream_locks_every_other_cycle() -> None:
     waits, _ = simulate(arrivals, lock, 2000)
     assert lock.locked
     assert abs(np.median(waits[-200:]) - lock.lead) < 50e-6
+
+
+class _Pipe:
+    """A command pipe holding given commands (what :meth:`runtime.runner.Runner._drain` reads)."""
+
+    def __init__(self, cmds: list) -> None:
+        self.cmds = cmds
+
+    def recv(self, most: int) -> list:
+        out, self.cmds = self.cmds[:most], self.cmds[most:]
+        return out
+
+
+def test_runner_feeds_the_lock_the_daemons_receipt_stamps() -> None:
+    """The loop takes a frame off the pipe either at once or only at the next cycle's start (it does not watch the
+    pipe during a cycle's work nor just before a cycle): the lock must judge the frame by when the daemon received
+    it, which that does not move, or a steady 500 Hz sender's phases split in two clusters and it never locks."""
+    from runtime.core.commands import Live
+    from runtime.runner import Runner
+
+    period, lead = 0.002, 0.0006
+    runner = Runner.__new__(Runner)  # only what _drain touches
+    runner.phase_lock = PhaseLock(period, lead=lead)
+    from runtime.input_trace import InputTrace
+
+    runner.trace = InputTrace()
+    rng = np.random.default_rng(5)
+    deadline = 1.0
+    for k in range(400):
+        received = deadline - lead + rng.normal(0, 20e-6)  # a steady sender at the lock's set point
+        taken = received + 80e-6 if k % 2 else deadline  # at once, or at the cycle's start (the blind window)
+        runner.clock = lambda taken=taken: taken
+        runner.commands = _Pipe([Live(k, received=received)])
+        runner._drain(deadline)
+        assert runner.phase_lock.last_error == pytest.approx(deadline - received - lead)
+        deadline += period + runner.phase_lock.correction()
+    assert runner.phase_lock.locked
+    assert runner.trace.count == 400 and np.isfinite(runner.trace.last(1)[0][0])
