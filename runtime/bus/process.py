@@ -40,6 +40,8 @@ log = logging.getLogger(__name__)
 
 #: ``sys.setswitchinterval`` in the bus process (s): other threads yield the GIL to a write this soon.
 SWITCH_INTERVAL_S = 0.0002
+#: Share of the realtime budget reads may use; the rest is kept for writes (:meth:`RealtimeBudget.keep_for_urgent`).
+READ_SHARE = 0.5
 #: A counter value no post reaches: nothing is written before the next enable.
 _NEVER = 1 << 62
 
@@ -152,10 +154,11 @@ class BusServer:
                     self.bus.write(dict(zip(self.names, targets.tolist(), strict=True)), stamp=float(snap[0]))
                     self.written = targets
                     self.write_stamp = time.monotonic()
-            # Only the write is urgent: the read and the publication run at normal scheduling, so the realtime
-            # budget pays for writes alone (at 500 Hz a write plus a read took more than the budget's share, and the
-            # process wrote at normal priority, behind the emulators, for the rest of every window).
-            self.budget.lower()
+            # The write is urgent, the read less so: once half the window's realtime budget is spent, reads run at
+            # normal scheduling and the rest is kept for writes (at 500 Hz a write plus a read took more than the
+            # whole budget, and the process wrote at normal priority, behind the emulators, for the rest of every
+            # window; at 250 Hz reads stay realtime, as the feedback watch wants them).
+            self.budget.keep_for_urgent(READ_SHARE)
             if self.bus.state is not LifecycleState.UNCONFIGURED:
                 states = self.bus.read()
         except Exception as exc:
