@@ -6,7 +6,9 @@ but that onnxruntime refuses (an unknown operator, a bad shape) would show only 
 :class:`PredictorCheck` starts ``python -m runtime.predictor_check PATH`` while the daemon builds the rest (its
 solvers, the guard), which opens an onnxruntime session on the file and predicts one pose; :meth:`PredictorCheck.result`
 raises the :class:`~models.errors.SpecError` naming the file that the child reported (the CLI prints it as one line
-and exits with status 2). The child's memory (onnxruntime alone is ~44 MB) is gone with it.
+and exits with status 2). The child's memory (onnxruntime alone is ~44 MB) is gone with it. A file onnxruntime
+accepted is remembered by its content hash and onnxruntime's version (``$LIKENESS_CACHE``, default
+``~/.cache/likeness``, ``predictor_check/``), so the next start on the same file skips the check (about a second).
 """
 
 from __future__ import annotations
@@ -29,13 +31,24 @@ class PredictorCheck:
 
     def __init__(self, path: Path, env: dict[str, str] | None = None) -> None:
         self.path = Path(path)
+        self._marker = _marker(self.path)
+        self._proc: subprocess.Popen[str] | None = None
+        if self._marker is not None and self._marker.is_file():
+            return  # this very file was accepted before
         self._proc = subprocess.Popen([sys.executable, "-m", "runtime.predictor_check", str(self.path)],
                                       stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
                                       env=env if env is not None else dict(os.environ))
 
+    @property
+    def cached(self) -> bool:
+        """Whether the file was accepted before (no check runs)."""
+        return self._proc is None
+
     def result(self) -> None:
         """Wait for the check; raises :class:`SpecError` naming the file when onnxruntime refused it or the check
         itself failed."""
+        if self._proc is None:
+            return
         try:
             _, err = self._proc.communicate(timeout=TIMEOUT_S)
         except subprocess.TimeoutExpired:
@@ -43,6 +56,7 @@ class PredictorCheck:
             raise SpecError(str(self.path), "graph", f"onnxruntime did not load the model within {TIMEOUT_S:g} s") \
                 from None
         if self._proc.returncode == 0:
+            _remember(self._marker)
             return
         lines = [line for line in (err or "").splitlines() if line.strip()]
         last = lines[-1] if lines else ""
@@ -53,9 +67,37 @@ class PredictorCheck:
 
     def cancel(self) -> None:
         """Stop the check (the daemon's start failed elsewhere)."""
-        if self._proc.poll() is None:
+        if self._proc is not None and self._proc.poll() is None:
             self._proc.kill()
             self._proc.wait()
+
+
+def _marker(path: Path) -> Path | None:
+    """Where an accepted file is remembered: its SHA-256 and onnxruntime's version (None: no hash, no version)."""
+    import hashlib
+    from importlib import metadata
+
+    try:
+        digest = hashlib.sha256(path.read_bytes()).hexdigest()
+        version = metadata.version("onnxruntime")
+    except (OSError, metadata.PackageNotFoundError):
+        return None
+    base = os.environ.get("LIKENESS_CACHE") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "likeness")
+    return Path(base) / "predictor_check" / f"{digest}-onnxruntime-{version}"
+
+
+def _remember(marker: Path | None) -> None:
+    """Remember an accepted file (no writable cache: it is checked again next time)."""
+    from models.atomic import write_text
+
+    if marker is None:
+        return
+    try:
+        marker.parent.mkdir(parents=True, exist_ok=True)
+        write_text(marker, "accepted by onnxruntime\n")
+    except OSError:
+        pass
 
 
 def check(path: Path) -> None:
