@@ -1,9 +1,10 @@
-"""Phase lock of the control loop to a steady stream: cycles slide to just after the frames reach the loop.
+"""Phase lock of the control loop to a steady stream: cycles slide to just after the frames reach the daemon.
 
 A fixed-rate loop samples a stream at an arbitrary phase, so a frame waits up to one period for its cycle (at
 250 Hz, 0–4 ms). When frames arrive at a steady phase of the loop (a producer at the loop rate, or at a divisor of
 it), the lock moves the loop's deadlines by a small bounded step per cycle until cycles fall ``lead`` seconds after
-the arrivals: the frame then waits only for the hand-over, not for the period. The loop's rate never changes on
+the arrivals (the API server's receipt stamps, which the loop's own schedule does not move): the frame then waits
+only for the hand-over to the loop, not for the period. The loop's rate never changes on
 average; a single period changes by at most ``max_step`` (a few percent, inside the shaper's velocity margin and the
 drivers' rate tolerance). Arrivals that do not keep a steady phase (bursty clients, a producer whose rate is not a
 divisor of the loop's) are detected by the spread of their phases and leave the loop alone.
