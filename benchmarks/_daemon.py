@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import sys
 from pathlib import Path
@@ -111,6 +112,32 @@ def external_sender() -> str:
     return f"sender SCHED_FIFO {SENDER_PRIORITY}"
 
 
+#: SCHED_FIFO priority of the benchmark's own watcher (the thread that polls the bus link in the daemon's process):
+#: the lowest realtime priority, below every thread of the daemon and the senders.
+WATCHER_PRIORITY = 1
+
+
+class Watching:
+    """While the calling thread polls a bus link in the daemon's process (the loop thread's process): SCHED_FIFO at
+    :data:`WATCHER_PRIORITY` where permitted, normal scheduling again after. At normal priority on a busy host the
+    watcher is preempted while it holds the GIL, and the control loop then waits for the GIL until the watcher runs
+    again: a stall of the benchmark's making (a daemon's own process runs no such thread). Under SCHED_FIFO nothing
+    of normal priority preempts it, and it sleeps between polls, so it takes little CPU from anything else."""
+
+    def __enter__(self) -> Watching:
+        import os
+
+        with contextlib.suppress(AttributeError, OSError):
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(WATCHER_PRIORITY))
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        import os
+
+        with contextlib.suppress(AttributeError, OSError):
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+
+
 def sleep_until(t: float) -> None:
     """Sleep until monotonic time ``t``, spinning only the last 100 µs (a realtime sender wakes within tens of µs)."""
     import time
@@ -135,16 +162,17 @@ def run_sender_watching_jaw(daemon: Any, target: Any, args: tuple, what: str) ->
     proc = ctx.Process(target=target, args=(*args, out), daemon=True)
     proc.start()
     got: Any = None
-    while got is None:
-        fb = link.feedback()
-        if fb.write_stamp != writes[-1][0]:
-            writes.append((fb.write_stamp, float(fb.written[j])))
-        try:
-            got = out.get_nowait()
-        except Exception:
-            time.sleep(200e-6)
-        if not proc.is_alive() and got is None and out.empty():
-            raise RuntimeError(f"the {what} process ended without a result (exit code {proc.exitcode})")
+    with Watching():
+        while got is None:
+            fb = link.feedback()
+            if fb.write_stamp != writes[-1][0]:
+                writes.append((fb.write_stamp, float(fb.written[j])))
+            try:
+                got = out.get_nowait()
+            except Exception:
+                time.sleep(200e-6)
+            if not proc.is_alive() and got is None and out.empty():
+                raise RuntimeError(f"the {what} process ended without a result (exit code {proc.exitcode})")
     proc.join(5)
     return np.array([w[0] for w in writes]), np.array([w[1] for w in writes]), got
 

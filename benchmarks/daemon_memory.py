@@ -5,7 +5,9 @@ interpreter with numpy and pyzmq measured in the same run (what any Python proce
 Starts ``likeness daemon`` (the sample head, emulated buses, free loopback ports) as a child process, waits for its
 ``ready`` line and ``--rest`` seconds more, then reads ``/proc/PID/status`` of it and every descendant, and from
 ``/proc/PID/maps`` which heavy native libraries each has mapped (numba's LLVM, onnxruntime, scipy): a mapped library
-means the module was imported. ``python benchmarks/daemon_memory.py [--rest 3] [--config HEAD.toml]``.
+means the module was imported. With ``--enable`` the head is enabled and holds still first (telemetry then runs the
+full strain check of every commanded pose, which must load nothing heavy either).
+``python benchmarks/daemon_memory.py [--rest 3] [--config HEAD.toml] [--enable]``.
 """
 
 from __future__ import annotations
@@ -74,10 +76,27 @@ def bare_interpreter_mib() -> float:
     return float(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout)
 
 
+def enable(ready_line: str) -> str:
+    """Enable the head of the daemon that printed ``ready_line`` (its command endpoint) and move it once; returns
+    what state the figures are in."""
+    from models.client import Client
+
+    endpoint = re.search(r"commands (\S+),", ready_line)
+    if endpoint is None:
+        raise RuntimeError(f"no command endpoint in {ready_line!r}")
+    with Client(endpoint.group(1), timeout=30) as c:
+        c.call("enable")
+        c.call("pose", pose={"jaw": 4.0})
+        time.sleep(1.0)
+        c.call("pose", pose={"jaw": 0.0})
+        return f"enabled ({c.call('status')['lifecycle']}), after a pose,"
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--rest", type=float, default=3.0, help="seconds to wait after the daemon is ready")
     parser.add_argument("--config", type=Path, default=ROOT / "heads" / "sample" / "head.toml")
+    parser.add_argument("--enable", action="store_true", help="enable the head before measuring")
     args = parser.parse_args(argv)
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
     bare = bare_interpreter_mib()
@@ -94,6 +113,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"the daemon exited with code {proc.wait()} before it was ready")
             return 1
         ready_s = time.monotonic() - started
+        state = "resting"
+        if args.enable:
+            state = enable(line)
         time.sleep(args.rest)
         rows = [(role(pid, proc.pid), pid, vm_rss_mib(pid), heavy_libraries(pid)) for pid in descendants(proc.pid)]
     finally:
@@ -102,7 +124,7 @@ def main(argv: list[str] | None = None) -> int:
             proc.wait(20)
         except subprocess.TimeoutExpired:
             proc.kill()
-    print(f"resting VmRSS, {args.config.name}, {args.rest:g} s after ready (start took {ready_s:.1f} s); "
+    print(f"{state} VmRSS, {args.config.name}, {args.rest:g} s after ready (start took {ready_s:.1f} s); "
           f"bare interpreter with numpy + pyzmq: {bare:.0f} MiB; load average {os.getloadavg()[0]:.1f}")
     for name, pid, rss, libs in rows:
         goal = f"goal <= {GOAL_MIB:.0f} MiB: {'meets' if rss <= GOAL_MIB else 'MISSES'}"

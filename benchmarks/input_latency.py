@@ -182,31 +182,32 @@ def measure(daemon: Any, trials: int, kind: str, target: Any) -> list[Trial]:
             raise RuntimeError(f"the {kind} sender did not start")
         conn.recv()
         ready(daemon)
-        for _ in range(trials):
-            if daemon.lifecycle != "active" and not ready(daemon):
-                out.append((time.monotonic(), np.full(4, np.nan), np.nan))  # lost: the head would not move
-                continue
-            settle = time.monotonic() + 1.0
-            while np.any(np.abs(daemon.state.shaper.v) > 1e-9) and time.monotonic() < settle:
-                time.sleep(0.002)
-            time.sleep(rng.uniform(0, daemon.period))  # a random phase in the cycle
-            fb = link.feedback()
-            before, stamp0 = float(fb.written[j]), fb.write_stamp
-            value = 6.0 if np.degrees(before) < 4.0 else 2.0  # always a move away from where it is
-            traced = daemon.runner.trace.count
-            conn.send(value)
-            t_send = conn.recv()
-            written = np.nan
-            end = t_send + 0.5
-            while time.monotonic() < end:
+        with D.Watching():  # this thread shares the loop's process: never preempted while it holds the GIL
+            for _ in range(trials):
+                if daemon.lifecycle != "active" and not ready(daemon):
+                    out.append((time.monotonic(), np.full(4, np.nan), np.nan))  # lost: the head would not move
+                    continue
+                settle = time.monotonic() + 1.0
+                while np.any(np.abs(daemon.state.shaper.v) > 1e-9) and time.monotonic() < settle:
+                    time.sleep(0.002)
+                time.sleep(rng.uniform(0, daemon.period))  # a random phase in the cycle
                 fb = link.feedback()
-                if fb.write_stamp > stamp0 and abs(float(fb.written[j]) - before) > 1e-9:
-                    written = fb.write_stamp
-                    break
-                time.sleep(0.0001)
-            trace = daemon.runner.trace
-            row = trace.last(1)[0] if trace.count > traced else np.full(4, np.nan)
-            out.append((t_send, row, written))
+                before, stamp0 = float(fb.written[j]), fb.write_stamp
+                value = 6.0 if np.degrees(before) < 4.0 else 2.0  # always a move away from where it is
+                traced = daemon.runner.trace.count
+                conn.send(value)
+                t_send = conn.recv()
+                written = np.nan
+                end = t_send + 0.5
+                while time.monotonic() < end:
+                    fb = link.feedback()
+                    if fb.write_stamp > stamp0 and abs(float(fb.written[j]) - before) > 1e-9:
+                        written = fb.write_stamp
+                        break
+                    time.sleep(0.0001)
+                trace = daemon.runner.trace
+                row = trace.last(1)[0] if trace.count > traced else np.full(4, np.nan)
+                out.append((t_send, row, written))
     finally:
         conn.send(None)
         proc.join(5.0)

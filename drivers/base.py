@@ -1,7 +1,8 @@
 """The ``MotorBus`` ABC: lifecycle, unit conversion and command guards shared by every backend.
 
 Public methods enforce the lifecycle (unconfigured → inactive → active, any → fault) and refuse
-commands outside each motor's configured position and velocity limits; backends implement the
+commands outside each motor's configured position and velocity limits (a motor enabled where it stood outside its
+position limits may only be commanded back toward them); backends implement the
 ``_``-prefixed hooks and only ever see commands that passed those checks. Positions are SI at this
 interface (radians for rotary axes, metres for linear ones); encoder counts exist only in backends.
 """
@@ -24,6 +25,17 @@ log = logging.getLogger(__name__)
 
 #: A value of a bus's driver options as the head config gives it (a TOML value).
 OptionValue: TypeAlias = "str | int | float | bool | Sequence[OptionValue] | Mapping[str, OptionValue]"
+
+
+def _toward_range(motor: MotorConfig, target: float, last: tuple[float, float] | None) -> bool:
+    """Whether ``target``, outside the motor's limits, is a move back toward them (or a hold) from its last command
+    ``last`` (position, stamp) outside them on the same side: a motor found outside its limits (enabled where it
+    stood) may only be brought back, never sent further out."""
+    if last is None:
+        return False
+    if target < motor.min_position:
+        return last[0] <= target
+    return last[0] >= target
 
 
 class LifecycleState(enum.Enum):
@@ -301,11 +313,12 @@ class MotorBus(abc.ABC):
                     raise CommandRejected(f"{name}: target {value!r} is not a number") from None
                 if not math.isfinite(target):
                     raise CommandRejected(f"{name}: target {target!r} is not finite")
-                if not motor.min_position <= target <= motor.max_position:
+                last = self._last_command.get(name)
+                if not motor.min_position <= target <= motor.max_position and not _toward_range(motor, target, last):
                     raise CommandRejected(
                         f"{name}: target {target:.6g} outside [{motor.min_position:.6g}, {motor.max_position:.6g}]"
+                        + ("" if last is None else f" and not toward it from {last[0]:.6g}")
                     )
-                last = self._last_command.get(name)
                 if last is not None:
                     dt = now - last[1]
                     if name in self._holding and dt < 0:

@@ -56,8 +56,8 @@ class RuntimeSettings:
     switch_interval_s: float = 0.0005  # sys.setswitchinterval while the loop runs (other threads yield sooner)
     stream_delay_s: float = 0.05  # jitter buffer: streamed frames play this long after their timestamp
     stream_phase_lock: bool = False  # slide the loop's phase to just after a steady stream's frames (runtime.phaselock)
-    # wanted time from a locked frame reaching the loop to the cycle that plays it; the loop takes frames between
-    # cycles until spin_us + 0.3 ms before a cycle, so the lead must exceed that for the lock to see the frames
+    # wanted time from a locked frame reaching the daemon (the API server's receipt stamp) to the cycle that plays it:
+    # it covers the hop from the server to the loop (a frame that reaches the loop later waits a whole period)
     stream_phase_lead_s: float = 0.0006
     stream_max_ahead_s: float = 30.0  # frames further in the future are refused
     stream_max_frames: int = 20000  # jitter buffer capacity

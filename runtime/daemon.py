@@ -43,8 +43,10 @@ from runtime.core.params import CoreParams
 from runtime.core.solvers import as_array_solvers, channel_sets
 from runtime.core.state import CoreState
 from runtime.hardware import Hardware
+from runtime.predictor_check import PredictorCheck
 from runtime.runner import Runner
 from runtime.solve import TargetSolver
+from runtime.strain_check import FullStrainCheck
 
 if TYPE_CHECKING:
     from models.strain_guard import StrainGuard
@@ -73,6 +75,19 @@ class Daemon:
         self.head = head
         self.overrides = dict(overrides or {})
         self.cfg: DaemonConfig = daemon_config(head, self.overrides)
+        predictor = head.path("predictor")
+        check = None if predictor is None or not predictor.is_file() else PredictorCheck(predictor, _child_env())
+        try:
+            self._build(head, hardware, target_solvers, record_inputs, strain_guard)
+            if check is not None:
+                check.result()  # onnxruntime itself accepts the predictor (checked while the rest was built)
+        finally:
+            if check is not None:
+                check.cancel()
+
+    def _build(self, head: HeadSpec, hardware: Hardware | None, target_solvers: Iterable[TargetSolver] | None,
+               record_inputs: bool, strain_guard: bool) -> None:
+        """Everything the daemon is made of before it starts (solvers, guard, inputs, asset checks)."""
         self.names = head.actuator_names
         self.period = 1.0 / self.cfg.runtime.rate_hz
         if target_solvers is None:
@@ -155,7 +170,8 @@ class Daemon:
         spec = server_mod.ServerSpec(str(self.head.source), self.overrides, self.channels, f"ipc://{self._tmp}/loop",
                                      f"{self._tmp}/commands",
                                      self._estop.name, self.cfg.safety.safe_speed,
-                                     logging.getLogger().getEffectiveLevel())
+                                     logging.getLogger().getEffectiveLevel(),
+                                     strain_check=None if self.guard is None else FullStrainCheck.of(self.guard))
         # A fresh interpreter (not multiprocessing's spawn, which re-imports the caller's main script): the spec
         # travels pickled on its standard input.
         self._server = subprocess.Popen([sys.executable, "-m", "runtime.server"], stdin=subprocess.PIPE,

@@ -48,10 +48,11 @@ def motor_config(act: ActuatorSpec) -> MotorConfig:
 
 
 def start_emulators(
-    head: HeadSpec, *, nice: int | None = None
+    head: HeadSpec, *, nice: int | None = None, initial: Mapping[str, float] | None = None
 ) -> tuple[dict[str, list[MotorConfig]], dict[str, DriverOptions], dict[str, simhw.SimProcess]]:
     """Motor configs and driver options per bus of ``head``, with an emulator process started (at its actuators'
-    neutral positions) for each simulated bus; returns (motors, options, emulators) keyed by bus name.
+    neutral positions, or ``initial[name]`` in SI where given) for each simulated bus; returns (motors, options,
+    emulators) keyed by bus name.
     Buses without actuators are skipped with a warning. On failure the emulators already started are stopped."""
     motors: dict[str, list[MotorConfig]] = {}
     options: dict[str, DriverOptions] = {}
@@ -66,7 +67,7 @@ def start_emulators(
             options[bus_name] = spec.driver_options()
             if spec.simulated:
                 sim = simhw.start(spec.driver, bus_name, options[bus_name], motors[bus_name],
-                                  {a.name: a.neutral for a in acts},
+                                  {a.name: (initial or {}).get(a.name, a.neutral) for a in acts},
                                   nice=simhw.EMULATOR_NICE if nice is None else nice)
                 sims[bus_name] = sim
                 options[bus_name] = sim.options
@@ -113,15 +114,17 @@ class Hardware:
         emulator_nice: int | None = None,
         bus_nice: int = 0,
         write_priority: int = 0,
+        initial: Mapping[str, float] | None = None,
     ) -> Hardware:
         """Start the emulators of simulated buses and create (not start) a bus proxy per bus.
 
         ``idle_hz`` is the feedback rate of a bus that gets no targets; ``realtime_priority`` asks for SCHED_FIFO in
         the bus processes; ``emulator_nice`` is added to the emulator processes' niceness (default
         :data:`runtime.simhw.EMULATOR_NICE`); ``bus_nice`` is added to the bus processes' niceness;
-        ``write_priority`` runs them at SCHED_FIFO within a CPU budget (:class:`runtime.bus.config.BusProcessConfig`).
+        ``write_priority`` runs them at SCHED_FIFO within a CPU budget (:class:`runtime.bus.config.BusProcessConfig`);
+        ``initial`` places emulated actuators (SI, by name) elsewhere than at neutral, e.g. outside their limits.
         """
-        motors, options, sims = start_emulators(head, nice=emulator_nice)
+        motors, options, sims = start_emulators(head, nice=emulator_nice, initial=initial)
         proxies = {
             bus: BusProxy(head.buses[bus].driver, bus, options[bus], motors[bus], idle_hz=idle_hz,
                           realtime_priority=realtime_priority, nice=bus_nice, write_priority=write_priority,

@@ -63,6 +63,12 @@ class RealtimeBudget:
             self.demoted += 1
             self.lower()
 
+    def keep_for_urgent(self, share: float) -> None:
+        """Before work that is not urgent: normal scheduling for it once more than ``share`` of this window's budget
+        is used, so the rest stays for the urgent work (:meth:`rearm` takes realtime back, within the budget)."""
+        if self.realtime and self.used() > share * self.budget:
+            self.lower()
+
     def lower(self) -> None:
         """Normal scheduling until :meth:`rearm` (e.g. the rest of a transaction need not preempt anything)."""
         if self.realtime:

@@ -66,10 +66,6 @@ class Runner:
         self.native_id = 0
         rt = params.cfg.runtime
         self.phase_lock = PhaseLock(params.period, lead=rt.stream_phase_lead_s) if rt.stream_phase_lock else None
-        if self.phase_lock is not None and rt.stream_phase_lead_s <= rt.spin_us * 1e-6 + COMMAND_MARGIN_S:
-            log.warning("runtime.stream_phase_lead_s = %g s is not more than spin_us + %g s: the phase lock cannot see "
-                        "frames arrive that late and will settle earlier than asked", rt.stream_phase_lead_s,
-                        COMMAND_MARGIN_S)
         self._deadline = 0.0  # the deadline the loop is waiting for (commands taken meanwhile are due then)
         self.trace = InputTrace()  # live values' and stream frames' stamps on their way to the bus
 
@@ -183,18 +179,19 @@ class Runner:
         return tuple(out)
 
     def _drain(self, deadline: float) -> list[Command]:
-        """The commands waiting on the command pipe; stream frames and live values tell the phase lock when this
-        loop took them, for the cycle due at ``deadline``. What matters is when a frame reaches the loop, not the
-        server: the hop between them takes a few hundred microseconds, more on a busy host. The loop watches the pipe
-        until ``COMMAND_MARGIN_S`` before each cycle (:meth:`_idle`), so a take time is the frame's arrival, or the
-        cycle's start for a frame that came later than that."""
+        """The commands waiting on the command pipe; stream frames and live values tell the phase lock when they
+        reached the daemon (the server's receipt stamp, the same monotonic clock; the take time when it is unknown),
+        for the cycle due at ``deadline``. The take time is no steady measure of arrival: the loop watches the pipe
+        between cycles only until ``COMMAND_MARGIN_S`` + spin before each one and not during a cycle's work, so a
+        frame near the lock's set point was taken either at once or at the next cycle's start, two clusters a third
+        of a period apart at 500 Hz, and the lock, which acts only on a tight cluster, never engaged."""
         taken = self.clock()
         cmds = self.commands.recv(MAX_COMMANDS_PER_CYCLE)
         for cmd in cmds:
             if isinstance(cmd, (Stream, Live)):
                 self.trace.taken(cmd.received, taken)
                 if self.phase_lock is not None:
-                    self.phase_lock.arrival(taken, deadline)
+                    self.phase_lock.arrival(taken if cmd.received is None else min(cmd.received, taken), deadline)
         return cmds
 
     def _estop_now(self) -> str | None:

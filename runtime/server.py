@@ -43,6 +43,7 @@ from runtime.decoder import DecodeJob, DecoderProcess, DecoderSpec, ReplyMap, di
 from runtime.loop import process_threads
 from runtime.recording_session import RecordingSession
 from runtime.requests import LocalRequest, to_command
+from runtime.strain_check import FullStrainCheck
 from runtime.telemetry import ActuatorUnits, Telemetry
 from runtime.wire_scan import RequestId, request_id_of
 
@@ -66,6 +67,7 @@ class ServerSpec:
     safe_speed: float  # [safety] safe_speed: the default speed of a pose
     log_level: int = logging.WARNING
     inline_bytes: int = 32 * 1024  # larger requests are decoded by the decoder process
+    strain_check: FullStrainCheck | None = None  # telemetry's full strain check (the daemon's guard's arrays)
 
 
 def main(spec: ServerSpec) -> None:
@@ -166,7 +168,7 @@ class Server:
         self.pending = PendingRequests()
         self.recording = None
         self.clients = bind_client_sockets(self.ctx, self.head, self.cfg)
-        self.telemetry = Telemetry(self.clients.pub, self.head, self.units)
+        self.telemetry = Telemetry(self.clients.pub, self.head, self.units, spec.strain_check)
         self.inputs = _start_inputs(self.head, self.channels, self.ctx, self.estop_flag, self.forward,
                                     self.cfg.runtime.inputs_priority)
         self.decoder = DecoderProcess(self.ctx, DecoderSpec(spec.channels, spec.safe_speed, spec.inline_bytes))

@@ -13,6 +13,11 @@ arrives closer than its stopping distance right after limits shrank, or from a r
 brakes at its full limits instead, which stops it before the target it was moving toward; a position that would
 still leave them is clipped and counted in :attr:`clamps`.
 
+A reset outside [lo, hi] (a motor found out of its range when the head enabled) keeps that position: the bound it
+lies beyond is widened to it (:attr:`lo_now`, :attr:`hi_now`) and narrows back with every cycle's command, so the
+actuator can only move back toward its range, at its limits, never further out (targets are clipped into [lo, hi]).
+:attr:`outside` marks the actuators still out of range.
+
 Jerk limit: per actuator, or by default ``amax / DEFAULT_JERK_TIME`` (full acceleration reached in 20 ms).
 """
 
@@ -59,6 +64,9 @@ class Shaper:
         self.jmax = _limit_array("jmax", self.amax / DEFAULT_JERK_TIME if jmax is None else jmax, n)
         self.lo = None if lo is None else np.asarray(lo, dtype=float).copy()
         self.hi = None if hi is None else np.asarray(hi, dtype=float).copy()
+        #: The bounds commands keep to now: [lo, hi], widened to a reset position outside them (module docstring).
+        self.lo_now, self.hi_now = self.lo, self.hi
+        self._outside = False
         if (self.lo is None) != (self.hi is None):
             raise ValueError("give both lo and hi, or neither")
         if self.lo is not None and self.hi is not None and (
@@ -111,7 +119,10 @@ class Shaper:
             raise ValueError(f"reset needs {self.n} finite positions and velocities, got {q.tolist()}, "
                              f"{v_arr.tolist()}")
         if self.lo is not None and self.hi is not None:
-            q = np.clip(q, self.lo, self.hi)
+            tol = 1e-9 * np.maximum(1.0, self.hi - self.lo)  # rounding: clipped, not an actuator out of range
+            q = np.where((q >= self.lo - tol) & (q <= self.hi + tol), np.clip(q, self.lo, self.hi), q)
+            self.lo_now, self.hi_now = np.minimum(self.lo, q), np.maximum(self.hi, q)
+            self._outside = bool(np.any(q < self.lo) or np.any(q > self.hi))
         self.q, self.v, self.a = q.copy(), v_arr.copy(), np.zeros(self.n)
         inp = self._inp
         inp.current_position = self.q.tolist()
@@ -164,10 +175,10 @@ class Shaper:
         self.v = np.array(out.new_velocity)
         self.a = np.array(out.new_acceleration)
         if self._clamping:  # a braking plan that could not stay inside the limits (see the module docstring)
-            outside = (q < self.lo) | (q > self.hi)
+            outside = (q < self.lo_now) | (q > self.hi_now)
             if outside.any():
                 self.clamps += 1
-                q = np.clip(q, self.lo, self.hi)
+                q = np.clip(q, self.lo_now, self.hi_now)
                 self.v = np.where(outside, 0.0, self.v)
                 self.a = np.where(outside, 0.0, self.a)
                 inp.current_position, inp.current_velocity = q.tolist(), self.v.tolist()
@@ -175,11 +186,13 @@ class Shaper:
             else:
                 out.pass_to_input(inp)
         else:
-            if self.lo is not None:  # rounding only: plans were checked against the limits
-                np.maximum(q, self.lo, out=q)
-                np.minimum(q, self.hi, out=q)
+            if self.lo_now is not None:  # rounding only: plans were checked against the limits
+                np.maximum(q, self.lo_now, out=q)
+                np.minimum(q, self.hi_now, out=q)
             out.pass_to_input(inp)
         self.q = q
+        if self._outside:
+            self._narrow()
         if self._any_hold:  # a held actuator stays where it stops
             self._target = np.where(self._holding, q, self._target)
         return q
@@ -188,8 +201,8 @@ class Shaper:
         """Every actuator is done: exactly at its target (held ones where they stopped), at rest, no rounding left."""
         if self._any_hold:
             stopped = np.array(self._out.new_position)
-            if self.lo is not None:  # rounding only, as in step
-                stopped = np.minimum(np.maximum(stopped, self.lo), self.hi)
+            if self.lo_now is not None:  # rounding only, as in step
+                stopped = np.minimum(np.maximum(stopped, self.lo_now), self.hi_now)
             self._target = np.where(self._holding, stopped, self._target)
         if not (np.array_equal(self.q, self._target) and not self.v.any() and not self.a.any()):
             self.q = self._target.copy()
@@ -198,7 +211,23 @@ class Shaper:
             inp = self._inp
             inp.current_position = self.q.tolist()
             inp.current_velocity = inp.current_acceleration = [0.0] * self.n
+        if self._outside:
+            self._narrow()
         return self.q
+
+    @property
+    def outside(self) -> np.ndarray:
+        """Actuators whose command is still outside [lo, hi] (back from a reset outside them)."""
+        if self.lo is None or self.hi is None or not self._outside:
+            return np.zeros(self.n, dtype=bool)
+        return (self.q < self.lo) | (self.q > self.hi)
+
+    def _narrow(self) -> None:
+        """Narrow the widened bounds to the command: what an actuator came back, it cannot go out again."""
+        assert self.lo is not None and self.hi is not None and self.lo_now is not None and self.hi_now is not None
+        self.lo_now = np.minimum(self.lo, np.maximum(self.lo_now, self.q))
+        self.hi_now = np.maximum(self.hi, np.minimum(self.hi_now, self.q))
+        self._outside = bool(np.any(self.lo_now < self.lo) or np.any(self.hi_now > self.hi))
 
     def _set_targets(self, x: np.ndarray) -> None:
         if x.shape != (self.n,):
@@ -238,12 +267,12 @@ class Shaper:
 
     def _leaving_limits(self) -> np.ndarray:
         """Actuators whose newly computed plan leaves [lo, hi] (beyond a rounding tolerance)."""
-        assert self.lo is not None and self.hi is not None
+        assert self.lo is not None and self.hi is not None and self.lo_now is not None and self.hi_now is not None
         ext = self._out.trajectory.position_extrema
         lo = np.array([e.min for e in ext])
         hi = np.array([e.max for e in ext])
         tol = 1e-9 * np.maximum(1.0, self.hi - self.lo)
-        return (lo < self.lo - tol) | (hi > self.hi + tol)
+        return (lo < self.lo_now - tol) | (hi > self.hi_now + tol)
 
     def _brake_fully(self, which: np.ndarray) -> Result:
         """Replan ``which`` actuators as a stop at their full (unscaled) limits; the others keep their plans."""

@@ -24,7 +24,7 @@ from runtime.core.events import Body
 
 if TYPE_CHECKING:
     from models.linkmap import LinkMap
-    from models.strain_guard import StrainGuard
+    from runtime.strain_check import FullStrainCheck
 
 log = logging.getLogger(__name__)
 
@@ -101,11 +101,14 @@ class Telemetry:
     _links_cache: tuple[bytes, dict[str, list[float]]] | None = None
     _guard_cache: tuple[bytes, Body] | None = None
 
-    def __init__(self, pub: zmq.Socket, head: HeadSpec, units: ActuatorUnits) -> None:
+    def __init__(self, pub: zmq.Socket, head: HeadSpec, units: ActuatorUnits,
+                 strain_check: FullStrainCheck | None = None) -> None:
         self.pub = pub
         self.units = units
         self.linkmap = _load_linkmap(head)
-        self.guard = _load_guard(head)  # the full strain check, confirming the loop's reduced one
+        # the full strain check, confirming the loop's reduced one: NumPy arrays from the daemon's guard, so this
+        # process never loads onnxruntime or scipy (runtime.strain_check)
+        self.guard = strain_check
         self.guard_mismatch = 0
         self.loop: Body = {}  # the loop's statistics, summarised (runtime.loop_messages.LoopStatistics)
         self.realtime = "not started"
@@ -212,16 +215,6 @@ def plain(obj: object) -> object:
     if isinstance(obj, np.generic):
         return obj.item()
     return obj
-
-
-def _load_guard(head: HeadSpec) -> StrainGuard | None:
-    from models.strain_guard import StrainGuard
-
-    try:
-        return StrainGuard.for_head(head)
-    except Exception:
-        log.exception("the full skin-strain check is unavailable")
-        return None
 
 
 def _load_linkmap(head: HeadSpec) -> LinkMap | None:

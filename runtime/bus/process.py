@@ -19,6 +19,7 @@ import math
 import os
 import select
 import signal
+import sys
 import time
 from collections.abc import Mapping
 from multiprocessing.connection import Connection
@@ -37,6 +38,10 @@ from runtime.rtbudget import RealtimeBudget
 
 log = logging.getLogger(__name__)
 
+#: ``sys.setswitchinterval`` in the bus process (s): other threads yield the GIL to a write this soon.
+SWITCH_INTERVAL_S = 0.0002
+#: Share of the realtime budget reads may use; the rest is kept for writes (:meth:`RealtimeBudget.keep_for_urgent`).
+READ_SHARE = 0.5
 #: A counter value no post reaches: nothing is written before the next enable.
 _NEVER = 1 << 62
 
@@ -149,6 +154,11 @@ class BusServer:
                     self.bus.write(dict(zip(self.names, targets.tolist(), strict=True)), stamp=float(snap[0]))
                     self.written = targets
                     self.write_stamp = time.monotonic()
+            # The write is urgent, the read less so: once half the window's realtime budget is spent, reads run at
+            # normal scheduling and the rest is kept for writes (at 500 Hz a write plus a read took more than the
+            # whole budget, and the process wrote at normal priority, behind the emulators, for the rest of every
+            # window; at 250 Hz reads stay realtime, as the feedback watch wants them).
+            self.budget.keep_for_urgent(READ_SHARE)
             if self.bus.state is not LifecycleState.UNCONFIGURED:
                 states = self.bus.read()
         except Exception as exc:
@@ -343,6 +353,10 @@ def _setup_process(cfg: BusProcessConfig) -> None:
         raise SystemExit(0)  # SIGTERM (e.g. multiprocessing's exit handler): leave through the torque-off below
 
     signal.signal(signal.SIGTERM, _terminate)
+    # The driver's own threads (python-can's notifier parsing every received frame, heartbeat monitors) must hand the
+    # GIL back within a fraction of a control period when new targets wake this process: at the default 5 ms a
+    # write waited up to a whole switch interval behind them (the bus-write stage's p99 at 500 Hz).
+    sys.setswitchinterval(SWITCH_INTERVAL_S)
     logging.basicConfig(level=cfg.log_level, format=f"%(asctime)s bus {cfg.name} %(levelname)s %(message)s")
     if cfg.nice:
         with contextlib.suppress(OSError):

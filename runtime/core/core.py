@@ -34,7 +34,7 @@ import numpy as np
 from runtime.core import buses, chasing, guard, lifecycle, recorder, shape, solve, sources, status, watch
 from runtime.core import commands as C
 from runtime.core.cycle import CycleInputs, CycleOutputs
-from runtime.core.events import Body
+from runtime.core.events import Body, OutOfRange
 from runtime.core.params import CoreParams
 from runtime.core.state import CoreState
 
@@ -94,10 +94,23 @@ def _control(state: CoreState, params: CoreParams, out: CycleOutputs, t: float) 
             targets = guard.guarded(state.guard, params.guard, state.safety, state.shaper.q, targets)
         else:
             targets = state.safety.constrain(targets, state.shaper.q)
-        out.write = shape.shape(state.shaper, targets, drive.speed, hold)
+        out.write = shape.shape(state.shaper, targets, drive.speed, hold, params.cfg.safety.safe_speed)
+        if state.out_of_range is not None:  # actuators enabled outside their limits, being brought back
+            still = state.shaper.outside
+            _report_range(state, params, out, t, state.out_of_range & ~still, "inside")
+            state.out_of_range = still if still.any() else None
     except Exception as exc:  # a failing solver or a bug: nothing is written, the head faults, replies stand
         out.write = None
         fault(state, params, out, t, "control loop", f"control cycle failed: {type(exc).__name__}: {exc}")
+
+
+def _report_range(state: CoreState, params: CoreParams, out: CycleOutputs, t: float, which: np.ndarray,
+                  where: str) -> None:
+    """An ``out_of_range`` event for each actuator in ``which`` (found outside its limits, or back inside)."""
+    for i in np.flatnonzero(which):
+        k = params.scale[i]
+        out.emit(OutOfRange(t, params.names[i], where, float(state.shaper.q[i] / k), float(state.safety.lo[i] / k),
+                            float(state.safety.hi[i] / k), params.units[i]))
 
 
 def _watch(state: CoreState, params: CoreParams, out: CycleOutputs, t: float) -> lifecycle.Trouble | None:
@@ -234,6 +247,8 @@ def _settle(state: CoreState, params: CoreParams, out: CycleOutputs, t: float) -
     if tr is None:
         return
     if tr.op == "enable" and not tr.failed:
-        shape.restart(state.shaper, state.safety, state.feedback.measured, state.feedback.written)
+        outside = shape.restart(state.shaper, state.safety, state.feedback.measured, state.feedback.written)
+        state.out_of_range = outside if outside.any() else None
+        _report_range(state, params, out, t, outside, "outside")
         _halt(state)
     lifecycle.conclude(state.life, state.feedback, params, out, t, tr)

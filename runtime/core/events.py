@@ -206,7 +206,27 @@ class RecordStopped:
         return {"event": "record", "t": self.t, "state": "stopped", "name": self.name, "samples": self.samples}
 
 
+@dataclass(frozen=True)
+class OutOfRange:
+    """An actuator enabled where it stood outside its configured limits (``state`` ``outside``: it is being brought
+    back at safe speed, never further out) or back inside them (``inside``); ``position`` and the limits in its
+    config unit."""
+
+    t: float
+    actuator: str
+    state: str  # "outside" or "inside"
+    position: float
+    min: float
+    max: float
+    unit: str
+
+    def as_dict(self) -> Body:
+        """The ``out_of_range`` event."""
+        return {"event": "out_of_range", "t": self.t, "actuator": self.actuator, "state": self.state,
+                "position": self.position, "min": self.min, "max": self.max, "unit": self.unit}
+
+
 #: Every event the core publishes.
 Event: TypeAlias = (LifecycleChanged | Fault | EStopped | BusConnectionChanged | FeedbackLate | BusRequestFailed
                     | ClipPlaying | ClipFinished | Watchdog | DroppedFrames | TimecodeChanged | RecordStarted
-                    | RecordStopped)
+                    | RecordStopped | OutOfRange)

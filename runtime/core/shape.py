@@ -21,20 +21,27 @@ def make_shaper(head: HeadSpec, period: float) -> Shaper:
     return shaper
 
 
-def shape(shaper: Shaper, x: np.ndarray, speed: float, hold: np.ndarray) -> np.ndarray:
+def shape(shaper: Shaper, x: np.ndarray, speed: float, hold: np.ndarray, safe_speed: float = 1.0) -> np.ndarray:
     """The shaper on constrained targets ``x``: an actuator told to hold (``hold``) whose constrained target is just
-    its present command brakes to a stop where it is instead of being sent back there."""
+    its present command brakes to a stop where it is instead of being sent back there. An actuator still outside its
+    limits (enabled where it stood out of range) moves back at no more than ``safe_speed``."""
     if hold.any():
         x = np.where(hold & (x == shaper.q), np.nan, x)
+    outside = shaper.outside
+    if outside.any():
+        return shaper.step(x, np.where(outside, min(speed, safe_speed), speed)).copy()
     return shaper.step(x, speed).copy()
 
 
-def restart(shaper: Shaper, safety: SafetyFilter, measured: np.ndarray, held: np.ndarray | None = None) -> None:
+def restart(shaper: Shaper, safety: SafetyFilter, measured: np.ndarray, held: np.ndarray | None = None) -> np.ndarray:
     """Start commanding from where the head is: the positions the buses hold since they enabled (``held``: the
-    drivers measure the first target's step against them), else the measured positions, within limits; the last
-    command where neither is known. Starting from positions measured a few milliseconds after the hold would make
-    any motion in between (a motor settling or still coasting) a step the drivers refuse as too fast."""
+    drivers measure the first target's step against them), else the measured positions; the last command where
+    neither is known. Starting from positions measured a few milliseconds after the hold would make any motion in
+    between (a motor settling or still coasting) a step the drivers refuse as too fast. A position outside the
+    limits is kept, not clipped (a clipped start would be a jump the drivers refuse): the shaper then brings that
+    actuator back into range at its limits and never further out. Returns the mask of actuators outside them."""
     q = np.where(np.isfinite(measured), measured, shaper.q)
     if held is not None:
         q = np.where(np.isfinite(held), held, q)
-    shaper.reset(np.clip(q, safety.lo, safety.hi))
+    shaper.reset(q)
+    return (q < safety.lo) | (q > safety.hi)

@@ -10,6 +10,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import numpy as np
+
 from models.headspec import HeadSpec
 from runtime.core.buses import BusesState
 from runtime.core.chase import Chase
@@ -41,6 +43,7 @@ class CoreState:
     shaper: Shaper  # commanded position, velocity and acceleration (jerk-limited, ruckig)
     watch: WatchState  # feedback age and following error: what was posted, since when an error is exceeded
     chase: Chase | None = None  # timecode chase, when a timecode input is configured
+    out_of_range: np.ndarray | None = None  # actuators enabled outside their limits and not yet back (None: none)
     cycle: int = 0
 
     @classmethod

@@ -173,13 +173,8 @@ def check_following(w: WatchState, wp: WatchParams, names: tuple[str, ...], buse
 def following_errors(posted: np.ndarray, measured: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """Per actuator, how far ``measured`` lies outside the span of the commands ``posted`` (rows; NaN rows: none);
     0 where nothing was posted or nothing measured. Into ``out`` when given."""
-    lo = np.array(posted[0]) if out is None else out
-    if out is not None:
-        lo[:] = posted[0]
-    hi = posted[0].copy()
-    for row in posted[1:]:  # fmin/fmax skip NaN: a row not yet posted
-        np.fmin(lo, row, out=lo)
-        np.fmax(hi, row, out=hi)
+    lo = np.fmin.reduce(posted, axis=0, out=out)  # fmin/fmax skip NaN: a row not yet posted (one call each)
+    hi = np.fmax.reduce(posted, axis=0)
     np.subtract(lo, measured, out=lo)
     np.subtract(measured, hi, out=hi)
     np.fmax(lo, hi, out=lo)

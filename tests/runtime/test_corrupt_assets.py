@@ -60,3 +60,22 @@ def test_a_corrupt_clip_stops_stream_with_one_line(tmp_path: Path) -> None:
     lines = [line for line in res.stderr.splitlines() if line.strip()]
     assert res.returncode == 2, res.stderr[-3000:]
     assert len(lines) == 1 and "clip.json" in lines[0] and "Traceback" not in res.stderr
+
+
+def test_a_predictor_onnxruntime_refuses_stops_the_daemon_at_start(tmp_path: Path) -> None:
+    """A predictor whose graph parses (names, metadata and weights read as usual) but names an operator onnxruntime
+    does not know: the daemon's own processes never open it with onnxruntime, so its start-up check does."""
+    head = _head_copy(tmp_path)
+    onnx = (SAMPLE / "predictor.onnx").read_bytes()
+    assert onnx.count(b"Tanh") == 3  # the hidden layer of each axis: one byte changed keeps the protobuf valid
+    (head / "predictor.onnx").unlink()
+    (head / "predictor.onnx").write_bytes(onnx.replace(b"Tanh", b"Tanx"))
+    from models.predictor import SkinPredictor
+
+    assert SkinPredictor(head / "predictor.onnx", session=False).weights.hidden > 0  # parses, as the loop reads it
+    res = _likeness("daemon", "--config", str(head / "head.toml"), cwd=tmp_path)
+    lines = [line for line in res.stderr.splitlines() if line.strip()]
+    assert res.returncode == 2, res.stderr[-3000:]
+    assert len(lines) == 1 and lines[0].startswith("likeness daemon: error: "), res.stderr[-3000:]
+    assert "predictor.onnx" in lines[0] and "onnxruntime" in lines[0] and "Traceback" not in res.stderr
+    print("\n" + lines[0][:300])

@@ -70,3 +70,30 @@ def test_priority_zero_leaves_scheduling_alone() -> None:
     assert p.enter() == "normal scheduling"
     p.spent()
     assert not p.realtime
+
+
+def test_work_that_is_not_urgent_leaves_the_rest_of_the_budget_to_the_urgent_work() -> None:
+    """A bus process's read after its write: realtime while less than half the budget is used, normal scheduling
+    once more is (so the budget lasts for writes), realtime again for the next write."""
+    seen: dict[str, object] = {}
+
+    def thread() -> None:
+        p = RealtimeBudget(5, share=0.1, window_s=0.5)  # 50 ms of CPU per 500 ms window
+        seen["enter"] = p.enter()
+        p.keep_for_urgent(0.5)
+        seen["read_rt_early"] = p.realtime and _policy() == os.SCHED_FIFO
+        end = time.thread_time() + 0.03  # 30 ms of reads and writes: more than half the budget
+        while time.thread_time() < end:
+            pass
+        p.keep_for_urgent(0.5)
+        seen["read_rt_late"] = p.realtime or _policy() == os.SCHED_FIFO
+        p.rearm()  # the next write: within the budget, realtime again
+        seen["write_rt"] = p.realtime and _policy() == os.SCHED_FIFO
+        p._set(False)
+
+    th = threading.Thread(target=thread)
+    th.start()
+    th.join(10)
+    if seen["enter"] != "SCHED_FIFO 5":  # no CAP_SYS_NICE here
+        return
+    assert seen["read_rt_early"] and not seen["read_rt_late"] and seen["write_rt"]

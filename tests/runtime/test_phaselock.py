@@ -71,3 +71,100 @@ def test_half_rate_stream_locks_every_other_cycle() -> None:
     waits, _ = simulate(arrivals, lock, 2000)
     assert lock.locked
     assert abs(np.median(waits[-200:]) - lock.lead) < 50e-6
+
+
+class _Pipe:
+    """A command pipe holding given commands (what :meth:`runtime.runner.Runner._drain` reads)."""
+
+    def __init__(self, cmds: list) -> None:
+        self.cmds = cmds
+
+    def recv(self, most: int) -> list:
+        out, self.cmds = self.cmds[:most], self.cmds[most:]
+        return out
+
+
+def test_runner_feeds_the_lock_the_daemons_receipt_stamps() -> None:
+    """The loop takes a frame off the pipe either at once or only at the next cycle's start (it does not watch the
+    pipe during a cycle's work nor just before a cycle): the lock must judge the frame by when the daemon received
+    it, which that does not move, or a steady 500 Hz sender's phases split in two clusters and it never locks."""
+    from runtime.core.commands import Live
+    from runtime.runner import Runner
+
+    period, lead = 0.002, 0.0006
+    runner = Runner.__new__(Runner)  # only what _drain touches
+    runner.phase_lock = PhaseLock(period, lead=lead)
+    from runtime.input_trace import InputTrace
+
+    runner.trace = InputTrace()
+    rng = np.random.default_rng(5)
+    deadline = 1.0
+    for k in range(400):
+        received = deadline - lead + rng.normal(0, 20e-6)  # a steady sender at the lock's set point
+        taken = received + 80e-6 if k % 2 else deadline  # at once, or at the cycle's start (the blind window)
+        runner.clock = lambda taken=taken: taken
+        runner.commands = _Pipe([Live(k, received=received)])
+        runner._drain(deadline)
+        assert runner.phase_lock.last_error == pytest.approx(deadline - received - lead)
+        deadline += period + runner.phase_lock.correction()
+    assert runner.phase_lock.locked
+    assert runner.trace.count == 400 and np.isfinite(runner.trace.last(1)[0][0])
+
+
+def test_a_steady_stream_with_late_stragglers_stays_locked() -> None:
+    """At 500 Hz a loaded host delivers some frames milliseconds late: the lock, once engaged, holds through them
+    (it lets go only when the phases really scatter) and a straggler (here a third to two thirds of a period late:
+    later ones look like the next frame on time) moves no deadline."""
+    p = 0.002
+    rng = np.random.default_rng(11)
+    n = 6000
+    late = rng.random(n) < 0.12
+    arrivals = (np.arange(n) + 0.37) * p + rng.normal(0, 40e-6, n) + late * rng.uniform(0.6e-3, 1.4e-3, n)
+    lock = PhaseLock(p, lead=0.0006)
+    deadline, i, locked, waits, moved_by_late = p, 0, [], [], []
+    order = np.argsort(arrivals)
+    arrivals, late = arrivals[order], late[order]
+    for _ in range(n):
+        taken_late = False
+        while i < n and arrivals[i] <= deadline:
+            lock.arrival(arrivals[i], deadline)
+            if not late[i]:
+                waits.append(deadline - arrivals[i])
+            taken_late = bool(late[i])
+            i += 1
+        step = lock.correction()
+        if taken_late:
+            moved_by_late.append(step)
+        locked.append(lock.locked)
+        deadline += p + step
+    assert all(locked[1000:]), f"let go {locked[1000:].count(False)} times"
+    assert abs(np.median(waits[-1000:]) - lock.lead) < 60e-6
+    assert max(abs(s) for s in moved_by_late[-200:]) < 0.25 * lock.max_step * p  # stragglers move nothing much
+
+
+def test_a_stream_that_moves_its_phase_is_locked_again() -> None:
+    """Every frame a straggler (the sender re-phased by half a period): the lock lets go and locks onto the new
+    phase."""
+    p = 0.002
+    n = 4000
+    arrivals = (np.arange(n) + 0.3) * p
+    arrivals[n // 2:] += 0.5 * p
+    lock = PhaseLock(p, lead=0.0006)
+    waits, _ = simulate_p(np.sort(arrivals), lock, n, p)
+    assert lock.locked
+    assert abs(np.median(waits[-300:]) - lock.lead) < 60e-6
+
+
+def simulate_p(arrivals: np.ndarray, lock: PhaseLock, cycles: int, period: float) -> tuple[list[float], list[float]]:
+    """:func:`simulate` at another period."""
+    deadline, i = period, 0
+    waits, steps = [], []
+    for _ in range(cycles):
+        while i < len(arrivals) and arrivals[i] <= deadline:
+            lock.arrival(arrivals[i], deadline)
+            waits.append(deadline - arrivals[i])
+            i += 1
+        step = lock.correction()
+        steps.append(step)
+        deadline += period + step
+    return waits, steps

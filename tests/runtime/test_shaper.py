@@ -186,3 +186,35 @@ def test_bad_input_is_refused_by_name():
         Shaper(np.ones(2), np.ones(2), None, DT, lo=np.zeros(2), hi=np.zeros(2))
     with pytest.raises(ValueError, match="reset"):
         sh.reset(np.array([np.nan, 0.0, 0.0]))
+
+
+@pytest.mark.parametrize("start, target", [(-0.9, -3.0), (1.6, 9.0), (-0.9, 0.5), (1.6, 0.1)])
+def test_reset_outside_the_limits_moves_back_never_further_out(start: float, target: float) -> None:
+    """A reset outside [lo, hi] (a motor enabled out of range) keeps that position; a hold keeps it there, any
+    target (clipped into the range, even one further out) brings it back at the shaper's limits, monotonically,
+    and the widened bound narrows behind it."""
+    sh = make()
+    q0 = np.array([0.0, 0.0, start])  # the third actuator's range is [0, 1.2]
+    sh.reset(q0)
+    assert sh.q[2] == start and sh.outside.tolist() == [False, False, True]
+    for _ in range(20):  # a hold (NaN) stays where it stands: the core turns a hold into the nearest limit
+        sh.step(np.full(3, np.nan))
+    assert sh.q[2] == start
+    x = np.array([np.nan, np.nan, target])
+    prev = sh.q.copy()
+    for _ in range(2000):
+        sh.step(x)
+        assert np.all(np.abs(sh.q - prev) <= sh.vmax * DT * (1 + REL) + 1e-15)
+        side = np.sign(start - HI[2]) if start > HI[2] else -1.0
+        assert side * (sh.q[2] - prev[2]) <= 1e-12  # only ever toward the range
+        assert sh.lo_now[2] <= min(sh.q[2], LO[2]) and sh.hi_now[2] >= max(sh.q[2], HI[2])
+        prev = sh.q.copy()
+        if not sh.outside.any() and np.allclose(sh.v, 0.0):
+            break
+    assert not sh.outside.any()
+    assert LO[2] <= sh.q[2] <= HI[2]
+    assert sh.lo_now[2] == LO[2] and sh.hi_now[2] == HI[2]  # the bounds are the configured ones again
+    sh.step(np.array([np.nan, np.nan, -5.0]))  # and a target outside is clipped as ever
+    for _ in range(2000):
+        sh.step(np.array([np.nan, np.nan, -5.0]))
+    assert sh.q[2] == pytest.approx(LO[2])
