@@ -271,7 +271,7 @@ def layered_skin_folder(src_dir: str | Path, out_dir: str | Path, layers: int = 
                          "tets": source.n_tets},
               "counts": {"nodes": lay.mesh.n_nodes, "tets": lay.mesh.n_tets, "surface_nodes": S,
                          "inner_nodes": int(S)},
-              "node_sets": {k: int(len(v)) for k, v in lay.mesh.node_sets.items()},
+              "node_sets": {k: len(v) for k, v in lay.mesh.node_sets.items()},
               "set_nodes_trimmed": lay.dropped_set_nodes,
               "columns_untangled": lay.untangled_columns,
               "thickness_m": {"min": float(lay.thickness.min()), "median": float(np.median(lay.thickness)),

@@ -8,7 +8,6 @@ import json
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from offline.design.layered import folded_prisms, layered_mesh, layered_skin_folder, prism_tets
 from offline.fem import TetMesh, load_mesh
@@ -68,9 +67,9 @@ def test_sample_skin_extruded_in_two_layers(tmp_path: Path):
         assert len(set(row[row >= 0].tolist())) <= 1
     assert json.loads((tmp_path / "mesh_report.json").read_text())["counts"]["tets"] == mesh.n_tets
     assert 0.002 < report["thickness_m"]["median"] < 0.008
-    assert len(boundary_faces(mesh)) > 2 * len(np.asarray(z_tri := np.load(SKIN / "face_units.npz")
-                                                          ["surface_triangles"]))
-    del z_tri
+    with np.load(SKIN / "face_units.npz") as z:
+        n_tri = len(z["surface_triangles"])
+    assert len(boundary_faces(mesh)) > 2 * n_tri  # outer, inner and the rims' walls
 
 
 def test_a_folded_column_is_untangled():
@@ -78,7 +77,7 @@ def test_a_folded_column_is_untangled():
     g = np.array([[0, 0], [1, 0], [2, 0], [0, 1], [1, 1], [2, 1], [0, 2], [1, 2], [2, 2]], float) * 2e-3
     tris = np.array([[0, 1, 4], [0, 4, 3], [1, 2, 5], [1, 5, 4], [3, 4, 7], [3, 7, 6], [4, 5, 8], [4, 8, 7]])
     pos = np.c_[g, np.zeros(9)]
-    end = pos + [0, 0, -3e-3]
+    end = pos + np.array([0, 0, -3e-3])
     end[4] += [5e-3, 0, 0]  # the centre column crosses its right neighbours
     assert folded_prisms(pos, tris, end).size > 0
     from offline.design.layered import untangle_columns
@@ -88,7 +87,7 @@ def test_a_folded_column_is_untangled():
 
 
 def test_rest_shape_derivatives_on_the_layered_skin():
-    from offline.fem import neo_hookean, internal_forces
+    from offline.fem import internal_forces, neo_hookean
     from offline.fem.rest_shape import mixed_stiffness
 
     src = load_mesh(SKIN / "skin.vtu")
