@@ -26,6 +26,8 @@ from .warp import ThicknessWarp, build_warp
 #: mesh: the columns' own directions fold 18 elements when every height grows by 2 mm and 2 at ±3 mm contrasts
 #: between neighbouring samples; 30 rings fold 1 and 0 (``tests/offline/design/test_design_layered.py``).
 WARP_SMOOTHING = 30
+#: A layered mesh folder's per-node columns (written by :func:`offline.design.layered.layered_skin_folder`).
+COLUMNS_FILE = "columns.npz"
 
 
 @dataclass(frozen=True, eq=False)
@@ -154,8 +156,6 @@ def _columns(face: FaceSkin) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None
     quadratic mesh take their nearest corner's (the warp then puts them at their edges' midpoints). The direction
     is the outer surface's normal smoothed over ``WARP_SMOOTHING`` rings, at the node's column."""
     from scipy.spatial import cKDTree
-
-    from .layered import COLUMNS_FILE
 
     path = face.mesh_dir / COLUMNS_FILE
     if not path.is_file():

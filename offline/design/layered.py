@@ -26,11 +26,11 @@ import numpy as np
 
 from offline.fem.mesh import TetMesh, boundary_faces, signed_volumes, tet_quality
 
+from .face import COLUMNS_FILE, vertex_normals
+
 MESH_FILE = "skin.vtu"
 UNITS_FILE = "face_units.npz"
 REPORT_FILE = "mesh_report.json"
-#: Per-node thickness direction and column height of a layered mesh: what the thickness warp moves along and scales.
-COLUMNS_FILE = "columns.npz"
 
 
 @dataclass(frozen=True)
@@ -89,8 +89,6 @@ def column_directions(outer_pos: np.ndarray, triangles: np.ndarray, toward: np.n
                       ) -> np.ndarray:
     """Unit vertex normals of the outer surface smoothed over ``smooth`` rings, signed to point to ``toward``
     (points on the inner side, one per vertex)."""
-    from .face import vertex_normals
-
     n = vertex_normals(outer_pos, triangles, smooth=smooth)
     if np.mean(np.einsum("ij,ij->i", n, toward - outer_pos)) < 0:
         n = -n
@@ -126,8 +124,6 @@ def untangle_columns(outer_pos: np.ndarray, triangles: np.ndarray, end: np.ndarr
     surface's own (one-ring) normal; if its prism still folds, its column is shortened by ``shrink`` per round
     (not below ``min_height``): the skin is made locally thinner rather than tangled.
     """
-    from .face import vertex_normals
-
     outer_pos = np.asarray(outer_pos, dtype=np.float64)
     tri = np.asarray(triangles, dtype=np.int64)
     end = np.array(end, dtype=np.float64)

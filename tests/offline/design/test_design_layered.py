@@ -129,3 +129,25 @@ def test_large_thickness_steps_keep_the_layered_skin_unfolded(tmp_path: Path):
     assert inverted["layered"]["thin"] == 0 and inverted["layered"]["contrast"] == 0
     assert inverted["shipped"]["thin"] > 0
     assert inverted["layered"]["thick"] < inverted["shipped"]["thick"]
+
+
+def test_warp_on_layered_skin_scales_each_column(tmp_path: Path):
+    """All sample heights × 1.5 move every free inner node by half its column's height, a mid-layer node by a
+    quarter, and no attachment node; the rest shape at the reference heights is the mesh itself."""
+    from offline.design.face import face_warp, load_face
+
+    layered_skin_folder(SKIN, tmp_path, layers=2)
+    face = load_face(ROOT / "heads" / "sample" / "head.toml", tmp_path)
+    warp, h0 = face_warp(face, n_samples=20)
+    X0 = np.asarray(face.mesh.nodes)
+    assert np.allclose(warp.rest_positions(h0), X0)
+    with np.load(tmp_path / "columns.npz") as z:
+        height, col = np.asarray(z["thickness"]), np.asarray(z["column"])
+    move = np.linalg.norm(warp.rest_positions(1.5 * h0) - X0, axis=1)
+    S = len(face.outer)
+    held = np.isin(col, col[face.locked])
+    inner = np.arange(2 * S, 3 * S)
+    mid = np.arange(S, 2 * S)
+    assert np.allclose(move[inner][~held[inner]], 0.5 * height[inner][~held[inner]], rtol=1e-9)
+    assert np.allclose(move[mid][~held[mid]], 0.25 * height[mid][~held[mid]], rtol=1e-9)
+    assert np.all(move[held] == 0) and np.all(move[:S] == 0)
