@@ -49,6 +49,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "from noisy simulated targets (truth on a finer mesh); writes OUT/report.json")
     p.add_argument("--seed", type=int, default=0, help="random seed of the ground-truth test (default 0)")
     p.add_argument("--quick", action="store_true", help="ground-truth test at test size")
+    p.add_argument("--noise-mm", type=float, default=0.05,
+                   help="ground-truth test: Gaussian noise on the target surfaces, per coordinate (default 0.05)")
     p.add_argument("--fresh", action="store_true", help="ignore an existing checkpoint")
     p.add_argument("--threads", type=int, default=1, help="numba kernel threads (default 1)")
     p.add_argument("--backend", default="auto", help="sparse solver: auto, cholmod, pardiso or superlu")
@@ -112,12 +114,17 @@ def run(args: argparse.Namespace) -> int:
 
 def _ground_truth(args: argparse.Namespace) -> int:
     """The head ground-truth test: print its figures against the goals; 0 when every goal is met, else 1."""
+    from dataclasses import replace
     from pathlib import Path
 
+    from models.errors import UsageError
     from offline.design.ground_truth_head import HeadTruthSettings, run_head_ground_truth
     from offline.fem import kernel_threads
 
-    settings = HeadTruthSettings.quick() if args.quick else HeadTruthSettings.default()
+    if args.noise_mm < 0:
+        raise UsageError(f"--noise-mm {args.noise_mm}: must be >= 0")
+    settings = replace(HeadTruthSettings.quick() if args.quick else HeadTruthSettings.default(),
+                       noise_m=args.noise_mm * 1e-3)
     say = (lambda line: None) if args.quiet else (lambda line: print(line, flush=True))
     with kernel_threads(args.threads):
         r = run_head_ground_truth(args.config, args.out, seed=args.seed, settings=settings, progress=say)

@@ -8,6 +8,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from offline.design.layered import folded_prisms, layered_mesh, layered_skin_folder, prism_tets
 from offline.fem import TetMesh, load_mesh
@@ -151,3 +152,31 @@ def test_warp_on_layered_skin_scales_each_column(tmp_path: Path):
     assert np.allclose(move[inner][~held[inner]], 0.5 * height[inner][~held[inner]], rtol=1e-9)
     assert np.allclose(move[mid][~held[mid]], 0.25 * height[mid][~held[mid]], rtol=1e-9)
     assert np.all(move[held] == 0) and np.all(move[:S] == 0)
+
+
+@pytest.mark.slow
+def test_thickness_gradient_on_the_layered_head_matches_finite_differences(tmp_path: Path):
+    """dE/dh of the thickness objective on the two-layer head (one pose, 5 samples, region weights) by the
+    adjoint against central differences of exact equilibria."""
+    from offline.design.face import face_warp, load_face
+    from offline.design.thickness import Pose, ThicknessProblem, adjoint_gradient, solve_poses
+    from offline.fem.solve import SolverOptions
+
+    layered_skin_folder(SKIN, tmp_path, layers=2)
+    face = load_face(ROOT / "heads" / "sample" / "head.toml", tmp_path)
+    warp, h0 = face_warp(face, n_samples=5)
+    space = face.space
+    p = space.expand(space.project(space.reduce(space.neutral + 0.15 * (space.hi - space.lo))))
+    target = np.asarray(face.mesh.nodes)[face.outer] + 1e-3
+    w = np.where(np.isin(face.outer, face.locked), 0.0, 1.0)
+    problem = ThicknessProblem(warp, face.skin.material, (Pose(space.boundary(p), target),), face.outer, 0.003,
+                               0.012, region_weights=w, solver=SolverOptions(tol_force=1e-10, load_steps=1))
+    h = np.clip(h0, 0.0031, 0.0119) * (1 + 0.05 * np.arange(5) / 5)
+    state = solve_poses(problem, h)
+    g = adjoint_gradient(problem, state)
+    eps = 1e-7
+    for s in range(5):
+        e = np.zeros_like(h)
+        e[s] = eps
+        fd = (solve_poses(problem, h + e, state.xs).value - solve_poses(problem, h - e, state.xs).value) / (2 * eps)
+        assert g[s] == pytest.approx(fd, rel=1e-4, abs=1e-6 * np.abs(g).max())
