@@ -93,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
         mesh = str(Path(args.out) / "design_mesh")
         layered_skin_folder(src, mesh, layers=args.layers)
     face, targets = load_clone_problem(args.config, mesh, args.targets, backend=args.backend,
-                                       element_order=args.element_order, layers=args.layers)
+                                       element_order=args.element_order)
     settings = CloneSettings(n_samples=args.samples, max_outer=args.max_outer, h_min=args.min_thickness_mm * 1e-3,
                              h_max=args.max_thickness_mm * 1e-3, strain_constraint=not args.no_strain_constraint,
                              element_order=args.element_order, layers=args.layers)

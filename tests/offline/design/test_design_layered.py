@@ -180,3 +180,21 @@ def test_thickness_gradient_on_the_layered_head_matches_finite_differences(tmp_p
         e[s] = eps
         fd = (solve_poses(problem, h + e, state.xs).value - solve_poses(problem, h - e, state.xs).value) / (2 * eps)
         assert g[s] == pytest.approx(fd, rel=1e-4, abs=1e-6 * np.abs(g).max())
+
+
+def test_clone_refuses_a_single_layer_and_negative_noise(tmp_path: Path):
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+
+    def cli(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "likeness.cli", "offline", "clone", "--config",
+                               str(ROOT / "heads" / "sample" / "head.toml"), "--out", str(tmp_path), *args],
+                              capture_output=True, text=True, timeout=120, cwd=ROOT, env=env)
+
+    bad_layers = cli("--layers", "1")
+    assert bad_layers.returncode == 2 and "--layers 1" in bad_layers.stderr
+    bad_noise = cli("--ground-truth-test", "--noise-mm", "-1")
+    assert bad_noise.returncode == 2 and "--noise-mm" in bad_noise.stderr
