@@ -149,6 +149,40 @@ def _surface_errors(face: FaceSkin, xs: list[np.ndarray], truth: list[np.ndarray
     return {"surface_error_mean_m": float(e.mean()), "surface_error_max_m": float(e.max())}
 
 
+def design(face: FaceSkin, warp, h0: np.ndarray, targets: list[np.ndarray], truth: list[np.ndarray],
+           s: HeadTruthSettings, progress: Callable[[str], None]) -> tuple[np.ndarray, list[TargetResult], list[dict]]:
+    """Actuation on the uniform skin from neutral, then thickness and actuation alternated until an outer
+    iteration gains less than ``s.tol``; returns the heights, the per-target results and the log (its first
+    entry, the uniform skin's, carries the actuation ``P`` found there)."""
+    h = np.clip(h0, s.h_min + 1e-5, s.h_max - 1e-5)
+    act = face.actuation_problem()
+    res = optimize_targets(act, targets, max_iterations=s.actuation_iterations)
+    total = float(sum(r.match for r in res))
+    first = _surface_errors(face, [r.x for r in res], truth)
+    log = [{"stage": "actuation", "objective": total, **first, "P": np.array([r.p for r in res]).tolist()}]
+    progress(f"[ground truth] uniform skin, actuation optimized: surface error mean "
+             f"{first['surface_error_mean_m'] * 1e3:.3f} mm")
+    for outer in range(1, s.max_outer + 1):
+        tp = _thickness_problem(face, warp, np.array([r.p for r in res]), targets, s)
+        tres = optimize_adjoint(tp, h, max_iterations=s.thickness_iterations, warm=[r.x for r in res],
+                                tol_gain=1e-4)
+        prev = [TargetResult(r.p, x, 0.0, 0.0, 0, True, 0, [], 0.0) for r, x in zip(res, tres.xs, strict=True)]
+        new = optimize_targets(act.with_mesh(warp.rest_mesh(tres.h)), targets, previous=prev,
+                               max_iterations=s.actuation_iterations)
+        value = float(sum(r.match for r in new))
+        err = _surface_errors(face, [r.x for r in new], truth)
+        log.append({"stage": "outer", "outer": outer, "objective": value, "thickness_iterations": tres.iterations,
+                    **err})
+        progress(f"[ground truth] outer {outer}: objective {total:.4g} -> {value:.4g}, surface error mean "
+                 f"{err['surface_error_mean_m'] * 1e3:.3f} mm")
+        if value <= total:
+            h, res = tres.h, new
+        if total - value <= s.tol * total:
+            break
+        total = min(total, value)
+    return h, res, log
+
+
 def run_head_ground_truth(config: str | Path, out: str | Path, seed: int = 0,
                           settings: HeadTruthSettings = HeadTruthSettings(),
                           progress: Callable[[str], None] = lambda line: None) -> dict:
@@ -173,34 +207,10 @@ def run_head_ground_truth(config: str | Path, out: str | Path, seed: int = 0,
     truth_surf = [np.asarray(x)[face_t.outer] for x in xs_true]
     targets = [q + rng.normal(scale=s.noise_m, size=q.shape) for q in truth_surf]
     progress(f"[ground truth] truth made ({time.perf_counter() - t0:.0f} s); designing from the uniform skin")
-    # design: actuation on the uniform skin from neutral, then thickness and actuation alternated
-    h = np.clip(h0_d, s.h_min + 1e-5, s.h_max - 1e-5)
-    act = face_d.actuation_problem()
-    res = optimize_targets(act, targets, max_iterations=s.actuation_iterations)
-    before = _surface_errors(face_d, [r.x for r in res], truth_surf)
-    P_before = np.array([r.p for r in res])
-    total = float(sum(r.match for r in res))
-    log = [{"stage": "actuation", "objective": total, **before}]
-    progress(f"[ground truth] uniform skin, actuation optimized: surface error mean "
-             f"{before['surface_error_mean_m'] * 1e3:.3f} mm ({time.perf_counter() - t0:.0f} s)")
-    for outer in range(1, s.max_outer + 1):
-        tp = _thickness_problem(face_d, warp_d, np.array([r.p for r in res]), targets, s)
-        tres = optimize_adjoint(tp, h, max_iterations=s.thickness_iterations, warm=[r.x for r in res],
-                                tol_gain=1e-4)
-        mesh = warp_d.rest_mesh(tres.h)
-        prev = [TargetResult(r.p, x, 0.0, 0.0, 0, True, 0, [], 0.0) for r, x in zip(res, tres.xs, strict=True)]
-        new = optimize_targets(act.with_mesh(mesh), targets, previous=prev, max_iterations=s.actuation_iterations)
-        value = float(sum(r.match for r in new))
-        err = _surface_errors(face_d, [r.x for r in new], truth_surf)
-        log.append({"stage": "outer", "outer": outer, "objective": value, "thickness_iterations": tres.iterations,
-                    **err})
-        progress(f"[ground truth] outer {outer}: objective {total:.4g} -> {value:.4g}, surface error mean "
-                 f"{err['surface_error_mean_m'] * 1e3:.3f} mm ({time.perf_counter() - t0:.0f} s)")
-        if value <= total:
-            h, res = tres.h, new
-        if total - value <= s.tol * total:
-            break
-        total = min(total, value)
+    h, res, log = design(face_d, warp_d, h0_d, targets, truth_surf, s,
+                         lambda line: progress(f"{line} ({time.perf_counter() - t0:.0f} s)"))
+    before = {k: log[0][k] for k in ("surface_error_mean_m", "surface_error_max_m")}
+    P_before = np.asarray(log[0].pop("P"))
     after = _surface_errors(face_d, [r.x for r in res], truth_surf)
     P = np.array([r.p for r in res])
     ident = identifiability(_thickness_problem(face_d, warp_d, P, targets, s), h, [r.x for r in res])
@@ -225,7 +235,7 @@ def run_head_ground_truth(config: str | Path, out: str | Path, seed: int = 0,
         "thickness_rel_error_start_max": float(rel_start.max()),
         "sample_heights": {"true": h_true.tolist(), "recovered": h.tolist(), "start": h0_d.tolist()},
         "before": before, "after": after,
-        "before_against_noisy_targets": _surface_errors(face_d, [r.x for r in res], targets),
+        "after_against_noisy_targets": _surface_errors(face_d, [r.x for r in res], targets),
         "actuation_error_max": float(act_err.max()), "actuation_error_mean": float(act_err.mean()),
         "actuation_error_start_max": float((np.abs(P_before - P_true) / span).max()),
         "identifiability": ident,
