@@ -4,7 +4,9 @@ The skin mesh folder (``skin.vtu`` + ``face_units.npz``, as written by ``likenes
 surface (kept fixed), the inner surface (moved by the warp) and the attachment node sets (skull and links, locked:
 their geometry is what the links grip). Surface coordinates for the MLS warp are the outer surface's two principal
 directions (a face seen from the front is a height field over them); each node moves along the inward normal of
-its nearest outer-surface vertex (area-weighted normals, smoothed), so a larger height means a thicker skin.
+its nearest outer-surface vertex (area-weighted normals, smoothed), so a larger height means a thicker skin. On a
+layered design mesh (:mod:`offline.design.layered`, a ``columns.npz`` beside the mesh) each node moves by its place
+in its column along the widely smoothed outer normal and the warp scales each column's height.
 """
 
 from __future__ import annotations
