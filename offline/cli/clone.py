@@ -41,6 +41,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--element-order", type=int, choices=(1, 2), default=1,
                    help="design on linear (1) or quadratic (2) tets: quadratic tets represent the skin's bending "
                         "and bulging through a thin skin (default 1)")
+    p.add_argument("--layers", type=int, default=0,
+                   help="design on the skin extruded in this many layers of tets through its thickness (written "
+                        "to OUT/design_mesh; 0: the skin mesh as it is, default)")
+    p.add_argument("--ground-truth-test", action="store_true",
+                   help="instead of cloning: recover a random thickness field and random actuations of the head "
+                        "from noisy simulated targets (truth on a finer mesh); writes OUT/report.json")
+    p.add_argument("--seed", type=int, default=0, help="random seed of the ground-truth test (default 0)")
+    p.add_argument("--quick", action="store_true", help="ground-truth test at test size")
+    p.add_argument("--noise-mm", type=float, default=0.05,
+                   help="ground-truth test: Gaussian noise on the target surfaces, per coordinate (default 0.05)")
     p.add_argument("--fresh", action="store_true", help="ignore an existing checkpoint")
     p.add_argument("--threads", type=int, default=1, help="numba kernel threads (default 1)")
     p.add_argument("--backend", default="auto", help="sparse solver: auto, cholmod, pardiso or superlu")
@@ -80,11 +90,22 @@ def run(args: argparse.Namespace) -> int:
                          f"{args.max_thickness_mm}: need 0 < min < max")
     if args.threads < 1:
         raise UsageError(f"--threads {args.threads}: must be >= 1")
-    face, targets = load_clone_problem(args.config, args.mesh, args.targets, backend=args.backend,
+    if args.ground_truth_test:
+        return _ground_truth(args)
+    mesh = args.mesh
+    if args.layers:
+        from offline.design.layered import layered_skin_folder
+
+        if args.layers < 2:
+            raise UsageError(f"--layers {args.layers}: use 2 or more (0: the skin mesh as it is)")
+        src = Path(mesh) if mesh else Path(args.config).resolve().parent / "skin"
+        mesh = str(Path(args.out) / "design_mesh")
+        layered_skin_folder(src, mesh, layers=args.layers)
+    face, targets = load_clone_problem(args.config, mesh, args.targets, backend=args.backend,
                                        element_order=args.element_order)
     settings = CloneSettings(n_samples=args.samples, max_outer=args.max_outer, h_min=args.min_thickness_mm * 1e-3,
                              h_max=args.max_thickness_mm * 1e-3, strain_constraint=not args.no_strain_constraint,
-                             element_order=args.element_order)
+                             element_order=args.element_order, layers=args.layers)
     say = (lambda line: None) if args.quiet else (lambda line: print(line, flush=True))
     if args.design_mechanism:
         from offline.design.mechanism_design_job import run_layout_command
@@ -103,6 +124,31 @@ def run(args: argparse.Namespace) -> int:
         return 0
     say("[clone] exporting the mold of the optimized skin (STL, mm) and checking it")
     return print_mold(export_mold(Path(args.out) / "skin", Path(args.out) / "mold"), Path(args.out) / "mold")
+
+
+def _ground_truth(args: argparse.Namespace) -> int:
+    """The head ground-truth test: print its figures against the goals; 0 when every goal is met, else 1."""
+    from dataclasses import replace
+    from pathlib import Path
+
+    from models.errors import UsageError
+    from offline.design.ground_truth_head import HeadTruthSettings, run_head_ground_truth
+    from offline.fem import kernel_threads
+
+    if args.noise_mm < 0:
+        raise UsageError(f"--noise-mm {args.noise_mm}: must be >= 0")
+    settings = replace(HeadTruthSettings.quick() if args.quick else HeadTruthSettings.default(),
+                       noise_m=args.noise_mm * 1e-3)
+    say = (lambda line: None) if args.quiet else (lambda line: print(line, flush=True))
+    with kernel_threads(args.threads):
+        r = run_head_ground_truth(args.config, args.out, seed=args.seed, settings=settings, progress=say)
+    print(f"thickness relative error over the free skin: max {r['thickness_rel_error_max']:.1%}, mean "
+          f"{r['thickness_rel_error_mean']:.1%} (goal 10 % / 3 %)")
+    print(f"surface error against the truth: before {r['before']['surface_error_mean_m'] * 1e3:.3f} mm, after "
+          f"{r['after']['surface_error_mean_m'] * 1e3:.3f} mm mean (noise {r['noise_m'] * 1e3:.2f} mm; goal 3x)")
+    print(f"actuation error: max {r['actuation_error_max']:.2%} of range (goal 1 %)")
+    print(f"-> {Path(args.out) / 'report.json'}")
+    return 0 if all(r["goals_met"].values()) else 1
 
 
 def _print_estimate(face: FaceSkin, targets: Mapping[str, Any], settings: CloneSettings) -> None:

@@ -67,6 +67,7 @@ class CloneSettings:
     strain_constraint: bool = True  # every pose inside the head's validated strain range (the guard's measure)
     strain_margin: float = 0.01  # the constraint's hinge sits this far (strain) inside the range
     element_order: int = 1  # of the design mesh (the face is loaded at this order; recorded for the checkpoint)
+    layers: int = 0  # elements through the thickness of a layered design mesh (0: the skin mesh as it is)
 
 
 Progress = Callable[[str], None]

@@ -4,7 +4,9 @@ The skin mesh folder (``skin.vtu`` + ``face_units.npz``, as written by ``likenes
 surface (kept fixed), the inner surface (moved by the warp) and the attachment node sets (skull and links, locked:
 their geometry is what the links grip). Surface coordinates for the MLS warp are the outer surface's two principal
 directions (a face seen from the front is a height field over them); each node moves along the inward normal of
-its nearest outer-surface vertex (area-weighted normals, smoothed), so a larger height means a thicker skin.
+its nearest outer-surface vertex (area-weighted normals, smoothed), so a larger height means a thicker skin. On a
+layered design mesh (:mod:`offline.design.layered`, a ``columns.npz`` beside the mesh) each node moves by its place
+in its column along the widely smoothed outer normal and the warp scales each column's height.
 """
 
 from __future__ import annotations
@@ -21,6 +23,13 @@ from offline.fem.solve import SolverOptions
 from .actuation import ActuationProblem, ActuationSpace
 from .mls import place_samples
 from .warp import ThicknessWarp, build_warp
+
+#: Rings of normal smoothing for the thickness direction on a layered mesh. Measured on the sample skin's two-layer
+#: mesh: the columns' own directions fold 18 elements when every height grows by 2 mm and 2 at ±3 mm contrasts
+#: between neighbouring samples; 30 rings fold 1 and 0 (``tests/offline/design/test_design_layered.py``).
+WARP_SMOOTHING = 30
+#: A layered mesh folder's per-node columns (written by :func:`offline.design.layered.layered_skin_folder`).
+COLUMNS_FILE = "columns.npz"
 
 
 @dataclass(frozen=True, eq=False)
@@ -131,10 +140,49 @@ def face_warp(face: FaceSkin, *, n_samples: int = 40, width_factor: float = 1.2,
     idx = cand[place_samples(uv[cand], rho, n_samples)]
     hull_area = _projected_area(uv[face.outer], face.faces)
     width = width_factor * np.sqrt(hull_area / n_samples)
+    columns = _columns(face)
+    local = depth = None
+    if columns is not None:  # a layered design mesh: move along each node's column, scale its height
+        direction, local, depth = columns
+        dist = local
     thickness = dist[idx]
     warp = build_warp(mesh, outer=face.outer, inner=face.inner, uv=uv, direction=direction,
-                      samples_uv=uv[idx], h_ref=thickness, width=width, locked=face.locked)
+                      samples_uv=uv[idx], h_ref=thickness, width=width, locked=face.locked, local_thickness=local,
+                      depth=depth)
     return warp, thickness
+
+
+def _columns(face: FaceSkin) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Each node's column direction, height and place in the column (0 on the whole column of a locked inner
+    node) from a layered mesh folder's ``columns.npz``, or None for a mesh without columns. Mid-edge nodes of a
+    quadratic mesh take their nearest corner's (the warp then puts them at their edges' midpoints). The direction
+    is the outer surface's normal smoothed over ``WARP_SMOOTHING`` rings, at the node's column."""
+    from scipy.spatial import cKDTree
+
+    path = face.mesh_dir / COLUMNS_FILE
+    if not path.is_file():
+        return None
+    with np.load(path) as z:
+        col, direction = np.asarray(z["column"]), np.asarray(z["direction"])
+        height, frac = np.asarray(z["thickness"]), np.asarray(z["fraction"], dtype=np.float64)
+    n = len(height)
+    X = np.asarray(face.mesh.nodes)
+    if n > len(X) or direction.shape != (n, 3) or col.shape != (n,) or frac.shape != (n,):
+        raise ValueError(f"{path}: column arrays do not fit a mesh of {len(X)} nodes")
+    # move along the outer normals smoothed over many rings rather than along the columns themselves: in a
+    # concave crease the columns converge, and thickening along them folds the inner surface within 2 mm
+    outer_pos = X[face.outer]
+    smooth = vertex_normals(outer_pos, face.faces, smooth=WARP_SMOOTHING)
+    sign = np.sign(np.einsum("ij,ij->i", smooth, direction[np.arange(len(face.outer))]).sum())
+    direction = sign * smooth[col]
+    held = np.zeros(int(col.max()) + 1, dtype=bool)
+    held[col[face.locked[face.locked < n]]] = True
+    frac = np.where(held[col], 0.0, frac)
+    if n < len(X):
+        _, near = cKDTree(X[:n]).query(X[n:])
+        direction, height = np.concatenate([direction, direction[near]]), np.concatenate([height, height[near]])
+        frac = np.concatenate([frac, frac[near]])
+    return direction, height, frac
 
 
 def _projected_area(uv: np.ndarray, faces: np.ndarray) -> float:

@@ -104,12 +104,18 @@ class ThicknessWarp:
 
 def build_warp(mesh: TetMesh, *, outer: np.ndarray, inner: np.ndarray, uv: np.ndarray, direction: np.ndarray,
                samples_uv: np.ndarray, h_ref: np.ndarray, width: float, locked: np.ndarray | None = None,
-               drop_below: float = 1e-9) -> ThicknessWarp:
+               drop_below: float = 1e-9, local_thickness: np.ndarray | None = None,
+               depth: np.ndarray | None = None) -> ThicknessWarp:
     """Precompute the warp of ``mesh``: nodes at surface coordinates ``uv`` (N, d) move along ``direction`` (N, 3).
 
     ``outer``/``inner`` are node indices of the two surfaces, ``locked`` attachment nodes kept in place, ``h_ref``
     the sample heights that reproduce the mesh as it is. MLS weights below ``drop_below`` of a row's largest are
-    dropped to keep D sparse (X(h_ref) stays exact).
+    dropped to keep D sparse (X(h_ref) stays exact). With ``local_thickness`` (N,), the skin's thickness at each
+    node's place, the warp scales thickness instead of shifting it: a node moves by t · c (H(u) − H_ref(u)) with
+    c = local_thickness / H_ref(u), so the local thickness becomes local_thickness · H(u) / H_ref(u) and stays
+    positive wherever H does (a 1 mm rim next to a 6 mm sample is never thinned by the sample's 3 mm). Still
+    linear in h. ``depth`` (N,) replaces the harmonic through-thickness fraction (a layered mesh gives each node its
+    place in its column, so the layers keep their order for any positive thickness); locked nodes keep 0.
     """
     N = mesh.n_nodes
     uv = np.asarray(uv, dtype=np.float64)
@@ -127,10 +133,21 @@ def build_warp(mesh: TetMesh, *, outer: np.ndarray, inner: np.ndarray, uv: np.nd
     if h_ref.shape[0] != samples_uv.shape[0]:
         raise ValueError(f"h_ref has {h_ref.shape[0]} values for {samples_uv.shape[0]} samples")
     locked_idx = np.asarray([] if locked is None else locked, dtype=np.int64)
-    t = harmonic_depth(mesh, outer, inner, locked_idx)
+    if depth is None:
+        t = harmonic_depth(mesh, outer, inner, locked_idx)
+    else:
+        t = np.clip(np.asarray(depth, dtype=np.float64).reshape(-1), 0.0, 1.0)
+        if t.shape[0] != N:
+            raise ValueError(f"depth must have one value per node ({N}), got {t.shape[0]}")
+        t[locked_idx] = 0.0
     moving = np.flatnonzero(t > 0)
     Phi = mls_matrix(uv[moving], samples_uv, width)
     Phi[np.abs(Phi) < drop_below * np.abs(Phi).max(axis=1, keepdims=True)] = 0.0
+    if local_thickness is not None:
+        lt = np.asarray(local_thickness, dtype=np.float64).reshape(-1)
+        if lt.shape[0] != N or not np.all(lt[moving] > 0):
+            raise ValueError(f"local_thickness must be {N} values, positive where the warp moves nodes")
+        Phi *= (lt[moving] / np.maximum(Phi @ h_ref, 0.1 * float(h_ref.min())))[:, None]
     rows, cols = np.nonzero(Phi)
     vals = Phi[rows, cols]
     node = moving[rows]
