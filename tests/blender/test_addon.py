@@ -188,7 +188,7 @@ def test_audio_goes_into_the_sequencer_and_the_timeline_syncs_to_it(blender: Any
     assert sc.frame_end == strips[0].frame_final_end - 1  # the range reaches the sound's end
     assert sc.sync_mode == "AUDIO_SYNC"
     (tmp_path / "noise.wav").write_bytes(b"not a sound")
-    with pytest.raises(RuntimeError, match="noise.wav"):
+    with pytest.raises(RuntimeError, match=r"noise\.wav"):
         blender.ops.likeness.add_audio(filepath=str(tmp_path / "noise.wav"))
     with pytest.raises(RuntimeError, match="no such sound file"):
         blender.ops.likeness.add_audio(filepath=str(tmp_path / "missing.wav"))
