@@ -133,12 +133,15 @@ def test_stream_frames_late_frames_and_watchdog(shared_daemon) -> None:
         t0 = time.monotonic() + offset
         accepted = late = 0
         last = -1  # the last frame accepted: a loaded machine may deliver a few too late
-        for k in range(40):  # 0.4 s of frames, 10 ms apart, sent as they fall due
-            r = c.call("stream", channels=["jaw", "cheek_l"], frames=[[t0 + 0.01 * k, 0.1 * k, -0.2 * k]])
+        stamp = t0
+        for k in range(40):  # 0.4 s of frames, 10 ms apart, each stamped when it is sent (a client that falls behind
+            # its schedule on a loaded host stamps later rather than sending frames already behind the play-out)
+            stamp = max(stamp + 0.01 if k else t0, time.monotonic() + offset)
+            r = c.call("stream", channels=["jaw", "cheek_l"], frames=[[stamp, 0.1 * k, -0.2 * k]])
             accepted += r["accepted"]
             late += r["late"]
             last = k if r["accepted"] else last
-            time.sleep(max(0.0, t0 + 0.01 * (k + 1) - (time.monotonic() + offset)))
+            time.sleep(max(0.0, stamp + 0.01 - (time.monotonic() + offset)))
         assert accepted >= 35 and accepted + late == 40 and last >= 35
         assert _arrives(d, c, "jaw", 0.1 * last)
         # The play-out point reaches the last frame one jitter-buffer delay after it was sent.

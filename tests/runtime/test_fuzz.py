@@ -46,8 +46,8 @@ CHANNELS = ["jaw", "brow_l", "lid_r", "cheek_l", "blink", "nose", "", "arkit.jaw
 
 
 class PostCheck:
-    """Wraps a bus link's ``post``: every target must be finite, within limits and (between consecutive cycles)
-    within the actuators' velocity limits."""
+    """Wraps a bus link's ``post``: every target must be finite, within limits (or, for an actuator found outside
+    them, on its way back) and (between consecutive cycles) within the actuators' velocity limits."""
 
     def __init__(self, link: Any, period: float) -> None:
         self.link = link
@@ -68,7 +68,7 @@ class PostCheck:
         self.posts += 1
         if not np.all(np.isfinite(q)):
             self.violations.append(f"{self.link.name}: non-finite target {q}")
-        elif np.any(q < self.lo - 1e-9) or np.any(q > self.hi + 1e-9):
+        elif not self._within_or_back(q, t):
             self.violations.append(f"{self.link.name}: target outside limits {q}")
         elif self.last is not None and 0 < t - self.last[1] <= 1.5 * self.period:
             speed = np.abs(q - self.last[0]) / (t - self.last[1])
@@ -78,6 +78,18 @@ class PostCheck:
                                        f"{self.vmax[i]:.4g} SI/s")
         self.last = (q, t)
         self._post(targets, stamp)
+
+
+    def _within_or_back(self, q: np.ndarray, t: float) -> bool:
+        """Within the limits, or (an actuator found outside them when the head enabled) no further out than the
+        previous cycle's target: the first target of a run of cycles starts where the actuator stands."""
+        below, above = q < self.lo - 1e-9, q > self.hi + 1e-9
+        if not (below.any() or above.any()):
+            return True
+        if self.last is None or not 0 < t - self.last[1] <= 1.5 * self.period:
+            return True
+        prev = self.last[0]
+        return bool(np.all(~below | (q >= prev - 1e-12)) and np.all(~above | (q <= prev + 1e-12)))
 
 
 def _rss(pid: int) -> int:
