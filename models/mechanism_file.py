@@ -105,8 +105,8 @@ class Tables:
     motors: dict[str, MotorTable]
 
 
-def _convert(raw: Any, cls: type, source: str, key: str) -> Any:
-    """msgspec conversion of one table; SpecError naming the table (and the key msgspec names inside it)."""
+def convert_table(raw: Any, cls: type, source: str, key: str) -> Any:
+    """msgspec conversion of one TOML table; SpecError naming the table (and the key msgspec names inside it)."""
     try:
         return msgspec.convert(raw, cls, strict=False)
     except msgspec.ValidationError as exc:
@@ -120,13 +120,13 @@ def _convert(raw: Any, cls: type, source: str, key: str) -> Any:
 
 
 def _tables(data: Mapping[str, Any], source: str) -> Tables:
-    top = _convert(dict(data), MechanismFile, source, "")
+    top = convert_table(dict(data), MechanismFile, source, "")
     return Tables(
-        _convert(top.mechanism, MechanismTable, source, "mechanism"),
-        {n: _convert(t, BodyTable, source, f"bodies.{n}") for n, t in top.bodies.items()},
-        {n: _convert(t, JointTable, source, f"joints.{n}") for n, t in top.joints.items()},
-        {n: _convert(t, CouplerTable, source, f"couplers.{n}") for n, t in top.couplers.items()},
-        {n: _convert(t, MotorTable, source, f"motors.{n}") for n, t in top.motors.items()},
+        convert_table(top.mechanism, MechanismTable, source, "mechanism"),
+        {n: convert_table(t, BodyTable, source, f"bodies.{n}") for n, t in top.bodies.items()},
+        {n: convert_table(t, JointTable, source, f"joints.{n}") for n, t in top.joints.items()},
+        {n: convert_table(t, CouplerTable, source, f"couplers.{n}") for n, t in top.couplers.items()},
+        {n: convert_table(t, MotorTable, source, f"motors.{n}") for n, t in top.motors.items()},
     )
 
 

@@ -26,7 +26,6 @@ not change. Attachment rings are refused above 0: that discrete step is not buil
 from __future__ import annotations
 
 import math
-import re
 import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -37,7 +36,7 @@ import msgspec
 import numpy as np
 
 from models.errors import SpecError
-from models.mechanism_file import MechanismSpec, get_param, with_params
+from models.mechanism_file import MechanismSpec, convert_table, get_param, with_params
 from models.rigid import rotvec_to_matrix
 
 DEFAULTS = {"joint_move_mm": 15.0, "axis_tilt_deg": 20.0, "rod_length_rel": 0.20, "ratio_rel": 0.20,
@@ -106,19 +105,6 @@ class Envelope:
                 "items": {k: msgspec.to_builtins(v) for k, v in self.items.items()}}
 
 
-def _convert(raw: Any, cls: type, source: str, key: str) -> Any:
-    """msgspec conversion of one table; SpecError naming the table and the key inside it."""
-    try:
-        return msgspec.convert(raw, cls, strict=False)
-    except msgspec.ValidationError as exc:
-        text = str(exc)
-        inner = text.rsplit("at `$", 1)[-1].rstrip("`").lstrip(".") if "at `$" in text else ""
-        unknown = re.search(r"unknown field `([^`]+)`", text)
-        if unknown:
-            inner = ".".join(k for k in (inner, unknown.group(1)) if k)
-        raise SpecError(source, ".".join(k for k in (key, inner) if k) or "(file)", text.split(" - at ")[0]) from None
-
-
 def _nonneg(value: float | None, source: str, key: str) -> None:
     if value is not None and not (math.isfinite(value) and value >= 0):
         raise SpecError(source, key, "must be a finite number >= 0", value)
@@ -126,7 +112,7 @@ def _nonneg(value: float | None, source: str, key: str) -> None:
 
 def envelope_from_dict(data: Mapping[str, Any], spec: MechanismSpec, source: str = "<envelope>") -> Envelope:
     """Check a parsed envelope against the mechanism ``spec``; SpecError naming the file, key and why."""
-    f = _convert(dict(data), EnvelopeFile, source, "")
+    f = convert_table(dict(data), EnvelopeFile, source, "")
     e = f.envelope
     for k in ("joint_move_mm", "axis_tilt_deg", "rod_length_rel", "ratio_rel"):
         _nonneg(getattr(e, k), source, f"envelope.{k}")
@@ -142,7 +128,7 @@ def envelope_from_dict(data: Mapping[str, Any], spec: MechanismSpec, source: str
     known = {"joints": spec.joints, "couplers": spec.couplers, "motors": spec.motors}
     for table, rows in (("joints", f.joints), ("couplers", f.couplers), ("motors", f.motors)):
         for name, raw in rows.items():
-            t = _convert(raw, ItemTable, source, f"{table}.{name}")
+            t = convert_table(raw, ItemTable, source, f"{table}.{name}")
             if name not in known[table]:
                 raise SpecError(source, f"{table}.{name}", f"names no {table[:-1]} of mechanism {spec.name!r}; "
                                 f"known: {', '.join(known[table])}")
