@@ -33,8 +33,10 @@ import zmq
 
 try:
     from benchmarks import _daemon as D
+    from benchmarks._bus_watch import BusWatch
 except ImportError:  # run as a script
     import _daemon as D
+    from _bus_watch import BusWatch
 
 FRAGMENT = """
 [inputs.osc]
@@ -182,7 +184,7 @@ def measure(daemon: Any, trials: int, kind: str, target: Any) -> list[Trial]:
             raise RuntimeError(f"the {kind} sender did not start")
         conn.recv()
         ready(daemon)
-        with D.Watching():  # this thread shares the loop's process: never preempted while it holds the GIL
+        with D.Watching(), BusWatch(link, "jaw") as watch:  # the bus watched from another process
             for _ in range(trials):
                 if daemon.lifecycle != "active" and not ready(daemon):
                     out.append((time.monotonic(), np.full(4, np.nan), np.nan))  # lost: the head would not move
@@ -197,21 +199,27 @@ def measure(daemon: Any, trials: int, kind: str, target: Any) -> list[Trial]:
                 traced = daemon.runner.trace.count
                 conn.send(value)
                 t_send = conn.recv()
-                written = np.nan
-                end = t_send + 0.5
-                while time.monotonic() < end:
-                    fb = link.feedback()
-                    if fb.write_stamp > stamp0 and abs(float(fb.written[j]) - before) > 1e-9:
-                        written = fb.write_stamp
-                        break
-                    time.sleep(0.0001)
+                out.append((t_send, np.full(4, np.nan), _first_move(watch, stamp0, before, t_send + 0.5)))
                 trace = daemon.runner.trace
-                row = trace.last(1)[0] if trace.count > traced else np.full(4, np.nan)
-                out.append((t_send, row, written))
+                if trace.count > traced:
+                    out[-1] = (t_send, trace.last(1)[0], out[-1][2])
     finally:
         conn.send(None)
         proc.join(5.0)
     return out
+
+
+def _first_move(watch: BusWatch, stamp0: float, before: float, until: float) -> float:
+    """The stamp of the first bus write after ``stamp0`` whose target differs from ``before`` (NaN: none by
+    ``until``), asked of the watcher every millisecond."""
+    while True:
+        stamps, values = watch.since(stamp0)
+        moved = np.flatnonzero((stamps > stamp0) & (np.abs(values - before) > 1e-9))
+        if len(moved):
+            return float(stamps[moved[0]])
+        if time.monotonic() > until:
+            return np.nan
+        time.sleep(0.001)
 
 
 def _steady_sender(kind: str, target: str, rate: float, steps: int, seed: int, out: Any) -> None:
@@ -274,12 +282,29 @@ def steady(daemon: Any, kind: str, target: str, rate: float, steps: int) -> tupl
     lat: list[float] = []
     for attempt in range(3):
         ready(daemon)
-        stamps, values, sent = D.run_sender_watching_jaw(daemon, _steady_sender,
-                                                         (kind, target, rate, steps, 3 + attempt), f"{kind} sender")
+        stamps, values, sent = _run_steady(daemon, kind, target, rate, steps, 3 + attempt)
         lat += D.first_moves(stamps, values, sent)
         if len(lat) >= steps // 2:
             break
     return lat, _status(daemon).get("loop", {}).get("stream_phase_lock")
+
+
+def _run_steady(daemon: Any, kind: str, target: str, rate: float, steps: int, seed: int) -> tuple[Any, Any, Any]:
+    """A steady sender (:func:`_steady_sender`) in a process of its own while the jaw's bus link is watched from
+    another (:class:`BusWatch`); returns (write stamps, jaw targets written, the step packets' send times)."""
+    import multiprocessing as mp
+
+    link = next(lk for lk in daemon.buses if "jaw" in lk.actuators)
+    ctx = mp.get_context("spawn")
+    out = ctx.Queue()
+    with BusWatch(link, "jaw") as watch:
+        t0 = time.monotonic()
+        proc = ctx.Process(target=_steady_sender, args=(kind, target, rate, steps, seed, out), daemon=True)
+        proc.start()
+        sent = out.get(timeout=60.0 + 3.0 * steps)
+        stamps, values = watch.since(t0)
+    proc.join(5.0)
+    return stamps, values, sent
 
 
 def _status(daemon: Any) -> dict[str, Any]:
@@ -316,12 +341,10 @@ def run_rate(rate: float, args: argparse.Namespace, extra: dict[str, Any], tmp: 
             inputs = c.call("hello")["inputs"]
             offset, _ = c.clock_offset()
             c.call("load_clip", clip=RAMP)
-        single = {
-            "zeromq stream": measure(daemon, args.trials, "stream", (daemon.command_endpoint, offset)),
-            "osc": measure(daemon, args.trials, "osc", inputs["osc"]["udp"]),
-            "sacn": measure(daemon, args.trials, "sacn", inputs["sacn"]["bind"].rsplit(":", 1)[0]),
-            "mtc locate": measure(daemon, args.trials, "mtc", inputs["timecode"]["bind"]),
-        }
+        targets = {"stream": ("zeromq stream", (daemon.command_endpoint, offset)), "osc": ("osc", inputs["osc"]["udp"]),
+                   "sacn": ("sacn", inputs["sacn"]["bind"].rsplit(":", 1)[0]),
+                   "mtc": ("mtc locate", inputs["timecode"]["bind"])}
+        single = {targets[k][0]: measure(daemon, args.trials, k, targets[k][1]) for k in args.inputs.split(",") if k}
         res["state"] = daemon.lifecycle
         res["loop"] = _status(daemon).get("loop", {})
     finally:
@@ -385,6 +408,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--trials", type=int, default=100, help="single packets per input and rate")
     parser.add_argument("--rates", default="250,500", help="loop rates in Hz, comma-separated")
+    parser.add_argument("--inputs", default="stream,osc,sacn,mtc",
+                        help="single-packet inputs to time, comma-separated (of stream, osc, sacn, mtc; empty: none)")
     parser.add_argument("--steps", type=int, default=30, help="timed steps per steady sender (0: skip)")
     parser.add_argument("--floor-packets", type=int, default=300)
     D.add_emulator_nice(parser)

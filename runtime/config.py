@@ -59,6 +59,10 @@ class RuntimeSettings:
     # wanted time from a locked frame reaching the daemon (the API server's receipt stamp) to the cycle that plays it:
     # it covers the hop from the server to the loop (a frame that reaches the loop later waits a whole period)
     stream_phase_lead_s: float = 0.0006
+    # run the cycle as soon as a live value (OSC, sACN), a timecode sample or a stream frame due before the next
+    # deadline reaches the loop, instead of at that deadline: at most one cycle per period slot and none closer than
+    # a quarter period to the one before, the shaper advancing by the time that really passed (runtime.runner)
+    wake_on_input: bool = True
     stream_max_ahead_s: float = 30.0  # frames further in the future are refused
     stream_max_frames: int = 20000  # jitter buffer capacity
     record_dir: str = "recordings"  # where ``record`` writes (relative to the working directory)

@@ -74,6 +74,7 @@ class LoopStats:
         self.n = 0
         self.missed = 0
         self.skipped = 0  # cycles not run because a lifecycle transition held the loop
+        self.early = 0  # cycles run on an input's arrival ahead of their deadline (not in the rings: no deadline)
 
     def add(self, lateness: float, work: float, start: float | None = None) -> None:
         """One cycle: wake-up lateness, work time and (optionally) its start time, for the measured period."""
@@ -87,14 +88,14 @@ class LoopStats:
 
     def reset(self) -> None:
         """Forget the cycles counted so far (the ring buffers are overwritten from the start)."""
-        self.n = self.missed = self.skipped = 0
+        self.n = self.missed = self.skipped = self.early = 0
         self._last_start = None
 
     def summary(self) -> dict[str, float | int]:
         """p50/p99/max of jitter and work time in microseconds, counts of cycles and misses."""
         k = min(self.n, self.window)
         out: dict[str, float | int] = {"rate_hz": 1.0 / self.period, "cycles": self.n, "missed": self.missed,
-                                       "skipped": self.skipped}
+                                       "skipped": self.skipped, "early": self.early}
         if k:
             lat = np.abs(self.lateness[:k]) * 1e6
             wk = self.work[:k] * 1e6
@@ -115,21 +116,27 @@ class RateScheduler:
         self.spin = spin
         self.clock = clock
         self.next = clock() + period
+        self.early = False  # the last wait ended ahead of its deadline, on the idle function's word
 
-    def wait(self, idle: Callable[[float], None] | None = None) -> tuple[float, int]:
+    def wait(self, idle: Callable[[float], bool | None] | None = None) -> tuple[float, int]:
         """Block until the next deadline; returns (lateness in s, deadlines missed since the previous call).
 
         ``idle(until)``, when given, is called instead of sleeping and must return by the absolute time ``until``
-        (the runner takes commands that arrive in the meantime)."""
+        (the runner takes commands that arrive in the meantime). When it returns True the wait ends at once, ahead
+        of the deadline (:attr:`early`; the lateness is then negative): that deadline counts as served, and the
+        next one is a period after it, so at most one cycle runs per period slot."""
         clock = self.clock
         target = self.next
         now = clock()
         remaining = target - now - self.spin
+        self.early = False
         if remaining > 0:
             if idle is None:
                 time.sleep(remaining)
-            else:
-                idle(target - self.spin)
+            elif idle(target - self.spin):
+                self.early = True
+                self.next = target + self.period
+                return clock() - target, 0
         while clock() < target:
             pass
         now = clock()

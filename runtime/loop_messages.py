@@ -70,11 +70,12 @@ class LoopStatistics:
     work: np.ndarray
     periods: np.ndarray
     phase_lock: PhaseLockReport | None = None
+    early: int = 0  # cycles run ahead of their deadline on an input's arrival (``[runtime] wake_on_input``)
 
     def summary(self) -> Body:
         """Rate, counts and percentiles (µs) as ``status`` reports them under ``loop``."""
         out: Body = {"rate_hz": 1.0 / self.period, "cycles": self.cycles, "missed": self.missed,
-                        "skipped": self.skipped}
+                        "skipped": self.skipped, "early": self.early}
         if self.phase_lock is not None:
             out["stream_phase_lock"] = {"locked": self.phase_lock.locked, "error_us": self.phase_lock.error_us}
         if len(self.lateness):

@@ -7,6 +7,16 @@ telemetry snapshots and recorded rows to the API server (:data:`runtime.loop_mes
 Only this thread runs under SCHED_FIFO (and pinned to a CPU where allowed); deadline misses, wake-up jitter
 and work time are measured every cycle. Overrun policy: a cycle that starts more than a period late skips the
 missed deadlines instead of bursting to catch up, and the misses are counted and reported once a second.
+
+Wake on input (``[runtime] wake_on_input``): a live value, a timecode sample or a stream frame due before the next
+deadline that reaches the loop between cycles makes the loop run that deadline's cycle at once (at the frame's play
+time for a stream frame), with every stage as always (limits, strain guard, shaper, lifecycle, watchdogs), instead
+of leaving the value in the pipe for up to a period. The cycle's time is then when it runs; the shaper advances by
+the time that passed since the cycle before (never more than a period), so its limits hold in real time and the
+drivers' rate guard sees honest stamps. Each period slot still runs one cycle at most (the early one takes its
+deadline's place) and none runs closer than ``WAKE_MIN_GAP`` periods after the one before: the buses get no more
+writes than at the configured rate. Early cycles are counted (``loop.early`` in ``status``); they have no deadline,
+so they add nothing to lateness or misses.
 """
 
 from __future__ import annotations
@@ -25,7 +35,7 @@ from runtime import ipc
 from runtime import loop_messages as L
 from runtime.bus import BusProxy
 from runtime.core import core as K
-from runtime.core.commands import Command, Live, Stream
+from runtime.core.commands import Command, Live, Stream, Timecode
 from runtime.core.cycle import BusInput, CycleInputs, CycleOutputs
 from runtime.core.params import CoreParams
 from runtime.core.state import CoreState
@@ -40,6 +50,8 @@ MAX_COMMANDS_PER_CYCLE = 64
 STATS_EVERY_S = 0.5
 #: Commands arriving between cycles are taken at once unless the next cycle is closer than this.
 COMMAND_MARGIN_S = 300e-6
+#: An early cycle runs no sooner than this many periods after the cycle before (the bus process has written that one).
+WAKE_MIN_GAP = 0.25
 
 
 class Runner:
@@ -67,6 +79,10 @@ class Runner:
         rt = params.cfg.runtime
         self.phase_lock = PhaseLock(params.period, lead=rt.stream_phase_lead_s) if rt.stream_phase_lock else None
         self._deadline = 0.0  # the deadline the loop is waiting for (commands taken meanwhile are due then)
+        self.wake_on_input = rt.wake_on_input
+        self._early_at: float | None = None  # when the early cycle asked for by an input's arrival runs
+        self._last_t = float("-inf")  # the time of the last cycle
+        self._carry: list[Command] = []  # commands taken between cycles for the early cycle they woke
         self.trace = InputTrace()  # live values' and stream frames' stamps on their way to the bus
 
     def stop(self) -> None:
@@ -102,8 +118,10 @@ class Runner:
                     late, missed = sched.wait(self._idle)
                     woke = self.clock()
                     # The cycle's time is its deadline: the core's trajectory advances in exact periods whatever
-                    # the wake-up jitter, and the drivers' rate guard sees the same spacing in the stamps.
-                    t = sched.next - self.params.period
+                    # the wake-up jitter, and the drivers' rate guard sees the same spacing in the stamps. An early
+                    # cycle (wake on input) has no deadline: its time is when it runs.
+                    t = woke if sched.early else sched.next - self.params.period
+                    self._last_t = t
                     inputs = self._inputs(t)
                     try:
                         out = K.step(self.state, self.params, inputs)
@@ -118,6 +136,8 @@ class Runner:
                     if missed:
                         self.stats.missed += missed
                         pending_misses += missed
+                    if sched.early:
+                        self.stats.early += 1
                     if pending_misses and t - last_miss_event >= 1.0:
                         self._send(L.Event({"event": "deadline_miss", "t": t, "count": pending_misses,
                                             "total": self.stats.missed}))
@@ -127,7 +147,8 @@ class Runner:
                     if t >= next_stats:
                         next_stats = t + STATS_EVERY_S
                         self._send_stats()
-                    self.stats.add(late, self.clock() - t, t)
+                    if not sched.early:  # an early cycle has no deadline to be late for
+                        self.stats.add(late, self.clock() - t, t)
                     if self.phase_lock is not None:
                         sched.next += self.phase_lock.correction()
         except Exception:
@@ -135,25 +156,39 @@ class Runner:
         finally:
             drop_realtime()
 
-    def _idle(self, until: float) -> None:
+    def _idle(self, until: float) -> bool:
         """Until ``until``: wait for commands from the server and take them at once (their replies and stream frames
         then need not wait for the next cycle), as long as ``COMMAND_MARGIN_S`` is left before the cycle; later
         ones wait in the pipe for the cycle. ``select`` times out to the microsecond (``poll`` only to the
-        millisecond, which left the last fraction of a millisecond before each cycle unwatched)."""
+        millisecond, which left the last fraction of a millisecond before each cycle unwatched). Returns True when
+        an input's arrival asks for the cycle now (wake on input: the module docstring)."""
         fd = self.commands.fileno()
+        last_take = until - COMMAND_MARGIN_S
+        self._early_at = None
         while True:
-            left = until - self.clock()
+            now = self.clock()
+            early = self._early_at
+            if early is not None and now >= early:
+                self._early_at = None
+                return True
+            left = until - now
             if left <= 0:
-                return
-            watch = left - COMMAND_MARGIN_S
+                return False
+            watch = (last_take if early is None else early) - now
             if self.commands.closed or watch <= 0:
-                time.sleep(left)
-                return
+                time.sleep(left if early is None else early - now)
+                continue
             ready, _, _ = select.select((fd,), (), (), watch)
             if not ready:
                 continue
             t = self.clock()
             cmds = self._drain(self._deadline)
+            if self.wake_on_input and cmds:
+                self._wake_for(cmds, t, last_take)
+                if self._early_at is not None and self._early_at <= t:  # the cycle runs now and takes them itself
+                    self._carry = cmds
+                    self._early_at = None
+                    return True
             estop = self._estop_now()
             if not cmds and estop is None:
                 continue
@@ -169,6 +204,26 @@ class Runner:
                       f"taking commands failed: {type(exc).__name__}: {exc}")
             self._write(out, t)
             self._outbox(out)
+
+    def _wake_for(self, cmds: Sequence[Command], now: float, last: float) -> None:
+        """Ask for the early cycle (:attr:`_early_at`) when a command taken at ``now`` moves the head before the
+        next deadline: a live value (at its time tag, if any), a timecode sample, a stream frame (at its play time).
+        It runs no earlier than the slot's start (one cycle per period slot) nor ``WAKE_MIN_GAP`` periods after the
+        last cycle, and only before ``last`` (later, the deadline's own cycle comes as soon)."""
+        if not self.state.life.commanding:
+            return
+        due = float("inf")
+        for cmd in cmds:
+            if isinstance(cmd, Live):
+                due = min(due, now if cmd.at is None else cmd.at)
+            elif isinstance(cmd, Timecode):
+                due = now
+            elif isinstance(cmd, Stream) and len(cmd.times):
+                due = min(due, float(cmd.times.min()) + self.params.cfg.runtime.stream_delay_s)
+        period = self.params.period
+        at = max(due, now, self._deadline - period, self._last_t + WAKE_MIN_GAP * period)
+        if at < last:
+            self._early_at = at if self._early_at is None else min(self._early_at, at)
 
     def _bus_inputs(self) -> tuple[BusInput, ...]:
         out = []
@@ -188,9 +243,9 @@ class Runner:
         taken = self.clock()
         cmds = self.commands.recv(MAX_COMMANDS_PER_CYCLE)
         for cmd in cmds:
-            if isinstance(cmd, (Stream, Live)):
+            if isinstance(cmd, (Stream, Live, Timecode)):
                 self.trace.taken(cmd.received, taken)
-                if self.phase_lock is not None:
+                if self.phase_lock is not None and not isinstance(cmd, Timecode):
                     self.phase_lock.arrival(taken if cmd.received is None else min(cmd.received, taken), deadline)
         return cmds
 
@@ -205,6 +260,8 @@ class Runner:
     def _inputs(self, t: float) -> CycleInputs:
         buses = self._bus_inputs()
         cmds = self._drain(t)
+        if self._carry:
+            cmds, self._carry = self._carry + cmds, []
         results = []
         if self._tickets:
             for (i, ticket), op in list(self._tickets.items()):
@@ -249,7 +306,7 @@ class Runner:
             err = self.phase_lock.last_error
             lock = L.PhaseLockReport(self.phase_lock.locked, None if err is None else err * 1e6)
         self._send(L.LoopStatistics(s.period, s.n, s.missed, s.skipped, s.lateness[:k].copy(), s.work[:k].copy(),
-                                    s.periods[:k].copy(), lock))
+                                    s.periods[:k].copy(), lock, s.early))
 
     def _send(self, msg: L.FromLoop) -> None:
         try:

@@ -141,11 +141,19 @@ class Shaper:
         self._speed_scalar: float | None = None
         self._targets_key = b""
 
-    def step(self, targets: np.ndarray, speed: float | np.ndarray = 1.0) -> np.ndarray:
+    def step(self, targets: np.ndarray, speed: float | np.ndarray = 1.0, dt: float | None = None) -> np.ndarray:
         """Advance one cycle toward ``targets`` (SI, NaN = hold) at ``speed`` in (0, 1]; returns the new commands.
 
+        ``dt`` (s, default :attr:`dt`) is how far this cycle advances along the plan: a cycle run ahead of its
+        deadline advances only by the time that passed since the one before, so the limits hold in real time.
         Unchanged targets and speed cost only the sampling of the current plan (the common case between frames).
         """
+        if dt is None:
+            dt = self.dt
+        if dt != self._otg.delta_time:
+            if not (np.isfinite(dt) and dt > 0):
+                raise ValueError(f"dt must be a positive number of seconds, got {dt!r}")
+            self._otg.delta_time = float(dt)
         x = np.asarray(targets, dtype=float)
         key = x.tobytes()
         if key != self._targets_key or x.shape != (self.n,):

@@ -69,6 +69,7 @@ def step(state: CoreState, params: CoreParams, inputs: CycleInputs) -> CycleOutp
         watch.post(state.watch, out.write)
     recorder.record(state.recorder, params, out, t, state.shaper.q, state.feedback.measured)
     state.cycle += 1
+    state.last_t = t
     if state.cycle % params.telemetry_every == 0:
         out.telemetry = status.snapshot(state, params, t)
     return out
@@ -94,7 +95,8 @@ def _control(state: CoreState, params: CoreParams, out: CycleOutputs, t: float) 
             targets = guard.guarded(state.guard, params.guard, state.safety, state.shaper.q, targets)
         else:
             targets = state.safety.constrain(targets, state.shaper.q)
-        out.write = shape.shape(state.shaper, targets, drive.speed, hold, params.cfg.safety.safe_speed)
+        out.write = shape.shape(state.shaper, targets, drive.speed, hold, params.cfg.safety.safe_speed,
+                                shape.advance(params.period, t, state.last_t))
         if state.out_of_range is not None:  # actuators enabled outside their limits, being brought back
             still = state.shaper.outside
             _report_range(state, params, out, t, state.out_of_range & ~still, "inside")

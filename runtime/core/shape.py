@@ -21,16 +21,27 @@ def make_shaper(head: HeadSpec, period: float) -> Shaper:
     return shaper
 
 
-def shape(shaper: Shaper, x: np.ndarray, speed: float, hold: np.ndarray, safe_speed: float = 1.0) -> np.ndarray:
-    """The shaper on constrained targets ``x``: an actuator told to hold (``hold``) whose constrained target is just
-    its present command brakes to a stop where it is instead of being sent back there. An actuator still outside its
-    limits (enabled where it stood out of range) moves back at no more than ``safe_speed``."""
+def shape(shaper: Shaper, x: np.ndarray, speed: float, hold: np.ndarray, safe_speed: float = 1.0,
+          dt: float | None = None) -> np.ndarray:
+    """The shaper on constrained targets ``x``, advanced by ``dt`` (default one period): an actuator told to hold
+    (``hold``) whose constrained target is just its present command brakes to a stop where it is instead of being
+    sent back there. An actuator still outside its limits (enabled where it stood out of range) moves back at no
+    more than ``safe_speed``."""
     if hold.any():
         x = np.where(hold & (x == shaper.q), np.nan, x)
     outside = shaper.outside
     if outside.any():
-        return shaper.step(x, np.where(outside, min(speed, safe_speed), speed)).copy()
-    return shaper.step(x, speed).copy()
+        return shaper.step(x, np.where(outside, min(speed, safe_speed), speed), dt).copy()
+    return shaper.step(x, speed, dt).copy()
+
+
+def advance(period: float, t: float, last: float | None) -> float:
+    """How far the shaper advances in a cycle at ``t`` after one at ``last``: one period, or the time that passed
+    when that is clearly less (a cycle run ahead of its deadline on an input's arrival; deadlines a period apart give
+    exactly one period whatever their rounding); never more than a period, so a late cycle does not catch up."""
+    if last is None or t - last >= 0.999 * period:
+        return period
+    return max(t - last, 1e-5)
 
 
 def restart(shaper: Shaper, safety: SafetyFilter, measured: np.ndarray, held: np.ndarray | None = None) -> np.ndarray:

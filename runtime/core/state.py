@@ -45,6 +45,7 @@ class CoreState:
     chase: Chase | None = None  # timecode chase, when a timecode input is configured
     out_of_range: np.ndarray | None = None  # actuators enabled outside their limits and not yet back (None: none)
     cycle: int = 0
+    last_t: float | None = None  # the time of the last full cycle (the shaper advances by what passed since)
 
     @classmethod
     def initial(cls, head: HeadSpec, params: CoreParams, solvers: Sequence[ArrayTargetSolver] = ()) -> CoreState:

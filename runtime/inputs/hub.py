@@ -73,7 +73,7 @@ class InputHub:
         if cfg.timecode is not None:
             from runtime.inputs.timecode import TimecodeInput
 
-            self.inputs.append(TimecodeInput(cfg.timecode, self.emit))
+            self.inputs.append(TimecodeInput(cfg.timecode, self.emit, priority))
         for inp in self.inputs:
             self.refusals[inp.name] = inp.refusals
 
