@@ -198,6 +198,7 @@ def measure(daemon: Any, trials: int, kind: str, target: Any) -> list[Trial]:
                 value = 6.0 if np.degrees(before) < 4.0 else 2.0  # always a move away from where it is
                 traced = daemon.runner.trace.count
                 conn.send(value)
+                time.sleep(0.02)  # asleep while the packet goes through: this thread shares the loop's GIL
                 t_send = conn.recv()
                 out.append((t_send, np.full(4, np.nan), _first_move(watch, stamp0, before, t_send + 0.5)))
                 trace = daemon.runner.trace
@@ -372,8 +373,8 @@ def report(res: dict[str, Any], trials: int, steps: int) -> None:
     period = 1e6 / rate
     f50, f99 = D.pct(res["floor"], 50) * 1e6, D.pct(res["floor"], 99) * 1e6
     goal_single = period + 1000.0
-    print(f"--- {rate:g} Hz (period {period:.0f} us); loop: missed {res['loop'].get('missed', '?')} deadlines "
-          f"[{res['state']}]")
+    print(f"--- {rate:g} Hz (period {period:.0f} us); loop: missed {res['loop'].get('missed', '?')} deadlines, "
+          f"{res['loop'].get('early', '?')} early cycles (wake on input) [{res['state']}]")
     print(f"  floor (this machine, this run; UDP -> pipe -> pipe, three process wake-ups, {len(res['floor'])} "
           f"packets): p50 {f50:.0f} us, p99 {f99:.0f} us; a single packet also waits up to one period for its cycle")
     print(f"  single packet at a random phase -> bus write (goal p99 <= period + 1 ms = {goal_single:.0f} us; "
@@ -405,6 +406,38 @@ def report(res: dict[str, Any], trials: int, steps: int) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the benchmark; with ``--record PATH`` the report is also written there (atomically), headed by the command,
+    the commit, the head's hash and the machine's load."""
+    import contextlib
+    import io
+    import sys
+
+    args_list = sys.argv[1:] if argv is None else list(argv)
+    out = io.StringIO()
+
+    class Tee(io.TextIOBase):
+        def write(self, text: str) -> int:
+            sys.__stdout__.write(text)
+            return out.write(text)
+
+    with contextlib.redirect_stdout(Tee()):
+        rc, record = _run(args_list)
+    if record is not None and rc == 0:
+        import hashlib
+        import subprocess
+
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                                cwd=Path(__file__).parent).stdout.strip() or "unknown"
+        head = hashlib.sha256(D.SAMPLE.read_bytes()).hexdigest()[:16]
+        text = (f"# python benchmarks/input_latency.py {' '.join(args_list)}\n# commit {commit}; sample head "
+                f"{D.SAMPLE.name} sha256 {head}; {os.cpu_count()} CPUs\n" + out.getvalue())
+        tmp = record.with_suffix(record.suffix + ".tmp")
+        tmp.write_text(text, encoding="utf-8")
+        tmp.replace(record)
+    return rc
+
+
+def _run(argv: list[str]) -> tuple[int, Path | None]:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--trials", type=int, default=100, help="single packets per input and rate")
     parser.add_argument("--rates", default="250,500", help="loop rates in Hz, comma-separated")
@@ -412,6 +445,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="single-packet inputs to time, comma-separated (of stream, osc, sacn, mtc; empty: none)")
     parser.add_argument("--steps", type=int, default=30, help="timed steps per steady sender (0: skip)")
     parser.add_argument("--floor-packets", type=int, default=300)
+    parser.add_argument("--record", type=Path, default=None, help="also write the report to this file")
     D.add_emulator_nice(parser)
     D.add_settings(parser)
     args = parser.parse_args(argv)
@@ -427,7 +461,7 @@ def main(argv: list[str] | None = None) -> int:
           f"{os.getloadavg()[0]:.1f} at the end")
     for res in results:
         report(res, args.trials, args.steps)
-    return 0
+    return 0, args.record
 
 
 if __name__ == "__main__":

@@ -130,6 +130,10 @@ def make_pipe(path: str) -> None:
     os.mkfifo(path, 0o600)
 
 
+#: A message up to this size goes into the pipe in one write (copied once); larger ones part by part, uncopied.
+WHOLE_WRITE_BYTES = 64 * 1024
+
+
 class PipeWriter(Generic[T]):
     """The sending end of a command pipe, for messages of type ``T``. :meth:`send` never blocks: what the pipe
     cannot take now waits in a queue (in order) until :meth:`flush`, which the owner calls when :meth:`fileno` is
@@ -157,7 +161,12 @@ class PipeWriter(Generic[T]):
         sizes = [p.nbytes for p in parts]
         prefix = _HEADER.pack(sum(sizes) + _LEN.size * len(parts), len(buffers)) + b"".join(
             _LEN.pack(n) for n in sizes)
+        if sum(sizes) <= WHOLE_WRITE_BYTES:  # one write: the reader wakes once, to a whole message
+            parts = [memoryview(b"".join((prefix, *parts)))]
+            prefix = b""
         for part in (memoryview(prefix), *parts):
+            if not part.nbytes:
+                continue
             mv = part.cast("B") if part.format != "B" else part
             self._queue.append(mv)
             self.queued_bytes += mv.nbytes
