@@ -143,7 +143,7 @@ ARM_RENDER = """
                       for (let i = 0; i < buf.length; i += 4) s = (s * 31 + buf[i] + 7 * buf[i + 1]) | 0; return s; };
   const before = sig();
   window.__lat = new Promise((resolve) => {
-    document.addEventListener("keydown", () => {
+    window.addEventListener("keydown", () => {
       const t0 = performance.now();
       const poll = () => {
         if (sig() !== before) resolve(performance.now() - t0);
@@ -160,7 +160,7 @@ ARM_RENDER = """
 ARM_TEXT = """
 () => {
   window.__lat = new Promise((resolve) => {
-    document.addEventListener("keydown", () => {
+    window.addEventListener("keydown", () => {
       const t0 = performance.now();
       const obs = new MutationObserver((records) => {
         if (records.some((r) => r.target.nodeType === 3 ? /^t = /.test(r.target.data)
@@ -504,9 +504,9 @@ def _run(argv: list[str]) -> int:
         server.append(("srv_in", time.time()))
         slider_route(request, reply)
 
-    def frame_out(message: bytes) -> None:
+    def frame_out(message: bytes, **kw: Any) -> None:
         server.append(("srv_frame", time.time()))
-        offer(message)
+        offer(message, **kw)
 
     face.socket._routes["slider"] = slider_in
     face.socket.send_frame = frame_out  # type: ignore[method-assign]

@@ -38,7 +38,7 @@
   // thread must be free to write and draw the skin the moment it arrives, and the renderer free to draw it. A key
   // that moved a pose slider reaches the slider (viser's React re-render, the page's next frame, which a software
   // renderer takes tens of milliseconds to composite) only then, and so do viser's updates from its worker. Both
-  // are handed on, in order, right after the frame is drawn, or after HOLD_MS at most.
+  // are handed on, in order, once the page's frame with the new skin has begun, or after HOLD_MS at most.
   const HOLD_MS = 120;
   let dueUntil = 0, releaseTimer = 0;
   const held = [];  // viser's messages: [listener, worker, event]
@@ -145,7 +145,7 @@
     }`;
   // Ambient irradiance (linear) standing in for viser's environment light; lights are divided by pi as three.js's
   // Lambert term does.
-  const AMBIENT = 0.55;
+  const AMBIENT = 0.4;
   const lightDir = new Float32Array(12), lightColor = new Float32Array(12), ambient = new Float32Array(3);
 
   function materialClass(type) {  // a material class of the client's three.js, from an object in its scene
@@ -250,7 +250,11 @@
     const root = anchor.__r3f && anchor.__r3f.root, store = root && root.getState ? root.getState() : null;
     if (store && store.gl && store.scene && store.camera) store.gl.render(store.scene, store.camera);
     else if (store && store.invalidate) store.invalidate();
-    if (dueUntil) { dueUntil = 0; clearTimeout(releaseTimer); releaseTimer = setTimeout(release, 0); }  // after the draw
+    if (dueUntil) {  // what waited goes on once the page's frame with the new skin has begun (the skin first)
+      dueUntil = 0;
+      clearTimeout(releaseTimer);
+      requestAnimationFrame(() => { releaseTimer = setTimeout(release, 0); });
+    }
   }
 
   function tick() {
