@@ -307,7 +307,7 @@
     if (known[name] === value) return false;
     if (!L.send({op: "slider", name, value})) return false;
     known[name] = value;
-    hold();
+    if (faces) hold();  // only a page-owned skin (the face view) gets frames on this socket
     stamp("fastsend", name);
     return true;
   }
@@ -330,7 +330,7 @@
     else if (e.key === "Home") value = spec[0];
     else if (e.key === "End") value = spec[1];
     else return;
-    if (!sendSlider(name, snap(value, spec)) && !keys.length) return;
+    if ((!sendSlider(name, snap(value, spec)) && !keys.length) || !faces) return;
     // The slider itself gets the key once the skin is drawn (in order behind any key still held back).
     e.preventDefault();
     e.stopImmediatePropagation();
