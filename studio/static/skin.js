@@ -342,7 +342,8 @@
     const r = drag.track.getBoundingClientRect();
     if (!(r.width > 0)) return;
     const [min, max, step] = drag.spec;
-    const dx = Math.min(Math.max((e.clientX - r.left) / r.width, 0), 1) * (max - min);
+    // The slider reads the position from mouse events, whose clientX is a whole pixel.
+    const dx = Math.min(Math.max((Math.floor(e.clientX) - r.left) / r.width, 0), 1) * (max - min);
     sendSlider(drag.name, snap((dx !== 0 ? Math.round(dx / step) * step : 0) + min, drag.spec));
   }
   document.addEventListener("pointerdown", (e) => {
