@@ -8,8 +8,9 @@ every update). One page is open at a time, in blocks that alternate between the 
 same machine load. Each trial presses a key on the jaw slider (End and Home in turn: the jaw's two limits).
 
 The figure: an in-page timeline (``TIMELINE_SCRIPT``, plus the face view's own stamps: buffer received, written into
-the mesh) from the keydown through the message sent, the skin arriving, the vertex uploads and the draw call after
-the last of them, to the next animation frame (the frame with the new skin drawn and handed on); stages as medians
+the mesh, and the studio's own stamps) from the keydown through the message sent, the skin arriving, the vertex
+uploads and the draw call after the last of them, to the later of the next animation frame and one pixel read back
+after the draw (which returns when the software renderer has drawn the frame with the new skin); stages as medians
 and p90s. Goal: face view ≤ 50 ms median and ≤ 80 ms p90; the ratio old / face is printed from the same run.
 Cross-check, on pages whose WebGL frames stay readable (``preserveDrawingBuffer``): from the keydown to the first
 animation frame whose face pixels differ (``readPixels`` every frame, which itself costs time); and a baseline page
