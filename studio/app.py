@@ -60,6 +60,9 @@ class Studio:
         self.doc = ClipDoc("take")
         self.p = head.neutral.copy()  # the pose shown, SI, head actuator order
         self.pose_lock = threading.RLock()
+        #: Until this monotonic time a slider is being moved: the studio's other page updates (the Perform tab's
+        #: mirror) wait, so that the skin's frames meet a free page and a free server.
+        self.posing_until = 0.0
         self.daemon: DaemonConnection | None = None
         if options.daemon:
             self.daemon = DaemonConnection(options.daemon, options.telemetry, options.client_key, options.server_key)

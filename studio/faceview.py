@@ -23,6 +23,9 @@ from studio.subdivide import loop_subdivision
 
 #: Where the page finds the anchor: a degenerate triangle at this point (nothing is drawn).
 ANCHOR_POINT = (0.123456, -0.654321, 0.0)
+#: Seconds a frame's sender waits at most for the frame to be on its way to every page before it goes on (to update
+#: viser's controls): the frame first.
+SEND_WAIT_S = 0.03
 #: Loop subdivisions of the simulated surface (1117 → 4 288 vertices on the sample head at 1; 16 786 at 2, whose
 #: 33 000 triangles slow software WebGL to 0.3–0.7 s a frame on the two-core machine).
 DEFAULT_LEVELS = 1
@@ -131,4 +134,4 @@ class FaceView:
         return float(err_mm.max()), float(err_mm.mean())
 
     def _send(self, message: bytes) -> None:
-        self.socket.send_frame(message)
+        self.socket.send_frame(message, wait_s=SEND_WAIT_S)

@@ -9,6 +9,7 @@ the latest events.
 from __future__ import annotations
 
 import threading
+import time
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -102,6 +103,8 @@ class PerformTab:
     # ------------------------------------------------------------------ mirror
     def _run(self) -> None:
         while not self._stop.wait(1.0 / MIRROR_HZ):
+            if time.monotonic() < self.studio.posing_until:  # a slider is moving: its skin frames go first
+                continue
             try:
                 self.redraw()
             except Exception as exc:  # keep the mirror alive; say what went wrong on the page

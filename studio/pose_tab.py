@@ -22,6 +22,11 @@ if TYPE_CHECKING:
     from studio.app import Studio
 
 
+#: Seconds after a slider value from the page during which the studio's other page updates wait (a drag sends a
+#: value every few tens of milliseconds).
+POSING_S = 0.4
+
+
 def _step(lo: float, hi: float, unit: str) -> float:
     if unit == "weight":
         return 0.01
@@ -64,6 +69,9 @@ class PoseTab:
                                        hint=f"{c.name} ({c.unit}, {c.min:.4g} … {c.max:.4g})")
                     s.on_update(self._on_slider(c.name, kind))
                     self.sliders[c.name] = s
+        # The page reads a pose slider's new value from the key or pointer event itself (as the slider computes it)
+        # and sends it on the studio's socket at once: it needs each slider's range and step.
+        studio.socket.publish("sliders", {"sliders": {n: [s.min, s.max, s.step] for n, s in self.sliders.items()}})
         with gui.add_folder("Exact FEM pose"):
             self.exact_button = gui.add_button("Run exact FEM pose", icon=viser.Icon.PLAYER_PLAY,
                                                hint="Solve this pose with the skin FEM in a worker process and show "
@@ -86,6 +94,7 @@ class PoseTab:
             if event.client_id is None:  # set by the studio itself (following a pose)
                 return
             value = float(event.target.value)
+            self.studio.posing_until = time.monotonic() + POSING_S
             with self.studio.pose_lock:
                 if self._already_fast(name, value):
                     return
@@ -118,6 +127,7 @@ class PoseTab:
             return
         c = self.studio.head.by_name[str(name)]
         value = float(np.clip(value, c.min, c.max))
+        self.studio.posing_until = time.monotonic() + POSING_S
         with self.studio.pose_lock:
             if self._move(c.name, c.kind, value, source=slider, fast=True):
                 self._fast.setdefault(c.name, deque(maxlen=64)).append(value)

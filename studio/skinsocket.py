@@ -18,6 +18,7 @@ import json
 import logging
 import struct
 import threading
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -56,21 +57,31 @@ class _Peer:
         self.cond = threading.Condition()
         self.binary: bytes | None = None
         self.texts: dict[str, str] = {}
+        self.offered = 0  # binaries offered so far; ``sent``: the count as of the last binary sent
+        self.sent = 0
         self.closed = False
         self.thread = threading.Thread(target=self._send_loop, name="studio-skin-send", daemon=True)
 
-    def offer(self, binary: bytes | None = None, topic: str | None = None, text: str | None = None) -> None:
+    def offer(self, binary: bytes | None = None, topic: str | None = None, text: str | None = None) -> int:
+        """Queue the newest binary and/or a topic's text; the count of binaries offered so far."""
         with self.cond:
             if binary is not None:
                 self.binary = binary
+                self.offered += 1
             if topic is not None and text is not None:
                 self.texts[topic] = text
-            self.cond.notify()
+            self.cond.notify_all()
+            return self.offered
+
+    def wait_sent(self, count: int, timeout: float) -> None:
+        """Wait (at most ``timeout`` s) until the binary that made ``count`` offers, or a newer one, is sent."""
+        with self.cond:
+            self.cond.wait_for(lambda: self.closed or self.sent >= count, timeout)
 
     def close(self) -> None:
         with self.cond:
             self.closed = True
-            self.cond.notify()
+            self.cond.notify_all()
 
     def _send_loop(self) -> None:
         while True:
@@ -81,12 +92,19 @@ class _Peer:
                     return
                 binary, self.binary = self.binary, None
                 texts, self.texts = list(self.texts.values()), {}
+                count = self.offered
             try:
                 if binary is not None:
                     self.conn.send(binary)
+                    with self.cond:
+                        self.sent = count
+                        self.cond.notify_all()
                 for text in texts:
                     self.conn.send(text)
             except (ConnectionClosed, OSError):
+                with self.cond:
+                    self.closed = True
+                    self.cond.notify_all()
                 return
 
 
@@ -118,12 +136,19 @@ class SkinSocket:
         else:
             self._handler = handler
 
-    def send_frame(self, message: bytes) -> None:
-        """Offer a binary frame to every page (each sends the newest it has when it is ready)."""
+    def send_frame(self, message: bytes, wait_s: float = 0.0) -> None:
+        """Offer a binary frame to every page (each sends the newest it has when it is ready). With ``wait_s``, wait
+        that long at most until every page's sender has sent it: the caller's next work (viser's updates, which
+        hold Python's lock for milliseconds) then does not delay the frame."""
         with self._lock:
             peers = tuple(self._peers)
-        for p in peers:
-            p.offer(binary=message)
+        counts = [(p, p.offer(binary=message)) for p in peers]
+        end = time.monotonic() + wait_s
+        for p, n in counts:
+            left = end - time.monotonic()
+            if left <= 0:
+                break
+            p.wait_sent(n, left)
 
     def publish(self, topic: str, state: dict[str, Any]) -> None:
         """Offer the newest state of ``topic`` (JSON with ``"type": topic``) to every page, and to pages that

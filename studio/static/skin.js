@@ -4,11 +4,81 @@
 // one exists; this script provides one and so sees viser's scene. The server puts a tiny degenerate triangle at
 // /skin/anchor (a known point); once it appears, this script hangs its own mesh beside it (same world transform),
 // built with the classes of the anchor itself (the client's three.js), and writes every frame from the socket into
-// that mesh's position and colour buffers in place, then recomputes the normals and asks the canvas (which draws on
-// demand) for a frame. No React re-render, no new geometry.
+// that mesh's position and colour buffers in place, then recomputes the normals and draws the canvas at once. No React
+// re-render, no new geometry. The skin is lit per vertex (a small shader: the scene's directional lights and an
+// ambient term in the vertex stage, the colour only interpolated per pixel): in a software renderer a physically
+// based material with viser's environment map costs several times the rest of the frame per pixel.
 // The socket also carries JSON messages (the timeline): `Likeness.on(type, fn)` and `Likeness.send(object)`.
 (function () {
   "use strict";
+  // A software WebGL renderer (SwiftShader, llvmpipe: no GPU) draws every multisampled pixel on the CPU, which costs
+  // more than the rest of a frame: there, WebGL canvases are made without multisampling.
+  const getContext = HTMLCanvasElement.prototype.getContext;
+  let software = null;
+  function isSoftware() {
+    if (software !== null) return software;
+    software = false;
+    try {
+      const gl = getContext.call(document.createElement("canvas"), "webgl");
+      const info = gl && gl.getExtension("WEBGL_debug_renderer_info");
+      const name = gl ? String(gl.getParameter(info ? info.UNMASKED_RENDERER_WEBGL : gl.RENDERER)) : "";
+      software = /swiftshader|llvmpipe|softpipe|software/i.test(name);
+      const lose = gl && gl.getExtension("WEBGL_lose_context");
+      if (lose) lose.loseContext();
+    } catch (err) { software = false; }
+    return software;
+  }
+  HTMLCanvasElement.prototype.getContext = function (kind, attrs) {
+    if ((kind === "webgl" || kind === "webgl2") && attrs && attrs.antialias && isSoftware()) {
+      attrs = Object.assign({}, attrs, {antialias: false});
+    }
+    return getContext.call(this, kind, attrs);
+  };
+  // While a skin frame is due (a slider value just went to the studio), the page's other work waits: the main
+  // thread must be free to write and draw the skin the moment it arrives, and the renderer free to draw it. A key
+  // that moved a pose slider reaches the slider (viser's React re-render, the page's next frame, which a software
+  // renderer takes tens of milliseconds to composite) only then, and so do viser's updates from its worker. Both
+  // are handed on, in order, once the page's frame with the new skin has begun, or after HOLD_MS at most.
+  const HOLD_MS = 120;
+  let dueUntil = 0, releaseTimer = 0;
+  const held = [];  // viser's messages: [listener, worker, event]
+  const keys = [];  // keys held back from a slider: [thumb, KeyboardEvent init]
+  const replayed = new WeakSet();
+  function release() {
+    dueUntil = 0;
+    clearTimeout(releaseTimer);
+    while (keys.length) {
+      const [thumb, init] = keys.shift(), e = new KeyboardEvent("keydown", init);
+      replayed.add(e);
+      thumb.dispatchEvent(e);
+    }
+    while (held.length) { const [fn, self, e] = held.shift(); fn.call(self, e); }
+  }
+  function hold() {
+    dueUntil = performance.now() + HOLD_MS;
+    clearTimeout(releaseTimer);
+    releaseTimer = setTimeout(release, HOLD_MS);
+  }
+  function holding(e) {
+    if (performance.now() >= dueUntil) { if (held.length || keys.length) release(); return false; }
+    return e && e.data && e.data.type === "message_batch";
+  }
+  const NativeWorker = window.Worker;
+  if (NativeWorker) {
+    const wrap = (fn) => function (e) {
+      if (holding(e) || held.length) {  // in order behind those held
+        held.push([fn, this, e]);
+        if (!(performance.now() < dueUntil)) release();
+      } else fn.call(this, e);
+    };
+    window.Worker = class extends NativeWorker {
+      addEventListener(type, fn, opts) {
+        super.addEventListener(type, type === "message" && typeof fn === "function" ? wrap(fn) : fn, opts);
+      }
+      set onmessage(fn) { super.onmessage = typeof fn === "function" ? wrap(fn) : fn; }
+      get onmessage() { return super.onmessage; }
+    };
+  }
   const ANCHOR = [0.123456, -0.654321, 0.0];
   const port = window.LIKENESS_SKIN_PORT;
   const scenes = [];
@@ -43,18 +113,119 @@
     return null;
   }
 
+  // The skin's material: Lambert lighting evaluated per vertex (front and back faces), then viser's tone mapping and
+  // output colour space, so it sits in the scene like its other objects. Light directions and colours are taken
+  // from the scene's directional lights before every draw (in view space), ambient light stands in for the
+  // environment map.
+  const VERTEX = `
+    uniform vec3 uLightDir[4];
+    uniform vec3 uLightColor[4];
+    uniform vec3 uAmbient;
+    varying vec3 vFront;
+    varying vec3 vBack;
+    void main() {
+      vec3 n = normalize(normalMatrix * normal);
+      vec3 front = uAmbient, back = uAmbient;
+      for (int i = 0; i < 4; i++) {
+        float d = dot(n, uLightDir[i]);
+        front += uLightColor[i] * max(d, 0.0);
+        back += uLightColor[i] * max(-d, 0.0);
+      }
+      vFront = color * front;
+      vBack = color * back;
+      gl_Position = projectionMatrix * modelViewMatrix * vec4(position, 1.0);
+    }`;
+  const FRAGMENT = `
+    varying vec3 vFront;
+    varying vec3 vBack;
+    void main() {
+      gl_FragColor = vec4(gl_FrontFacing ? vFront : vBack, 1.0);
+      #include <tonemapping_fragment>
+      #include <colorspace_fragment>
+    }`;
+  // Ambient irradiance (linear) standing in for viser's environment light; lights are divided by pi as three.js's
+  // Lambert term does.
+  const AMBIENT = 0.4;
+  const lightDir = new Float32Array(12), lightColor = new Float32Array(12), ambient = new Float32Array(3);
+
+  function materialClass(type) {  // a material class of the client's three.js, from an object in its scene
+    let found = null;
+    for (const sc of scenes) {
+      sc.traverse((o) => { if (!found && o.material && o.material.type === type) found = o.material.constructor; });
+    }
+    return found;
+  }
+
+  function lightUp(scene, camera) {  // the scene's directional lights in view space, and the ambient term
+    const v = camera.matrixWorldInverse.elements;
+    let k = 0;
+    lightDir.fill(0);
+    lightColor.fill(0);
+    ambient.fill(AMBIENT);
+    scene.traverseVisible((o) => {
+      if (o.isAmbientLight || o.isHemisphereLight) {
+        ambient[0] += o.color.r * o.intensity; ambient[1] += o.color.g * o.intensity;
+        ambient[2] += o.color.b * o.intensity;
+      }
+      if (!o.isDirectionalLight || k >= 4) return;
+      const a = o.matrixWorld.elements, b = o.target.matrixWorld.elements;
+      const dx = a[12] - b[12], dy = a[13] - b[13], dz = a[14] - b[14];
+      const x = v[0] * dx + v[4] * dy + v[8] * dz, y = v[1] * dx + v[5] * dy + v[9] * dz;
+      const z = v[2] * dx + v[6] * dy + v[10] * dz, len = Math.hypot(x, y, z) || 1;
+      lightDir[3 * k] = x / len; lightDir[3 * k + 1] = y / len; lightDir[3 * k + 2] = z / len;
+      const s = o.intensity / Math.PI;
+      lightColor[3 * k] = o.color.r * s; lightColor[3 * k + 1] = o.color.g * s; lightColor[3 * k + 2] = o.color.b * s;
+      k++;
+    });
+  }
+
+  function skinMaterial() {
+    const Shader = materialClass("ShaderMaterial");
+    if (!Shader) return new anchor.material.constructor({vertexColors: true, side: 2, roughness: 0.75, metalness: 0.0});
+    const material = new Shader({
+      vertexShader: VERTEX, fragmentShader: FRAGMENT, vertexColors: true, side: 2,
+      uniforms: {uLightDir: {value: lightDir}, uLightColor: {value: lightColor}, uAmbient: {value: ambient}},
+    });
+    material.toneMapped = true;
+    return material;
+  }
+
   function build(nv) {
     const Geometry = anchor.geometry.constructor, Attribute = anchor.geometry.attributes.position.constructor;
     const geometry = new Geometry();
     geometry.setAttribute("position", new Attribute(new Float32Array(nv * 3), 3));
     geometry.setAttribute("color", new Attribute(new Float32Array(nv * 3), 3));
+    geometry.setAttribute("normal", new Attribute(new Float32Array(nv * 3), 3));
     geometry.setIndex(Array.from(faces));  // three.js picks a 32-bit index buffer for it
-    const material = new anchor.material.constructor({vertexColors: true, side: 2, roughness: 0.75, metalness: 0.0});
-    mesh = new anchor.constructor(geometry, material);
+    mesh = new anchor.constructor(geometry, skinMaterial());
     mesh.name = "likeness-skin";
     mesh.frustumCulled = false;
+    if (mesh.material.isShaderMaterial) {
+      mesh.onBeforeRender = (renderer, scene, camera) => { lightUp(scene, camera); mesh.material.uniformsNeedUpdate = true; };
+    }
     anchor.parent.add(mesh);
     L.mesh = mesh;
+  }
+
+  // Vertex normals: the area-weighted sum of the normals of the triangles around each vertex, into the mesh's own
+  // buffer (no allocation per frame).
+  function computeNormals(g) {
+    const p = g.attributes.position.array, n = g.attributes.normal.array, f = faces;
+    n.fill(0);
+    for (let i = 0; i < f.length; i += 3) {
+      const a = 3 * f[i], b = 3 * f[i + 1], c = 3 * f[i + 2];
+      const ux = p[b] - p[a], uy = p[b + 1] - p[a + 1], uz = p[b + 2] - p[a + 2];
+      const vx = p[c] - p[a], vy = p[c + 1] - p[a + 1], vz = p[c + 2] - p[a + 2];
+      const x = uy * vz - uz * vy, y = uz * vx - ux * vz, z = ux * vy - uy * vx;
+      n[a] += x; n[a + 1] += y; n[a + 2] += z;
+      n[b] += x; n[b + 1] += y; n[b + 2] += z;
+      n[c] += x; n[c + 1] += y; n[c + 2] += z;
+    }
+    for (let i = 0; i < n.length; i += 3) {
+      const len = Math.hypot(n[i], n[i + 1], n[i + 2]) || 1;
+      n[i] /= len; n[i + 1] /= len; n[i + 2] /= len;
+    }
+    g.attributes.normal.needsUpdate = true;
   }
 
   function apply(frame) {
@@ -69,7 +240,7 @@
     for (let i = 0; i < src.length; i++) dst[i] = LINEAR[src[i]];
     g.attributes.position.needsUpdate = true;
     g.attributes.color.needsUpdate = true;
-    g.computeVertexNormals();
+    computeNormals(g);
     if (!g.boundingSphere) g.computeBoundingSphere();
     // viser's canvas draws on demand (react-three-fiber, frameloop "demand"). Draw the new skin now, as viser does
     // when its canvas resizes, rather than on the renderer's next frame; without the renderer's state, ask for one.
@@ -79,6 +250,11 @@
     const root = anchor.__r3f && anchor.__r3f.root, store = root && root.getState ? root.getState() : null;
     if (store && store.gl && store.scene && store.camera) store.gl.render(store.scene, store.camera);
     else if (store && store.invalidate) store.invalidate();
+    if (dueUntil) {  // what waited goes on once the page's frame with the new skin has begun (the skin first)
+      dueUntil = 0;
+      clearTimeout(releaseTimer);
+      requestAnimationFrame(() => { releaseTimer = setTimeout(release, 0); });
+    }
   }
 
   function tick() {
@@ -114,9 +290,73 @@
       if (anchor && faces) { const f = pending; pending = null; apply(f); }
     };
   }
-  // Sliders: a value the user gives a slider goes to the studio on this socket at once, ahead of viser's own update
-  // (which passes through viser's worker and arrives tens of milliseconds later; the studio then skips it). Only a
-  // slider the user is touching counts: the studio moves the others to follow a pose, and those must not echo back.
+  // Sliders: a value the user gives a pose slider goes to the studio on this socket at once, read from the key or
+  // pointer event itself (as the slider will compute it: the studio publishes each pose slider's min, max and step),
+  // before viser's React renders the slider and long before viser's own update (which passes through viser's worker
+  // and arrives tens of milliseconds later; the studio then skips it). Values that change some other way (a typed
+  // number) are sent when the touched slider shows them. Sliders the studio moves to follow a pose never echo back.
+  let specs = {};  // name -> [min, max, step] of the pose sliders
+  L.on("sliders", (msg) => { specs = msg.sliders || {}; });
+  const known = {};  // name -> the value the studio has for that slider from this page, or last showed on it
+  const decimals = (step) => { const t = String(step); return t.includes(".") ? t.length - t.indexOf(".") - 1 : 0; };
+  const snap = (v, spec) => {  // clamp to the slider's range, rounded to its step's decimals (as the slider does)
+    const [min, max, step] = spec;
+    return parseFloat(Math.min(Math.max(v, min), max).toFixed(decimals(step)));
+  };
+  function sendSlider(name, value) {  // true when sent
+    if (known[name] === value) return false;
+    if (!L.send({op: "slider", name, value})) return false;
+    known[name] = value;
+    if (faces) hold();  // only a page-owned skin (the face view) gets frames on this socket
+    stamp("fastsend", name);
+    return true;
+  }
+  function sliderName(thumb) {
+    const root = thumb.closest("[id]");
+    const label = root && document.querySelector(`label[for="${CSS.escape(root.id)}"]`);
+    return label ? label.textContent.trim() : thumb.getAttribute("aria-label");
+  }
+  const STEPS = {ArrowRight: 1, ArrowUp: 1, ArrowLeft: -1, ArrowDown: -1};
+  document.addEventListener("keydown", (e) => {
+    if (replayed.has(e)) return;
+    const thumb = e.target && e.target.closest ? e.target.closest("[role=slider]") : null;
+    if (!thumb || e.altKey || e.ctrlKey || e.metaKey) return;
+    const name = sliderName(thumb), spec = specs[name];
+    // The slider's value: as shown, or as the keys still held back will leave it.
+    const now = keys.length && name in known ? known[name] : parseFloat(thumb.getAttribute("aria-valuenow"));
+    if (!spec || !Number.isFinite(now)) return;
+    let value;
+    if (e.key in STEPS) value = now + STEPS[e.key] * spec[2];
+    else if (e.key === "Home") value = spec[0];
+    else if (e.key === "End") value = spec[1];
+    else return;
+    if ((!sendSlider(name, snap(value, spec)) && !keys.length) || !faces) return;
+    // The slider itself gets the key once the skin is drawn (in order behind any key still held back).
+    e.preventDefault();
+    e.stopImmediatePropagation();
+    keys.push([thumb, {key: e.key, code: e.code, keyCode: e.keyCode, which: e.which, shiftKey: e.shiftKey,
+                       bubbles: true, cancelable: true, composed: true}]);
+  }, {capture: true});
+  let drag = null;  // the pose slider being dragged: {name, spec, track}
+  function pointerValue(e) {
+    const r = drag.track.getBoundingClientRect();
+    if (!(r.width > 0)) return;
+    const [min, max, step] = drag.spec;
+    // The slider reads the position from mouse events, whose clientX is a whole pixel.
+    const dx = Math.min(Math.max((Math.floor(e.clientX) - r.left) / r.width, 0), 1) * (max - min);
+    sendSlider(drag.name, snap((dx !== 0 ? Math.round(dx / step) * step : 0) + min, drag.spec));
+  }
+  document.addEventListener("pointerdown", (e) => {
+    const root = e.button === 0 && e.target && e.target.closest ? e.target.closest(".mantine-Slider-root") : null;
+    const thumb = root && root.querySelector("[role=slider]");
+    const name = thumb && sliderName(thumb);
+    if (!name || !specs[name]) return;
+    drag = {name, spec: specs[name], track: root.querySelector(".mantine-Slider-trackContainer") || root};
+    pointerValue(e);
+  }, {capture: true});
+  document.addEventListener("pointermove", (e) => { if (drag && e.buttons & 1) pointerValue(e); }, {capture: true});
+  for (const t of ["pointerup", "pointercancel"]) document.addEventListener(t, () => { drag = null; }, {capture: true});
+
   let touched = null, touchedUntil = 0;
   const TOUCH_MS = 500;
   function sliderZone(el) {  // the largest element around `el` holding exactly one slider (its row), or null
@@ -134,19 +374,15 @@
     if (z) { touched = z; touchedUntil = performance.now() + TOUCH_MS; }
   }
   for (const t of ["keydown", "pointerdown", "pointermove", "input"]) document.addEventListener(t, touch, {capture: true});
-  function sliderName(thumb) {
-    const root = thumb.closest("[id]");
-    const label = root && document.querySelector(`label[for="${CSS.escape(root.id)}"]`);
-    return label ? label.textContent.trim() : thumb.getAttribute("aria-label");
-  }
   new MutationObserver((records) => {
-    if (!touched || performance.now() > touchedUntil) return;
+    const live = touched && performance.now() <= touchedUntil;
     for (const r of records) {
       const thumb = r.target;
-      if (!touched.contains(thumb)) continue;
       const value = parseFloat(thumb.getAttribute("aria-valuenow"));
       const name = sliderName(thumb);
-      if (name && Number.isFinite(value) && L.send({op: "slider", name, value})) stamp("fastsend", name);
+      if (!name || !Number.isFinite(value)) continue;
+      if (live && touched.contains(thumb) && specs[name]) sendSlider(name, value);
+      else known[name] = value;  // moved by the studio (or not a pose slider): nothing to send
     }
   }).observe(document.documentElement, {subtree: true, attributes: true, attributeFilter: ["aria-valuenow"]});
 

@@ -139,6 +139,48 @@ def test_a_slider_move_reaches_the_skin_on_the_studio_socket_once(page: Any, stu
         studio.set_pose = original
 
 
+def test_a_press_on_a_slider_track_sends_the_value_the_slider_takes(page: Any, studio: Any) -> None:
+    """The page computes a pressed slider's value from the pointer itself, as the slider does: the studio poses once
+    (viser's own update of the press brings the same value), at the value the slider shows."""
+    head = studio.head
+    jaw_k = head.names.index("jaw")
+    _tab(page, "Pose")
+    page.get_by_role("button", name="Neutral pose").click()
+    assert wait_until(lambda: abs(studio.p[jaw_k] - head.neutral[jaw_k]) < 1e-9, 30)
+    _dismiss_notifications(page)
+    page.wait_for_timeout(1000)
+    track = page.evaluate("""() => {
+        const thumb = document.querySelector('[role=slider][aria-label="jaw"]');
+        const r = thumb.closest('.mantine-Slider-root').querySelector('.mantine-Slider-trackContainer')
+                       .getBoundingClientRect();
+        return [r.left, r.top, r.width, r.height];
+    }""")
+    calls: list[np.ndarray] = []
+    original = studio.set_pose
+
+    def counted(p: Any, source: object = None) -> Any:
+        calls.append(np.array(p))
+        return original(p, source)
+
+    studio.set_pose = counted
+    try:
+        page.evaluate("window.__ev = []")
+        page.mouse.click(track[0] + 0.3 * track[2], track[1] + track[3] / 2)  # 30 % along the track
+        jaw = head.by_name["jaw"]
+        assert wait_until(lambda: studio.p[jaw_k] > head.neutral[jaw_k] + 1e-6, 30)
+        shown = page.get_by_role("slider", name="jaw", exact=True)
+        assert wait_until(lambda: abs(float(studio.pose_tab.sliders["jaw"].value)
+                                      - float(shown.get_attribute("aria-valuenow"))) < 1e-9, 30)
+        page.wait_for_timeout(1000)
+        value = float(shown.get_attribute("aria-valuenow"))
+        assert jaw.min < value < jaw.max
+        assert math.degrees(studio.p[jaw_k]) == pytest.approx(value, abs=1e-6)
+        assert page.evaluate("window.__ev.filter(e => e[0] === 'fastsend').map(e => e[2])") == ["jaw"]
+        assert len(calls) == 1, f"{len(calls)} poses for one press"
+    finally:
+        studio.set_pose = original
+
+
 def test_key_two_frames_and_play_them_on_the_daemon(page: Any, studio: Any, daemon: Any, image_dir: Path) -> None:
     head = studio.head
     jaw_k = head.names.index("jaw")

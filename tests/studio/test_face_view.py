@@ -146,3 +146,55 @@ def test_socket_sends_the_mesh_first_then_the_newest_frame_and_answers_requests(
         assert seen == [{"op": "undo"}]
     finally:
         sock.stop()
+
+
+def test_a_frame_sender_waits_until_the_frame_is_on_its_way() -> None:
+    from websockets.sync.client import connect
+
+    pos = np.eye(3, dtype=np.float32)
+    col = np.zeros((3, 3), dtype=np.uint8)
+    sock = SkinSocket("127.0.0.1")
+    sock.start()
+    try:
+        with connect(f"ws://127.0.0.1:{sock.port}", compression=None) as ws:
+            assert wait_until(lambda: len(sock._peers) == 1, 10)
+            peer = next(iter(sock._peers))
+            sock.send_frame(pack(FRAME, pos, col, 7), wait_s=10.0)
+            assert peer.sent == peer.offered == 1  # sent before send_frame returned
+            assert struct.unpack_from("<4I", ws.recv(timeout=10))[3] == 7
+    finally:
+        sock.stop()
+
+
+def test_the_page_learns_each_pose_slider_and_a_value_on_the_socket_poses_the_skin(studio_offline) -> None:
+    """The page computes a slider's new value from a key or the pointer itself (it needs each pose slider's range
+    and step, published on the socket) and sends it there; the studio poses at once and sends the frame."""
+    from websockets.sync.client import connect
+
+    studio = studio_offline
+    head = studio.head
+    jaw = head.by_name["jaw"]
+    k = head.names.index("jaw")
+    studio.set_pose(head.neutral.copy())
+    with connect(f"ws://127.0.0.1:{studio.socket.port}", compression=None) as ws:
+        specs = None
+        while specs is None:
+            msg = ws.recv(timeout=10)
+            if isinstance(msg, str) and json.loads(msg).get("type") == "sliders":
+                specs = json.loads(msg)["sliders"]
+        s = studio.pose_tab.sliders["jaw"]
+        assert specs["jaw"] == [s.min, s.max, s.step] and set(specs) == set(studio.pose_tab.sliders)
+        assert wait_until(lambda: len(studio.socket._peers) == 1, 10)
+        ws.send(json.dumps({"op": "slider", "name": "jaw", "value": s.max}))
+        assert wait_until(lambda: abs(np.degrees(studio.p[k]) - jaw.max) < 1e-6, 10)
+        while True:  # the frame of the new pose: the fine surface moved by the simulated one
+            msg = ws.recv(timeout=10)
+            if isinstance(msg, bytes) and struct.unpack_from("<4I", msg)[0] == FRAME:
+                nv = struct.unpack_from("<4I", msg)[1]
+                got = np.frombuffer(msg, "<f4", nv * 3, 16).reshape(nv, 3)
+                want = studio.view.sub.matrix @ studio.skin.frame(studio.p).positions
+                if np.allclose(got, want, atol=1e-5):
+                    break
+        ws.send(json.dumps({"op": "slider", "name": "not-a-channel", "value": 1.0}))  # ignored, not an error
+        ws.send(json.dumps({"op": "slider", "name": "jaw", "value": -1e9}))  # clamped to the slider's range
+        assert wait_until(lambda: abs(np.degrees(studio.p[k]) - jaw.min) < 1e-6, 10)
