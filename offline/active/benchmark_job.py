@@ -22,7 +22,8 @@ from offline.active.selectors import METHODS
 QUICK = {"pool": {"poses": 150, "seed": 11, "synthetic": True, "synthetic_grid": 12},
          "bench": {"init": 6, "batch": 6, "budget": 36, "seeds": 2},
          "policy": {"n_runs": 2, "init": 6, "batch": 8, "budget": 22, "candidates_per_step": 4, "pseudo_test": 12,
-                    "epochs": 8, "committee": 2, "diversity": (0.0, 1.0), "validation_seeds": 1},
+                    "epochs": 8, "committee": 2, "diversity": (0.0, 1.0), "validation_seeds": 1,
+                    "family": 4, "family_sizes": (1, 4)},
          "learner": {"iterations": 25, "fine_tune_iterations": 4}}
 #: The FEM pool shipped beside a head's config (``likeness offline dataset-pack`` of the default pool's dataset).
 PACK_NAME = "al_pool.npz"

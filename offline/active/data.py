@@ -45,26 +45,51 @@ class PoolSettings:
     policy_fraction: float = 0.35  # the benchmark's, so the clustered rows are the benchmark pool's
 
 
-def clustered_candidates(head, samples: np.ndarray, settings: PoolSettings) -> np.ndarray:
-    """``samples`` with the benchmark pool's rows replaced by clustered poses (test and policy pool unchanged)."""
-    from offline.active.pool import partition
-    from offline.dataset.sampling import _apply_groups
-    from offline.dataset.splits import assign_splits
+#: Share of the policy pool made of clustered candidates (the rest stays i.i.d.: the policy's pseudo-test poses).
+POLICY_CLUSTERED_SHARE = 2 / 3
 
-    split = assign_splits(len(samples), settings.seed)
-    rows = partition(np.union1d(split.train, split.validation), settings.policy_fraction)[1]
-    rng = np.random.default_rng([settings.seed, 0xC1A5])
+
+def _cluster_rows(head, out: np.ndarray, rows: np.ndarray, settings: PoolSettings, salt: int, centre_seed: int) -> None:
+    """Replace ``out[rows]`` by poses in ``settings.clusters`` clusters of heavy-tailed sizes (seeded by ``salt``,
+    centres drawn by the sampler with ``centre_seed``)."""
+    from offline.dataset.sampling import _apply_groups
+
+    rng = np.random.default_rng([settings.seed, salt])
     lo, hi = sample_ranges(head, settings.range_fraction)
-    centres = sample_poses(head, settings.clusters, seed=settings.seed + 7717, boundary_prob=settings.boundary_prob,
+    centres = sample_poses(head, settings.clusters, seed=centre_seed, boundary_prob=settings.boundary_prob,
                            range_fraction=settings.range_fraction)
     weight = rng.pareto(1.0, settings.clusters) + 1.0
     which = rng.choice(settings.clusters, size=len(rows), p=weight / weight.sum())
     index = {a.name: i for i, a in enumerate(head.actuators)}
-    out = np.array(samples, dtype=np.float64)
     for r, c in zip(rows, which, strict=True):
         p = np.clip(centres[c] + settings.cluster_spread * (hi - lo) * rng.normal(size=len(lo)), lo, hi)
         _apply_groups(p, head, index, lo, hi)
         out[r] = p
+
+
+def clustered_policy_rows(n_samples: int, settings: PoolSettings) -> np.ndarray:
+    """Dataset rows of the policy pool that hold clustered candidates (a fixed seeded share of it)."""
+    from offline.active.pool import partition
+    from offline.dataset.splits import assign_splits
+
+    split = assign_splits(n_samples, settings.seed)
+    policy_rows = partition(np.union1d(split.train, split.validation), settings.policy_fraction)[0]
+    perm = np.random.default_rng([settings.seed, 0xC1A7]).permutation(policy_rows)
+    return np.sort(perm[:round(POLICY_CLUSTERED_SHARE * len(perm))])
+
+
+def clustered_candidates(head, samples: np.ndarray, settings: PoolSettings) -> np.ndarray:
+    """``samples`` with the benchmark pool's rows replaced by clustered poses, and a share of the policy pool's
+    rows by clustered poses of their own (other centres and sizes: the redundancy the policy must learn to meet);
+    test rows and the rest of the policy pool unchanged (i.i.d.)."""
+    from offline.active.pool import partition
+    from offline.dataset.splits import assign_splits
+
+    split = assign_splits(len(samples), settings.seed)
+    rows = partition(np.union1d(split.train, split.validation), settings.policy_fraction)[1]
+    out = np.array(samples, dtype=np.float64)
+    _cluster_rows(head, out, rows, settings, 0xC1A5, settings.seed + 7717)  # the benchmark pool
+    _cluster_rows(head, out, clustered_policy_rows(len(samples), settings), settings, 0xC1A6, settings.seed + 7718)
     return out
 
 
@@ -99,7 +124,8 @@ def ensure_pool(head, config: str, mesh: str | None, out: str | Path, settings: 
     sampling = {"boundary_prob": settings.boundary_prob, "range_fraction": settings.range_fraction}
     if settings.clusters:
         samples = clustered_candidates(head, samples, settings)
-        sampling.update(clusters=settings.clusters, cluster_spread=settings.cluster_spread)
+        sampling.update(clusters=settings.clusters, cluster_spread=settings.cluster_spread,
+                        clustered_policy_rows=clustered_policy_rows(len(samples), settings).tolist())
     with make_engine(engine_name, workers, 1) as engine:
         return generate_dataset(out, spec, samples, head=head.name, names=head.actuator_names, units=units, lo=lo,
                                 hi=hi, engine=engine, seed=settings.seed,

@@ -33,8 +33,16 @@ import numpy as np
 
 from models.atomic import write_bytes
 from offline.active import learner
+from offline.active.batches import batch_family, batch_features, diverse_batch, family_seed
 from offline.active.features import candidate_features, morton_order
-from offline.active.labels import LabelSettings, RunLabels, concat_runs, simulate_run
+from offline.active.labels import (
+    LabelSettings,
+    RunLabels,
+    concat_runs,
+    simulate_batch_run,
+    simulate_run,
+    split_simulation,
+)
 from offline.active.learner import KsnnState, LearnerConfig
 from offline.active.regressor import predict_reduction, train_regressor
 from offline.active.uncertainty import committee, rank01, state_features
@@ -62,11 +70,19 @@ class PolicySettings:
     validation_fraction: float = 0.4
     validation_seeds: int = 1
     seed: int = 0
+    labels: str = "batch"  # "batch": whole candidate batches labelled; "candidate": single poses (cnn: always)
+    family: int = 12  # batch labels: candidate batches per step
+    family_sizes: tuple[int, ...] = (1, 4, 12)  # batch labels: family sizes at selection, chosen on validation
 
-    def labels(self) -> LabelSettings:
+    @property
+    def label_mode(self) -> str:
+        return "candidate" if self.model == "cnn" else self.labels
+
+    def label_settings(self) -> LabelSettings:
         return LabelSettings(init=self.init, batch=self.batch, budget=self.budget,
                              candidates_per_step=self.candidates_per_step, pseudo_test=self.pseudo_test,
-                             label_seeds=self.label_seeds, committee=self.committee, seed=self.seed)
+                             label_seeds=self.label_seeds, committee=self.committee, seed=self.seed,
+                             family=self.family)
 
 
 def _quad(f: np.ndarray) -> np.ndarray:
@@ -95,26 +111,6 @@ def _predict(model: str, regressor: bytes, feats: np.ndarray | None, cnn) -> np.
     return predict_reduction(regressor, cnn)
 
 
-def diverse_batch(scores: np.ndarray, x_lab: np.ndarray, x_cand: np.ndarray, batch: int,
-                  diversity: float) -> np.ndarray:
-    """Greedy batch: each pick maximizes rank(score) + diversity × distance to labelled and chosen / its median."""
-    s = rank01(np.asarray(scores, np.float64))
-    d = np.full(len(x_cand), np.inf)
-    for k in range(0, len(x_lab), 256):
-        d = np.minimum(d, np.sqrt(((x_cand[:, None, :] - x_lab[None, k:k + 256, :]) ** 2).sum(-1)).min(axis=1))
-    if not np.isfinite(d).all():
-        d = np.ones(len(x_cand))
-    med = float(np.median(d)) or 1.0
-    chosen: list[int] = []
-    for _ in range(min(batch, len(x_cand))):
-        v = s + diversity * d / med
-        v[chosen] = -np.inf
-        j = int(np.argmax(v))
-        chosen.append(j)
-        d = np.minimum(d, np.sqrt(((x_cand - x_cand[j]) ** 2).sum(-1)))
-    return np.asarray(chosen, dtype=np.int64)
-
-
 @dataclass
 class Policy:
     """A learned GEN-LAL policy: the regressor, its kind and diversity, and the CNN's vertex order and scale."""
@@ -133,6 +129,14 @@ class Policy:
     def diversity(self) -> float:
         return float(self.info.get("diversity", 0.0))
 
+    @property
+    def label_mode(self) -> str:
+        return str(self.info.get("labels", "candidate"))
+
+    @property
+    def family(self) -> int:
+        return int(self.info.get("family", 1))
+
     def scores(self, state: KsnnState, x_labelled: np.ndarray, y_labelled: np.ndarray, x_cand: np.ndarray,
                cfg: LearnerConfig) -> np.ndarray:
         """Predicted (ranked) error reduction of each candidate under ``state`` (higher is better)."""
@@ -147,12 +151,32 @@ class Policy:
 
     def select(self, state: KsnnState, x_labelled: np.ndarray, y_labelled: np.ndarray, x_cand: np.ndarray,
                batch: int, cfg: LearnerConfig) -> np.ndarray:
-        """Algorithm 2 with diversity: positions in ``x_cand`` of the chosen batch."""
+        """Algorithm 2: positions in ``x_cand`` of the chosen batch. Batch labels: the family member with the largest
+        predicted reduction; candidate labels: a diverse batch over the candidates' scores."""
+        if self.label_mode == "batch":
+            return self.select_batch(state, x_labelled, y_labelled, x_cand, batch, cfg)
         s = self.scores(state, x_labelled, y_labelled, x_cand, cfg)
         return diverse_batch(s, x_labelled, x_cand, batch, self.diversity)
 
+    def select_batch(self, state: KsnnState, x_labelled: np.ndarray, y_labelled: np.ndarray, x_cand: np.ndarray,
+                     batch: int, cfg: LearnerConfig) -> np.ndarray:
+        """The batch-label policy: the committee's ranked features, the family of ``self.family`` candidate
+        batches, the regressor's predicted reduction of each; the best one."""
+        rng = family_seed(len(x_labelled), 0x5E1)
+        if self.family <= 1:
+            return batch_family(np.zeros((len(x_cand), 1)), x_labelled, x_cand, batch, 1, rng)[0]
+        members = committee(state, x_labelled, y_labelled, cfg, int(self.info.get("committee", 3)))
+        ranked = state_features(members, x_labelled, x_cand)
+        fam = batch_family(ranked[:, :-1], x_labelled, x_cand, batch, self.family, rng)
+        pred = _predict("features", self.regressor, batch_features(ranked, x_labelled, x_cand, fam), None)
+        return fam[int(np.argmax(pred))]
+
     def with_diversity(self, diversity: float) -> Policy:
         return Policy(self.regressor, self.order, self.scale, self.n_actuators, {**self.info, "diversity": diversity})
+
+    def with_setting(self, key: str, value: float) -> Policy:
+        """The same regressor with the validated selection setting ``key`` (``diversity`` or ``family``)."""
+        return Policy(self.regressor, self.order, self.scale, self.n_actuators, {**self.info, key: value})
 
     def for_mesh(self, base: np.ndarray, scale: np.ndarray) -> Policy:
         """The same regressor applied to another mesh (vertex order and offset scale of that mesh)."""
@@ -232,12 +256,11 @@ def heldout_fit(runs: list[RunLabels], settings: PolicySettings) -> list[dict]:
 
 
 def validation_curve(policy: Policy | None, x: np.ndarray, y: np.ndarray, settings: PolicySettings,
-                     cfg: LearnerConfig, seed: int) -> list[float]:
-    """A short AL run on the validation part: its pseudo-test mean errors (µm) per step (``policy`` None: random)."""
+                     cfg: LearnerConfig, seed: int, clustered: np.ndarray | None = None) -> list[float]:
+    """A short AL run on the validation part: its pseudo-test mean errors (µm) per step (``policy`` None: random);
+    with a ``clustered`` mask it selects among the clustered rows and is judged on the i.i.d. rows."""
     rng = np.random.default_rng([settings.seed, seed, 0x7A1])
-    perm = rng.permutation(len(x))
-    n_test = min(settings.pseudo_test, len(x) // 3)
-    test, pool = perm[:n_test], perm[n_test:]
+    test, pool = split_simulation(rng, len(x), clustered, settings.pseudo_test)
     lab = pool[:settings.init]
     errs = []
     while True:
@@ -253,9 +276,11 @@ def validation_curve(policy: Policy | None, x: np.ndarray, y: np.ndarray, settin
 
 
 def learn_policy(x: np.ndarray, y: np.ndarray, base: np.ndarray, settings: PolicySettings, cfg: LearnerConfig,
-                 work_dir: str | Path, log: Callable[[str], None] = print) -> Policy:
+                 work_dir: str | Path, log: Callable[[str], None] = print,
+                 clustered: np.ndarray | None = None) -> Policy:
     """Algorithm 1 on the policy pool (x, y): simulated runs (checkpointed in ``work_dir``), the regressor, its
-    held-out fit, and the diversity chosen on the validation part."""
+    held-out fit, and the selection setting chosen on the validation part. ``clustered`` marks the policy pool's
+    clustered candidate rows (see :func:`offline.active.labels.split_simulation`)."""
     if settings.model not in MODELS:
         raise ValueError(f"unknown policy model {settings.model!r}; choose from {', '.join(MODELS)}")
     work = Path(work_dir)
@@ -278,7 +303,10 @@ def learn_policy(x: np.ndarray, y: np.ndarray, base: np.ndarray, settings: Polic
             log(f"policy: simulated run {tau + 1}/{settings.n_runs} loaded from {path}")
             continue
         t1 = time.perf_counter()
-        run = simulate_run(x[sim], y[sim], tau, settings.labels(), cfg, order, scale)
+        csim = None if clustered is None else clustered[sim]
+        run = simulate_batch_run(x[sim], y[sim], csim, tau, settings.label_settings(), cfg) \
+            if settings.label_mode == "batch" else \
+            simulate_run(x[sim], y[sim], tau, settings.label_settings(), cfg, order, scale, csim)
         run.save(path)
         runs.append(run)
         log(f"policy: simulated run {tau + 1}/{settings.n_runs}: {len(run.delta)} candidates labelled in "
@@ -292,19 +320,26 @@ def learn_policy(x: np.ndarray, y: np.ndarray, base: np.ndarray, settings: Polic
             "learner": asdict(cfg), "n_samples": len(rows.target), "policy_pool_hash": digest, "n_pool": len(x),
             "n_simulation": len(sim), "n_validation": len(val), "n_vertices": len(base), "heldout_fit": fit_stats}
     policy = Policy(_fit(rows, settings, log), order, scale, int(x.shape[1]), info)
+    key, values = ("family", settings.family_sizes) if settings.label_mode == "batch" else \
+        ("diversity", settings.diversity)
+    info.update(labels=settings.label_mode, family=settings.family)
+    cval = None if clustered is None else clustered[val]
     choices: dict[str, list[float]] | None = None
-    best = settings.diversity[0]
-    if len(settings.diversity) > 1:  # one value needs no choosing
-        choices = {"random": [float(np.mean(np.log(validation_curve(None, x[val], y[val], settings, cfg, s))))
-                              for s in range(settings.validation_seeds)]}
-        for lam in settings.diversity:
-            pol = policy.with_diversity(lam)
-            choices[str(lam)] = [float(np.mean(np.log(validation_curve(pol, x[val], y[val], settings, cfg, s))))
-                                 for s in range(settings.validation_seeds)]
-        best = min(settings.diversity, key=lambda lam: np.mean(choices[str(lam)]))
-        log("policy: validation mean log error per diversity weight: " +
+    best = values[0]
+    if len(values) > 1:  # one value needs no choosing
+
+        def score(pol: Policy | None) -> list[float]:
+            return [float(np.mean(np.log(validation_curve(pol, x[val], y[val], settings, cfg, s, cval))))
+                    for s in range(settings.validation_seeds)]
+
+        choices = {"random": score(None)}
+        for v in values:
+            choices[str(v)] = score(policy.with_setting(key, v))
+        best = min(values, key=lambda v: np.mean(choices[str(v)]))
+        log(f"policy: validation mean log error per {key}: " +
             ", ".join(f"{k} {np.mean(v):.4f}" for k, v in choices.items()) + f"; chose {best}")
-    policy = policy.with_diversity(float(best))
+    policy = policy.with_setting(key, best)
+    policy.info["validated_setting"] = key
     policy.info.update({"validation_mean_log_error": choices, "seconds": round(time.perf_counter() - t0, 1)})
     log(f"policy: {settings.model} regressor on {len(rows.target)} labelled candidates ({policy.info['seconds']} s)")
     return policy

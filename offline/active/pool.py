@@ -46,6 +46,9 @@ class BenchmarkData:
     test: LabelledSet
     base: np.ndarray
     dataset: dict
+    #: Per policy-pool row: True where it is a clustered candidate (``sampling.clustered_policy_rows`` of the
+    #: dataset's manifest); None where the policy pool is i.i.d. throughout.
+    policy_clustered: np.ndarray | None = None
 
     def describe(self) -> dict:
         return {"dataset": self.dataset, "n_pool": len(self.pool), "n_policy": len(self.policy),
@@ -100,5 +103,10 @@ def load_benchmark_data(dataset_dir: str | Path, policy_fraction: float = 0.35,
             "problem": ds.manifest.get("problem", {}).get("kind"), "mesh": ds.manifest.get("mesh"),
             "partition": {"policy_fraction": policy_fraction, "seed": partition_seed,
                           "test": "the dataset's test split", "pool_and_policy": "its train and validation splits"}}
-    return BenchmarkData(pool=_rows(ds, pool_rows), policy=_rows(ds, policy_rows), test=_rows(ds, test),
-                         base=np.asarray(ds.base_vertices, dtype=np.float64), dataset=info)
+    policy = _rows(ds, policy_rows)
+    marked = (ds.manifest.get("sampling") or {}).get("clustered_policy_rows")
+    clustered = None if not marked else np.isin(policy.index, np.asarray(marked, dtype=np.int64))
+    if clustered is not None:
+        info["policy_clustered_rows"] = int(clustered.sum())
+    return BenchmarkData(pool=_rows(ds, pool_rows), policy=policy, test=_rows(ds, test),
+                         base=np.asarray(ds.base_vertices, dtype=np.float64), dataset=info, policy_clustered=clustered)

@@ -20,6 +20,7 @@ from offline.active.benchmark import (
     REPORT_VERSION,
     BenchmarkSettings,
     paired_differences,
+    paired_final_differences,
     run_benchmark,
 )
 from offline.active.learner import LearnerConfig
@@ -66,7 +67,7 @@ def run_and_report(pool_dir: str | Path, out: str | Path, methods: Sequence[str]
                 log(f"policy: learning on the policy pool ({len(data.policy)} poses, {policy_settings.n_runs} "
                     "simulated runs)")
                 policy = learn_policy(data.policy.x, data.policy.y, data.base, policy_settings, cfg,
-                                      out / "policy_runs", log=log)
+                                      out / "policy_runs", log=log, clustered=data.policy_clustered)
                 policy.save(learned)
             policy_info = {"source": "learned on the policy pool", "path": str(learned), "hash": _file_hash(learned),
                            "learned": policy.info}
@@ -86,6 +87,7 @@ def run_and_report(pool_dir: str | Path, out: str | Path, methods: Sequence[str]
         "oracle_fraction_to_random_final_ci95": result["summary"].get("greedy", {}).get(
             "fraction_to_random_final_ci95"),
         "paired_fraction_difference": paired_differences(result["summary"]),
+        "paired_final_error_difference_um": paired_final_differences(result["summary"]),
         "runs": {name: [{k: r[k] for k in ("seed", "n_labelled", "mean_euclidean_um", "l1_um", "select_seconds",
                                             "seconds")} | {"labelled_pool_rows": r["labelled"]} for r in rs]
                  for name, rs in result["runs"].items()},

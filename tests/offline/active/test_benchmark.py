@@ -15,6 +15,7 @@ from offline.active.benchmark import (
     ci95,
     first_reach,
     paired_differences,
+    paired_final_differences,
     run_method,
     summarize,
 )
@@ -96,6 +97,8 @@ def test_intervals_over_seeds_and_paired_fraction_differences():
     assert curve["ci95_lo"][0] == curve["ci95_hi"][0] == 100 and curve["ci95_lo"][1] < 48.0 < curve["ci95_hi"][1]
     diff = paired_differences(s)["fast - random"]
     assert diff["seeds"] == 4 and diff["mean"] < 0 and diff["ci95"][1] < 0
+    final = paired_final_differences(s)["fast - random"]  # 40 against 50..53: 11.5 µm lower on average
+    assert final["seeds"] == 4 and final["mean"] == pytest.approx(-11.5) and final["ci95"][1] < 0
 
 
 def test_quick_benchmark_writes_a_well_formed_report_and_resumes_from_its_checkpoints(tmp_path):
@@ -117,6 +120,7 @@ def test_quick_benchmark_writes_a_well_formed_report_and_resumes_from_its_checkp
         assert len(set(run["labelled_pool_rows"])) == 36
     assert report["summary"]["random"]["fraction_to_random_final"] <= 1.0
     assert "oracle_fraction_to_random_final" in report and "genlal - lcmd" in report["paired_fraction_difference"]
+    assert "genlal - space_filling" in report["paired_final_error_difference_um"]
     assert report["policy"]["learned"]["model"] == "features"
     hashes = report["inputs"]["hashes"]
     assert len({hashes["pool"], hashes["policy"], hashes["test"]}) == 3

@@ -10,9 +10,11 @@ import pytest
 
 from models.headspec import load_head
 from offline.active import learner
+from offline.active.batches import N_BATCH_FEATURES, batch_family, family_seed
 from offline.active.features import morton_order
 from offline.active.loop import grow_dataset
 from offline.active.policy import Policy, PolicySettings, diverse_batch, learn_policy
+from offline.active.uncertainty import committee, state_features
 from offline.dataset.sampling import sample_poses, sample_ranges
 from offline.dataset.store import PoseDataset
 from offline.dataset.synthetic import SyntheticSpec
@@ -20,8 +22,9 @@ from offline.engine import SerialEngine
 
 ROOT = Path(__file__).resolve().parents[3]
 SMALL = PolicySettings(n_runs=2, init=5, batch=5, budget=15, candidates_per_step=4, pseudo_test=8, epochs=3,
-                       committee=2, diversity=(0.0, 1.0), validation_seeds=1)
+                       committee=2, diversity=(0.0, 1.0), validation_seeds=1, family=4, family_sizes=(1, 4))
 CNN = PolicySettings(**{**SMALL.__dict__, "model": "cnn", "diversity": (0.0,)})
+CANDIDATE = PolicySettings(**{**SMALL.__dict__, "labels": "candidate"})
 
 
 @pytest.fixture(scope="module")
@@ -43,19 +46,20 @@ def test_morton_order_is_a_permutation_that_keeps_neighbours_close():
 def test_policy_learning_resumes_from_its_simulated_runs_and_the_policy_survives_a_round_trip(tiny, cfg, policy,
                                                                                               tmp_path):
     work = tmp_path / "runs"
-    one = PolicySettings(**{**SMALL.__dict__, "diversity": (1.0,)})  # no validation runs: only resuming is tested
+    one = PolicySettings(**{**SMALL.__dict__, "family_sizes": (4,)})  # no validation runs: only resuming is tested
     first = learn_policy(tiny.policy.x, tiny.policy.y, tiny.base, one, cfg, work, log=lambda m: None)
     (work / "run_001.npz").unlink()  # as if killed during the second simulated run
     messages: list[str] = []
     again = learn_policy(tiny.policy.x, tiny.policy.y, tiny.base, one, cfg, work, log=messages.append)
     assert any("1/2 loaded" in m for m in messages) and not any("2/2 loaded" in m for m in messages)
-    assert again.regressor == first.regressor and again.diversity == 1.0  # the recomputed run is identical
+    assert again.regressor == first.regressor and again.family == 4  # the recomputed run is identical
     policy.save(tmp_path / "p.npz")
     back = Policy.load(tmp_path / "p.npz")
     state = learner.fit(tiny.pool.x[:10], tiny.pool.y[:10], cfg)
-    args = (state, tiny.pool.x[:10], tiny.pool.y[:10], tiny.pool.x[10:], cfg)
-    np.testing.assert_array_equal(back.scores(*args), policy.scores(*args))
-    assert back.diversity in SMALL.diversity and back.info["heldout_fit"]  # chosen on validation; fit measured
+    args = (state, tiny.pool.x[:10], tiny.pool.y[:10], tiny.pool.x[10:], 5, cfg)
+    np.testing.assert_array_equal(back.select(*args), policy.select(*args))
+    assert back.label_mode == "batch" and back.info["validated_setting"] == "family"
+    assert back.family in SMALL.family_sizes and back.info["heldout_fit"]  # chosen on validation; fit measured
     fit = back.info["heldout_fit"][0]
     assert -10 < fit["r2"] <= 1 and -1 <= fit["spearman"] <= 1 and fit["n_candidates"] > 0
     with pytest.raises(ValueError, match="not a GEN-LAL policy"):
@@ -73,6 +77,34 @@ def test_the_cnn_policy_scores_candidates_on_another_mesh_only_once_adapted_to_i
         cnn.scores(state, x[:6], y[:6], x[6:], cfg)
     chosen = cnn.for_mesh(skin.base_surface(), cnn.scale).select(state, x[:6], y[:6], x[6:], 3, cfg)
     assert len(set(chosen.tolist())) == 3 and chosen.max() < 6
+
+
+def test_a_batch_label_policy_on_a_clustered_pool_picks_a_family_member_by_its_learned_score(tiny, cfg, tmp_path):
+    """Labels from clustered simulated pools; selection scores every family member and takes the best."""
+    clustered = np.arange(len(tiny.policy)) % 3 != 0  # two thirds clustered candidates, the rest pseudo-test
+    pol = learn_policy(tiny.policy.x, tiny.policy.y, tiny.base, PolicySettings(**{**SMALL.__dict__,
+                       "family_sizes": (4,)}), cfg, tmp_path, log=lambda m: None, clustered=clustered)
+    rows = np.load(tmp_path / "run_000.npz")
+    assert rows["feats"].shape[1] == N_BATCH_FEATURES and len(np.unique(rows["n_labelled"])) >= 1
+    for n in np.unique(rows["n_labelled"]):  # ranked within each step: centred, spanning [-0.5, 0.5]
+        t = rows["target"][rows["n_labelled"] == n]
+        assert abs(t.mean()) < 1e-9 and t.min() >= -0.5 and t.max() <= 0.5
+    lab = np.arange(8)
+    state = learner.fit(tiny.pool.x[lab], tiny.pool.y[lab], cfg)
+    xl, xc = tiny.pool.x[lab], tiny.pool.x[8:]
+    chosen = pol.select(state, xl, tiny.pool.y[lab], xc, 5, cfg)
+    members = committee(state, xl, tiny.pool.y[lab], cfg, 2)
+    ranked = state_features(members, xl, xc)
+    fam = batch_family(ranked[:, :-1], xl, xc, 5, 4, family_seed(len(xl), 0x5E1))
+    assert any(np.array_equal(chosen, b) for b in fam)
+
+
+def test_the_candidate_label_policy_still_learns_and_selects(tiny, cfg, tmp_path):
+    pol = learn_policy(tiny.policy.x, tiny.policy.y, tiny.base, CANDIDATE, cfg, tmp_path, log=lambda m: None)
+    assert pol.label_mode == "candidate" and pol.diversity in CANDIDATE.diversity
+    state = learner.fit(tiny.pool.x[:8], tiny.pool.y[:8], cfg)
+    chosen = pol.select(state, tiny.pool.x[:8], tiny.pool.y[:8], tiny.pool.x[8:], 4, cfg)
+    assert len(set(chosen.tolist())) == 4
 
 
 def test_diverse_batch_spreads_out_where_top_k_piles_up():
