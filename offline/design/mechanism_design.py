@@ -33,7 +33,7 @@ from offline.fem.solve import SolverOptions, rigid_transform_dirichlet
 
 from .actuation import ActuationProblem, ActuationSpace, Evaluation, _objective, evaluate, penalty_terms
 from .face import FaceSkin
-from .mechanism_design_envelope import DesignSpace
+from .mechanism_design_envelope import CONTINUOUS_IGNORED, DesignSpace
 from .mechanism_design_kin import DesignedMechanism, points_derivative
 
 CHECKPOINT = "layout_checkpoint.npz"
@@ -341,7 +341,12 @@ def load_checkpoint(out: Path, meta: Mapping[str, Any]) -> tuple[LayoutState, di
     with np.load(path) as z:
         info = json.loads(str(z["meta"]))
         arrays = {k: np.asarray(z[k]) for k in z.files if k != "meta"}
-    if any(info.get(k) != v for k, v in json.loads(json.dumps(dict(meta), default=float)).items()):
+    def same(k: str, v: Any) -> bool:
+        if k == "envelope" and isinstance(info.get(k), dict):  # the continuous limits only (see CONTINUOUS_IGNORED)
+            return {a: b for a, b in info[k].items() if a not in CONTINUOUS_IGNORED} == v
+        return info.get(k) == v
+
+    if not all(same(k, v) for k, v in json.loads(json.dumps(dict(meta), default=float)).items()):
         return None
     state = LayoutState(arrays.pop("theta"), arrays.pop("Z"), list(arrays.pop("X")), arrays.pop("weights"),
                         list(info["log"]), float(info["mu"]), int(info["iteration"]), bool(info["done"]),

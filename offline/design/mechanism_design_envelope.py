@@ -10,6 +10,8 @@ key is optional; the defaults are those of ``DEFAULTS``::
     ratio_rel = 0.20          # a belt (motor ratio) or gear ratio within ±20 %
     attachment_rings = 0      # whole rings of surface triangles an attachment node set may grow or shrink by
 
+    [attachments.lower_lip]   # per attachment node set: its own ring limit
+    rings = 2
     [joints.jaw_hinge]        # per item: fixed = true, or its own limit
     move_mm = 25.0
     [couplers.jaw_rod]
@@ -20,7 +22,8 @@ key is optional; the defaults are those of ``DEFAULTS``::
 The design variables are offsets θ from the mechanism's design values: a joint anchor's or rod end's displacement
 (m, three per point, one ball), an axis's tilt (rad, two per axis: the rotation vector ω ⟂ n turning n, one ball),
 a rod's length (m, a box), a gear or belt ratio (a box). The motors' limits and speeds are the head config's and do
-not change. Attachment rings are refused above 0: that discrete step is not built.
+not change. Attachment rings are no continuous variables: the discrete ring step of the layout job
+(:mod:`offline.design.mechanism_design_rings`) changes the node sets within ``ring_limits``.
 """
 
 from __future__ import annotations
@@ -67,8 +70,15 @@ class ItemTable(_Table, kw_only=True):
     ratio_rel: float | None = None
 
 
+class AttachmentTable(_Table, kw_only=True):
+    """One attachment node set's own ring limit."""
+
+    rings: int
+
+
 class EnvelopeFile(_Table, kw_only=True):
     envelope: EnvelopeTable = msgspec.field(default_factory=EnvelopeTable)
+    attachments: dict[str, Any] = msgspec.field(default_factory=dict)
     joints: dict[str, Any] = msgspec.field(default_factory=dict)
     couplers: dict[str, Any] = msgspec.field(default_factory=dict)
     motors: dict[str, Any] = msgspec.field(default_factory=dict)
@@ -84,6 +94,12 @@ class Envelope:
     ratio_rel: float = DEFAULTS["ratio_rel"]
     items: dict[str, ItemTable] = field(default_factory=dict)  # "joints.NAME" → its table
     source: str = "(default envelope)"
+    attachment_rings: int = 0  # whole rings either way, every attachment node set
+    attachments: dict[str, int] = field(default_factory=dict)  # node set → its own ring limit
+
+    def ring_limits(self, node_sets: list[str] | tuple[str, ...]) -> dict[str, int]:
+        """Each attachment node set's ring limit (its own, else the envelope's)."""
+        return {n: int(self.attachments.get(n, self.attachment_rings)) for n in node_sets}
 
     def limit(self, item: str, what: str) -> float:
         """The limit ``what`` (move, tilt, length_rel, ratio_rel) of ``item`` ("joints.J", ...); 0 when fixed."""
@@ -101,8 +117,24 @@ class Envelope:
         """The envelope for the report (mm, degrees)."""
         return {"source": self.source, "joint_move_mm": self.joint_move * 1e3,
                 "axis_tilt_deg": math.degrees(self.axis_tilt), "rod_length_rel": self.rod_length_rel,
-                "ratio_rel": self.ratio_rel, "attachment_rings": 0,
+                "ratio_rel": self.ratio_rel, "attachment_rings": self.attachment_rings,
+                "attachments": dict(self.attachments),
                 "items": {k: msgspec.to_builtins(v) for k, v in self.items.items()}}
+
+    def continuous_json(self) -> dict[str, Any]:
+        """The limits of the continuous design variables only (what a checkpoint's design depends on)."""
+        return {k: v for k, v in self.to_json().items() if k not in CONTINUOUS_IGNORED}
+
+
+#: Envelope entries that do not change the continuous design (a design made under one envelope resumes under another
+#: that differs only in these).
+CONTINUOUS_IGNORED = ("source", "attachment_rings", "attachments")
+
+
+def _rings(value: Any, source: str, key: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise SpecError(source, key, "must be a whole number of rings >= 0", value)
+    return int(value)
 
 
 def _nonneg(value: float | None, source: str, key: str) -> None:
@@ -121,9 +153,16 @@ def envelope_from_dict(data: Mapping[str, Any], spec: MechanismSpec, source: str
                         "reach zero)", max(e.rod_length_rel, e.ratio_rel))
     if e.axis_tilt_deg > 90:
         raise SpecError(source, "envelope.axis_tilt_deg", "must be at most 90 degrees", e.axis_tilt_deg)
-    if e.attachment_rings != 0:
-        raise SpecError(source, "envelope.attachment_rings", "growing or shrinking attachment node sets is not "
-                        "built yet: only 0 is accepted", e.attachment_rings)
+    rings = _rings(data.get("envelope", {}).get("attachment_rings", 0), source, "envelope.attachment_rings")
+    node_sets = [b.node_set for b in spec.bodies.values() if b.node_set is not None]
+    attachments: dict[str, int] = {}
+    for name, raw in f.attachments.items():
+        if not isinstance(raw, Mapping) or set(raw) - {"rings"}:
+            raise SpecError(source, f"attachments.{name}", "must be a table with the one key rings")
+        if name not in node_sets:
+            raise SpecError(source, f"attachments.{name}", f"names no attachment node set of mechanism "
+                            f"{spec.name!r}; known: {', '.join(node_sets)}")
+        attachments[name] = _rings(raw.get("rings"), source, f"attachments.{name}.rings")
     items: dict[str, ItemTable] = {}
     known = {"joints": spec.joints, "couplers": spec.couplers, "motors": spec.motors}
     for table, rows in (("joints", f.joints), ("couplers", f.couplers), ("motors", f.motors)):
@@ -136,7 +175,7 @@ def envelope_from_dict(data: Mapping[str, Any], spec: MechanismSpec, source: str
                 _nonneg(getattr(t, k), source, f"{table}.{name}.{k}")
             items[f"{table}.{name}"] = t
     return Envelope(e.joint_move_mm * 1e-3, math.radians(e.axis_tilt_deg), e.rod_length_rel, e.ratio_rel, items,
-                    source)
+                    source, rings, attachments)
 
 
 def load_envelope(path: str | Path | None, spec: MechanismSpec) -> Envelope:

@@ -120,10 +120,29 @@ def file_vs_design_mm(path: Path, dm: DesignedMechanism, actuators: list[str], l
     return worst * 1e3
 
 
+def write_skin_sets(skin_dir: Path, node_sets: Mapping[str, np.ndarray]) -> dict[str, Any]:
+    """Replace the attachment node sets of the skin mesh ``skin_dir/skin.vtu`` (nodes and tets unchanged) and read
+    it back; returns each set's node count as written."""
+    from offline.fem.mesh import load_mesh, save_mesh
+
+    path = skin_dir / "skin.vtu"
+    mesh = load_mesh(path)
+    unknown = sorted(set(node_sets) - set(mesh.node_sets))
+    if unknown:
+        raise ValueError(f"{path}: no node set(s) {', '.join(unknown)} to replace")
+    save_mesh(path, mesh.with_node_sets(**{n: np.asarray(v, dtype=np.int64) for n, v in node_sets.items()}))
+    back = load_mesh(path)
+    for n, v in node_sets.items():
+        if not np.array_equal(np.sort(np.asarray(back.node_sets[n])), np.unique(np.asarray(v))):
+            raise RuntimeError(f"{path}: node set {n} did not read back as written")
+    return {n: len(back.node_sets[n]) for n in node_sets}
+
+
 def write_head(config: str | Path, dm: DesignedMechanism, out: str | Path, note: str = "",
-               map_samples: int = 300) -> dict[str, Any]:
+               map_samples: int = 300, node_sets: Mapping[str, np.ndarray] | None = None) -> dict[str, Any]:
     """Write the head folder ``out`` (config, mechanism, link map, skin, assets) for the design ``dm`` of the head
-    ``config``; returns the checks (file vs design, map vs mechanism, in mm) and the files written."""
+    ``config``, with the skin's attachment ``node_sets`` replaced where given (the ring step's sets); returns the
+    checks (file vs design, map vs mechanism, in mm) and the files written."""
     from models.headspec import load_head
     from models.mechanism import Mechanism
     from offline.calibration.mechanism_fit import linkmap_from_mechanism
@@ -143,6 +162,7 @@ def write_head(config: str | Path, dm: DesignedMechanism, out: str | Path, note:
         p = head.path(key)
         if p is not None and Path(p).is_file():
             shutil.copy2(p, out / Path(p).name)
+    written_sets = write_skin_sets(out / "skin", node_sets) if node_sets else None
     text = config.read_text()
     with atomic_path(out / "head.toml", suffix=".toml") as tmp:
         Path(tmp).write_text(f"# {note}\n" + text if note else text)
@@ -173,5 +193,5 @@ def write_head(config: str | Path, dm: DesignedMechanism, out: str | Path, note:
     load_head(out / "head.toml")  # the head folder loads as the daemon loads it
     return {"head": str(out / "head.toml"), "mechanism": str(out / mech_name), "linkmap": str(out / lm_name),
             "file_vs_design_max_mm": file_err, "map_vs_mechanism_max_mm": map_err, "map_degree": lm.degree,
-            "map_tries": tries,
+            "map_tries": tries, "skin_node_sets": written_sets,
             "map_within_tolerance": map_err <= MAP_TOLERANCE_MM, "map_tolerance_mm": MAP_TOLERANCE_MM}

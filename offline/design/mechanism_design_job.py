@@ -2,13 +2,18 @@
 (the report's "before"), the joint design of layout and actuation, actuation again on the new layout (the "after",
 with the strain constraint's full augmented-Lagrangian rounds), then the report and the redesigned head folder.
 
-Every stage is checkpointed to ``DIR/layout_checkpoint.npz`` (the design after each accepted iteration): a killed
-run started again with the same arguments resumes; a checkpoint made for other targets, settings or envelope is
-ignored.
+With an envelope that allows attachment rings, the discrete ring step (:mod:`offline.design.mechanism_design_rings`)
+runs between continuous design rounds: screen the ring changes, apply the best, design again, until none improves.
+
+Every stage is checkpointed to ``DIR/layout_checkpoint.npz`` (the design after each accepted iteration, the ring
+counts and rounds): a killed run started again with the same arguments resumes; a checkpoint made for other targets,
+settings or continuous envelope limits is ignored (one that differs only in the ring limits resumes, its ring step
+restarting from the head's own sets when it had changed them under other limits).
 """
 
 from __future__ import annotations
 
+import json
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import asdict
@@ -31,6 +36,7 @@ from .mechanism_design import (
     settings_json,
 )
 from .mechanism_design_envelope import DesignSpace, design_space, load_envelope
+from .mechanism_design_rings import RingSettings, RingStep, dry_run_lines, screen
 from .targets import target_surface
 
 Progress = Callable[[str], None]
@@ -95,9 +101,12 @@ def run_layout_design(face: FaceSkin, targets: Mapping[str, Mapping[str, float]]
     names = list(targets)
     lp, space = layout_problem(face, targets, envelope, settings, strain=strain)
     meta = {"targets": {n: dict(w) for n, w in targets.items()}, "settings": settings_json(settings),
-            "envelope": space.envelope.to_json(), "variables": list(space.names)}
+            "envelope": space.envelope.continuous_json(), "variables": list(space.names)}
     if not strain:
         meta["strain_constraint"] = False
+    step = RingStep(lp)
+    rings = RingSettings()
+    ring_meta = json.dumps({"limits": step.limits, "settings": asdict(rings)})
     loaded = load_checkpoint(out, meta) if resume else None
     arrays: dict[str, np.ndarray] = {}
     t_start = time.perf_counter()
@@ -105,6 +114,7 @@ def run_layout_design(face: FaceSkin, targets: Mapping[str, Mapping[str, float]]
         state, arrays, _info = loaded
         progress(f"[layout] resuming from {out / 'layout_checkpoint.npz'} (iteration {state.iteration}"
                  f"{', design done' if state.done else ''})")
+        state, arrays = _resume_rings(lp, space, step, state, arrays, ring_meta, progress)
         try:
             lp.boundary.set_design(state.theta)
         except AssemblyError as exc:
@@ -112,6 +122,7 @@ def run_layout_design(face: FaceSkin, targets: Mapping[str, Mapping[str, float]]
                      "designing again from today's layout, keeping the before stage")
             arrays = {k: v for k, v in arrays.items() if k.endswith("_before")}
             state = _fresh_state(lp, space, arrays)
+            step.set_counts({})
     else:
         progress(f"[layout] before: actuation on today's mechanism, {len(names)} targets")
         before = _actuation(lp, names, None, "before", settings.actuation_iterations, progress)
@@ -121,7 +132,8 @@ def run_layout_design(face: FaceSkin, targets: Mapping[str, Mapping[str, float]]
         state.seconds = time.perf_counter() - t_start
         save_checkpoint(out, state, meta, arrays)
     progress(f"[layout] design: {space.size} design variables in {len(space.groups)} groups, "
-             f"{len(names)} x {lp.aspace.n_free} actuation variables, up to {settings.iterations} iterations")
+             f"{len(names)} x {lp.aspace.n_free} actuation variables, up to {settings.iterations} iterations"
+             + (f"; attachment rings up to {max(step.limits.values())}" if step.active else ""))
 
     base = state.seconds
     t_mark = time.perf_counter()
@@ -133,6 +145,24 @@ def run_layout_design(face: FaceSkin, targets: Mapping[str, Mapping[str, float]]
     state = design_layout(lp, state, progress=progress, checkpoint=checkpoint)
     state.done = True
     checkpoint(state)
+    rounds = json.loads(str(arrays["ring_log"])) if "ring_log" in arrays else []
+    done = bool(arrays["ring_done"]) if "ring_done" in arrays else not step.active
+    while not done:
+        progress(f"[rings] round {len(rounds) + 1} (at most {rings.max_rounds})")
+        record = screen(step, state, rings, progress)
+        rounds.append(record)
+        done = not record["applied"] or len(rounds) >= rings.max_rounds
+        if record["applied"]:
+            for k in ("P_after", "X_after", "W_after"):
+                arrays.pop(k, None)
+            state.done, state.iteration = False, 0
+        arrays.update(ring_counts=step.vector(), ring_log=np.array(json.dumps(rounds, default=float)),
+                      ring_done=np.array(done), ring_meta=np.array(ring_meta))
+        checkpoint(state)
+        if record["applied"]:
+            state = design_layout(lp, state, progress=progress, checkpoint=checkpoint)
+            state.done = True
+            checkpoint(state)
     lp.boundary.set_design(state.theta)
     if "P_after" not in arrays:
         progress("[layout] after: actuation again on the new layout (strain constraint's full rounds)")
@@ -143,11 +173,37 @@ def run_layout_design(face: FaceSkin, targets: Mapping[str, Mapping[str, float]]
         checkpoint(state)
     seconds = base + time.perf_counter() - t_mark
     head_dir = out / "head"
+    ring_report = {"limits": step.limits, "settings": asdict(rings), "sets": step.summary(), "rounds": rounds,
+                   "node_sets": step.node_sets()} if step.active else None
     report = write_layout_report(lp, state, arrays, out, names=names, config=config, targets_file=targets_file,
                                  envelope=envelope, settings=asdict(settings), seconds=seconds,
                                  head_dir=head_dir if write_head_folder else None, map_samples=map_samples,
-                                 progress=progress)
+                                 progress=progress, rings=ring_report)
     return report
+
+
+def _resume_rings(lp: LayoutProblem, space: DesignSpace, step: RingStep, state: LayoutState,
+                  arrays: dict[str, np.ndarray], ring_meta: str, progress: Progress
+                  ) -> tuple[LayoutState, dict[str, np.ndarray]]:
+    """Put the skin's attachment sets where the checkpoint left them; a checkpoint whose ring step ran under other
+    ring limits or settings (and changed a set) designs again from the before stage; one from a run without the
+    ring step goes on to it."""
+    counts = arrays.get("ring_counts")
+    if counts is None:
+        return state, arrays
+    same = str(arrays.get("ring_meta", "")) == ring_meta
+    if not same and np.any(counts):
+        progress("[rings] the checkpoint's ring step ran under other ring limits; designing again from today's "
+                 "layout, keeping the before stage")
+        arrays = {k: v for k, v in arrays.items() if k.endswith("_before")}
+        return _fresh_state(lp, space, arrays), arrays
+    if not same:
+        arrays = {k: v for k, v in arrays.items() if not k.startswith("ring_")}
+        return state, arrays
+    step.set_counts(np.asarray(counts))
+    progress("[rings] attachment sets at " + (", ".join(f"{n} {v:+d}" for n, v in step.counts.items() if v)
+                                              or "the head's own"))
+    return state, arrays
 
 
 def estimate_layout(lp: LayoutProblem, space: DesignSpace, n_targets: int, iterations: int) -> dict[str, Any]:
@@ -185,6 +241,9 @@ def run_layout_command(args: Any, face: FaceSkin, targets: Mapping[str, Mapping[
         print(f"layout design: {space.size} design variables in {len(space.groups)} groups (envelope "
               f"{space.envelope.source}), {lp.aspace.n_free} actuation variables per target, up to "
               f"{settings.iterations} iterations")
+        if RingStep(lp).active:
+            for line in dry_run_lines(RingStep(lp)):
+                print(line)
         print(f"one pose solve {est['pose_solve_s']:.2f} s, one design Jacobian {est['design_jacobian_s']:.2f} s; "
               f"estimated time about {est['estimate_s'] / 60:.0f} min (rough upper bound)")
         return 0

@@ -164,8 +164,10 @@ def write_layout_report(lp: LayoutProblem, state: LayoutState, arrays: Mapping[s
                         names: Sequence[str], config: str | Path, targets_file: str | None,
                         envelope: str | Path | None, settings: Mapping[str, Any], seconds: float,
                         head_dir: Path | None, map_samples: int = 300,
-                        progress: Callable[[str], None] = print) -> dict[str, Any]:
-    """Compute the report's figures, write the head folder, the pictures, ``report.json`` and ``report.md``."""
+                        progress: Callable[[str], None] = print,
+                        rings: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """Compute the report's figures, write the head folder, the pictures, ``report.json`` and ``report.md``;
+    ``rings``: the ring step's limits, per-set summary, rounds and final node sets (None when it did not run)."""
     from .mechanism_design_head import write_head
 
     before = target_errors(lp, arrays["X_before"])
@@ -180,6 +182,7 @@ def write_layout_report(lp: LayoutProblem, state: LayoutState, arrays: Mapping[s
     if head_dir is not None:
         progress(f"[layout] writing the redesigned head folder {head_dir}")
         head_checks = write_head(config, lp.boundary.dm, head_dir, map_samples=map_samples,
+                                 node_sets=None if rings is None else rings["node_sets"],
                                  note="Redesigned by likeness offline clone --design-mechanism (see ../report.md). "
                                       "The predictor and skin guard are the original head's: retrain them on this "
                                       "mechanism (likeness offline dataset / train, likeness offline guard).")
@@ -236,6 +239,8 @@ def write_layout_report(lp: LayoutProblem, state: LayoutState, arrays: Mapping[s
         "per_target": per_target, "moved_parameters": moved_parameters(lp, state.theta),
         "binding_limits": binding, "head_folder": head_checks, "pictures": pictures,
     }
+    if rings is not None:
+        report["attachment_rings"] = {k: v for k, v in rings.items() if k != "node_sets"}
     out.mkdir(parents=True, exist_ok=True)
     write_text(out / "report.json", json.dumps(report, indent=1, default=float))
     write_text(out / "report.md", report_markdown(report))
@@ -306,6 +311,7 @@ def report_markdown(r: Mapping[str, Any]) -> str:
         lines.append(f"- `{b['item']}.{b['what']}` at {b['now']:.2f} of {b['limit']:.2f} {b['unit']}: lifted, the "
                      f"model moves it to {b['would_move_to']:.2f} {b['unit']} ({b['beyond_limit_by']:+.2f} past the "
                      f"limit), objective gain {b['predicted_objective_gain']:.4g}")
+    lines += _rings_markdown(r.get("attachment_rings"))
     un = [t for t in r["per_target"] if not t["reached"]]
     if un:
         lines += ["", "## Targets out of reach", ""]
@@ -331,3 +337,25 @@ def report_markdown(r: Mapping[str, Any]) -> str:
                      "needs") + ")."]
     lines += ["", "![before](pictures/mechanism_before.png)", "![after](pictures/mechanism_after.png)", ""]
     return "\n".join(lines)
+
+
+def _rings_markdown(rings: Mapping[str, Any] | None) -> list[str]:
+    """The attachment-ring step's section: per set the rings changed and its nodes before/after, the rounds."""
+    if not rings:
+        return []
+    lines = ["", "## Attachment rings", "",
+             f"Ring step: a change kept when it lowers the objective by at least {rings['settings']['tol']:.0e} "
+             f"(relative), at most {rings['settings']['max_rounds']} rounds; {len(rings['rounds'])} round(s) run.", "",
+             "| node set (link) | rings | limit | nodes before | nodes after |", "|---|---|---|---|---|"]
+    for row in rings["sets"]:
+        lines.append(f"| {row['node_set']} ({row['link']}) | {row['rings']:+d} | {row['limit']} | "
+                     f"{row['nodes_before']} | {row['nodes_after']} |")
+    lines.append("")
+    for i, rd in enumerate(rings["rounds"], 1):
+        scr = [x for x in rd["screened"] if x["objective"] is not None]
+        best = min(scr, key=lambda x: x["objective"]) if scr else None
+        applied = ", ".join(f"{a['node_set']} {a['step']:+d}" for a in rd["applied"]) or "none"
+        lines.append(f"- round {i}: {len(rd['screened'])} changes screened at objective {rd['objective_before']:.5g}"
+                     + (f" (best single: {best['node_set']} {best['step']:+d}, {best['relative_change']:+.2%})"
+                        if best else "") + f"; applied {applied}, objective {rd['objective_after']:.5g}")
+    return lines

@@ -52,7 +52,13 @@ def test_per_item_limits_and_fixed_items_shape_the_variables(spec) -> None:
 @pytest.mark.parametrize(("data", "key"), [
     ({"envelope": {"joint_move_mm": -1.0}}, "envelope.joint_move_mm"),
     ({"envelope": {"rod_length_rel": 1.5}}, "envelope.rod_length_rel"),
-    ({"envelope": {"attachment_rings": 1}}, "envelope.attachment_rings"),
+    ({"envelope": {"attachment_rings": -1}}, "envelope.attachment_rings"),
+    ({"envelope": {"attachment_rings": 1.5}}, "envelope.attachment_rings"),
+    ({"envelope": {"attachment_rings": True}}, "envelope.attachment_rings"),
+    ({"attachments": {"jaw": {"rings": -2}}}, "attachments.jaw.rings"),
+    ({"attachments": {"jaw": {"rings": 0.5}}}, "attachments.jaw.rings"),
+    ({"attachments": {"no_such_set": {"rings": 1}}}, "attachments.no_such_set"),
+    ({"attachments": {"jaw": {"ring": 1}}}, "attachments.jaw"),
     ({"envelope": {"joint_mov_mm": 1.0}}, "envelope.joint_mov_mm"),
     ({"joints": {"no_such_joint": {"fixed": True}}}, "joints.no_such_joint"),
     ({"couplers": {"jaw_rod": {"length_rel": "a lot"}}}, "couplers.jaw_rod.length_rel"),
@@ -61,6 +67,17 @@ def test_bad_envelopes_are_refused_naming_file_and_key(spec, data, key) -> None:
     with pytest.raises(SpecError) as e:
         envelope_from_dict(data, spec, "env.toml")
     assert e.value.source == "env.toml" and e.value.key == key, str(e.value)
+
+
+def test_attachment_ring_limits_default_and_per_set(spec) -> None:
+    env = envelope_from_dict({"envelope": {"attachment_rings": 2}, "attachments": {"jaw": {"rings": 0}}}, spec,
+                             "env.toml")
+    limits = env.ring_limits(["jaw", "lower_lip"])
+    assert limits == {"jaw": 0, "lower_lip": 2}
+    js = env.to_json()
+    assert js["attachment_rings"] == 2 and js["attachments"] == {"jaw": 0}
+    assert "attachment_rings" not in env.continuous_json()  # the continuous design does not depend on them
+    assert load_envelope(None, spec).ring_limits(["jaw"]) == {"jaw": 0}  # off by default: runs are unchanged
 
 
 def test_an_envelope_file_that_is_missing_or_not_toml_is_refused(spec, tmp_path) -> None:

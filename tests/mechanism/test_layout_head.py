@@ -33,8 +33,21 @@ def redesigned(tmp_path_factory):
     put("motors.lower_lip", "ratio", 0.06)
     dm = DesignedMechanism(space, theta)
     out = tmp_path_factory.mktemp("layout") / "head"
-    checks = write_head(SAMPLE, dm, out, map_samples=80)
+    checks = write_head(SAMPLE, dm, out, map_samples=80, node_sets=_grown_jaw())
     return dm, out, checks
+
+
+def _grown_jaw() -> dict[str, np.ndarray]:
+    """The sample skin's attachment sets with the jaw's grown by one ring of inner-surface triangles."""
+    from offline.design.attachment_rings import AttachmentRings
+    from offline.fem.mesh import load_mesh
+
+    skin = SAMPLE.parent / "skin"
+    mesh = load_mesh(skin / "skin.vtu")
+    with np.load(skin / "face_units.npz") as z:
+        inner = np.asarray(z["inner_nodes"])
+    links = [n for n in mesh.node_sets if n != "skull"]
+    return AttachmentRings(mesh, links, fixed=["skull"], surface_nodes=inner).sets_at({"jaw": 1})
 
 
 def test_the_written_mechanism_and_link_map_reproduce_the_design(redesigned) -> None:
@@ -55,12 +68,15 @@ def test_the_written_mechanism_and_link_map_reproduce_the_design(redesigned) -> 
 def test_the_fem_problem_of_dataset_and_clone_loads_the_redesigned_head(redesigned) -> None:
     from offline.design.face import load_face
 
-    dm, out, _ = redesigned
+    dm, out, checks = redesigned
     face = load_face(out / "head.toml")
     head = face.skin.head
     p = np.zeros(len(head.actuator_names))
     p[head.actuator_names.index("jaw")] = math.radians(15.0)
     p[head.actuator_names.index("lower_lip")] = math.radians(20.0)
+    grown = _grown_jaw()["jaw"]
+    assert np.array_equal(np.sort(np.asarray(face.mesh.node_sets["jaw"])), grown)  # the skin carries the new set
+    assert len(grown) > 58 and checks["skin_node_sets"]["jaw"] == len(grown)
     bc = face.space.boundary(p)  # through the head's new link map
     T = dm.transforms(dict(zip(head.actuator_names, p, strict=True)))
     X = np.asarray(face.mesh.nodes)
