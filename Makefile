@@ -17,6 +17,7 @@ $(VENV)/.installed: pyproject.toml constraints.txt
 	$(PIP) install -q -c constraints.txt -e '.[$(EXTRAS)]'
 	$(PIP) install -q -c constraints.txt --no-deps $(BLENDER)
 	$(PY) -m models.kernels  # compile the in-cycle kernels into numba's cache once
+	$(PY) -m offline.fem.warmup  # and the FEM's kernels
 	touch $@
 
 install: $(VENV)/.installed
