@@ -408,19 +408,15 @@ def report(res: dict[str, Any], trials: int, steps: int) -> None:
 def main(argv: list[str] | None = None) -> int:
     """Run the benchmark; with ``--record PATH`` the report is also written there (atomically), headed by the command,
     the commit, the head's hash and the machine's load."""
-    import contextlib
-    import io
     import sys
 
+    try:
+        from benchmarks._record import captured, write_report
+    except ImportError:  # run as a script from benchmarks/
+        from _record import captured, write_report
+
     args_list = sys.argv[1:] if argv is None else list(argv)
-    out = io.StringIO()
-
-    class Tee(io.TextIOBase):
-        def write(self, text: str) -> int:
-            sys.__stdout__.write(text)
-            return out.write(text)
-
-    with contextlib.redirect_stdout(Tee()):
+    with captured() as out:
         rc, record = _run(args_list)
     if record is not None and rc == 0:
         import hashlib
@@ -429,11 +425,8 @@ def main(argv: list[str] | None = None) -> int:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
                                 cwd=Path(__file__).parent).stdout.strip() or "unknown"
         head = hashlib.sha256(D.SAMPLE.read_bytes()).hexdigest()[:16]
-        text = (f"# python benchmarks/input_latency.py {' '.join(args_list)}\n# commit {commit}; sample head "
-                f"{D.SAMPLE.name} sha256 {head}; {os.cpu_count()} CPUs\n" + out.getvalue())
-        tmp = record.with_suffix(record.suffix + ".tmp")
-        tmp.write_text(text, encoding="utf-8")
-        tmp.replace(record)
+        write_report(record, f"# python benchmarks/input_latency.py {' '.join(args_list)}\n# commit {commit}; sample "
+                     f"head {D.SAMPLE.name} sha256 {head}; {os.cpu_count()} CPUs\n", out.getvalue())
     return rc
 
 

@@ -427,18 +427,10 @@ def _report(view: str, label: str, stages: list[dict], incomplete: int, pixels: 
 
 def main(argv: list[str] | None = None) -> int:
     """Run the benchmark; with ``--record``, the report is also written (atomically) to a file."""
-    import contextlib
-    import io
+    from benchmarks._record import captured, write_report
 
     args_list = sys.argv[1:] if argv is None else argv
-    out = io.StringIO()
-
-    class Tee(io.TextIOBase):
-        def write(self, text: str) -> int:
-            sys.__stdout__.write(text)
-            return out.write(text)
-
-    with contextlib.redirect_stdout(Tee()):
+    with captured() as out:
         rc = _run(args_list)
     record = next((Path(a.split("=", 1)[1]) for a in args_list if a.startswith("--record=")), None)
     if "--record" in args_list:
@@ -451,11 +443,8 @@ def main(argv: list[str] | None = None) -> int:
         predictor = Path(str(load_head(SAMPLE).paths.get("predictor", "predictor.onnx")))
         inputs = [SAMPLE, predictor if predictor.is_absolute() else SAMPLE.parent / predictor]
         hashes = " ".join(f"{p.name}:{hashlib.sha256(p.read_bytes()).hexdigest()[:16]}" for p in inputs if p.is_file())
-        text = (f"# python benchmarks/studio_latency.py {' '.join(args_list)}\n# inputs (sha256): {hashes}\n"
-                + out.getvalue())
-        tmp = record.with_suffix(record.suffix + ".tmp")
-        tmp.write_text(text, encoding="utf-8")
-        tmp.replace(record)
+        write_report(record, f"# python benchmarks/studio_latency.py {' '.join(args_list)}\n# inputs (sha256): "
+                     f"{hashes}\n", out.getvalue())
     return rc
 
 

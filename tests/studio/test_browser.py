@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import io
 import math
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -51,6 +52,23 @@ def _on_top(page: Any, locator: Any) -> bool:
         return False
     return bool(locator.evaluate("(el, p) => el.contains(document.elementFromPoint(p[0], p[1]))",
                                  [box["x"] + box["width"] / 2, box["y"] + box["height"] / 2]))
+
+
+@contextlib.contextmanager
+def _counting_poses(studio: Any) -> Iterator[list[np.ndarray]]:
+    """Count the studio's poses while the block runs (each call's pose, in order)."""
+    calls: list[np.ndarray] = []
+    original = studio.set_pose
+
+    def counted(p: Any, source: object = None) -> Any:
+        calls.append(np.array(p))
+        return original(p, source)
+
+    studio.set_pose = counted
+    try:
+        yield calls
+    finally:
+        studio.set_pose = original
 
 
 def _tab(page: Any, name: str) -> None:
@@ -113,15 +131,7 @@ def test_a_slider_move_reaches_the_skin_on_the_studio_socket_once(page: Any, stu
     page.get_by_role("button", name="Neutral pose").click()
     assert wait_until(lambda: abs(studio.p[jaw_k] - head.neutral[jaw_k]) < 1e-9, 30)
     page.wait_for_timeout(1000)
-    calls: list[np.ndarray] = []
-    original = studio.set_pose
-
-    def counted(p: Any, source: object = None) -> Any:
-        calls.append(np.array(p))
-        return original(p, source)
-
-    studio.set_pose = counted
-    try:
+    with _counting_poses(studio) as calls:
         page.evaluate("window.__ev = []")
         jaw = page.get_by_role("slider", name="jaw", exact=True)
         jaw.focus()
@@ -135,8 +145,6 @@ def test_a_slider_move_reaches_the_skin_on_the_studio_socket_once(page: Any, stu
         assert sent == ["jaw"]
         assert len(calls) == 1, f"{len(calls)} poses for one slider move"
         assert abs(studio.p[lid_k] - head.neutral[lid_k]) < 1e-12
-    finally:
-        studio.set_pose = original
 
 
 def test_a_press_on_a_slider_track_sends_the_value_the_slider_takes(page: Any, studio: Any) -> None:
@@ -155,15 +163,7 @@ def test_a_press_on_a_slider_track_sends_the_value_the_slider_takes(page: Any, s
                        .getBoundingClientRect();
         return [r.left, r.top, r.width, r.height];
     }""")
-    calls: list[np.ndarray] = []
-    original = studio.set_pose
-
-    def counted(p: Any, source: object = None) -> Any:
-        calls.append(np.array(p))
-        return original(p, source)
-
-    studio.set_pose = counted
-    try:
+    with _counting_poses(studio) as calls:
         page.evaluate("window.__ev = []")
         page.mouse.click(track[0] + 0.3 * track[2], track[1] + track[3] / 2)  # 30 % along the track
         jaw = head.by_name["jaw"]
@@ -177,8 +177,6 @@ def test_a_press_on_a_slider_track_sends_the_value_the_slider_takes(page: Any, s
         assert math.degrees(studio.p[jaw_k]) == pytest.approx(value, abs=1e-6)
         assert page.evaluate("window.__ev.filter(e => e[0] === 'fastsend').map(e => e[2])") == ["jaw"]
         assert len(calls) == 1, f"{len(calls)} poses for one press"
-    finally:
-        studio.set_pose = original
 
 
 def test_key_two_frames_and_play_them_on_the_daemon(page: Any, studio: Any, daemon: Any, image_dir: Path) -> None:
