@@ -190,6 +190,27 @@
     return material;
   }
 
+  // viser's background-image quad covers the whole canvas and runs its fragment shader on every pixel, discarding
+  // each one while no background image is set: in a software renderer that costs about as much as the skin itself.
+  // The quad is left out of a frame while its image is off (three.js calls a scene's onBeforeRender before it
+  // collects what to draw), and drawn again as soon as the studio sets an image.
+  function skipIdleBackground(object) {
+    let root = object;
+    while (root.parent) root = root.parent;
+    const quads = [];
+    root.traverse((o) => {
+      const u = o.isMesh && o.material && o.material.uniforms;
+      if (u && u.enabled && u.colorMap && u.depthMap) quads.push(o);
+    });
+    if (!quads.length || root.__likenessBackground) return;
+    root.__likenessBackground = true;
+    const before = root.onBeforeRender;
+    root.onBeforeRender = function (...args) {
+      for (const q of quads) q.visible = q.material.uniforms.enabled.value === true;
+      return before.apply(this, args);
+    };
+  }
+
   function build(nv) {
     const Geometry = anchor.geometry.constructor, Attribute = anchor.geometry.attributes.position.constructor;
     const geometry = new Geometry();
@@ -204,6 +225,7 @@
       mesh.onBeforeRender = (renderer, scene, camera) => { lightUp(scene, camera); mesh.material.uniformsNeedUpdate = true; };
     }
     anchor.parent.add(mesh);
+    skipIdleBackground(anchor);
     L.mesh = mesh;
   }
 

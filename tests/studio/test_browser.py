@@ -147,6 +147,44 @@ def test_a_slider_move_reaches_the_skin_on_the_studio_socket_once(page: Any, stu
         assert abs(studio.p[lid_k] - head.neutral[lid_k]) < 1e-12
 
 
+def _corner(page: Any) -> np.ndarray:
+    """The mean RGB of the 3D view's top-left corner, where the scene shows only its background."""
+    from PIL import Image
+
+    box = page.locator("canvas").first.bounding_box()
+    png = page.screenshot(clip={"x": box["x"] + 4, "y": box["y"] + 4, "width": 40, "height": 40})
+    return np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=np.float64).reshape(-1, 3).mean(axis=0)
+
+
+QUADS_SHOWN = """() => {
+  let root = Likeness.mesh; while (root.parent) root = root.parent;
+  const shown = [];
+  root.traverse((o) => { const u = o.isMesh && o.material && o.material.uniforms;
+                         if (u && u.enabled && u.colorMap && u.depthMap) shown.push(o.visible); });
+  return shown;
+}"""
+
+
+def test_the_background_quad_is_drawn_only_while_it_has_an_image(page: Any, studio: Any) -> None:
+    """viser's full-canvas background-image quad is left out of the skin's frames while it has no image (it would
+    discard every pixel at a software renderer's full cost) and is drawn again once the studio sets one."""
+    _tab(page, "Pose")
+    assert wait_until(lambda: page.evaluate("Likeness.frames") >= 1, 60)
+    assert wait_until(lambda: page.evaluate(QUADS_SHOWN) == [False], 30), page.evaluate(QUADS_SHOWN)
+    blank = _corner(page)
+    red = np.zeros((32, 32, 3), dtype=np.uint8)
+    red[..., 0] = 255
+    studio.server.scene.set_background_image(red, format="png")
+    try:
+        assert wait_until(lambda: _corner(page)[0] > 200 and _corner(page)[1] < 80, 30,
+                          "the background image to be drawn", interval=0.3)
+        assert page.evaluate(QUADS_SHOWN) == [True]
+    finally:
+        studio.server.scene.set_background_image(None)
+    assert wait_until(lambda: np.abs(_corner(page) - blank).max() < 8, 30, "the background to clear", interval=0.3)
+    assert page.evaluate(QUADS_SHOWN) == [False]
+
+
 def test_a_press_on_a_slider_track_sends_the_value_the_slider_takes(page: Any, studio: Any) -> None:
     """The page computes a pressed slider's value from the pointer itself, as the slider does: the studio poses once
     (viser's own update of the press brings the same value), at the value the slider shows."""
