@@ -42,15 +42,17 @@
   const HOLD_MS = 120;
   let dueUntil = 0, releaseTimer = 0;
   const held = [];  // viser's messages: [listener, worker, event]
-  const keys = [];  // keys held back from a slider: [thumb, KeyboardEvent init]
+  // Keys held back from a slider: [target, "keydown" | "keyup", KeyboardEvent init]. A key's release waits behind its
+  // press, so that listeners that track held keys (viser's keyboard camera) see them in the order they happened.
+  const keys = [];
   const replayed = new WeakSet();
   function release() {
     dueUntil = 0;
     clearTimeout(releaseTimer);
     while (keys.length) {
-      const [thumb, init] = keys.shift(), e = new KeyboardEvent("keydown", init);
+      const [target, type, init] = keys.shift(), e = new KeyboardEvent(type, init);
       replayed.add(e);
-      thumb.dispatchEvent(e);
+      target.dispatchEvent(e);
     }
     while (held.length) { const [fn, self, e] = held.shift(); fn.call(self, e); }
   }
@@ -88,6 +90,7 @@
   const listeners = {};
   const L = window.Likeness = {
     mesh: null, frames: 0, seq: 0, connected: false,
+    vertexTone: true,  // tone curve and sRGB encoding per vertex where the renderer allows (false: per pixel)
     on(type, fn) { (listeners[type] = listeners[type] || []).push(fn); },
     send(obj) { if (ws && ws.readyState === 1) { ws.send(JSON.stringify(obj)); return true; } return false; },
   };
@@ -116,13 +119,30 @@
   // The skin's material: Lambert lighting evaluated per vertex (front and back faces), then viser's tone mapping and
   // output colour space, so it sits in the scene like its other objects. Light directions and colours are taken
   // from the scene's directional lights before every draw (in view space), ambient light stands in for the
-  // environment map.
+  // environment map. When the canvas is drawn with ACES filmic tone mapping (viser's) or none, into sRGB, the tone
+  // curve and the sRGB encoding are applied per vertex as well (TONE_IN_VERTEX: 4 or 0, three.js's constants), so
+  // that a pixel only interpolates its colour: in a software renderer the per-pixel curve is a tenth of a frame.
   const VERTEX = `
     uniform vec3 uLightDir[4];
     uniform vec3 uLightColor[4];
     uniform vec3 uAmbient;
+    uniform float uExposure;
     varying vec3 vFront;
     varying vec3 vBack;
+    #ifdef TONE_IN_VERTEX
+    vec3 toneAndEncode(vec3 c) {
+      #if TONE_IN_VERTEX == 4
+      // ACES filmic as the renderer applies it: exposure, the fitted input transform, the RRT+ODT rational fit, the
+      // output transform (matrices column by column).
+      c *= uExposure / 0.6;
+      c = mat3(0.59719, 0.07600, 0.02840, 0.35458, 0.90834, 0.13383, 0.04823, 0.01566, 0.83777) * c;
+      c = (c * (c + 0.0245786) - 0.000090537) / (c * (0.983729 * c + 0.4329510) + 0.238081);
+      c = mat3(1.60475, -0.10208, -0.00327, -0.53108, 1.10813, -0.07276, -0.07367, -0.00605, 1.07602) * c;
+      #endif
+      c = clamp(c, 0.0, 1.0);
+      return mix(1.055 * pow(c, vec3(1.0 / 2.4)) - 0.055, c * 12.92, vec3(lessThanEqual(c, vec3(0.0031308))));
+    }
+    #endif
     void main() {
       vec3 n = normalize(normalMatrix * normal);
       vec3 front = uAmbient, back = uAmbient;
@@ -133,6 +153,10 @@
       }
       vFront = color * front;
       vBack = color * back;
+      #ifdef TONE_IN_VERTEX
+      vFront = toneAndEncode(vFront);
+      vBack = toneAndEncode(vBack);
+      #endif
       gl_Position = projectionMatrix * modelViewMatrix * vec4(position, 1.0);
     }`;
   const FRAGMENT = `
@@ -140,9 +164,26 @@
     varying vec3 vBack;
     void main() {
       gl_FragColor = vec4(gl_FrontFacing ? vFront : vBack, 1.0);
+      #ifndef TONE_IN_VERTEX
       #include <tonemapping_fragment>
       #include <colorspace_fragment>
+      #endif
     }`;
+
+  // Per vertex or per pixel, as the renderer draws this frame (into the canvas or a render target); a change
+  // recompiles the material once.
+  function toneFor(material, renderer) {
+    const tm = renderer.toneMapping;
+    const vertex = L.vertexTone && renderer.getRenderTarget() === null && renderer.outputColorSpace === "srgb" && (tm === 4 || tm === 0);
+    const want = vertex ? tm : undefined;
+    if (material.defines.TONE_IN_VERTEX !== want) {
+      if (want === undefined) delete material.defines.TONE_IN_VERTEX;
+      else material.defines.TONE_IN_VERTEX = want;
+      material.toneMapped = want === undefined;
+      material.needsUpdate = true;
+    }
+    material.uniforms.uExposure.value = renderer.toneMappingExposure;
+  }
   // Ambient irradiance (linear) standing in for viser's environment light; lights are divided by pi as three.js's
   // Lambert term does.
   const AMBIENT = 0.4;
@@ -184,7 +225,9 @@
     if (!Shader) return new anchor.material.constructor({vertexColors: true, side: 2, roughness: 0.75, metalness: 0.0});
     const material = new Shader({
       vertexShader: VERTEX, fragmentShader: FRAGMENT, vertexColors: true, side: 2,
-      uniforms: {uLightDir: {value: lightDir}, uLightColor: {value: lightColor}, uAmbient: {value: ambient}},
+      uniforms: {uLightDir: {value: lightDir}, uLightColor: {value: lightColor}, uAmbient: {value: ambient},
+                 uExposure: {value: 1.0}},
+      defines: {},
     });
     material.toneMapped = true;
     return material;
@@ -222,7 +265,11 @@
     mesh.name = "likeness-skin";
     mesh.frustumCulled = false;
     if (mesh.material.isShaderMaterial) {
-      mesh.onBeforeRender = (renderer, scene, camera) => { lightUp(scene, camera); mesh.material.uniformsNeedUpdate = true; };
+      mesh.onBeforeRender = (renderer, scene, camera) => {
+        lightUp(scene, camera);
+        toneFor(mesh.material, renderer);
+        mesh.material.uniformsNeedUpdate = true;
+      };
     }
     anchor.parent.add(mesh);
     skipIdleBackground(anchor);
@@ -339,6 +386,8 @@
     return label ? label.textContent.trim() : thumb.getAttribute("aria-label");
   }
   const STEPS = {ArrowRight: 1, ArrowUp: 1, ArrowLeft: -1, ArrowDown: -1};
+  const keyInit = (e) => ({key: e.key, code: e.code, keyCode: e.keyCode, which: e.which, shiftKey: e.shiftKey,
+                           bubbles: true, cancelable: true, composed: true});
   document.addEventListener("keydown", (e) => {
     if (replayed.has(e)) return;
     const thumb = e.target && e.target.closest ? e.target.closest("[role=slider]") : null;
@@ -356,8 +405,12 @@
     // The slider itself gets the key once the skin is drawn (in order behind any key still held back).
     e.preventDefault();
     e.stopImmediatePropagation();
-    keys.push([thumb, {key: e.key, code: e.code, keyCode: e.keyCode, which: e.which, shiftKey: e.shiftKey,
-                       bubbles: true, cancelable: true, composed: true}]);
+    keys.push([thumb, "keydown", keyInit(e)]);
+  }, {capture: true});
+  document.addEventListener("keyup", (e) => {
+    if (replayed.has(e) || !keys.some(([, type, init]) => type === "keydown" && init.code === e.code)) return;
+    e.stopImmediatePropagation();
+    keys.push([e.target, "keyup", keyInit(e)]);
   }, {capture: true});
   let drag = null;  // the pose slider being dragged: {name, spec, track}
   function pointerValue(e) {

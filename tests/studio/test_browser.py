@@ -37,6 +37,20 @@ def _changed_fraction(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.mean(np.abs(a - b).max(axis=2) > 24))
 
 
+def _steady_face(page: Any, timeout: float = 60) -> np.ndarray:
+    """The face view once it shows the same picture twice in a row (no notice, skin frame or camera move under way)."""
+    shots: list[np.ndarray] = []
+
+    def steady() -> bool:
+        _dismiss_notifications(page)
+        page.evaluate("() => new Promise((r) => requestAnimationFrame(() => requestAnimationFrame(r)))")
+        shots.append(_face(page))
+        return len(shots) > 1 and np.array_equal(shots[-1], shots[-2])
+
+    assert wait_until(steady, timeout, "a steady view", interval=0.5)
+    return shots[-1]
+
+
 def _dismiss_notifications(page: Any) -> None:
     """Close the client's notices (e.g. 'software WebGL') so they do not cover the view in screenshots."""
     for button in page.locator(".mantine-Notification-closeButton").all():
@@ -145,6 +159,9 @@ def test_a_slider_move_reaches_the_skin_on_the_studio_socket_once(page: Any, stu
         assert sent == ["jaw"]
         assert len(calls) == 1, f"{len(calls)} poses for one slider move"
         assert abs(studio.p[lid_k] - head.neutral[lid_k]) < 1e-12
+    # The key reached the slider after the skin was drawn, its release after it: viser's keyboard camera, which
+    # tracks held arrow keys, saw both in order and is not left turning the view.
+    _steady_face(page, 30)
 
 
 def _corner(page: Any) -> np.ndarray:
@@ -183,6 +200,30 @@ def test_the_background_quad_is_drawn_only_while_it_has_an_image(page: Any, stud
         studio.server.scene.set_background_image(None)
     assert wait_until(lambda: np.abs(_corner(page) - blank).max() < 8, 30, "the background to clear", interval=0.3)
     assert page.evaluate(QUADS_SHOWN) == [False]
+
+
+def test_the_skin_looks_the_same_with_its_tone_curve_per_vertex_or_per_pixel(page: Any, studio: Any) -> None:
+    """The skin's tone curve and sRGB encoding, applied per vertex (the fast path), give the picture the renderer's
+    own per-pixel ACES filmic and sRGB output gives, up to interpolation in the encoded space (largest where the
+    strain colours change fastest between two vertices)."""
+    head = studio.head
+    jaw_k = head.names.index("jaw")
+    _tab(page, "Pose")
+    page.get_by_role("button", name="Neutral pose").click()
+    assert wait_until(lambda: abs(studio.p[jaw_k] - head.neutral[jaw_k]) < 1e-9, 30)
+    defined = "Likeness.mesh.material.defines.TONE_IN_VERTEX"
+
+    try:
+        page.evaluate("Likeness.vertexTone = false")
+        assert wait_until(lambda: page.evaluate(defined) is None, 30, "the per-pixel tone curve", interval=0.3)
+        per_pixel = _steady_face(page)
+    finally:
+        page.evaluate("Likeness.vertexTone = true")
+    assert wait_until(lambda: page.evaluate(defined) == 4, 30, "the per-vertex ACES curve", interval=0.3)
+    per_vertex = _steady_face(page)
+    diff = np.abs(per_vertex - per_pixel).max(axis=2)
+    assert per_pixel.std() > 10  # the view shows the face, not a blank canvas
+    assert float(diff.mean()) < 1.5 and float(np.percentile(diff, 99)) < 12, (float(diff.mean()), int(diff.max()))
 
 
 def test_a_press_on_a_slider_track_sends_the_value_the_slider_takes(page: Any, studio: Any) -> None:
