@@ -68,6 +68,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "<= 20 deg, rod lengths and ratios +-20 %%)")
     p.add_argument("--design-iterations", type=int, default=25,
                    help="layout design: joint Gauss-Newton iterations at most (default 25)")
+    p.add_argument("--ring-rounds", type=int, default=3,
+                   help="layout design: rounds of the attachment-ring step at most, between continuous rounds "
+                        "(default 3; 0: node sets stay as they are); the envelope's attachment_rings limits each set")
 
 
 def run(args: argparse.Namespace) -> int:

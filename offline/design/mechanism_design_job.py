@@ -92,9 +92,10 @@ def _fresh_state(lp: LayoutProblem, space: DesignSpace, arrays: Mapping[str, np.
 def run_layout_design(face: FaceSkin, targets: Mapping[str, Mapping[str, float]], out: str | Path,
                       settings: LayoutSettings, *, config: str | Path, envelope: str | Path | None = None,
                       targets_file: str | None = None, resume: bool = True, write_head_folder: bool = True,
-                      map_samples: int = 300, strain: bool = True, progress: Progress = print) -> dict[str, Any]:
+                      map_samples: int = 300, strain: bool = True, rings: RingSettings | None = None,
+                      progress: Progress = print) -> dict[str, Any]:
     """Run (or resume) the layout design of ``face`` for ``targets`` and write ``out``/report.json, report.md,
-    the pictures and ``out/head/``; returns the report."""
+    the pictures and ``out/head/``; returns the report. ``rings``: the attachment-ring step's stopping rule."""
     from .mechanism_design_report import write_layout_report
 
     out = Path(out)
@@ -105,7 +106,7 @@ def run_layout_design(face: FaceSkin, targets: Mapping[str, Mapping[str, float]]
     if not strain:
         meta["strain_constraint"] = False
     step = RingStep(lp)
-    rings = RingSettings()
+    rings = rings if rings is not None else RingSettings()
     ring_meta = json.dumps({"limits": step.limits, "settings": asdict(rings)})
     loaded = load_checkpoint(out, meta) if resume else None
     arrays: dict[str, np.ndarray] = {}
@@ -146,7 +147,7 @@ def run_layout_design(face: FaceSkin, targets: Mapping[str, Mapping[str, float]]
     state.done = True
     checkpoint(state)
     rounds = json.loads(str(arrays["ring_log"])) if "ring_log" in arrays else []
-    done = bool(arrays["ring_done"]) if "ring_done" in arrays else not step.active
+    done = bool(arrays["ring_done"]) if "ring_done" in arrays else not step.active or rings.max_rounds == 0
     while not done:
         progress(f"[rings] round {len(rounds) + 1} (at most {rings.max_rounds})")
         record = screen(step, state, rings, progress)
@@ -233,6 +234,9 @@ def run_layout_command(args: Any, face: FaceSkin, targets: Mapping[str, Mapping[
     if args.design_iterations < 1:
         raise UsageError(f"--design-iterations {args.design_iterations}: must be >= 1")
     settings = LayoutSettings(iterations=args.design_iterations)
+    if args.ring_rounds < 0:
+        raise UsageError(f"--ring-rounds {args.ring_rounds}: must be >= 0")
+    rings = RingSettings(max_rounds=args.ring_rounds)
     if args.dry_run:
         lp, space = layout_problem(face, targets, args.envelope, settings, strain=not args.no_strain_constraint)
         est = estimate_layout(lp, space, len(targets), settings.iterations)
@@ -249,7 +253,7 @@ def run_layout_command(args: Any, face: FaceSkin, targets: Mapping[str, Mapping[
         return 0
     report = run_layout_design(face, targets, args.out, settings, config=args.config, envelope=args.envelope,
                                targets_file=args.targets, resume=not args.fresh,
-                               strain=not args.no_strain_constraint, progress=say)
+                               strain=not args.no_strain_constraint, rings=rings, progress=say)
     sm = report["summary"]
     mm = 1e3
     for label in ("before", "after"):

@@ -58,3 +58,11 @@ def test_a_small_layout_design_writes_its_report_and_head_and_resumes(tmp_path, 
     assert "resuming from" in capsys.readouterr().out
     again = json.loads((out / "report.json").read_text())
     assert again["per_target"][0]["after"] == row["after"]
+
+
+def test_ring_rounds_below_zero_are_refused(tmp_path, capsys) -> None:
+    rc = main(["offline", "clone", "--config", str(SAMPLE), "--targets", _targets(tmp_path, {"blink": {
+        "eyeBlinkLeft": 1.0}}), "--design-mechanism", "--dry-run", "--ring-rounds", "-1", "--out",
+        str(tmp_path / "run")])
+    assert rc == 2
+    assert "--ring-rounds -1: must be >= 0" in capsys.readouterr().err
