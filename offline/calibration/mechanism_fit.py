@@ -119,6 +119,7 @@ class _GroupProblem:
         self.x0, self.prior = x0, prior
         self.evaluations = 0
         self._key: bytes | None = None
+        self._warm: tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]] | None = None
         self._out: tuple[np.ndarray, np.ndarray] = (np.zeros(0), np.zeros((0, 0)))
 
     def _eval(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -130,9 +131,8 @@ class _GroupProblem:
         mech = Mechanism(with_params(self.spec, dict(zip(self.params, x[nm:], strict=True))), zero_error=zeros)
         st = mech.structure
         ratio = np.array([self.spec.motors[m].ratio for m in g.motors])
-        # every sample at once, each solved from the fitted mechanism's assembly at motor zero
-        R, t = mech.solve_many(g.motors, self.Q)
         goal = mech.joint_targets_many(g.motors, self.Q)
+        R, t = self._solve(mech, goal)
         dq, dp = mechanism_batch.state_derivatives(st, g, R, t, goal, self.params)
         dz = -dq * ratio  # the joint sees ratio × (value − zero)
         res = np.zeros((len(self.Q), len(self.links), 6))
@@ -154,6 +154,21 @@ class _GroupProblem:
         J = np.vstack([J, np.diag(1.0 / self.prior)])
         self._key, self._out = x.tobytes(), (r, J)
         return r, J
+
+    def _solve(self, mech: Mechanism, goal: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """Every sample's solution at once: continued from the previous evaluation's solutions (parameters a
+        little apart, so Newton needs few steps; the same branch), else from the assembly at motor zero."""
+        g = next(h for h in mech.structure.groups if h.bodies == self.group.bodies)  # with these parameters
+        target = {m: goal[m] for m in g.motors}
+        if self._warm is None:
+            R, t = mech.solve_many(g.motors, self.Q)
+        else:
+            R, t, start = self._warm[0].copy(), self._warm[1].copy(), self._warm[2]
+            failed = mechanism_batch.solve_group(mech.structure, g, R, t, start, target)
+            if failed.any():
+                R[failed], t[failed] = mech.solve_many(g.motors, self.Q[failed])
+        self._warm = (R, t, target)
+        return R, t
 
     def residual(self, x: np.ndarray) -> np.ndarray:
         return self._eval(x)[0]
