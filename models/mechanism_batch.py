@@ -27,7 +27,7 @@ from models.mechanism_kin import (
     _with,
 )
 from models.mechanism_kin import _basis as kin_basis
-from models.rigid import matrix_to_rotvec, rotvec_to_matrix
+from models.rigid import matrix_to_rotvec
 
 Targets = Mapping[str, np.ndarray]
 
@@ -137,7 +137,7 @@ def _prismatic(j: Joint, Ra, ta, Rb, tb, target):
         Jb[:, i], Ja[:, i] = _vm(ae, Db), _vm(ae, Da)
         Ja[:, i, 3:] += _cross(ae, delta)
     tilt = j.tilt_axis is not None
-    E = Rb @ _T(Ra @ rotvec_to_matrix(np.outer(s, j.tilt_axis * j.tilt_rate)) if tilt else Ra)
+    E = Rb @ _T(Ra @ _exp(np.outer(s, j.tilt_axis * j.tilt_rate)) if tilt else Ra)
     r[:, 2:5] = matrix_to_rotvec(E)
     L = _dlog(r[:, 2:5])
     Jb[:, 2:5, 3:], Ja[:, 2:5, 3:] = L, -L @ E
@@ -228,12 +228,26 @@ def group_residual(group: Group, R: np.ndarray, t: np.ndarray, targets: Targets,
     return r, J
 
 
+def _exp(w: np.ndarray) -> np.ndarray:
+    """Rotation matrices of rotation vectors (m, 3) → (m, 3, 3): :func:`models.rigid.rotvec_to_matrix`'s formula."""
+    th = np.sqrt(_dot(w, w))
+    small = th < 1e-8
+    ts = np.where(small, 1.0, th)
+    a = np.where(small, 1.0 - th**2 / 6.0, np.sin(ts) / ts)
+    b = np.where(small, 0.5 - th**2 / 24.0, (1.0 - np.cos(ts)) / ts**2)
+    K = _skew(w)
+    return EYE3 + a[:, None, None] * K + b[:, None, None] * (K @ K)
+
+
 def _apply(group: Group, R: np.ndarray, t: np.ndarray, dx: np.ndarray) -> None:
-    if not dx.shape[0]:
+    """``t ← t + δt``, ``R ← exp(δw) R`` for every body of the group at every pose."""
+    n, k = dx.shape[0], len(group.bodies)
+    if not n:
         return
-    for k, b in enumerate(group.bodies):
-        t[:, b] += dx[:, 6 * k:6 * k + 3]
-        R[:, b] = rotvec_to_matrix(dx[:, 6 * k + 3:6 * k + 6]) @ R[:, b]
+    d = dx.reshape(n, k, 6)
+    bodies = list(group.bodies)
+    t[:, bodies] += d[:, :, :3]
+    R[:, bodies] = _exp(d[:, :, 3:].reshape(-1, 3)).reshape(n, k, 3, 3) @ R[:, bodies]
 
 
 def _steps(J: np.ndarray, r: np.ndarray) -> np.ndarray:
