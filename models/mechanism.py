@@ -21,13 +21,16 @@ from typing import Any
 
 import numpy as np
 
+from models import mechanism_batch
 from models.errors import SpecError
 from models.mechanism_file import Body, MechanismSpec, read_mechanism, spec_from_dict
 from models.mechanism_kin import (
+    RESIDUAL_TOL,
     AssemblyError,
     State,
     body_jacobian,
     free_bodies,
+    group_residual,
     joint_targets,
     solve_group,
     state_derivatives,
@@ -78,7 +81,9 @@ class Mechanism:
         self._lock = threading.Lock()
         # assemble at motor zero: a spec whose parameters moved (a fit, a design) no longer closes at s = 0
         for g in self.structure.groups:
-            solve_group(self.structure, g, self._state, self._targets, self._targets)
+            r, _ = group_residual(g, self._state, self._targets, jacobian=False)
+            if np.max(np.abs(r), initial=0.0) >= RESIDUAL_TOL:  # (a closed group would take a zero step)
+                solve_group(self.structure, g, self._state, self._targets, self._targets)
 
     @classmethod
     def load(cls, path: str | Path) -> Mechanism:
@@ -120,6 +125,59 @@ class Mechanism:
                     for m in g.motors:
                         self._targets[m] = goal[m]
             return self._state.copy()
+
+    def joint_targets_many(self, actuators: Sequence[str], P: np.ndarray) -> dict[str, np.ndarray]:
+        """Each motor's joint value (n,) at the rows of ``P`` (n, len(actuators)), SI: :meth:`joint_angles` times
+        the motor's ratio, row by row (motors not in ``actuators``: value zero)."""
+        P = np.asarray(P, dtype=float).reshape(-1, len(actuators))
+        col = {a: k for k, a in enumerate(actuators)}
+        out = {}
+        for name in self.actuators:
+            value = (P[:, col[name]] if name in col else np.zeros(len(P))) - self.zero_error.get(name, 0.0)
+            lo, hi = self.stops.get(name, (-math.inf, math.inf))
+            out[name] = self.spec.motors[name].ratio * np.minimum(np.maximum(value, lo), hi)
+        return out
+
+    def solve_many(self, actuators: Sequence[str], P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Solve c(s) = 0 at every row of ``P`` (n, len(actuators)), SI, each from the solution this mechanism holds
+        (left unchanged): each row's state as :meth:`solve` would reach from there (a pose that cannot be reached
+        from there is solved again from neutral; AssemblyError when neither works). Vectorised over the rows: for
+        calibration and tabulation. Returns each body's ``R`` (n, bodies, 3, 3) and ``t`` (n, bodies, 3)."""
+        goal = self.joint_targets_many(actuators, P)
+        n = len(next(iter(goal.values()))) if goal else len(np.atleast_2d(P))
+        with self._lock:
+            R = np.repeat(self._state.R[None], n, axis=0)
+            t = np.repeat(self._state.t[None], n, axis=0)
+            held = dict(self._targets)
+        neutral = joint_targets(self.spec, {})
+        for g in self.structure.groups:
+            idx = np.flatnonzero(np.any([goal[m] != held[m] for m in g.motors], axis=0)) if g.motors else []
+            if not len(idx):
+                continue
+            Rs, ts = R[idx], t[idx]
+            failed = mechanism_batch.solve_group(self.structure, g, Rs, ts, held, {m: goal[m][idx] for m in g.motors})
+            for i in np.flatnonzero(failed):  # back to neutral and once more from there, as solve does
+                state = State.neutral(len(self.structure.bodies))
+                solve_group(self.structure, g, state, neutral, {m: float(goal[m][idx[i]]) for m in g.motors})
+                Rs[i][list(g.bodies)], ts[i][list(g.bodies)] = state.R[list(g.bodies)], state.t[list(g.bodies)]
+            R[idx], t[idx] = Rs, ts
+        return R, t
+
+    def link_poses_many(self, actuators: Sequence[str], P: np.ndarray) -> dict[str, np.ndarray]:
+        """Each link's tracked frame (n, 4, 4) at every row of ``P`` (see :meth:`solve_many`)."""
+        R, t = self.solve_many(actuators, P)
+        out = {}
+        for name in self.spec.links:
+            i, rest = self.structure.index(name), self.spec.bodies[name].rest
+            T = np.zeros((len(R), 4, 4))
+            T[:, 3, 3] = 1.0
+            if i < 0:
+                T[:, :3] = rest[:3]
+            else:
+                T[:, :3, :3] = R[:, i] @ rest[:3, :3]
+                T[:, :3, 3] = R[:, i] @ rest[:3, 3] + t[:, i]
+            out[name] = T
+        return out
 
     def body_transforms(self, actuators: Mapping[str, float]) -> dict[str, np.ndarray]:
         """Every body's rigid transform from neutral (4x4, head frame), the ground's the identity."""

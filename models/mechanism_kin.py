@@ -4,7 +4,8 @@ Every moving body carries six coordinates: its rigid transform from the neutral 
 updated as ``R ← exp(δw) R``, ``t ← t + δt``. Joints, couplers and the motors' joint values are constraints on these
 coordinates, written in the head frame with analytic Jacobians. The bodies split into independent groups (each
 connected through joints and couplers, ground aside); each group is solved by Newton's method from its previous
-solution, stepping the motor values in small increments so the solution stays on its assembly branch.
+solution, stepping the motor values in small increments (halved where the tangent predicts a long move) so the
+solution stays on its assembly branch.
 :func:`state_derivatives` gives d(state)/d(motor values) and d(state)/d(design parameters) by implicit
 differentiation (``J_s ds = -∂c/∂θ dθ``). Model (spec) and work data (:class:`State`) are kept apart, as in
 pinocchio.
@@ -27,6 +28,8 @@ EYE3 = np.eye(3)
 RESIDUAL_TOL = 1e-11
 #: Largest joint-value step of the continuation (rad for revolute, m for prismatic joints).
 STEP = {"revolute": 0.5, "prismatic": 0.03}
+#: Longest predictor step of the continuation (rad or m per body coordinate); longer: the joint-value step is halved.
+PREDICT_MAX = 0.5
 
 
 class AssemblyError(LikenessError, ValueError):
@@ -345,8 +348,7 @@ def solve_group(st: Structure, group: Group, state: State, start: Mapping[str, f
         trial = state.copy()
         here = {m: start[m] + done * (goal[m] - start[m]) for m in group.motors}
         tg = {m: start[m] + nxt * (goal[m] - start[m]) for m in group.motors}
-        _predict(group, trial, here, tg)
-        if newton(group, trial, tg):
+        if _predict(group, trial, here, tg) and newton(group, trial, tg):
             state.R[:], state.t[:] = trial.R, trial.t
             done = nxt
             continue
@@ -356,8 +358,10 @@ def solve_group(st: Structure, group: Group, state: State, start: Mapping[str, f
             raise _assembly_error(st, group, goal, tg)
 
 
-def _predict(group: Group, state: State, here: Mapping[str, float], goal: Mapping[str, float]) -> None:
-    """Euler predictor of the continuation: move along the solution's tangent d(state)/d(joint values)."""
+def _predict(group: Group, state: State, here: Mapping[str, float], goal: Mapping[str, float]) -> bool:
+    """Euler predictor of the continuation: move along the solution's tangent d(state)/d(joint values). False (state
+    untouched) when the tangent step is too long (0.5 rad or m): a corrector started that far from the solution may
+    settle on another assembly branch, so the caller takes a shorter step instead."""
     _, J = group_residual(group, state, here)
     dc = np.zeros(J.shape[0])
     row = 0
@@ -366,8 +370,12 @@ def _predict(group: Group, state: State, here: Mapping[str, float], goal: Mappin
         if c.motor is not None:
             dc[row - 1] = -(goal[c.motor] - here[c.motor])
     dx = _step(J, dc)
-    if np.all(np.isfinite(dx)) and np.max(np.abs(dx)) < 0.5:
-        _apply(group, state, dx)
+    if not np.all(np.isfinite(dx)):  # a singular tangent: Newton alone from here
+        return True
+    if np.max(np.abs(dx)) >= PREDICT_MAX:
+        return False
+    _apply(group, state, dx)
+    return True
 
 
 def _assembly_error(st: Structure, group: Group, goal: Mapping[str, float], at: Mapping[str, float]) -> AssemblyError:

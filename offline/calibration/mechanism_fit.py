@@ -18,10 +18,11 @@ from typing import Any
 import numpy as np
 from scipy.optimize import least_squares
 
+from models import mechanism_batch
 from models.linkmap import FitOptions, LinkMap, LinkObservations, fit_linkmap
 from models.mechanism import Mechanism
 from models.mechanism_file import MechanismSpec, get_param, with_params
-from models.mechanism_kin import Group, body_jacobian, joint_targets, state_derivatives
+from models.mechanism_kin import Group
 from models.rigid import matrix_to_quat, matrix_to_rotvec
 
 #: Lever (m) that turns a rotation error into a length, so positions and orientations weigh alike.
@@ -70,10 +71,6 @@ def fit_parameters(spec: MechanismSpec, group: Group, bodies: Sequence[str], anc
     return out
 
 
-def _observed(obs: LinkObservations, i: int) -> tuple[np.ndarray, np.ndarray]:
-    return obs.positions[i], obs.rotations()[i]
-
-
 def fit_mechanism(spec: MechanismSpec, actuators: Sequence[str], P: np.ndarray,
                   observations: Mapping[str, LinkObservations], max_evaluations: int = 12,
                   anchors: bool = True) -> MechanismFit:
@@ -118,9 +115,11 @@ class _GroupProblem:
                  observations: Mapping[str, LinkObservations], x0: np.ndarray, prior: np.ndarray) -> None:
         self.spec, self.group, self.links, self.params, self.Q = spec, group, links, params, Q
         self.obs = {n: observations[n] for n in links}
+        self.observed = {n: (o.positions, o.rotations()) for n, o in self.obs.items()}
         self.x0, self.prior = x0, prior
         self.evaluations = 0
         self._key: bytes | None = None
+        self._warm: tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]] | None = None
         self._out: tuple[np.ndarray, np.ndarray] = (np.zeros(0), np.zeros((0, 0)))
 
     def _eval(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -130,32 +129,46 @@ class _GroupProblem:
         g, nm = self.group, len(self.group.motors)
         zeros = dict(zip(g.motors, x[:nm], strict=True))
         mech = Mechanism(with_params(self.spec, dict(zip(self.params, x[nm:], strict=True))), zero_error=zeros)
-        rows, jac = [], []
         st = mech.structure
         ratio = np.array([self.spec.motors[m].ratio for m in g.motors])
-        for i, q in enumerate(self.Q):
-            values = dict(zip(g.motors, q, strict=True))
-            state = mech.solve(values)
-            goal = joint_targets(self.spec, mech.joint_angles(values))
-            dq, dp = state_derivatives(st, g, state, goal, self.params)
-            dz = -dq * ratio  # the joint sees ratio × (value − zero)
-            for n in self.links:
-                o = self.obs[n]
-                if not o.valid[i]:
-                    continue
-                p_obs, R_obs = _observed(o, i)
-                T = state.transform(st.index(n)) @ self.spec.bodies[n].rest
-                rows.append(np.r_[T[:3, 3] - p_obs, matrix_to_rotvec(T[:3, :3] @ R_obs.T) * LEVER_M])
-                J = np.hstack([body_jacobian(st, state, n, dz, g), body_jacobian(st, state, n, dp, g)])
-                J[3:] *= LEVER_M
-                jac.append(J)
-        r = np.concatenate(rows) / LOSS_SCALE_M
-        J = np.vstack(jac) / LOSS_SCALE_M
+        goal = mech.joint_targets_many(g.motors, self.Q)
+        R, t = self._solve(mech, goal)
+        dq, dp = mechanism_batch.state_derivatives(st, g, R, t, goal, self.params)
+        dz = -dq * ratio  # the joint sees ratio × (value − zero)
+        res = np.zeros((len(self.Q), len(self.links), 6))
+        jac = np.zeros((len(self.Q), len(self.links), 6, len(x)))
+        for k, n in enumerate(self.links):
+            i, rest = st.index(n), self.spec.bodies[n].rest
+            p_obs, R_obs = self.observed[n]
+            rot = R[:, i] @ rest[:3, :3]
+            res[:, k, :3] = R[:, i] @ rest[:3, 3] + t[:, i] - p_obs
+            res[:, k, 3:] = matrix_to_rotvec(rot @ np.swapaxes(R_obs, 1, 2)) * LEVER_M
+            jac[:, k, :, :nm] = mechanism_batch.body_jacobian(st, R, n, dz, g)
+            jac[:, k, :, nm:] = mechanism_batch.body_jacobian(st, R, n, dp, g)
+        jac[:, :, 3:] *= LEVER_M
+        valid = np.stack([self.obs[n].valid for n in self.links], axis=1)  # sample-major rows, as tracked
+        r = res[valid].reshape(-1) / LOSS_SCALE_M
+        J = jac[valid].reshape(-1, len(x)) / LOSS_SCALE_M
         # weak priors at the design values, in the same units as a tracked millimetre
         r = np.r_[r, (x - self.x0) / self.prior]
         J = np.vstack([J, np.diag(1.0 / self.prior)])
         self._key, self._out = x.tobytes(), (r, J)
         return r, J
+
+    def _solve(self, mech: Mechanism, goal: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """Every sample's solution at once: continued from the previous evaluation's solutions (parameters a
+        little apart, so Newton needs few steps; the same branch), else from the assembly at motor zero."""
+        g = next(h for h in mech.structure.groups if h.bodies == self.group.bodies)  # with these parameters
+        target = {m: goal[m] for m in g.motors}
+        if self._warm is None:
+            R, t = mech.solve_many(g.motors, self.Q)
+        else:
+            R, t, start = self._warm[0].copy(), self._warm[1].copy(), self._warm[2]
+            failed = mechanism_batch.solve_group(mech.structure, g, R, t, start, target)
+            if failed.any():
+                R[failed], t[failed] = mech.solve_many(g.motors, self.Q[failed])
+        self._warm = (R, t, target)
+        return R, t
 
     def residual(self, x: np.ndarray) -> np.ndarray:
         return self._eval(x)[0]
@@ -167,14 +180,9 @@ class _GroupProblem:
 def holdout_errors_mm(mech: Mechanism, actuators: Sequence[str], P: np.ndarray,
                       observations: Mapping[str, LinkObservations]) -> dict[str, np.ndarray]:
     """Per link, the 3-D position error (mm) of the mechanism's frames against observed ones at samples ``P``."""
-    out: dict[str, list[float]] = {n: [] for n in observations if n in mech.links}
-    for i, p in enumerate(P):
-        poses = mech.link_poses(dict(zip(actuators, p, strict=True)))
-        for n in out:
-            o = observations[n]
-            if o.valid[i]:
-                out[n].append(float(np.linalg.norm(poses[n][:3, 3] - o.positions[i])) * 1e3)
-    return {n: np.asarray(v) for n, v in out.items()}
+    poses = mech.link_poses_many(actuators, P)
+    return {n: np.linalg.norm(poses[n][o.valid, :3, 3] - o.positions[o.valid], axis=1) * 1e3
+            for n, o in observations.items() if n in mech.links}
 
 
 def linkmap_from_mechanism(mech: Mechanism, head: Any, samples: int = 300, seed: int = 0, degree: int = 3,
@@ -187,11 +195,9 @@ def linkmap_from_mechanism(mech: Mechanism, head: Any, samples: int = 300, seed:
     hi = np.array([a.max for a in head.actuators])
     P = rng.uniform(lo, hi, (samples, len(names)))
     P[0] = np.array(head.neutral_pose)  # the neutral pose itself, exactly
-    poses = [mech.link_poses(dict(zip(names, p, strict=True))) for p in P]
-    obs = {}
-    for n in mech.links:
-        obs[n] = LinkObservations(np.array([T[n][:3, 3] for T in poses]),
-                                  matrix_to_quat(np.array([T[n][:3, :3] for T in poses])), np.ones(len(P), bool))
+    poses = mech.link_poses_many(names, P)
+    obs = {n: LinkObservations(T[:, :3, 3], matrix_to_quat(T[:, :3, :3]), np.ones(len(P), bool))
+           for n, T in poses.items()}
     config_links = {link.name: link.actuators for link in head.links}
     # noise-free samples: detection would keep only what moves; the config's actuators are the mechanism's
     opts = FitOptions(min_detection_dof=10**9)
@@ -242,7 +248,7 @@ def choose_link_map(head: Any, quadratic: LinkMap, P: np.ndarray, obs: Mapping[s
                                                                   "mechanism": str(spec.source)})
     Pt = np.random.default_rng(1).uniform([a.min for a in head.actuators], [a.max for a in head.actuators],
                                           (40, len(names)))
+    truth, pred = fit.mechanism.link_poses_many(names, Pt), lm.predict(Pt)
     section["map_vs_mechanism_max_mm"] = max(
-        float(np.linalg.norm(fit.mechanism.link_poses(dict(zip(names, p, strict=True)))[n][:3, 3]
-                             - lm.poses(p)[n][:3, 3])) * 1e3 for p in Pt for n in fit.mechanism.links)
+        float(np.max(np.linalg.norm(truth[n][:, :3, 3] - pred[n][:, :3], axis=1))) * 1e3 for n in truth)
     return lm, section

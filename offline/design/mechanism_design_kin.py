@@ -104,17 +104,19 @@ class DesignedMechanism:
 
     def check_range(self, lo: Mapping[str, float], hi: Mapping[str, float], n: int = 7) -> None:
         """Raise AssemblyError unless every linkage assembles over its motors' whole range (``n`` values per motor,
-        a grid for linkages with several motors, swept by continuation from motor zero and back)."""
+        a grid for linkages with several motors, each point reached by continuation from the held solution, all
+        points at once: :meth:`models.mechanism.Mechanism.solve_many`)."""
         import itertools
 
+        names = list(self.zero)
         for g in self.mech.structure.groups:
             if not g.motors:
                 continue
             k = n if len(g.motors) == 1 else max(3, n // 2 + 1)
             axes = [np.linspace(lo[m], hi[m], k) for m in g.motors]
-            for point in itertools.product(*axes):
-                self.mech.solve({**self.zero, **dict(zip(g.motors, point, strict=True))})
-            self.mech.solve(self.zero)
+            grid = np.array([[{**self.zero, **dict(zip(g.motors, point, strict=True))}[a] for a in names]
+                             for point in itertools.product(*axes)])
+            self.mech.solve_many(names, grid)
 
     def transforms(self, values: Mapping[str, float]) -> dict[str, np.ndarray]:
         """Each link's rigid motion from the new neutral: T(p, θ) · T(0, θ)⁻¹ (4x4)."""

@@ -47,7 +47,7 @@ def test_calibrate_starts_the_daemon_and_the_tracker_and_reaches_the_whole_trave
     saturated CPU is resumed, as an operator would."""
     out = tmp_path / "run"
     args = ["calibrate", "--config", str(SAMPLE), "--tracker", "sim", "--out", str(out), "--samples", "4",
-            "--sweep-levels", "2", "--frames", "4", "--speed", "0.6", "--no-discover", "--no-progress",
+            "--sweep-levels", "2", "--frames", "4", "--speed", "1", "--no-discover", "--no-progress",
             "--link-model", "quadratic"]  # the mechanism fit is the replay test's; this one is about the run
     for _attempt in range(4):
         rc = main(args)

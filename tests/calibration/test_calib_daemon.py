@@ -48,7 +48,7 @@ def test_calibration_through_the_daemon(tmp_path, daemon, sample_head, sample_me
     for attempt in range(3):
         driver = None
         try:
-            driver = DaemonHead(daemon.command_endpoint, sample_head, speed_fraction=0.6)
+            driver = DaemonHead(daemon.command_endpoint, sample_head, speed_fraction=1.0)
             src = SimSource(SimTracker(sample_mech, daemon.hw.simulated_positions, seed=12 + attempt))
             res = calibrate_live(sample_head, driver, src, tmp_path / "cal", s, reference=sample_mech.rest_poses())
             break

@@ -36,7 +36,7 @@ def _run(head, mech, out, attempts: int = 3, **kw):
         daemon = start_bare_daemon(head, out)
         driver = None
         try:
-            driver = DaemonHead(daemon.command_endpoint, head, speed_fraction=0.5)
+            driver = DaemonHead(daemon.command_endpoint, head, speed_fraction=1.0)
             src = SimSource(SimTracker(mech, daemon.hw.simulated_positions, seed=11 + attempt))
             return calibrate_live(head, driver, src, out, s, reference=mech.rest_poses())
         except (CalibrationError, BusError):

@@ -49,11 +49,8 @@ def truth_errors_mm(head, mech, lm: LinkMap, n: int = 150, seed: int = 99) -> np
     plan = make_plan(head, samples=n, seed=seed, sweep_levels=2)
     P = np.array([[p.values[a] for a in head.actuator_names] for p in plan.poses if p.kind == "random"])
     pred = lm.predict(P)
-    errs = []
-    for i, p in enumerate(P):
-        truth = mech.link_poses(dict(zip(head.actuator_names, p, strict=True)))
-        errs.extend(np.linalg.norm(pred[k][i, :3] - truth[k][:3, 3]) * 1e3 for k in truth)
-    return np.array(errs)
+    truth = mech.link_poses_many(head.actuator_names, P)  # every pose at once
+    return np.stack([np.linalg.norm(pred[k][:, :3] - truth[k][:, :3, 3], axis=1) * 1e3 for k in truth], 1).ravel()
 
 
 def bound_mm(lm: LinkMap, sigma: float, k_eff: float, n_fit: int) -> tuple[float, float]:

@@ -86,11 +86,9 @@ def test_quadratic_model_bias_is_below_the_tracker_noise(head, mech) -> None:
     X = rng.uniform(lo, hi, (300, len(names)))
     i, j = names.index("lip_corner_l_up"), names.index("lip_corner_l_back")
     X[:, j] = np.clip(X[:, j], X[:, i] - 45 * DEG, X[:, i] + 45 * DEG)
-    poses = [mech.link_poses(dict(zip(names, x, strict=True))) for x in X]
-    obs = {}
-    for n in ("jaw", "lower_lip", "lip_corner_l", "lid_l"):
-        obs[n] = LinkObservations(np.array([p[n][:3, 3] for p in poses]),
-                                  matrix_to_quat(np.array([p[n][:3, :3] for p in poses])), np.ones(len(X), bool))
+    poses = mech.link_poses_many(names, X)  # every pose at once (tests/mechanism/test_batch.py: as one by one)
+    obs = {n: LinkObservations(poses[n][:, :3, 3], matrix_to_quat(poses[n][:, :3, :3]), np.ones(len(X), bool))
+           for n in ("jaw", "lower_lip", "lip_corner_l", "lid_l")}
     lm = fit_linkmap(names, [a.neutral for a in head.actuators], (hi - lo) / 2, X, obs)
     for n, fit in lm.links.items():
         assert fit.residual["rms_mm"] < 0.07, n  # tracker noise is 0.2 mm per axis and frame
