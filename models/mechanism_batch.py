@@ -25,6 +25,7 @@ from models.mechanism_kin import (
     Structure,
     _step,
     _with,
+    motor_columns,
 )
 from models.mechanism_kin import _basis as kin_basis
 from models.rigid import matrix_to_rotvec
@@ -369,13 +370,7 @@ def state_derivatives(st: Structure, group: Group, R: np.ndarray, t: np.ndarray,
     r, J = group_residual(group, R, t, targets)
     assert J is not None
     pinv = np.linalg.pinv(J)
-    dc_dq = np.zeros((r.shape[1], len(group.motors)))
-    row = 0
-    for c in group.constraints:
-        k = c.rows()
-        if c.motor is not None:
-            dc_dq[row + k - 1, group.motors.index(c.motor)] = -1.0
-        row += k
+    dc_dq = motor_columns(group, r.shape[1])
     dc_dp = np.zeros((r.shape[0], r.shape[1], len(params)))
     for k, p in enumerate(params):
         if p.startswith("motors."):

@@ -430,19 +430,26 @@ def body_jacobian(st: Structure, state: State, body: str, dx: np.ndarray, group:
     return np.vstack([_point_jac(state.R[i], origin) @ block, block[3:]])
 
 
-def state_derivatives(st: Structure, group: Group, state: State, targets: Mapping[str, float],
-                      params: Sequence[str] = (), h: float = 1e-7) -> tuple[np.ndarray, np.ndarray]:
-    """Implicit derivatives of the group's coordinates at a solution: (d/d joint values of ``group.motors``,
-    d/d ``params``), shapes (size, motors) and (size, params). ∂c/∂θ is a central difference of c at fixed s."""
-    r, J = group_residual(group, state, targets)
-    pinv = np.linalg.pinv(J)
-    dc_dq = np.zeros((r.size, len(group.motors)))
+def motor_columns(group: Group, rows: int) -> np.ndarray:
+    """∂c/∂(joint values of ``group.motors``), shape (rows, motors): each actuated constraint's last row is its joint
+    value minus the motor's, so that entry is −1."""
+    dc_dq = np.zeros((rows, len(group.motors)))
     row = 0
     for c in group.constraints:
         n = c.rows()
         if c.motor is not None:
             dc_dq[row + n - 1, group.motors.index(c.motor)] = -1.0
         row += n
+    return dc_dq
+
+
+def state_derivatives(st: Structure, group: Group, state: State, targets: Mapping[str, float],
+                      params: Sequence[str] = (), h: float = 1e-7) -> tuple[np.ndarray, np.ndarray]:
+    """Implicit derivatives of the group's coordinates at a solution: (d/d joint values of ``group.motors``,
+    d/d ``params``), shapes (size, motors) and (size, params). ∂c/∂θ is a central difference of c at fixed s."""
+    r, J = group_residual(group, state, targets)
+    pinv = np.linalg.pinv(J)
+    dc_dq = motor_columns(group, r.size)
     dc_dp = np.zeros((r.size, len(params)))
     for k, p in enumerate(params):
         if p.startswith("motors."):
