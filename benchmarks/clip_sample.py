@@ -1,7 +1,8 @@
 """Clip sampling per control cycle: ``CompiledClip.sample`` (flat arrays, no per-channel loop) against
 ``Clip.sample`` (per-channel dicts and bisect) on the same 52-channel, ~10 000-key clip, for step, linear and Bezier
 curves (Bezier with the 1/3-span handles animation tools export, and with random handles), p50 / p99 / max per
-sample at random times, measured in this run; plus the compiled clip's bytes per key.
+sample at random times, measured in this run; plus the compiled clip's bytes per key, and for Bezier curves the
+compiled kernel (:mod:`models._clip_kernels`) against the numpy lockstep iteration it replaces.
 
 Run: ``python benchmarks/clip_sample.py [--samples 20000]``.
 """
@@ -20,6 +21,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from models.clip import Clip, clip_from_dict
+from models.kernel_support import kernels_available
 from runtime.compiled import compile_clip
 
 CHANNELS = 52
@@ -79,6 +81,10 @@ def main(argv: list[str] | None = None) -> int:
               f"{fast[0]:7.1f} us  p99 {fast[1]:7.1f} us  max {fast[2]:8.1f} us   Clip.sample p50 {slow[0]:7.1f} us "
               f" p99 {slow[1]:7.1f} us   ratio p50 x{slow[0] / fast[0]:.1f}, p99 x{slow[1] / fast[1]:.1f}   "
               f"{cc.nbytes / cc.key_count:.0f} bytes/key", flush=True)
+        if interp == "bezier" and kernels_available():  # the compiled kernel against the numpy lockstep iteration
+            lock = percentiles_us(lambda t, cc=cc, out=out: cc.sample(t, out, compiled=False), times)
+            print(f"{'':<26} numpy lockstep Bezier    p50 {lock[0]:7.1f} us  p99 {lock[1]:7.1f} us  -> compiled kernel"
+                  f" ratio p50 x{lock[0] / fast[0]:.1f}, p99 x{lock[1] / fast[1]:.1f}", flush=True)
     return 0
 
 

@@ -23,7 +23,6 @@ if str(ROOT) not in sys.path:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from models import _skin_kernels as K
     from models import kernels_aot as KA
     from models.kernels import warm
 
@@ -41,7 +40,7 @@ def main(argv: list[str] | None = None) -> int:
         warm(head, ahead_of_time=False)
     print(f"in-cycle kernels, µs per call, {args.calls} calls each; load average {os.getloadavg()[0]:.1f}")
     for name in KA.EXPORTS:
-        builds = {"numba JIT": getattr(K, name), "ahead of time": KA.kernel(name)}
+        builds = {"numba JIT": KA.jit(name), "ahead of time": KA.kernel(name)}
         times: dict[str, list[float]] = {b: [] for b in builds}
         for fn in builds.values():
             for _ in range(200):

@@ -1,4 +1,4 @@
-"""Compiled inner loops of the hidden-space inverse solve and the reduced strain measure (numba).
+"""Compiled inner loops of the hidden-space inverse solve, the reduced strain measure and the guard's limit (numba).
 
 Both run once per frame in the control loop. Written with numpy they are a few dozen small array operations each,
 and on a two-core machine the interpreter's per-operation overhead (microseconds) is most of their cost; compiled,
@@ -187,6 +187,45 @@ def reduced_measure(h: np.ndarray, E: np.ndarray, e0: np.ndarray, C: np.ndarray,
         lo_min = min(lo_min, a)
         hi_max = max(hi_max, b)
     return lo_min - 1.0, hi_max - 1.0
+
+
+@njit(cache=True)
+def _passes(p: np.ndarray, scale: np.ndarray, shift: np.ndarray, W1: np.ndarray, b1: np.ndarray, s_lo: float,
+            s_hi: float, E: np.ndarray, e0: np.ndarray, C: np.ndarray, idet: np.ndarray, S_ptr: np.ndarray,
+            S_idx: np.ndarray, S_w: np.ndarray) -> bool:
+    """:meth:`models.strain_guard.StrainGuard.check`: ``p`` inside the trained range (normalized within 1e-6 of [0,
+    1]; NaN fails) and its reduced measure within [s_lo, s_hi]."""
+    x = p * scale + shift
+    for v in x:
+        if not (v >= -1e-6 and v <= 1.0 + 1e-6):
+            return False
+    lo, hi = reduced_measure(np.tanh(W1 @ x + b1), E, e0, C, idet, S_ptr, S_idx, S_w)
+    return s_lo <= lo and hi <= s_hi
+
+
+@njit(cache=True)
+def guard_limit(p_from: np.ndarray, p_to: np.ndarray, steps: int, out: np.ndarray, scale: np.ndarray,
+                shift: np.ndarray, W1: np.ndarray, b1: np.ndarray, s_lo: float, s_hi: float, E: np.ndarray,
+                e0: np.ndarray, C: np.ndarray, idet: np.ndarray, S_ptr: np.ndarray, S_idx: np.ndarray,
+                S_w: np.ndarray) -> int:
+    """:meth:`models.strain_guard.StrainGuard.limit` in one call: ``out`` = ``p_to`` when it passes (returns 0), else
+    the furthest passing point of the segment from ``p_from`` found by ``steps`` bisections (1), else ``p_from`` (2)."""
+    if _passes(p_to, scale, shift, W1, b1, s_lo, s_hi, E, e0, C, idet, S_ptr, S_idx, S_w):
+        out[:] = p_to
+        return 0
+    d = p_to - p_from
+    lo_t, hi_t, found = 0.0, 1.0, False
+    for _ in range(steps):
+        mid = 0.5 * (lo_t + hi_t)
+        if _passes(p_from + mid * d, scale, shift, W1, b1, s_lo, s_hi, E, e0, C, idet, S_ptr, S_idx, S_w):
+            lo_t, found = mid, True
+        else:
+            hi_t = mid
+    if found:
+        out[:] = p_from + lo_t * d
+        return 1
+    out[:] = p_from
+    return 2
 
 
 @njit(cache=True)

@@ -1,5 +1,6 @@
-"""Packing the constants of the in-cycle frame solve into the four arrays that
-:func:`models._skin_kernels.solve_values_measured` unpacks (numpy only: the loop process packs them without numba)."""
+"""Arguments of the in-cycle kernels, built with numpy only (the loop process builds them without numba): the
+constants of the frame solve packed into the four arrays :func:`models._skin_kernels.solve_values_measured`
+unpacks, and example arguments of :func:`models._clip_kernels.bezier_sample`."""
 
 from __future__ import annotations
 
@@ -23,3 +24,17 @@ def pack_frame_args(solve: tuple, measure: tuple) -> tuple[np.ndarray, np.ndarra
     dims = np.array([len(lo), len(e), Rb.shape[1], len(idet), len(S_ptr), len(S_idx), E.shape[2], int(max_iterations)],
                     dtype=np.int64)
     return f64, f32, i64, dims
+
+
+def bezier_sample_example() -> tuple:
+    """Arguments of the types :class:`runtime.compiled.CompiledClip` passes (read-only clip arrays, the writable
+    slot indices and values a cycle computes), for compiling ahead of time: one curve of one segment, x(s) = y(s) =
+    s, sampled at its middle (slots: pad, hold, two keys; coefficient rows: hold, segment, last key)."""
+    ro = []
+    for a in (np.array([0], np.int64), np.array([-1], np.int64), np.array([0.0]), np.array([1.0]),
+              np.array([[0.0] * 8, [0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0], [0.0] * 8]),
+              np.array([0.0, 0.0, 0.0, 1.0]), np.array([1.0, 1.0, 1.0, 1.0])):
+        a.flags.writeable = False
+        ro.append(a)
+    bez, bez_row, first, last, coef, slot_t, slot_dt = ro
+    return (0.5, np.array([2], np.int64), bez, bez_row, first, last, coef, slot_t, slot_dt, np.zeros(1))

@@ -42,13 +42,14 @@ def warm(head_path: str, ahead_of_time: bool = True) -> None:
 
 
 def _run_kernels(head: HeadSpec, sp: SkinPredictor) -> None:
-    """Call every in-cycle kernel once as a head's skin solver and strain guard do (compiling them)."""
+    """Call every in-cycle kernel once as a head's skin solver, strain guard and clips do (compiling them)."""
     from models.ksnn_solve import KsnnInverse
     from models.strain_guard import StrainGuard
 
-    guard = StrainGuard.for_head(head, sp)  # compiles the reduced measure
+    guard = StrainGuard.for_head(head, sp)  # compiles the reduced measure and the limit
     if guard is not None:
         guard.check(0.5 * (guard.lo + guard.hi))
+        guard.limit(guard.lo.copy(), 0.5 * (guard.lo + guard.hi))
     if sp.face_unit_offsets is not None:
         lo = np.maximum([a.min for a in head.actuators], sp.lo)
         hi = np.minimum([a.max for a in head.actuators], sp.hi)
@@ -57,6 +58,10 @@ def _run_kernels(head: HeadSpec, sp: SkinPredictor) -> None:
         inv.solve(np.zeros(inv.n_units), p_prev=0.5 * (lo + hi), max_iterations=2, measure=guard)  # and fused
         if guard is not None:  # and the control cycle's frame solve from channel values
             inv.frame_solve(2, 1e-6, 1e-3, guard)(np.full(inv.n_units, np.nan), 0.5 * (lo + hi))
+    from models.kernel_args import bezier_sample_example
+    from models.kernels_aot import kernel
+
+    kernel("bezier_sample")(*bezier_sample_example())  # a clip's Bezier channels, as the control cycle samples them
 
 
 if __name__ == "__main__":

@@ -2,13 +2,12 @@
 
 Importing numba (its compiler, LLVM) costs a process about 110 MiB of resident memory, and loading the kernels from
 numba's own on-disk cache another 70 MiB (the code generator stays resident): most of a resting daemon's memory, for
-four small functions. :func:`build` compiles the functions the loop calls (:data:`EXPORTS`, from
-:mod:`models._skin_kernels`) with numba's ahead-of-time compiler (``numba.pycc``) into an ordinary extension module
-(about 1 MiB, for the host CPU as the JIT compiles) under ``models/__pycache__/``, typed with the argument types a
-head's solver and strain guard pass (numba's own typing of real arguments, so the compiled code is the code the JIT
-would run). :func:`kernel` returns that module's function when it is built for these sources, library versions and
-CPU, else the JIT function (numba imported on first use, as before). ``python -m models.kernels`` (``make
-install``) builds it.
+six small functions. :func:`build` compiles the functions the loop calls (:data:`EXPORTS`, from :data:`SOURCES`)
+with numba's ahead-of-time compiler (``numba.pycc``) into an ordinary extension module (about 1 MiB, for the host CPU
+as the JIT compiles) under ``models/__pycache__/``, typed with the argument types a head's solver, strain guard and
+clips pass (numba's own typing of real arguments, so the compiled code is the code the JIT would run).
+:func:`kernel` returns that module's function when it is built for these sources, library versions and CPU, else the
+JIT function (numba imported on first use, as before). ``python -m models.kernels`` (``make install``) builds it.
 """
 
 from __future__ import annotations
@@ -32,8 +31,11 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-#: The kernels the control loop calls (the rest of :mod:`models._skin_kernels` is reached through them).
-EXPORTS = ("solve_values_measured", "reduced_measure", "solve_frame", "solve_frame_measured")
+#: The kernels the control loop calls (the rest of :data:`SOURCES` is reached through them).
+EXPORTS = ("solve_values_measured", "reduced_measure", "solve_frame", "solve_frame_measured", "guard_limit",
+           "bezier_sample")
+#: The modules that define them (numba JIT functions), in :data:`EXPORTS`' order of first use.
+SOURCES = ("_skin_kernels", "_clip_kernels")
 MODULE = "_skin_kernels_aot"
 _HERE = Path(__file__).resolve().parent
 
@@ -42,7 +44,8 @@ def key() -> str:
     """What the built module must match: the kernels' source, the exported names, numba's, numpy's and Python's
     versions."""
     h = hashlib.sha256()
-    h.update((_HERE / "_skin_kernels.py").read_bytes())
+    for source in SOURCES:
+        h.update((_HERE / f"{source}.py").read_bytes())
     h.update(" ".join(EXPORTS).encode())
     try:
         numba_version = importlib.metadata.version("numba")
@@ -100,14 +103,10 @@ def kernel(name: str) -> Callable[..., Any]:
     if name not in EXPORTS:
         raise KeyError(f"{name!r} is not an exported kernel; exported: {', '.join(EXPORTS)}")
     if _RECORDING:
-        from models import _skin_kernels
-
-        return _recorder(name, getattr(_skin_kernels, name), list(_RECORDING))
+        return _recorder(name, jit(name), list(_RECORDING))
     mod = module()
     if mod is None:
-        from models import _skin_kernels
-
-        return getattr(_skin_kernels, name)
+        return jit(name)
     fn = _AOT.get(name)
     if fn is None:
         fn = _AOT[name] = _with_fallback(name, getattr(mod, name))
@@ -117,19 +116,29 @@ def kernel(name: str) -> Callable[..., Any]:
 _AOT: dict[str, Callable[..., Any]] = {}
 
 
+@functools.cache
+def jit(name: str) -> Callable[..., Any]:
+    """The numba JIT function ``name`` from whichever of :data:`SOURCES` defines it (imports numba)."""
+    import importlib
+
+    for source in SOURCES:
+        fn = getattr(importlib.import_module(f"models.{source}"), name, None)
+        if fn is not None:
+            return fn
+    raise KeyError(f"no kernel module defines {name!r}")
+
+
 def _with_fallback(name: str, aot: Callable[..., Any]) -> Callable[..., Any]:
     def call(*args: Any) -> Any:
         try:
             return aot(*args)
         except TypeError:  # argument types outside the ahead-of-time signature
-            from models import _skin_kernels
-
             log.warning("kernel %s: arguments %s not in its ahead-of-time build; using numba's JIT", name,
                         [getattr(a, "dtype", type(a).__name__) for a in args])
-            return getattr(_skin_kernels, name)(*args)
+            return jit(name)(*args)
 
     call.__name__ = name
-    call.__doc__ = f"{name} of :mod:`models._skin_kernels`, compiled ahead of time (numba's JIT as a fallback)."
+    call.__doc__ = f"{name} of the in-cycle kernels, compiled ahead of time (numba's JIT as a fallback)."
     return call
 
 
@@ -168,8 +177,6 @@ def build(examples: Mapping[str, Sequence[Any]]) -> Path:
     from numba import typeof
     from numba.pycc import CC
 
-    from models import _skin_kernels as K
-
     missing = [name for name in EXPORTS if name not in examples]
     if missing:
         raise ValueError(f"no example arguments for {', '.join(missing)}")
@@ -184,7 +191,7 @@ def build(examples: Mapping[str, Sequence[Any]]) -> Path:
         cc.output_dir = str(tmp)
         cc.verbose = False
         for name in EXPORTS:
-            dispatcher = getattr(K, name)
+            dispatcher = jit(name)
             args = tuple(examples[name])
             dispatcher(*args)  # compiled by the JIT first: its typing gives the return type
             argtypes = tuple(typeof(a) for a in args)

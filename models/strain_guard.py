@@ -23,6 +23,7 @@ import numpy as np
 
 from models.errors import SpecError
 from models.kernel_support import kernels_available
+from models.kernels_aot import kernel
 from models.predictor import DEFAULT_STRAIN_RANGE, KsnnWeights, SkinPredictor
 
 #: Default neighbourhood radius (m) of the area-weighted average: above the coarse sample mesh's 5.6 mm edges,
@@ -34,6 +35,8 @@ DEFAULT_BAND = 0.007
 #: Reference surfaces the predictor's strain can be measured against: the rest (base) mesh, as the FEM does, or
 #: the predictor's own prediction at the neutral pose (cancels its neutral error, but not its pose-dependent one).
 REFERENCES = ("rest", "neutral")
+#: :meth:`StrainGuard.limit`'s verdicts, by the compiled limit's return code.
+VERDICTS = ("ok", "limited", "held")
 #: Attachment distance file format (``[paths] skin_guard`` of a head).
 FOOTPRINT_FORMAT = "likeness-skin-attachment-distance"
 
@@ -464,8 +467,6 @@ class StrainGuard:
         """Reduced measure (min, max) from hidden activations (3H,) (for callers that already have them);
         compiled (:mod:`models._skin_kernels`) unless ``compiled`` is False."""
         if self.compiled:
-            from models.kernels_aot import kernel
-
             lo, hi = kernel("reduced_measure")(np.asarray(h, dtype=np.float64), *self.kernel_arrays())
             return float(lo), float(hi)
         return self.measure_hidden_numpy(h)
@@ -532,6 +533,13 @@ class StrainGuard:
         """``p_to`` if it passes ("ok"); else the furthest passing point of the segment from ``p_from`` found by
         ``steps`` bisections ("limited"); else ``p_from`` ("held")."""
         p_to = np.asarray(p_to, dtype=np.float64)
+        if self.compiled:  # the whole limit in one compiled call (models._skin_kernels.guard_limit)
+            if p_to.shape != self.lo.shape:
+                raise ValueError(f"pose must have shape {self.lo.shape}, got {p_to.shape}")
+            out = np.empty_like(p_to)
+            verdict = kernel("guard_limit")(np.asarray(p_from, dtype=np.float64), p_to, int(steps), out, self._scale,
+                                            self._shift, self._W1, self._b1, *self.strain_range, *self.kernel_arrays())
+            return out, VERDICTS[verdict]
         if self.check(p_to):
             return p_to, "ok"
         base = np.asarray(p_from, dtype=np.float64)

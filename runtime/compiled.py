@@ -5,9 +5,9 @@ every channel with a fixed number of numpy calls (no per-channel Python loop). T
 ``searchsorted`` over integer codes ``curve * M + rank(t) + 1``, ``rank`` being a key time's index among all the
 clip's distinct key times: exact, whatever the times. Step and linear values are the bits of
 :meth:`models.clip.Clip.sample`; Bezier channels run the safeguarded Newton iteration of
-:func:`models.clip._bezier_eval` on all of them in lockstep, each stopping where the scalar loop stops, so they
-give the same bits too (at the cost of a few numpy calls per iteration). Everything is plain numpy arrays and
-strings: picklable and cheap to hand to another process.
+:func:`models.clip._bezier_eval`, compiled (:mod:`models._clip_kernels`) where numba is installed, else in numpy on
+all of them in lockstep, each stopping where the scalar loop stops (a few numpy calls per iteration): the same bits
+either way. Everything is plain numpy arrays and strings: picklable and cheap to hand to another process.
 """
 
 from __future__ import annotations
@@ -18,6 +18,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from models.clip import Clip, ClipError
+from models.kernel_args import bezier_sample_example
+from models.kernel_support import kernels_available
+from models.kernels_aot import kernel
 from runtime.messages import ClipSpec
 
 _NEWTON_STEPS = 24  # as models.clip._bezier_eval
@@ -62,10 +65,12 @@ class CompiledClip:
         """Bytes held in arrays."""
         return sum(v.nbytes for v in vars(self).values() if isinstance(v, np.ndarray))
 
-    def sample(self, t: float, out: np.ndarray) -> None:
+    def sample(self, t: float, out: np.ndarray, compiled: bool | None = None) -> None:
         """Write every channel's value at clip time ``t`` into ``out`` (one float64 per column; NaN for columns the
         clip has no curve for). Values hold before a curve's first key and after its last, as
-        :meth:`models.clip.Curve.value`. ``t`` must be finite."""
+        :meth:`models.clip.Curve.value`. ``t`` must be finite. Bezier channels run the compiled kernel
+        (:mod:`models._clip_kernels`) where numba is installed, else the numpy lockstep iteration (``compiled``
+        chooses; both give the bits of :meth:`models.clip.Clip.sample`)."""
         if len(out) != len(self.channel_index):
             raise ValueError(f"out has {len(out)} entries; the clip is compiled for {len(self.channel_index)} channels")
         t = float(t)
@@ -75,12 +80,19 @@ class CompiledClip:
         u /= self.slot_dt.take(i)
         nbez = len(self.bez)
         if nbez:
-            guess = u.copy() if nbez == len(u) else u.take(self.bez)
+            if compiled is None:
+                compiled = kernels_available()
+            if not compiled:
+                guess = u.copy() if nbez == len(u) else u.take(self.bez)
         u *= self.slot_dv.take(i)  # v0 + u (v1 - v0): the bits of Curve.value
         direct = len(self.column) == len(out)
         np.add(u, self.slot_v.take(i), out=out if direct and not nbez else u)
         if nbez:
-            self._bezier(t, i if nbez == len(u) else i.take(self.bez), guess, u)
+            if compiled:
+                kernel("bezier_sample")(t, i, self.bez, self.bez_row, self.bez_first, self.bez_last, self.bez_coef,
+                                        self.slot_t, self.slot_dt, u)
+            else:
+                self._bezier(t, i if nbez == len(u) else i.take(self.bez), guess, u)
             if direct:
                 out[:] = u
         if not direct:
@@ -126,6 +138,13 @@ class CompiledClip:
             vals[:] = y
         else:
             vals[self.bez[inside]] = y[inside]
+
+
+def prepare_kernel() -> None:
+    """Load the compiled Bezier kernel (the ahead-of-time module, else numba's JIT) before the loop starts: its first
+    call in a cycle would otherwise load a shared library or compile. Nothing to do without numba."""
+    if kernels_available():
+        kernel("bezier_sample")(*bezier_sample_example())
 
 
 def _cubic(a: np.ndarray | float, b: np.ndarray, c: np.ndarray, d: np.ndarray, s: np.ndarray) -> np.ndarray:

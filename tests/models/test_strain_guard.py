@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from models.headspec import load_head
+from models.kernel_support import kernels_available
 from models.strain_guard import StrainGuard, SurfaceStrain, load_footprint
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -129,6 +130,43 @@ def test_limit_returns_ok_limited_or_held(guard):
     assert guard.check(pose)
     if outcome == "limited":
         assert 0 < np.linalg.norm(pose - n) < np.linalg.norm(bad - n)
+
+
+def _limit_by_checks(guard, p_from, p_to, steps):
+    """StrainGuard.limit's bisection written out over StrainGuard.check (the reference of the compiled limit)."""
+    if guard.check(p_to):
+        return p_to, "ok"
+    d = p_to - p_from
+    lo_t, hi_t, found = 0.0, 1.0, False
+    for _ in range(steps):
+        mid = 0.5 * (lo_t + hi_t)
+        if guard.check(p_from + mid * d):
+            lo_t, found = mid, True
+        else:
+            hi_t = mid
+    return (p_from + lo_t * d, "limited") if found else (p_from.copy(), "held")
+
+
+@pytest.mark.skipif(not kernels_available(), reason="numba is not installed")
+def test_the_compiled_limit_is_the_bisection_over_the_check(guard):
+    """One compiled call (models._skin_kernels.guard_limit) against the bisection over the check, on segments from
+    neutral and between random poses, in and beyond the trained range (NaN targets held)."""
+    rng = np.random.default_rng(11)
+    span = guard.hi - guard.lo
+    P = rng.uniform(guard.lo - 0.1 * span, guard.hi + 0.1 * span, (400, len(guard.lo)))
+    verdicts = set()
+    for k, p_to in enumerate(P):
+        p_from = guard.neutral.copy() if k % 2 else np.clip(P[k - 1], guard.lo, guard.hi)
+        if k % 50 == 7:
+            p_to = p_to.copy()
+            p_to[0] = np.nan
+        steps = 3 + k % 4
+        got, verdict = guard.limit(p_from, p_to, steps=steps)
+        ref, ref_verdict = _limit_by_checks(guard, p_from, p_to, steps)
+        assert verdict == ref_verdict, k
+        assert np.array_equal(got, ref, equal_nan=True), k
+        verdicts.add(verdict)
+    assert verdicts == {"ok", "limited", "held"}
 
 
 @pytest.mark.skipif(not FEM_SAMPLE.is_file(), reason="no shipped FEM sample")

@@ -13,6 +13,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from models.clip import Clip, ClipError, clip_from_dict
+from models.kernel_support import kernels_available
 from runtime.compiled import CompiledClip, compile_clip
 from runtime.messages import decode_request
 
@@ -60,7 +61,7 @@ def test_compiled_clip_equals_clip_sample(data: dict, extra: list[float]) -> Non
     spec = decode_request(msgpack.packb({"op": "load_clip", "clip": data})).clip
     compiled = [compile_clip(clip, COLUMNS), compile_clip(spec, COLUMNS)]
     key_values = np.array([v for c in clip.channels.values() for v in c.values])
-    out = np.empty(len(COLUMNS))
+    out, lockstep = np.empty(len(COLUMNS)), np.empty(len(COLUMNS))
     for t in _probe_times(clip, extra):
         ref = _reference(clip, t)
         scale = max(np.ptp(np.append(key_values, ref[np.isfinite(ref)])), 1e-300)
@@ -70,6 +71,8 @@ def test_compiled_clip_equals_clip_sample(data: dict, extra: list[float]) -> Non
             assert np.array_equal(np.isnan(out), np.isnan(ref))
             ok = np.isfinite(ref)
             assert np.all(np.abs(out[ok] - ref[ok]) <= 1e-9 * scale), (t, out, ref)
+            cc.sample(t, lockstep, compiled=False)  # the numpy iteration: the same bits as the kernel
+            assert np.array_equal(out, lockstep, equal_nan=True), (t, out, lockstep)
     assert compiled[0].duration == compiled[1].duration == clip.duration
     assert compiled[0].key_count == clip.key_count()
 
@@ -118,6 +121,45 @@ def test_compiled_clip_pickles_and_is_read_only() -> None:
         assert np.array_equal(a, b)
     with pytest.raises(ValueError):
         cc.slot_v[1] = 0.0
+
+
+def _bezier_clip(seed: int, channels: int = 12, keys: int = 30) -> Clip:
+    rng = np.random.default_rng(seed)
+    out = {}
+    for c in range(channels):
+        t, v = np.cumsum(rng.uniform(0.05, 1.0, keys)), rng.normal(0, 10, keys)
+        out[f"c{c}"] = {"interp": "bezier", "keys": [
+            [t[j], v[j], -rng.uniform(0, 0.6), rng.normal(), rng.uniform(0, 0.6), rng.normal()] for j in range(keys)]}
+    return clip_from_dict({"name": "b", "channels": out})
+
+
+@pytest.mark.parametrize("compiled", [False, pytest.param(True, marks=pytest.mark.skipif(
+    not kernels_available(), reason="numba is not installed"))])
+def test_bezier_channels_keep_the_bits_of_clip_sample(compiled: bool) -> None:
+    clip = _bezier_clip(5)
+    cols = list(clip.channels)
+    cc, out = compile_clip(clip, cols), np.empty(len(cols))
+    for t in np.random.default_rng(6).uniform(-1.0, clip.duration + 1.0, 1500):
+        cc.sample(t, out, compiled=compiled)
+        values = clip.sample(t)
+        assert out.tolist() == [values[c] for c in cols], t
+
+
+@pytest.mark.skipif(not kernels_available(), reason="numba is not installed")
+def test_the_bezier_kernel_is_built_for_the_types_a_clip_passes() -> None:
+    from numba import typeof
+
+    from models.kernel_args import bezier_sample_example
+    from models.kernels_aot import recording
+
+    for spec in (False, True):  # a Clip and a validated ClipSpec compile to the same array types
+        data = {"name": "b", "channels": {"jaw": {"interp": "bezier", "keys": [
+            [0, 0, 0, 0, 0.2, 3], [1, 10, -0.5, 1, 0.1, 0]]}, "blink": {"keys": [[0, 1], [2, 3]]}}}
+        clip = decode_request(msgpack.packb({"op": "load_clip", "clip": data})).clip if spec else clip_from_dict(data)
+        examples: dict[str, tuple] = {}
+        with recording(examples):
+            compile_clip(clip, ["blink", "jaw"]).sample(0.5, np.empty(2), compiled=True)
+        assert [typeof(a) for a in examples["bezier_sample"]] == [typeof(a) for a in bezier_sample_example()]
 
 
 def test_a_megabyte_clip_compiles_to_a_few_megabytes() -> None:
