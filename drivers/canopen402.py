@@ -11,12 +11,15 @@ at most one monitor tick, ≤ 20 ms, after it),
 ``state_timeout_s`` (0.5, per CiA 402 transition), ``feedback_timeout_s`` (0.1) and ``stale_cycles`` (3)
 (feedback is stale when a drive missed that many SYNCs *and* that much time), ``cycle_period_s``
 (optional, written to the interpolation period 0x60C2), ``following_error_window_counts``
-(optional, 0x6065).
+(optional, 0x6065), ``tpdo2_every`` (1: TPDO2 on every SYNC; N: on every Nth, its transmission type 0x1801:02 — at
+a high loop rate velocity, current and error code need not ride every cycle, and each TPDO2 is a frame per drive
+that the bus, and every process on its way, carries).
 
 What open does per node: wait for an SDO answer (a silent node raises :class:`BusTimeout` naming
 the motor after ``node_timeout_s``), check the CiA 402 device type, NMT pre-operational, heartbeat
 producer time, PDOs (RPDO1 = controlword + target position; TPDO1 = statusword + position actual,
-TPDO2 = velocity actual + current actual + error code, both on every SYNC; the others disabled),
+TPDO2 = velocity actual + current actual + error code, on every SYNC or every ``tpdo2_every``-th; the others
+disabled),
 mode CSP, NMT operational, and wait for its first operational heartbeat. Cyclic I/O: :meth:`write`
 sends every RPDO then one SYNC; :meth:`read` returns the latest TPDO feedback and sends a SYNC itself
 when none went out since the previous read, so feedback stays fresh while inactive. A motor state's timestamp is
@@ -169,6 +172,7 @@ class _Options:
     stale_cycles: int
     cycle_period_s: float | None
     following_error_window_counts: int | None
+    tpdo2_every: int
 
 
 def _parse_options(bus: str, options: Mapping[str, Any]) -> _Options:
@@ -221,6 +225,9 @@ def _parse_options(bus: str, options: Mapping[str, Any]) -> _Options:
     if cycle is not None and not 0.001 <= cycle <= 0.255:
         raise err("cycle_period_s", f"must be 0.001..0.255 s (0x60C2 in ms), got {cycle}")
     window = number("following_error_window_counts", None, integer=True)
+    tpdo2_every = number("tpdo2_every", 1, integer=True)
+    if not 1 <= tpdo2_every <= 240:
+        raise err("tpdo2_every", f"must be 1..240 SYNCs (a synchronous transmission type), got {tpdo2_every}")
     return _Options(
         interface=interface,
         channel=text("channel", "can0"),
@@ -237,6 +244,7 @@ def _parse_options(bus: str, options: Mapping[str, Any]) -> _Options:
         stale_cycles=number("stale_cycles", 3, integer=True),
         cycle_period_s=cycle,
         following_error_window_counts=window,
+        tpdo2_every=tpdo2_every,
     )
 
 
@@ -421,17 +429,17 @@ class CanOpen402Bus(MotorBus):
         for k in range(4):
             w(node, 0x1400 + k, 1, "<I", 0x80000000 | (0x200 + 0x100 * k + nid))
             w(node, 0x1800 + k, 1, "<I", 0x80000000 | (0x180 + 0x100 * k + nid))
-        layouts = (
-            (0x1400, 0x1600, 0x200, (0x60400010, 0x607A0020)),
-            (0x1800, 0x1A00, 0x180, (0x60410010, 0x60640020)),
-            (0x1801, 0x1A01, 0x280, (0x606C0020, 0x60780010, 0x603F0010)),
+        layouts = (  # comm, mapping, COB-ID base, entries, transmission type (synchronous: every Nth SYNC)
+            (0x1400, 0x1600, 0x200, (0x60400010, 0x607A0020), 1),
+            (0x1800, 0x1A00, 0x180, (0x60410010, 0x60640020), 1),
+            (0x1801, 0x1A01, 0x280, (0x606C0020, 0x60780010, 0x603F0010), o.tpdo2_every),
         )
-        for comm, mapping, cob, entries in layouts:
+        for comm, mapping, cob, entries, every in layouts:
             w(node, mapping, 0, "<B", 0)
             for sub, entry in enumerate(entries, start=1):
                 w(node, mapping, sub, "<I", entry)
             w(node, mapping, 0, "<B", len(entries))
-            w(node, comm, 2, "<B", 1)  # synchronous, every SYNC
+            w(node, comm, 2, "<B", every)
             w(node, comm, 1, "<I", cob + nid)
         # The drive's own software position limits (0x607D) at the motor's configured limits: a second line of
         # defence behind the driver's checks, and what stops a quick-stop ramp at the end of the travel.
@@ -525,7 +533,9 @@ class CanOpen402Bus(MotorBus):
 
     def _check_cycle_complete(self) -> None:
         count = self._sync_count
-        if all(n.answered_sync >= count and n.answered_sync2 >= count for n in self._nodes.values()):
+        every_sync = self._opts.tpdo2_every == 1  # else TPDO2 follows only some SYNCs: TPDO1 completes a cycle
+        if all(n.answered_sync >= count and (n.answered_sync2 >= count or not every_sync)
+               for n in self._nodes.values()):
             self._feedback.set()
 
     def _on_emcy(self, node: _Node, entry: Any) -> None:

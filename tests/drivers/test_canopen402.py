@@ -150,6 +150,40 @@ def test_velocity_is_reported_in_si(bus, drives):
     assert math.isfinite(states["jaw"].effort)
 
 
+def test_tpdo2_on_every_nth_sync_still_reports_velocity(drives):
+    """``tpdo2_every = 5``: the drives' TPDO2 transmission type is 5, a listener on the bus sees one TPDO2 per drive
+    for every five SYNCs (TPDO1 on each), and the velocity it carries is still right."""
+    import can
+
+    bus = _bus(drives, tpdo2_every=5)
+    listener = can.Bus(interface="virtual", channel=drives.channel, receive_own_messages=False)
+    try:
+        bus.open()
+        assert all(d._get(0x1801, 2) == 5 and d._get(0x1800, 2) == 1 for d in drives.drives.values())
+        bus.enable()
+        start = bus.read()["jaw"].position
+        while listener.recv(0.0) is not None:  # what went before the count
+            pass
+        counts = {0x80: 0, 0x181: 0, 0x281: 0}
+        velocities, t0 = [], time.monotonic()
+        while (t := time.monotonic() - t0) < 0.6:  # 1 rad/s ramp
+            states = bus.read()
+            if t > 0.25:
+                velocities.append(states["jaw"].velocity)
+            bus.write({"jaw": start + 1.0 * t})
+            while (msg := listener.recv(0.0)) is not None:
+                if msg.arbitration_id in counts:
+                    counts[msg.arbitration_id] += 1
+            time.sleep(0.004)
+        assert counts[0x80] >= 50
+        assert counts[0x181] >= 0.8 * counts[0x80]
+        assert 0.12 <= counts[0x281] / counts[0x80] <= 0.28, counts
+        assert statistics.median(velocities) == pytest.approx(1.0, abs=0.15)
+    finally:
+        listener.shutdown()
+        bus.close()
+
+
 def test_targets_computed_before_the_enable_hold_are_rated_on_the_time_since_it(bus, drives):
     """A caller stamps its targets when it computed them; the first one after enable may predate the hold enable set
     up (the caller had not seen it yet). Its step is rated on the time that has passed since that hold."""
@@ -288,6 +322,8 @@ def test_silent_node_raises_bus_timeout_naming_it(drives):
         ({"interface": "virtual", "heartbeat_timeout_s": -1}, "heartbeat_timeout_s"),
         ({"interface": "virtual", "stale_cycles": 2.5}, "stale_cycles"),
         ({"interface": "virtual", "bus_options": 3}, "bus_options"),
+        ({"interface": "virtual", "tpdo2_every": 0}, "tpdo2_every"),
+        ({"interface": "virtual", "tpdo2_every": 241}, "tpdo2_every"),
     ],
 )
 def test_bad_options_raise_config_error_naming_the_key(options, key):
