@@ -46,10 +46,10 @@ class RuntimeSettings:
     # rest of the window), so a flood cannot take a core from the bus processes; a packet then reaches the loop
     # without queueing behind the emulators and other work of a busy host (benchmarks/input_latency.py).
     inputs_priority: int = 20
-    # SCHED_FIFO priority of each bus process within a CPU budget (runtime.rtbudget: 20 % of a core per 100 ms, then
-    # normal scheduling for the rest of the window), so a driver that spins cannot take a core; new targets then
-    # reach the bus at once instead of after the emulators and other work of a busy host (0: normal scheduling).
-    # Ignored when bus_priority > 0 (the whole process realtime without a budget) or realtime = false.
+    # SCHED_FIFO priority of each bus process, all its threads, within a CPU budget (runtime.rtbudget: 60 % of a core
+    # per 100 ms, then normal scheduling for the rest of the window), so a driver that spins cannot take a core; new
+    # targets then reach the bus at once instead of after the emulators and other work of a busy host (0: normal
+    # scheduling). Ignored when bus_priority > 0 (the whole process realtime without a budget) or realtime = false.
     bus_write_priority: int = 30
     cpu: int = -1  # pin the control thread to this CPU (-1: no pinning)
     spin_us: float = 200.0  # sleep until this long before a deadline, then spin

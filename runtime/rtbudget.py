@@ -8,6 +8,11 @@ else, so each keeps a budget: once its thread has used more than ``share`` of a 
 normal scheduling for the rest of the window (its work still goes on, at normal priority), and takes realtime
 scheduling back in the next window (:meth:`RealtimeBudget.spent` after each piece of work, :meth:`RealtimeBudget.rearm`
 before waiting again). Without permission (no CAP_SYS_NICE) the thread keeps normal scheduling.
+
+A budget can also hold a whole process (``whole_process``: every thread's scheduling changes together, and the CPU
+time of all of them counts). A bus process needs that: its driver's receive thread (python-can's notifier) takes the
+interpreter lock for every frame, and at normal scheduling it is preempted while holding it, behind the emulators,
+so the realtime write thread waits for the lock for milliseconds (a priority inversion through the lock).
 """
 
 from __future__ import annotations
@@ -24,18 +29,22 @@ WINDOW_S = 0.1
 
 
 class RealtimeBudget:
-    """SCHED_FIFO at ``priority`` for the thread that calls :meth:`enter` (0: leave it), within a budget of CPU time
-    spent at that priority (``share`` of each ``window_s``)."""
+    """SCHED_FIFO at ``priority`` for the thread that calls :meth:`enter` (or, ``whole_process``, for all of its
+    process's threads; 0: leave it), within a budget of CPU time spent at that priority (``share`` of each
+    ``window_s``)."""
 
-    def __init__(self, priority: int, share: float = SHARE, window_s: float = WINDOW_S) -> None:
+    def __init__(self, priority: int, share: float = SHARE, window_s: float = WINDOW_S,
+                 whole_process: bool = False) -> None:
         self.priority = int(priority)
+        self.whole_process = whole_process
+        self._clock = time.process_time if whole_process else time.thread_time
         self.budget = share * window_s
         self.window_s = window_s
         self.realtime = False  # the calling thread is under SCHED_FIFO now
         self.demoted = 0  # windows in which the budget ran out
         self._window_end = 0.0
         self._used = 0.0  # CPU time spent realtime in this window, up to the last change
-        self._since = 0.0  # thread CPU time when the thread last became realtime
+        self._since = 0.0  # CPU time (the thread's, or the process's) when it last became realtime
 
     def enter(self) -> str:
         """Raise the calling thread (call it first thing on that thread); returns what happened."""
@@ -50,7 +59,7 @@ class RealtimeBudget:
 
     def used(self) -> float:
         """CPU time (s) spent realtime in the current window."""
-        return self._used + (time.thread_time() - self._since if self.realtime else 0.0)
+        return self._used + (self._clock() - self._since if self.realtime else 0.0)
 
     def spent(self) -> None:
         """After each packet: drop to normal scheduling while over budget, take realtime back in a new window."""
@@ -72,7 +81,7 @@ class RealtimeBudget:
     def lower(self) -> None:
         """Normal scheduling until :meth:`rearm` (e.g. the rest of a transaction need not preempt anything)."""
         if self.realtime:
-            self._used += time.thread_time() - self._since
+            self._used += self._clock() - self._since
             self._set(False)
 
     def rearm(self) -> None:
@@ -82,22 +91,33 @@ class RealtimeBudget:
         now = time.monotonic()
         if now >= self._window_end:
             if self.realtime:
-                self._since = time.thread_time()
+                self._since = self._clock()
             self._window_end = now + self.window_s
             self._used = 0.0
         if not self.realtime and self._used <= self.budget:
             self._set(True)
 
     def _set(self, realtime: bool) -> bool:
+        policy, param = (os.SCHED_FIFO, self.priority) if realtime else (os.SCHED_OTHER, 0)
         try:
-            if realtime:
-                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.priority))
-            else:
-                os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+            for tid in self._threads():
+                try:
+                    os.sched_setscheduler(tid, policy, os.sched_param(param))
+                except ProcessLookupError:  # a thread that ended meanwhile
+                    continue
         except (AttributeError, OSError) as exc:
             log.debug("thread scheduling unchanged: %s", exc)
             return False
         self.realtime = realtime
         if realtime:
-            self._since = time.thread_time()
+            self._since = self._clock()
         return True
+
+    def _threads(self) -> list[int]:
+        """The threads to schedule: the calling one (0), or every thread of the process."""
+        if not self.whole_process:
+            return [0]
+        try:
+            return [int(tid) for tid in os.listdir("/proc/self/task")]
+        except OSError:
+            return [0]

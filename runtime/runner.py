@@ -124,13 +124,16 @@ class Runner:
                     self._last_t = t
                     inputs = self._inputs(t)
                     try:
-                        out = K.step(self.state, self.params, inputs)
+                        out = K.control(self.state, self.params, inputs)
+                        failed = False
                     except Exception as exc:  # a bug or a failing solver: safe state, the loop lives on
                         log.exception("control cycle failed")
-                        out = CycleOutputs()
+                        out, failed = CycleOutputs(), True
                         K.fault(self.state, self.params, out, t, "control loop",
                               f"control cycle failed: {type(exc).__name__}: {exc}")
-                    self._write(out, t)
+                    self._write(out, t)  # before the recording and telemetry: they need not delay the bus
+                    if not failed:
+                        self._report(out, t)
                     if self.trace.open_rows:
                         self.trace.applied(woke, self.clock())
                     if missed:
@@ -155,6 +158,15 @@ class Runner:
             log.exception("control loop crashed")
         finally:
             drop_realtime()
+
+    def _report(self, out: CycleOutputs, t: float) -> None:
+        """The cycle's recorded row and telemetry (:func:`runtime.core.core.report`), after its write."""
+        try:
+            K.report(self.state, self.params, out, t)
+        except Exception as exc:  # a bug: safe state, the loop lives on
+            log.exception("control cycle failed after its write")
+            K.fault(self.state, self.params, out, t, "control loop",
+                    f"control cycle failed after its write: {type(exc).__name__}: {exc}")
 
     def _idle(self, until: float) -> bool:
         """Until ``until``: wait for commands from the server and take them at once (their replies and stream frames

@@ -42,6 +42,11 @@ log = logging.getLogger(__name__)
 SWITCH_INTERVAL_S = 0.0002
 #: Share of the realtime budget reads may use; the rest is kept for writes (:meth:`RealtimeBudget.keep_for_urgent`).
 READ_SHARE = 0.5
+#: Share of a core the bus process may take at realtime priority (all its threads together, over the budget's
+#: window): the sample head's seven CANopen drives at 500 Hz take about 35 % (writes, reads and the driver's receive
+#: thread), so a share of 20 % ran out in every window and the rest of it was written behind the emulators; a
+#: driver that spins still gives a core back after this much of each window.
+BUS_SHARE = 0.6
 #: A counter value no post reaches: nothing is written before the next enable.
 _NEVER = 1 << 62
 
@@ -73,7 +78,8 @@ class BusServer:
         self.attempts = 0
         self.retry_at = math.inf
         # realtime within a CPU budget (see BusProcessConfig.write_priority)
-        self.budget = RealtimeBudget(cfg.write_priority if cfg.realtime_priority is None else 0)
+        self.budget = RealtimeBudget(cfg.write_priority if cfg.realtime_priority is None else 0, share=BUS_SHARE,
+                                     whole_process=True)
         self.reconnect_error = ""
         self.parent = os.getppid()
 

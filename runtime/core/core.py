@@ -17,8 +17,9 @@ A cycle runs its stages in order, each a small system with its own part of the s
 - **solve** (:mod:`~runtime.core.solve`): channel vector → actuator targets (actuator channels, groups, solvers);
 - **safety**: group constraints and limits, the skin-strain guard (:mod:`~runtime.core.guard`), and the motion
   shaper (:mod:`~runtime.core.shape`);
-- **write**: the shaped command vector, which the runner posts to the bus processes;
-- **record** (:mod:`~runtime.core.recorder`) and telemetry (:mod:`~runtime.core.status`).
+- **write**: the shaped command vector, which the runner posts to the bus processes (:func:`control` ends here);
+- **record** (:mod:`~runtime.core.recorder`) and telemetry (:mod:`~runtime.core.status`), after the post
+  (:func:`report`).
 
 The core has no threads, sockets, clocks or globals: time comes in with the inputs, so it can be stepped in tests
 and replayed from a recording of its inputs, bit for bit. Lifecycle (after ros2_control): unconfigured → inactive
@@ -39,14 +40,25 @@ from runtime.core.params import CoreParams
 from runtime.core.state import CoreState
 
 #: What the loop runner integrates against: the core's ports, parameters and state, and the functions that step it.
-__all__ = ["estop", "fault", "solve_channels", "step", "take_commands"]
+__all__ = ["control", "estop", "fault", "report", "solve_channels", "step", "take_commands"]
 
 
 # ====================================================================== the step
 def step(state: CoreState, params: CoreParams, inputs: CycleInputs) -> CycleOutputs:
     """Advance the core by one cycle at time ``inputs.t``; with ``inputs.between_cycles`` only take the commands
     (and e-stop) that arrived between two cycles. With :func:`take_commands` and :func:`fault` (which the runner
-    calls when a step raised), the only functions that change ``state``."""
+    calls when a step raised), the only functions that change ``state``. The cycle is :func:`control` then
+    :func:`report`; the runner posts the write between the two, so the recording and the telemetry snapshot do not
+    delay it."""
+    out = control(state, params, inputs)
+    if not inputs.between_cycles:
+        report(state, params, out, inputs.t)
+    return out
+
+
+def control(state: CoreState, params: CoreParams, inputs: CycleInputs) -> CycleOutputs:
+    """The cycle up to its write (read, commands, lifecycle, watch, chase, sources, solve, safety): :func:`step`
+    without the recorded row and the telemetry."""
     if inputs.between_cycles:
         return take_commands(state, params, inputs)
     out = CycleOutputs()
@@ -67,12 +79,16 @@ def step(state: CoreState, params: CoreParams, inputs: CycleInputs) -> CycleOutp
     if state.life.commanding:
         _control(state, params, out, t)
         watch.post(state.watch, out.write)
-    recorder.record(state.recorder, params, out, t, state.shaper.q, state.feedback.measured)
     state.cycle += 1
     state.last_t = t
+    return out
+
+
+def report(state: CoreState, params: CoreParams, out: CycleOutputs, t: float) -> None:
+    """The cycle after its write: this cycle's recorded row and, every telemetry period, the telemetry snapshot."""
+    recorder.record(state.recorder, params, out, t, state.shaper.q, state.feedback.measured)
     if state.cycle % params.telemetry_every == 0:
         out.telemetry = status.snapshot(state, params, t)
-    return out
 
 
 def take_commands(state: CoreState, params: CoreParams, inputs: CycleInputs) -> CycleOutputs:

@@ -97,3 +97,49 @@ def test_work_that_is_not_urgent_leaves_the_rest_of_the_budget_to_the_urgent_wor
     if seen["enter"] != "SCHED_FIFO 5":  # no CAP_SYS_NICE here
         return
     assert seen["read_rt_early"] and not seen["read_rt_late"] and seen["write_rt"]
+
+
+_WHOLE_PROCESS = """
+import json, os, threading, time
+from runtime.rtbudget import RealtimeBudget
+go, done = threading.Event(), threading.Event()
+def helper():
+    go.wait()
+    end = time.thread_time() + 0.04  # 40 ms of CPU on another thread of the process
+    while time.thread_time() < end:
+        pass
+    done.set()
+    time.sleep(5)
+th = threading.Thread(target=helper, daemon=True)
+th.start()
+p = RealtimeBudget(5, share=0.05, window_s=0.5, whole_process=True)  # 25 ms of the process's CPU per window
+seen = {"enter": p.enter(), "helper_rt": os.sched_getscheduler(th.native_id) == os.SCHED_FIFO}
+p.spent()
+seen["rt_after_a_little"] = p.realtime
+go.set()
+done.wait(5)
+p.spent()
+seen["demoted"] = p.demoted
+seen["helper_rt_after"] = os.sched_getscheduler(th.native_id) == os.SCHED_FIFO
+seen["main_rt_after"] = os.sched_getscheduler(0) == os.SCHED_FIFO
+print(json.dumps(seen))
+"""
+
+
+def test_a_whole_process_budget_schedules_every_thread_and_counts_their_cpu_together() -> None:
+    """A bus process: its driver's receive thread is realtime with the write thread, and its CPU time spends the
+    same budget (a helper thread's 40 ms of work demotes the whole process)."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")]))
+    out = subprocess.run([sys.executable, "-c", _WHOLE_PROCESS], capture_output=True, text=True, env=env, timeout=60)
+    assert out.returncode == 0, out.stderr[-2000:]
+    seen = json.loads(out.stdout.strip().splitlines()[-1])
+    if seen["enter"] != "SCHED_FIFO 5":  # no CAP_SYS_NICE here: nothing to check
+        return
+    assert seen["helper_rt"] and seen["rt_after_a_little"]
+    assert seen["demoted"] == 1 and not seen["helper_rt_after"] and not seen["main_rt_after"]
