@@ -34,6 +34,12 @@ def test_recording_rows_count_the_cycles_absent_from_the_file(tmp_path: Path) ->
     path.write_bytes((header + "\n").encode() + rows.astype("<f8").tobytes() + b"\x00" * 5)  # a cut last record
     assert SR.recording_rows(str(path), period) == {"rows": 197, "absent_cycles": 3}
     assert SR.recording_rows(str(tmp_path / "missing.lrec"), period) == {"rows": 0, "absent_cycles": 0}
+    # cycles run early on an input serve their slot ahead of its deadline: uneven steps, no cycle absent
+    early = np.arange(0, 200) * period
+    early[10::7] -= 0.75 * period
+    early[12::9] -= 0.2 * period
+    path.write_bytes((header + "\n").encode() + np.column_stack([early, np.zeros((200, 2))]).astype("<f8").tobytes())
+    assert SR.recording_rows(str(path), period) == {"rows": 200, "absent_cycles": 0}
 
 
 @pytest.mark.slow
