@@ -62,12 +62,12 @@ class SafetyFilter:
         """Fill holds with the current command (``current``, default this filter's), apply group constraints, clip
         to position limits."""
         x = np.where(np.isfinite(x), x, self.q if current is None else current)
-        for idx, gains in self._together:
-            common = float(np.mean(x[idx] / gains))
+        for idx, gains in self._together:  # the reductions called directly: np.mean's, min's wrappers cost more
+            common = float(np.add.reduce(x[idx] / gains)) / len(idx)  # the mean, to the bit
             x[idx] = gains * common
         for idx, spread in self._coupled:
             sub = x[idx]
-            lo, hi = float(sub.min()), float(sub.max())
+            lo, hi = float(np.minimum.reduce(sub)), float(np.maximum.reduce(sub))
             if hi - lo > spread:
                 mid = 0.5 * (lo + hi)
                 x[idx] = mid + (sub - mid) * (spread / (hi - lo))
