@@ -280,21 +280,22 @@ class BusProxy:
     def _unpack(self, views: L.Views, snap: np.ndarray) -> BusFeedback:
         n = self._layout.n
         h = L.N_HEADER
-        version = snap[L.H_FAULTS]
+        head = snap[:h].tolist()  # the header as Python floats in one call
+        version = head[L.H_FAULTS]
         if version != self._faults_version:
             got = L.read_faults(views)
             if got is not None:
                 self._faults_version, self._faults = float(got[0]), got[1]
         return BusFeedback(
-            seq=int(snap[L.H_SEQ]), positions=snap[h:h + n], velocities=snap[h + n:h + 2 * n],
-            stamp=float(snap[L.H_STAMP]), state=L.LIFECYCLE_STATES[int(snap[L.H_STATE])], faults=self._faults,
-            connected=bool(snap[L.H_CONNECTED]), written=snap[h + 2 * n:h + 3 * n],
-            write_stamp=float(snap[L.H_WSTAMP]) if math.isfinite(snap[L.H_WSTAMP]) else 0.0,
-            io_us=float(snap[L.H_IO_US]) if math.isfinite(snap[L.H_IO_US]) else 0.0,
-            connection=CONNECTION_STATES[int(snap[L.H_CONNECTION])] if math.isfinite(snap[L.H_CONNECTION])
+            seq=int(head[L.H_SEQ]), positions=snap[h:h + n], velocities=snap[h + n:h + 2 * n],
+            stamp=head[L.H_STAMP], state=L.LIFECYCLE_STATES[int(head[L.H_STATE])], faults=self._faults,
+            connected=bool(head[L.H_CONNECTED]), written=snap[h + 2 * n:h + 3 * n],
+            write_stamp=head[L.H_WSTAMP] if math.isfinite(head[L.H_WSTAMP]) else 0.0,
+            io_us=head[L.H_IO_US] if math.isfinite(head[L.H_IO_US]) else 0.0,
+            connection=CONNECTION_STATES[int(head[L.H_CONNECTION])] if math.isfinite(head[L.H_CONNECTION])
             else "closed",
-            attempts=int(snap[L.H_ATTEMPTS]) if math.isfinite(snap[L.H_ATTEMPTS]) else 0,
-            retry_at=float(snap[L.H_RETRY_AT]) if not math.isnan(snap[L.H_RETRY_AT]) else math.inf,
+            attempts=int(head[L.H_ATTEMPTS]) if math.isfinite(head[L.H_ATTEMPTS]) else 0,
+            retry_at=head[L.H_RETRY_AT] if not math.isnan(head[L.H_RETRY_AT]) else math.inf,
         )
 
     # ------------------------------------------------------------------ lifecycle requests (loop side)
