@@ -170,10 +170,11 @@ class Runner:
 
     def _idle(self, until: float) -> bool:
         """Until ``until``: wait for commands from the server and take them at once (their replies and stream frames
-        then need not wait for the next cycle), as long as ``COMMAND_MARGIN_S`` is left before the cycle; later
-        ones wait in the pipe for the cycle. ``select`` times out to the microsecond (``poll`` only to the
-        millisecond, which left the last fraction of a millisecond before each cycle unwatched). Returns True when
-        an input's arrival asks for the cycle now (wake on input: the module docstring)."""
+        then need not wait for the next cycle), as long as ``COMMAND_MARGIN_S`` is left before the cycle; later ones
+        wait for the cycle (with wake on input, one that moves the head runs it at once: :meth:`_margin_wake`).
+        ``select`` times out to the microsecond (``poll`` only to the millisecond, which left the last fraction of a
+        millisecond before each cycle unwatched). Returns True when an input's arrival asks for the cycle now (wake on
+        input: the module docstring)."""
         fd = self.commands.fileno()
         last_take = until - COMMAND_MARGIN_S
         self._early_at = None
@@ -188,6 +189,10 @@ class Runner:
                 return False
             watch = (last_take if early is None else early) - now
             if self.commands.closed or watch <= 0:
+                if early is None and self.wake_on_input and not self.commands.closed:
+                    if self._margin_wake(fd, until):
+                        return True
+                    continue
                 time.sleep(left if early is None else early - now)
                 continue
             ready, _, _ = select.select((fd,), (), (), watch)
@@ -216,6 +221,28 @@ class Runner:
                       f"taking commands failed: {type(exc).__name__}: {exc}")
             self._write(out, t)
             self._outbox(out)
+
+    def _margin_wake(self, fd: int, until: float) -> bool:
+        """The margin before a cycle (``COMMAND_MARGIN_S``), with wake on input: commands that arrive are taken off
+        the pipe and kept for that cycle (no step between cycles this close to it), and one that moves the head now
+        (:meth:`_wake_for`) runs the cycle at once instead of at its deadline, up to the margin and the spin earlier.
+        Returns True for that cycle; False when ``until`` passed, or after commands that do not call for it."""
+        left = until - self.clock()
+        if left <= 0:
+            return False
+        ready, _, _ = select.select((fd,), (), (), left)
+        if not ready:
+            return False
+        t = self.clock()
+        cmds = self._drain(self._deadline)
+        if not cmds:
+            return False
+        self._carry = self._carry + cmds
+        self._wake_for(cmds, t, until)
+        if self._early_at is not None and self._early_at <= t:
+            self._early_at = None
+            return True
+        return False
 
     def _wake_for(self, cmds: Sequence[Command], now: float, last: float) -> None:
         """Ask for the early cycle (:attr:`_early_at`) when a command taken at ``now`` moves the head before the

@@ -10,6 +10,7 @@ import numpy as np
 
 from runtime.core.shape import advance
 from runtime.loop import RateScheduler
+from runtime.runner import COMMAND_MARGIN_S
 from runtime.shaper import Shaper
 from tests._wait import wait_until
 from tests.runtime.inputs.conftest import enable, show_head, started
@@ -120,3 +121,51 @@ def test_an_osc_value_between_deadlines_is_written_by_an_early_cycle_that_replay
             assert out.write is None, k
         else:
             assert out.write is not None and out.write.tobytes() == writes[k].tobytes(), k
+
+
+def _margin_runner(tmp_path: Path):
+    """A runner over the sample head's core (active, ideal buses) reading a real command pipe, between two cycles."""
+    from runtime import ipc
+    from runtime.core import commands as C
+    from runtime.runner import Runner
+    from tests.runtime.test_core import Rig
+
+    rig = Rig(250.0)
+    rig.call(C.Enable)
+    path = str(tmp_path / "commands")
+    ipc.make_pipe(path)
+    reader = ipc.PipeReader(path)
+    writer = ipc.PipeWriter(path)
+    runner = Runner(rig.params, rig.state, [], None, reader, ipc.EStopFlag(), input_log=[])
+    return rig, runner, reader, writer
+
+
+def test_a_value_in_the_margin_before_a_deadline_runs_that_cycle_at_once(tmp_path: Path) -> None:
+    """In the last ``COMMAND_MARGIN_S`` before a cycle the loop steps no commands between cycles; a live value that
+    arrives there is taken for that cycle and runs it at once, instead of waiting out the margin and the spin."""
+    from runtime.core import commands as C
+
+    rig, runner, reader, writer = _margin_runner(tmp_path)
+    jaw = rig.channels.indices(("jaw",))
+    try:
+        assert rig.state.life.commanding and runner.wake_on_input
+        now = time.monotonic()
+        until = now + 0.9 * COMMAND_MARGIN_S  # inside the margin: no commands taken between cycles
+        runner._deadline, runner._last_t = until + 200e-6, now - 0.004
+        writer.send(C.Live(7, channels=jaw, values=np.array([3.0]), received=now))
+        assert runner._idle(until) is True  # the cycle now (without the margin wake: False, at ``until``)
+        assert [type(c) for c in runner._carry] == [C.Live]  # the cycle takes it
+        assert runner.input_log == []  # and nothing was stepped between cycles
+        runner._carry = []
+        # a command that moves nothing waits for the cycle in the margin, as before
+        now = time.monotonic()
+        until = now + 0.5 * COMMAND_MARGIN_S
+        runner._deadline, runner._last_t = until + 200e-6, now - 0.004
+        writer.send(C.Status(8))
+        assert runner._idle(until) is False
+        assert time.monotonic() >= until
+        assert [type(c) for c in runner._carry] == [C.Status] and runner.input_log == []
+    finally:
+        writer.close()
+        reader.close()
+        runner.estop.close()
