@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, Any
 
 from canopen import LocalNode
 from canopen.nmt import NmtSlave
+from canopen.objectdictionary import ODVariable
 from canopen.sdo import SdoAbortedError
 
 from sim_hardware.canopen import motor
@@ -69,6 +70,7 @@ EMCY_GENERIC = 0x1000
 NMT_INITIALISING, NMT_STOPPED, NMT_OPERATIONAL, NMT_PRE_OPERATIONAL = 0, 4, 5, 127
 
 _PDO_RANGES = ((0x1400, 0x1403), (0x1600, 0x1603), (0x1800, 0x1803), (0x1A00, 0x1A03))
+_PDO_INDICES = frozenset(i for lo, hi in _PDO_RANGES for i in range(lo, hi + 1))
 
 
 def error_register_for(code: int) -> int:
@@ -99,6 +101,8 @@ class _Pdo:
     trans_type: int
     event_ms: int
     entries: list[tuple[int, int, int]] = field(default_factory=list)  # (index, subindex, bytes)
+    #: per entry (index, subindex, its object-dictionary variable): a TPDO's values read without the lookups
+    readers: list[tuple[int, int, Any]] = field(default_factory=list)
     length: int = 0
     last_payload: bytes | None = None
     next_event: float = 0.0
@@ -358,7 +362,7 @@ class EmulatedDrive:
         return None
 
     def _on_write(self, index: int, subindex: int, od: Any, data: bytes) -> None:
-        if any(lo <= index <= hi for lo, hi in _PDO_RANGES):
+        if index in _PDO_INDICES:
             self._check_pdo_write(index, subindex, data)
             self._pdo_dirty = True
             return
@@ -587,6 +591,8 @@ class EmulatedDrive:
                     if entry:
                         pdo.entries.append((entry >> 16, (entry >> 8) & 0xFF, (entry & 0xFF) // 8))
                 pdo.length = sum(e[2] for e in pdo.entries)
+                if target is not None:
+                    pdo.readers = [(i, s, self._od_variable(i, s)) for i, s, _ in pdo.entries]
                 if target is None:
                     if pdo.valid and pdo.entries:
                         rpdos[pdo.cob_id] = pdo
@@ -611,7 +617,21 @@ class EmulatedDrive:
                 self._last_status_sent = -1
 
     def _tpdo_payload(self, pdo: _Pdo) -> bytes:
-        return b"".join(self.node.get_data(i, s) for i, s, _ in pdo.entries)
+        """The TPDO's mapped values, as ``LocalNode.get_data`` gives them: this drive's read callback (its only one)
+        encoded by the entry's variable, else the stored value; the variables looked up once per PDO layout."""
+        parts = []
+        for index, subindex, var in pdo.readers:
+            value = None if var is None else self._on_read(index, subindex, var)
+            parts.append(self.node.get_data(index, subindex) if value is None else var.encode_raw(value))
+        return b"".join(parts)
+
+    def _od_variable(self, index: int, subindex: int) -> Any:
+        """The object-dictionary variable at ``index``:``subindex`` (None where there is none: read as before)."""
+        try:
+            obj = self.od[index]
+            return obj if isinstance(obj, ODVariable) else obj[subindex]
+        except KeyError:
+            return None
 
     def _on_sync(self, can_id: int, data: bytes, timestamp: float) -> None:
         if self.node.nmt._state != NMT_OPERATIONAL or self.feedback_frozen:

@@ -244,6 +244,38 @@ def test_sync_pdo_exchange_and_corrupted_rpdo(rig):
     assert drive.state == drv.OPERATION_ENABLED
 
 
+def test_tpdo_payloads_are_what_the_object_dictionary_reads(rig):
+    """A TPDO's payload (its variables looked up once per layout) is the node's own ``get_data`` of every mapped
+    entry, for the default layouts and for one remapped by SDO (a stored value among the callback-read ones)."""
+    drives, net = rig
+    node = _sdo_node(net, 1)
+    drive = drives.drives[1]
+    _enable_via_sdo(node, 8)
+    node.nmt.state = "OPERATIONAL"
+    wait_until(lambda: drive.nmt_state == "OPERATIONAL", 10, "the drive in NMT OPERATIONAL (PDOs processed)")
+
+    def check() -> int:
+        with drive._lock:  # the values do not move between the two reads
+            if drive._pdo_dirty:
+                drive._reload_pdos()
+            pdos = [p for p in drive._tpdos if p.valid and p.entries]
+            for pdo in pdos:
+                assert drive._tpdo_payload(pdo) == b"".join(drive.node.get_data(i, s) for i, s, _ in pdo.entries)
+        return len(pdos)
+
+    assert check() >= 2
+    node.nmt.state = "PRE-OPERATIONAL"
+    node.sdo.download(0x1A01, 0, b"\x00")
+    for sub, entry in enumerate((0x607A0020, 0x60410010, 0x60610008), start=1):  # 0x607A: a stored value
+        node.sdo.download(0x1A01, sub, struct.pack("<I", entry))
+    node.sdo.download(0x1A01, 0, b"\x03")
+    node.nmt.state = "OPERATIONAL"
+    wait_until(lambda: drive.nmt_state == "OPERATIONAL", 10, "the drive in NMT OPERATIONAL again")
+    assert check() >= 2
+    remapped = next(p for p in drive._tpdos if p.number == 2)
+    assert [e[0] for e in remapped.entries] == [0x607A, 0x6041, 0x6061]
+
+
 def test_link_faults_drop_and_corrupt_frames(rig):
     drives, net = rig
     received: list[bytes] = []
