@@ -2,7 +2,7 @@
 ``Clip.sample`` (per-channel dicts and bisect) on the same 52-channel, ~10 000-key clip, for step, linear and Bezier
 curves (Bezier with the 1/3-span handles animation tools export, and with random handles), p50 / p99 / max per
 sample at random times, measured in this run; plus the compiled clip's bytes per key, and for Bezier curves the
-compiled kernel (:mod:`models._clip_kernels`) against the numpy lockstep iteration it replaces.
+compiled kernel (:mod:`models._cycle_kernels`) against the numpy lockstep iteration it replaces.
 
 Run: ``python benchmarks/clip_sample.py [--samples 20000]``.
 """

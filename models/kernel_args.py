@@ -1,6 +1,7 @@
 """Arguments of the in-cycle kernels, built with numpy only (the loop process builds them without numba): the
 constants of the frame solve packed into the four arrays :func:`models._skin_kernels.solve_values_measured`
-unpacks, and example arguments of :func:`models._clip_kernels.bezier_sample`."""
+unpacks, and example arguments of :func:`models._cycle_kernels.bezier_sample` and
+:func:`models._cycle_kernels.following_watch`."""
 
 from __future__ import annotations
 
@@ -38,3 +39,11 @@ def bezier_sample_example() -> tuple:
         ro.append(a)
     bez, bez_row, first, last, coef, slot_t, slot_dt = ro
     return (0.5, np.array([2], np.int64), bez, bez_row, first, last, coef, slot_t, slot_dt, np.zeros(1))
+
+
+def following_watch_example() -> tuple:
+    """Arguments of the types :func:`runtime.core.watch.check_following` passes: three posted rows of two actuators
+    on two buses, their measured positions, the buses' feedback ages and every limit, at t = 1 s."""
+    posted = np.array([[0.0, 0.1], [0.0, 0.2], [np.nan, np.nan]])
+    return (posted, np.array([0.05, 0.5]), np.array([0, 1], np.int64), np.array([0.001, 0.002]), np.array([0.01, 0.01]),
+            np.array([0.2, 0.2]), np.array([0.5, 0.5]), np.zeros(2), np.full(2, np.nan), np.zeros(2), 1.0)

@@ -2,7 +2,7 @@
 
 Importing numba (its compiler, LLVM) costs a process about 110 MiB of resident memory, and loading the kernels from
 numba's own on-disk cache another 70 MiB (the code generator stays resident): most of a resting daemon's memory, for
-six small functions. :func:`build` compiles the functions the loop calls (:data:`EXPORTS`, from :data:`SOURCES`)
+seven small functions. :func:`build` compiles the functions the loop calls (:data:`EXPORTS`, from :data:`SOURCES`)
 with numba's ahead-of-time compiler (``numba.pycc``) into an ordinary extension module (about 1 MiB, for the host CPU
 as the JIT compiles) under ``models/__pycache__/``, typed with the argument types a head's solver, strain guard and
 clips pass (numba's own typing of real arguments, so the compiled code is the code the JIT would run).
@@ -33,9 +33,9 @@ log = logging.getLogger(__name__)
 
 #: The kernels the control loop calls (the rest of :data:`SOURCES` is reached through them).
 EXPORTS = ("solve_values_measured", "reduced_measure", "solve_frame", "solve_frame_measured", "guard_limit",
-           "bezier_sample")
+           "bezier_sample", "following_watch")
 #: The modules that define them (numba JIT functions), in :data:`EXPORTS`' order of first use.
-SOURCES = ("_skin_kernels", "_clip_kernels")
+SOURCES = ("_skin_kernels", "_cycle_kernels")
 MODULE = "_skin_kernels_aot"
 _HERE = Path(__file__).resolve().parent
 

@@ -5,7 +5,7 @@ every channel with a fixed number of numpy calls (no per-channel Python loop). T
 ``searchsorted`` over integer codes ``curve * M + rank(t) + 1``, ``rank`` being a key time's index among all the
 clip's distinct key times: exact, whatever the times. Step and linear values are the bits of
 :meth:`models.clip.Clip.sample`; Bezier channels run the safeguarded Newton iteration of
-:func:`models.clip._bezier_eval`, compiled (:mod:`models._clip_kernels`) where numba is installed, else in numpy on
+:func:`models.clip._bezier_eval`, compiled (:mod:`models._cycle_kernels`) where numba is installed, else in numpy on
 all of them in lockstep, each stopping where the scalar loop stops (a few numpy calls per iteration): the same bits
 either way. Everything is plain numpy arrays and strings: picklable and cheap to hand to another process.
 """
@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from models.clip import Clip, ClipError
-from models.kernel_args import bezier_sample_example
+from models.kernel_args import bezier_sample_example, following_watch_example
 from models.kernel_support import kernels_available
 from models.kernels_aot import kernel
 from runtime.messages import ClipSpec
@@ -69,7 +69,7 @@ class CompiledClip:
         """Write every channel's value at clip time ``t`` into ``out`` (one float64 per column; NaN for columns the
         clip has no curve for). Values hold before a curve's first key and after its last, as
         :meth:`models.clip.Curve.value`. ``t`` must be finite. Bezier channels run the compiled kernel
-        (:mod:`models._clip_kernels`) where numba is installed, else the numpy lockstep iteration (``compiled``
+        (:mod:`models._cycle_kernels`) where numba is installed, else the numpy lockstep iteration (``compiled``
         chooses; both give the bits of :meth:`models.clip.Clip.sample`)."""
         if len(out) != len(self.channel_index):
             raise ValueError(f"out has {len(out)} entries; the clip is compiled for {len(self.channel_index)} channels")
@@ -140,11 +140,13 @@ class CompiledClip:
             vals[self.bez[inside]] = y[inside]
 
 
-def prepare_kernel() -> None:
-    """Load the compiled Bezier kernel (the ahead-of-time module, else numba's JIT) before the loop starts: its first
-    call in a cycle would otherwise load a shared library or compile. Nothing to do without numba."""
+def prepare_kernels() -> None:
+    """Load the compiled kernels of the cycle's own stages (the Bezier sampling here, the core's following-error
+    watch; the ahead-of-time module, else numba's JIT) before the loop starts: their first call in a cycle would
+    otherwise load a shared library or compile. Nothing to do without numba."""
     if kernels_available():
         kernel("bezier_sample")(*bezier_sample_example())
+        kernel("following_watch")(*following_watch_example())
 
 
 def _cubic(a: np.ndarray | float, b: np.ndarray, c: np.ndarray, d: np.ndarray, s: np.ndarray) -> np.ndarray:

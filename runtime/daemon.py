@@ -35,7 +35,7 @@ from runtime import ipc
 from runtime import loop_messages as L
 from runtime import server as server_mod
 from runtime.bus import BusProxy
-from runtime.compiled import prepare_kernel
+from runtime.compiled import prepare_kernels
 from runtime.config import DaemonConfig, daemon_config
 from runtime.core.channels import ChannelMap
 from runtime.core.commands import Command
@@ -98,7 +98,7 @@ class Daemon:
         self.target_solvers: list[TargetSolver] = list(target_solvers)
         self.channels = ChannelMap.build(head, channel_sets(self.target_solvers))
         self.guard = _strain_guard(head, self.target_solvers) if strain_guard else None
-        prepare_kernel()  # clips' Bezier channels: loaded now, not in the first cycle that samples one
+        prepare_kernels()  # the cycle's own kernels: loaded now, not in the first cycle that calls one
         from runtime.inputs.config import inputs_config
 
         self.inputs = inputs_config(head, self.channels)  # [inputs]: checked here, served by the API server

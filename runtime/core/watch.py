@@ -25,6 +25,8 @@ import numpy as np
 
 from models import errors as E
 from models.headspec import HeadSpec
+from models.kernel_support import kernels_available
+from models.kernels_aot import kernel
 from runtime.config import DaemonConfig
 from runtime.core.cycle import CycleOutputs
 from runtime.core.events import FeedbackLate
@@ -52,6 +54,7 @@ class WatchParams:
     fault_s: np.ndarray
     max_error: np.ndarray
     error_time_s: np.ndarray
+    bus_index: np.ndarray  # per actuator, its bus's place in the core's buses (-1: none of them)
 
     @classmethod
     def build(cls, head: HeadSpec, cfg: DaemonConfig, buses: tuple[str, ...], period: float) -> WatchParams:
@@ -75,7 +78,9 @@ class WatchParams:
                      else a.max_following_error for a in head.actuators]
         error_time = [FOLLOWING_ERROR_TIME_S if a.following_error_time_s is None else a.following_error_time_s
                       for a in head.actuators]
-        return cls(np.array(late), np.array(fault), np.array(max_error), np.array(error_time))
+        bus_index = [buses.index(a.bus) if a.bus in buses else -1 for a in head.actuators]
+        return cls(np.array(late), np.array(fault), np.array(max_error), np.array(error_time),
+                   np.array(bus_index, dtype=np.int64))
 
 
 @dataclass
@@ -145,9 +150,36 @@ def check_feedback(w: WatchState, wp: WatchParams, buses: tuple[tuple[str, np.nd
 
 def check_following(w: WatchState, wp: WatchParams, names: tuple[str, ...], buses: tuple[tuple[str, np.ndarray], ...],
                     bus_of: tuple[str, ...], ages: list[float], measured: np.ndarray, scale: np.ndarray,
-                    units: tuple[str, ...], t: float) -> Finding | None:
+                    units: tuple[str, ...], t: float, compiled: bool | None = None) -> Finding | None:
     """The finding when an actuator's following error stayed beyond its limit for its time (the actuators of a bus
-    whose feedback is late are skipped: their measurement is not current)."""
+    whose feedback is late are skipped: their measurement is not current). Compiled in one call
+    (:func:`models._cycle_kernels.following_watch`) where numba is installed (``compiled``), else in numpy: the same
+    errors, times and finding."""
+    if compiled is None:
+        compiled = kernels_available()
+    if compiled:
+        i = int(kernel("following_watch")(w.posted, measured, wp.bus_index, np.array(ages, dtype=np.float64),
+                                          wp.late_s, wp.max_error, wp.error_time_s, w.peak_error, w.over_since,
+                                          w.error, t))
+        if i < 0:
+            return None
+    else:
+        found = _due_numpy(w, wp, buses, ages, measured, t)
+        if found is None:
+            return None
+        i = found
+    error = w.error
+    k = scale[i]
+    return Finding("following_error",
+                   f"actuator {names[i]}: following error {error[i] / k:.3g} {units[i]} beyond "
+                   f"{wp.max_error[i] / k:.3g} {units[i]} for {t - w.over_since[i]:.3g} s (bus {bus_of[i]})",
+                   bus_of[i], names[i])
+
+
+def _due_numpy(w: WatchState, wp: WatchParams, buses: tuple[tuple[str, np.ndarray], ...], ages: list[float],
+               measured: np.ndarray, t: float) -> int | None:
+    """:func:`check_following`'s errors and times in numpy (the reference of the compiled watch): the first actuator
+    due to fault, or None."""
     error = following_errors(w.posted, measured, out=w.error)
     for i, (_, idx) in enumerate(buses):
         if ages[i] > wp.late_s[i]:
@@ -160,14 +192,7 @@ def check_following(w: WatchState, wp: WatchParams, names: tuple[str, ...], buse
     w.over_since[~over] = np.nan
     w.over_since[over & np.isnan(w.over_since)] = t
     due = np.flatnonzero(over & (t - w.over_since >= wp.error_time_s))
-    if not due.size:
-        return None
-    i = int(due[0])
-    k = scale[i]
-    return Finding("following_error",
-                   f"actuator {names[i]}: following error {error[i] / k:.3g} {units[i]} beyond "
-                   f"{wp.max_error[i] / k:.3g} {units[i]} for {t - w.over_since[i]:.3g} s (bus {bus_of[i]})",
-                   bus_of[i], names[i])
+    return int(due[0]) if due.size else None
 
 
 def following_errors(posted: np.ndarray, measured: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:

@@ -1,0 +1,101 @@
+"""Compiled inner loops of the control cycle's own stages (numba): a clip's Bezier sampling and the following-error
+watch, for the control loop's every cycle.
+
+:meth:`runtime.compiled.CompiledClip.sample` evaluates every Bezier channel by the safeguarded Newton iteration of
+:func:`models.clip._bezier_eval`. In numpy that iteration runs on all channels in lockstep, a few dozen array calls per
+cycle whose interpreter overhead is most of the clip's cost; compiled, each channel runs the scalar loop itself, with
+the same operations in the same order (no fused multiply-add: numba contracts only under ``fastmath``), so the values
+keep the bits of :meth:`models.clip.Clip.sample`. Compiled on first use and cached on disk, and ahead of time with the
+skin kernels (:mod:`models.kernels_aot`). The watch's numpy version stays in :mod:`runtime.core.watch` as the
+reference the tests compare against.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+_NEWTON_STEPS = 24  # as models.clip._bezier_eval
+_NEWTON_TOL = 1e-10
+
+
+@njit(cache=True, fastmath=False)
+def bezier_sample(t: float, i: np.ndarray, bez: np.ndarray, bez_row: np.ndarray, bez_first: np.ndarray,
+                  bez_last: np.ndarray, coef: np.ndarray, slot_t: np.ndarray, slot_dt: np.ndarray,
+                  vals: np.ndarray) -> None:
+    """Overwrite ``vals[c]`` of each Bezier curve ``c = bez[k]`` strictly inside its key range (``bez_first[k] < t <
+    bez_last[k]``) with its value at time ``t``: slot ``i[c]``'s segment (coefficients ``coef[i[c] + bez_row[k]]``:
+    time a, b, c, d, value a, b, c, d), solved for x(s) = t from the linear guess as :func:`models.clip._bezier_eval`
+    does. The arrays are :class:`runtime.compiled.CompiledClip`'s."""
+    for k in range(bez.shape[0]):
+        if not (bez_first[k] < t and bez_last[k] > t):
+            continue
+        c = bez[k]
+        j = i[c]
+        s = (t - slot_t[j]) / slot_dt[j]
+        row = j + bez_row[k]
+        xa, xb, xc, xd = coef[row, 0], coef[row, 1], coef[row, 2], coef[row, 3]
+        lo, hi = 0.0, 1.0
+        for _ in range(_NEWTON_STEPS):
+            x = ((xa * s + xb) * s + xc) * s + xd - t
+            if abs(x) < _NEWTON_TOL:
+                break
+            if x > 0:
+                hi = s
+            else:
+                lo = s
+            dx = (3 * xa * s + 2 * xb) * s + xc
+            s_new = s - x / dx if dx > 1e-12 else 0.5 * (lo + hi)
+            s = s_new if lo < s_new < hi else 0.5 * (lo + hi)
+        vals[c] = ((coef[row, 4] * s + coef[row, 5]) * s + coef[row, 6]) * s + coef[row, 7]
+
+
+
+@njit(cache=True, fastmath=False)
+def following_watch(posted: np.ndarray, measured: np.ndarray, bus_of: np.ndarray, ages: np.ndarray,
+                    late_s: np.ndarray, max_error: np.ndarray, error_time_s: np.ndarray, peak: np.ndarray,
+                    over_since: np.ndarray, error: np.ndarray, t: float) -> int:
+    """:func:`runtime.core.watch.check_following`'s arithmetic in one call: per actuator ``j`` the distance of
+    ``measured[j]`` outside the span of the commands ``posted[:, j]`` (NaN rows skipped; 0 where nothing was posted
+    or measured, and where its bus ``bus_of[j]`` is late, ``ages > late_s``; -1: no bus) into ``error``, the running
+    maximum into ``peak``, and since when it is beyond ``max_error`` into ``over_since`` (NaN: within). Returns the
+    first actuator beyond its limit for ``error_time_s`` at ``t``, or -1."""
+    n = measured.shape[0]
+    any_over = False
+    for j in range(n):
+        lo = np.nan
+        hi = np.nan
+        for r in range(posted.shape[0]):
+            v = posted[r, j]
+            if v == v:  # fmin / fmax: a NaN row (not yet posted) is skipped
+                if not lo <= v:
+                    lo = v
+                if not hi >= v:
+                    hi = v
+        m = measured[j]
+        a = lo - m
+        b = m - hi
+        e = a if b != b or a >= b else b  # fmax(a, b)
+        if not e >= 0.0:  # fmax(e, 0): NaN (nothing posted or measured) is 0
+            e = 0.0
+        k = bus_of[j]
+        if k >= 0 and ages[k] > late_s[k]:
+            e = 0.0
+        error[j] = e
+        if e > peak[j]:
+            peak[j] = e
+        if e > max_error[j]:
+            any_over = True
+    if not any_over:
+        over_since[:] = np.nan
+        return -1
+    due = -1
+    for j in range(n):
+        if error[j] > max_error[j]:
+            if over_since[j] != over_since[j]:
+                over_since[j] = t
+            if due < 0 and t - over_since[j] >= error_time_s[j]:
+                due = j
+        else:
+            over_since[j] = np.nan
+    return due
