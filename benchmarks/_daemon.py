@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -58,6 +59,31 @@ def make_daemon(rate_hz: float, realtime: bool, with_buses: bool = True, head_pa
     daemon.start()
     daemon.enable()
     return daemon
+
+
+@contextlib.contextmanager
+def performance_daemon(rate_hz: float, performance: Path, extra: dict[str, Any] | None = None,
+                       record_inputs: bool = False) -> Any:
+    """The daemon on the sample head (emulated buses) at ``rate_hz``, enabled, with the clip of ``performance``
+    loaded and half a second to settle: yields (daemon, client, the load reply); stopped on exit."""
+    from models.client import Client
+    from models.clip import clip_file_as_dict
+    from models.headspec import load_head
+    from runtime.daemon import Daemon
+
+    clip = clip_file_as_dict(performance)
+    overrides = {"api.command": "tcp://127.0.0.1:*", "api.telemetry": "tcp://127.0.0.1:*",
+                 "runtime.rate_hz": rate_hz, "runtime.telemetry_hz": 50.0, **(extra or {})}
+    daemon = Daemon(load_head(SAMPLE), overrides, record_inputs=record_inputs)
+    daemon.start()
+    try:
+        with Client(daemon.command_endpoint, timeout=30) as c:
+            c.call("enable")
+            reply = c.call("load_clip", clip=clip)
+            time.sleep(0.5)
+            yield daemon, c, reply
+    finally:
+        daemon.stop()
 
 
 def add_settings(parser: Any) -> None:

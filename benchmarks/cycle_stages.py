@@ -25,9 +25,9 @@ from typing import Any
 import numpy as np
 
 try:
-    from benchmarks._daemon import ROOT, SAMPLE
+    from benchmarks._daemon import ROOT, SAMPLE, performance_daemon
 except ImportError:  # run as a script
-    from _daemon import ROOT, SAMPLE
+    from _daemon import ROOT, SAMPLE, performance_daemon
 
 #: (label, module, attribute): the core's stage functions, timed where they are looked up (module attributes).
 CORE_STAGES = (("read", "runtime.core.buses", "read"), ("supervise", "runtime.core.lifecycle", "supervise"),
@@ -88,32 +88,15 @@ def install(tm: Timings) -> None:
 def run_loop(tm: Timings, rate_hz: float, performance: Path) -> tuple[dict[str, np.ndarray], Any, list, dict]:
     """The daemon playing ``performance``: the stages' timings over the play, the daemon, its recorded inputs and
     the loop's statistics."""
-    from models.client import Client
-    from models.clip import clip_file_as_dict
-    from models.headspec import load_head
-    from runtime.daemon import Daemon
-
-    head = load_head(SAMPLE)
-    clip = clip_file_as_dict(performance)
-    overrides = {"api.command": "tcp://127.0.0.1:*", "api.telemetry": "tcp://127.0.0.1:*",
-                 "runtime.rate_hz": rate_hz, "runtime.telemetry_hz": 50.0}
-    daemon = Daemon(head, overrides, record_inputs=True)
-    daemon.start()
-    try:
-        with Client(daemon.command_endpoint, timeout=30) as c:
-            c.call("enable")
-            reply = c.call("load_clip", clip=clip)
-            time.sleep(0.5)
-            assert daemon.input_log is not None
-            first = len(daemon.input_log)
-            tm.on = True
-            c.call("play", clip=reply["clip"])
-            time.sleep(reply["duration"])
-            tm.on = False
-            stats = daemon.runner.stats.summary() if daemon.runner is not None else {}
-            last = len(daemon.input_log)
-    finally:
-        daemon.stop()
+    with performance_daemon(rate_hz, performance, record_inputs=True) as (daemon, c, reply):
+        assert daemon.input_log is not None and daemon.runner is not None
+        first = len(daemon.input_log)
+        tm.on = True
+        c.call("play", clip=reply["clip"])
+        time.sleep(reply["duration"])
+        tm.on = False
+        stats = daemon.runner.stats.summary()
+        last = len(daemon.input_log)
     return tm.take(), daemon, daemon.input_log[:last], {"first": first, **stats}
 
 

@@ -17,9 +17,9 @@ from pathlib import Path
 import numpy as np
 
 try:
-    from benchmarks._daemon import ROOT, SAMPLE
+    from benchmarks._daemon import ROOT, performance_daemon
 except ImportError:  # run as a script
-    from _daemon import ROOT, SAMPLE
+    from _daemon import ROOT, performance_daemon
 
 
 def bare_loop(rate_hz: float, seconds: float) -> dict:
@@ -51,41 +51,23 @@ def bare_loop(rate_hz: float, seconds: float) -> dict:
 
 def daemon_run(rate_hz: float, performance: Path, extra: dict | None = None) -> dict:
     """Start the daemon, play the performance once, return the loop statistics over the playing time."""
-    from models.client import Client
-    from models.clip import clip_file_as_dict
-    from models.headspec import load_head
-    from runtime.daemon import Daemon
-
-    head = load_head(SAMPLE)
-    clip = clip_file_as_dict(performance)
-    overrides = {"api.command": "tcp://127.0.0.1:*", "api.telemetry": "tcp://127.0.0.1:*",
-                 "runtime.rate_hz": rate_hz, "runtime.telemetry_hz": 50.0, **(extra or {})}
-    daemon = Daemon(head, overrides)
-    daemon.start()
-    try:
-        with Client(daemon.command_endpoint, timeout=30) as c:
-            c.call("enable")
-            reply = c.call("load_clip", clip=clip)
-            time.sleep(0.5)
-            runner = daemon.runner
-            assert runner is not None
-            n0, m0 = runner.stats.n, runner.stats.missed
-            c.call("play", clip=reply["clip"])
-            time.sleep(reply["duration"] + 0.2)
-            stats = runner.stats
-            k = stats.n - n0
-            idx = (np.arange(stats.n - k, stats.n)) % stats.window
-            lat = np.abs(stats.lateness[idx]) * 1e6
-            work = stats.work[idx] * 1e6
-            status = c.call("status")
-            out = {"cycles": k, "missed": stats.missed - m0, "jitter_p50_us": float(np.percentile(lat, 50)),
-                   "jitter_p99_us": float(np.percentile(lat, 99)), "jitter_max_us": float(lat.max()),
-                   "work_p50_us": float(np.percentile(work, 50)), "work_p99_us": float(np.percentile(work, 99)),
-                   "lifecycle": status["lifecycle"], "realtime": daemon.realtime_status,
-                   "feedback_age_s": status.get("feedback_age_s"), "window_truncated": k > stats.window}
-    finally:
-        daemon.stop()
-    return out
+    with performance_daemon(rate_hz, performance, extra) as (daemon, c, reply):
+        runner = daemon.runner
+        assert runner is not None
+        n0, m0 = runner.stats.n, runner.stats.missed
+        c.call("play", clip=reply["clip"])
+        time.sleep(reply["duration"] + 0.2)
+        stats = runner.stats
+        k = stats.n - n0
+        idx = (np.arange(stats.n - k, stats.n)) % stats.window
+        lat = np.abs(stats.lateness[idx]) * 1e6
+        work = stats.work[idx] * 1e6
+        status = c.call("status")
+        return {"cycles": k, "missed": stats.missed - m0, "jitter_p50_us": float(np.percentile(lat, 50)),
+                "jitter_p99_us": float(np.percentile(lat, 99)), "jitter_max_us": float(lat.max()),
+                "work_p50_us": float(np.percentile(work, 50)), "work_p99_us": float(np.percentile(work, 99)),
+                "lifecycle": status["lifecycle"], "realtime": daemon.realtime_status,
+                "feedback_age_s": status.get("feedback_age_s"), "window_truncated": k > stats.window}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -3,11 +3,11 @@ watch, for the control loop's every cycle.
 
 :meth:`runtime.compiled.CompiledClip.sample` evaluates every Bezier channel by the safeguarded Newton iteration of
 :func:`models.clip._bezier_eval`. In numpy that iteration runs on all channels in lockstep, a few dozen array calls per
-cycle whose interpreter overhead is most of the clip's cost; compiled, each channel runs the scalar loop itself, with
-the same operations in the same order (no fused multiply-add: numba contracts only under ``fastmath``), so the values
-keep the bits of :meth:`models.clip.Clip.sample`. Compiled on first use and cached on disk, and ahead of time with the
-skin kernels (:mod:`models.kernels_aot`). The watch's numpy version stays in :mod:`runtime.core.watch` as the
-reference the tests compare against.
+cycle whose interpreter overhead is most of the clip's cost; compiled, each channel runs the scalar loop itself
+(:func:`models.clip._bezier_eval`, compiled as it is: no fused multiply-add, numba contracts only under
+``fastmath``), so the values keep the bits of :meth:`models.clip.Clip.sample`. Compiled on first use and cached on
+disk, and ahead of time with the skin kernels (:mod:`models.kernels_aot`). The watch's numpy version stays in
+:mod:`runtime.core.watch` as the reference the tests compare against.
 """
 
 from __future__ import annotations
@@ -15,8 +15,10 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-_NEWTON_STEPS = 24  # as models.clip._bezier_eval
-_NEWTON_TOL = 1e-10
+from models import clip
+
+#: :func:`models.clip._bezier_eval` itself, compiled: the operations of the scalar loop, in its order.
+_bezier_eval = njit(cache=True, fastmath=False)(clip._bezier_eval)
 
 
 @njit(cache=True, fastmath=False)
@@ -25,30 +27,16 @@ def bezier_sample(t: float, i: np.ndarray, bez: np.ndarray, bez_row: np.ndarray,
                   vals: np.ndarray) -> None:
     """Overwrite ``vals[c]`` of each Bezier curve ``c = bez[k]`` strictly inside its key range (``bez_first[k] < t <
     bez_last[k]``) with its value at time ``t``: slot ``i[c]``'s segment (coefficients ``coef[i[c] + bez_row[k]]``:
-    time a, b, c, d, value a, b, c, d), solved for x(s) = t from the linear guess as :func:`models.clip._bezier_eval`
-    does. The arrays are :class:`runtime.compiled.CompiledClip`'s."""
+    time a, b, c, d, value a, b, c, d), solved for x(s) = t from the linear guess by
+    :func:`models.clip._bezier_eval`. The arrays are :class:`runtime.compiled.CompiledClip`'s."""
     for k in range(bez.shape[0]):
         if not (bez_first[k] < t and bez_last[k] > t):
             continue
         c = bez[k]
         j = i[c]
-        s = (t - slot_t[j]) / slot_dt[j]
-        row = j + bez_row[k]
-        xa, xb, xc, xd = coef[row, 0], coef[row, 1], coef[row, 2], coef[row, 3]
-        lo, hi = 0.0, 1.0
-        for _ in range(_NEWTON_STEPS):
-            x = ((xa * s + xb) * s + xc) * s + xd - t
-            if abs(x) < _NEWTON_TOL:
-                break
-            if x > 0:
-                hi = s
-            else:
-                lo = s
-            dx = (3 * xa * s + 2 * xb) * s + xc
-            s_new = s - x / dx if dx > 1e-12 else 0.5 * (lo + hi)
-            s = s_new if lo < s_new < hi else 0.5 * (lo + hi)
-        vals[c] = ((coef[row, 4] * s + coef[row, 5]) * s + coef[row, 6]) * s + coef[row, 7]
-
+        r = coef[j + bez_row[k]]
+        seg = (r[0], r[1], r[2], r[3], r[4], r[5], r[6], r[7])
+        vals[c] = _bezier_eval(seg, t, (t - slot_t[j]) / slot_dt[j])
 
 
 @njit(cache=True, fastmath=False)

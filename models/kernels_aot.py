@@ -36,6 +36,8 @@ EXPORTS = ("solve_values_measured", "reduced_measure", "solve_frame", "solve_fra
            "bezier_sample", "following_watch")
 #: The modules that define them (numba JIT functions), in :data:`EXPORTS`' order of first use.
 SOURCES = ("_skin_kernels", "_cycle_kernels")
+#: Modules whose functions they compile besides (a clip's Bezier evaluation): their sources are part of :func:`key`.
+COMPILED_FROM = ("clip",)
 MODULE = "_skin_kernels_aot"
 _HERE = Path(__file__).resolve().parent
 
@@ -44,7 +46,7 @@ def key() -> str:
     """What the built module must match: the kernels' source, the exported names, numba's, numpy's and Python's
     versions."""
     h = hashlib.sha256()
-    for source in SOURCES:
+    for source in SOURCES + COMPILED_FROM:
         h.update((_HERE / f"{source}.py").read_bytes())
     h.update(" ".join(EXPORTS).encode())
     try:

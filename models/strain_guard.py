@@ -531,15 +531,21 @@ class StrainGuard:
     # ------------------------------------------------------------------ motion
     def limit(self, p_from: np.ndarray, p_to: np.ndarray, steps: int = 5) -> tuple[np.ndarray, str]:
         """``p_to`` if it passes ("ok"); else the furthest passing point of the segment from ``p_from`` found by
-        ``steps`` bisections ("limited"); else ``p_from`` ("held")."""
+        ``steps`` bisections ("limited"); else ``p_from`` ("held"). One compiled call where the measure is compiled
+        (:func:`models._skin_kernels.guard_limit`), else :meth:`limit_by_checks`: the same poses and verdicts."""
         p_to = np.asarray(p_to, dtype=np.float64)
-        if self.compiled:  # the whole limit in one compiled call (models._skin_kernels.guard_limit)
-            if p_to.shape != self.lo.shape:
-                raise ValueError(f"pose must have shape {self.lo.shape}, got {p_to.shape}")
-            out = np.empty_like(p_to)
-            verdict = kernel("guard_limit")(np.asarray(p_from, dtype=np.float64), p_to, int(steps), out, self._scale,
-                                            self._shift, self._W1, self._b1, *self.strain_range, *self.kernel_arrays())
-            return out, VERDICTS[verdict]
+        if not self.compiled:
+            return self.limit_by_checks(p_from, p_to, steps)
+        if p_to.shape != self.lo.shape:
+            raise ValueError(f"pose must have shape {self.lo.shape}, got {p_to.shape}")
+        out = np.empty_like(p_to)
+        verdict = kernel("guard_limit")(np.asarray(p_from, dtype=np.float64), p_to, int(steps), out, self._scale,
+                                        self._shift, self._W1, self._b1, *self.strain_range, *self.kernel_arrays())
+        return out, VERDICTS[verdict]
+
+    def limit_by_checks(self, p_from: np.ndarray, p_to: np.ndarray, steps: int = 5) -> tuple[np.ndarray, str]:
+        """:meth:`limit` as a bisection over :meth:`check` (the compiled limit's reference)."""
+        p_to = np.asarray(p_to, dtype=np.float64)
         if self.check(p_to):
             return p_to, "ok"
         base = np.asarray(p_from, dtype=np.float64)

@@ -132,21 +132,6 @@ def test_limit_returns_ok_limited_or_held(guard):
         assert 0 < np.linalg.norm(pose - n) < np.linalg.norm(bad - n)
 
 
-def _limit_by_checks(guard, p_from, p_to, steps):
-    """StrainGuard.limit's bisection written out over StrainGuard.check (the reference of the compiled limit)."""
-    if guard.check(p_to):
-        return p_to, "ok"
-    d = p_to - p_from
-    lo_t, hi_t, found = 0.0, 1.0, False
-    for _ in range(steps):
-        mid = 0.5 * (lo_t + hi_t)
-        if guard.check(p_from + mid * d):
-            lo_t, found = mid, True
-        else:
-            hi_t = mid
-    return (p_from + lo_t * d, "limited") if found else (p_from.copy(), "held")
-
-
 @pytest.mark.skipif(not kernels_available(), reason="numba is not installed")
 def test_the_compiled_limit_is_the_bisection_over_the_check(guard):
     """One compiled call (models._skin_kernels.guard_limit) against the bisection over the check, on segments from
@@ -162,7 +147,7 @@ def test_the_compiled_limit_is_the_bisection_over_the_check(guard):
             p_to[0] = np.nan
         steps = 3 + k % 4
         got, verdict = guard.limit(p_from, p_to, steps=steps)
-        ref, ref_verdict = _limit_by_checks(guard, p_from, p_to, steps)
+        ref, ref_verdict = guard.limit_by_checks(p_from, p_to, steps)
         assert verdict == ref_verdict, k
         assert np.array_equal(got, ref, equal_nan=True), k
         verdicts.add(verdict)
