@@ -132,10 +132,10 @@ class Runner:
                         K.fault(self.state, self.params, out, t, "control loop",
                               f"control cycle failed: {type(exc).__name__}: {exc}")
                     self._write(out, t)  # before the recording and telemetry: they need not delay the bus
-                    if not failed:
-                        self._report(out, t)
                     if self.trace.open_rows:
                         self.trace.applied(woke, self.clock())
+                    if not failed:
+                        self._report(out, t)
                     if missed:
                         self.stats.missed += missed
                         pending_misses += missed
