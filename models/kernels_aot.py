@@ -131,12 +131,17 @@ def jit(name: str) -> Callable[..., Any]:
 
 
 def _with_fallback(name: str, aot: Callable[..., Any]) -> Callable[..., Any]:
+    warned = False
+
     def call(*args: Any) -> Any:
+        nonlocal warned
         try:
             return aot(*args)
         except TypeError:  # argument types outside the ahead-of-time signature
-            log.warning("kernel %s: arguments %s not in its ahead-of-time build; using numba's JIT", name,
-                        [getattr(a, "dtype", type(a).__name__) for a in args])
+            if not warned:  # once: the caller may be the control loop
+                warned = True
+                log.warning("kernel %s: arguments %s not in its ahead-of-time build; using numba's JIT", name,
+                            [getattr(a, "dtype", type(a).__name__) for a in args])
             return jit(name)(*args)
 
     call.__name__ = name
