@@ -203,19 +203,20 @@ def run_sender_watching_jaw(daemon: Any, target: Any, args: tuple, what: str) ->
     return np.array([w[0] for w in writes]), np.array([w[1] for w in writes]), got
 
 
-def first_moves(stamps: Any, values: Any, times: Any) -> list[float]:
-    """For each step time, the delay (s) to the first bus write after it that moved the jaw; steps that came while
-    the jaw was still moving cannot be timed and are left out."""
+def first_moves(stamps: Any, values: Any, times: Any, with_times: bool = False) -> list[Any]:
+    """For each step time, the delay (s) to the first bus write after it that moved the jaw (with ``with_times``:
+    (step time, delay) pairs); steps that came while the jaw was still moving cannot be timed and are left out."""
     import numpy as np
 
-    lat = []
+    lat: list[Any] = []
     for t in times:
         i = int(np.searchsorted(stamps, t))  # first write after the step
         if i < 2 or i >= len(stamps) or values[i - 1] != values[i - 2]:
             continue
         moved = np.nonzero(values[i:] != values[i - 1])[0]
         if len(moved):
-            lat.append(float(stamps[i + moved[0]] - t))
+            delay = float(stamps[i + moved[0]] - t)
+            lat.append((float(t), delay) if with_times else delay)
     return lat
 
 

@@ -280,14 +280,32 @@ def steady(daemon: Any, kind: str, target: str, rate: float, steps: int) -> tupl
     the phase lock's state at the end (``status`` → ``loop.stream_phase_lock``). A run that timed fewer than half
     the steps (the head faulted on a stalled emulator, steps that came while the jaw moved) is followed by another,
     three at most, so a figure comes out on a busy machine too."""
+    from runtime.input_trace import InputTrace
+
     lat: list[float] = []
+    stages: list[np.ndarray] = []
     for attempt in range(3):
         ready(daemon)
+        daemon.runner.trace = trace = InputTrace(rows=int(rate * (40.0 + 3.0 * steps)))  # every packet of the run
         stamps, values, sent = _run_steady(daemon, kind, target, rate, steps, 3 + attempt)
-        lat += D.first_moves(stamps, values, sent)
+        moves = D.first_moves(stamps, values, sent, with_times=True)
+        lat += [m for _, m in moves]
+        stages += _steady_stages(trace, moves)
         if len(lat) >= steps // 2:
             break
-    return lat, _status(daemon).get("loop", {}).get("stream_phase_lock")
+    return lat, _status(daemon).get("loop", {}).get("stream_phase_lock"), np.array(stages).reshape(-1, len(STAGES))
+
+
+def _steady_stages(trace: Any, moves: list[tuple[float, float]]) -> list[np.ndarray]:
+    """Each timed step's stages (s, as :data:`STAGES`): its trace row is the first received after its send time."""
+    rows = trace.last(trace.count)
+    rows = rows[np.isfinite(rows).all(axis=1)]
+    out = []
+    for t, lat in moves:
+        i = int(np.searchsorted(rows[:, 0], t))
+        if i < len(rows) and rows[i, 0] - t < 0.02:
+            out.append(np.diff(np.array([t, *rows[i], t + lat])))
+    return out
 
 
 def _run_steady(daemon: Any, kind: str, target: str, rate: float, steps: int, seed: int) -> tuple[Any, Any, Any]:
@@ -367,6 +385,14 @@ def run_rate(rate: float, args: argparse.Namespace, extra: dict[str, Any], tmp: 
     return res
 
 
+def _print_stages(name: str, st: np.ndarray) -> None:
+    """One line of per-stage p50 / p99 (µs) for ``st`` (rows of :data:`STAGES` durations); nothing when empty."""
+    if len(st):
+        cells = "  ".join(f"{np.percentile(st[:, k], 50):5.0f}/{np.percentile(st[:, k], 99):6.0f}"
+                          for k in range(len(STAGES)))
+        print(f"    {name:14s} {cells}")
+
+
 def report(res: dict[str, Any], trials: int, steps: int) -> None:
     """Print one rate's figures against their goals and the floor."""
     rate = res["rate"]
@@ -390,19 +416,18 @@ def report(res: dict[str, Any], trials: int, steps: int) -> None:
               f"{verdict} the goal; x{l99 / (f99 + period):.2f} floor+period{note}")
     print("  where the time goes, p50 / p99 us (" + ", ".join(STAGES) + "):")
     for name, tr in res["single"].items():
-        st = _stages(tr) * 1e6
-        if len(st):
-            cells = "  ".join(f"{np.percentile(st[:, k], 50):5.0f}/{np.percentile(st[:, k], 99):6.0f}"
-                              for k in range(len(STAGES)))
-            print(f"    {name:14s} {cells}")
+        _print_stages(name, _stages(tr) * 1e6)
     if res["steady"]:
         print(f"  steady senders, one packet per period, phase lock on: step packet -> bus write (goal p99 <= 2000 us;"
               f" floor p99 {f99:.0f} us):")
-        for name, (lat, lock) in res["steady"].items():
+        for name, (lat, lock, _) in res["steady"].items():
             l50, l99 = D.pct(lat, 50) * 1e6, D.pct(lat, 99) * 1e6
             verdict = "meets" if l99 <= 2000 else "MISSES"
             print(f"    {name:14s} {len(lat):4d}/{steps} steps: p50 {l50:6.0f} us, p99 {l99:6.0f} us  {verdict} "
                   f"the goal; x{l99 / f99:.2f} the floor; phase lock at the end: {lock}")
+        print("  where a step's time goes, p50 / p99 us (the stages above):")
+        for name, (_, _, st) in res["steady"].items():
+            _print_stages(name, st * 1e6)
 
 
 def main(argv: list[str] | None = None) -> int:

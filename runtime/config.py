@@ -56,8 +56,9 @@ class RuntimeSettings:
     switch_interval_s: float = 0.0005  # sys.setswitchinterval while the loop runs (other threads yield sooner)
     stream_delay_s: float = 0.05  # jitter buffer: streamed frames play this long after their timestamp
     stream_phase_lock: bool = False  # slide the loop's phase to just after a steady stream's frames (runtime.phaselock)
-    # wanted time from a locked frame reaching the daemon (the API server's receipt stamp) to the cycle that plays it:
-    # it covers the hop from the server to the loop (a frame that reaches the loop later waits a whole period)
+    # without wake on input: wanted time from a locked frame reaching the daemon (the API server's receipt stamp) to
+    # the cycle that plays it; it covers the hop from the server to the loop (a frame that reaches the loop later
+    # waits a whole period). With wake on input the lock centres frames in their slots instead (runtime.runner)
     stream_phase_lead_s: float = 0.0006
     # run the cycle as soon as a live value (OSC, sACN), a timecode sample or a stream frame due before the next
     # deadline reaches the loop, instead of at that deadline: at most one cycle per period slot and none closer than

@@ -28,7 +28,13 @@ class PhaseLock:
     a few frames a loaded host delivers late do not drop it); ``alpha``: weight of the newest arrival in that mean.
     While engaged, an arrival more than a quarter period off where the arrivals cluster (a straggler) moves no
     deadline and does not count in the mean; more than ``1 / alpha`` of them in a row (the stream moved) and the lock
-    lets go and starts afresh."""
+    lets go and starts afresh.
+
+    ``slotted``: a frame runs its cycle as soon as it is taken once its period slot (the period before ``deadline``)
+    has begun (the runner's wake on input). Deadlines one period apart then differ: a frame a period before its
+    deadline waits for its slot, one less than a period before runs at once. So the error is not folded modulo the
+    period (a lock that put the slot's start just after the frames pulls it back before them); only the clustering
+    of phases is."""
 
     period: float
     lead: float = 500e-6
@@ -37,6 +43,7 @@ class PhaseLock:
     coherence: float = 0.8
     release: float = 0.5
     alpha: float = 0.05
+    slotted: bool = False
     _engaged: bool = False
     _stragglers: int = 0  # stragglers in a row while engaged
     _mean: complex = 0j
@@ -47,7 +54,9 @@ class PhaseLock:
 
     def arrival(self, received: float, deadline: float) -> None:
         """A frame that arrived at ``received`` is taken by the cycle due at ``deadline``."""
-        x = _wrap(deadline - received - self.lead, self.period)
+        x = deadline - received - self.lead
+        if not self.slotted:
+            x = _wrap(x, self.period)
         raw = _wrap(x - self._shift, self.period)
         self.last_error = x
         center = cmath.phase(self._mean) / (2 * math.pi) * self.period  # where the arrivals cluster

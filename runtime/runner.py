@@ -54,6 +54,17 @@ COMMAND_MARGIN_S = 300e-6
 WAKE_MIN_GAP = 0.25
 
 
+def phase_lock(period: float, lead: float, wake_on_input: bool) -> PhaseLock:
+    """The loop's phase lock. Without wake on input a frame's cycle runs at its deadline: the lock puts that
+    ``lead`` (the hand-over to the loop) after the frames' receipt. With it, a frame runs its cycle as soon as it is
+    due (taken, at its time tag or play time) once its period slot has begun: the lock centres the frames' due times
+    in their slots (deadline half a period after, the slot's start half a period before), so a frame up to half a
+    period early or late still runs its own cycle at once (:attr:`PhaseLock.slotted`, :meth:`Runner._lock_time`)."""
+    if wake_on_input:
+        return PhaseLock(period, lead=0.5 * period, slotted=True)
+    return PhaseLock(period, lead=lead)
+
+
 class Runner:
     """Runs the core at the configured rate on the calling thread until :meth:`stop`."""
 
@@ -77,9 +88,10 @@ class Runner:
         self._signal_estop: str | None = None
         self.native_id = 0
         rt = params.cfg.runtime
-        self.phase_lock = PhaseLock(params.period, lead=rt.stream_phase_lead_s) if rt.stream_phase_lock else None
-        self._deadline = 0.0  # the deadline the loop is waiting for (commands taken meanwhile are due then)
         self.wake_on_input = rt.wake_on_input
+        self.phase_lock = (phase_lock(params.period, rt.stream_phase_lead_s, rt.wake_on_input)
+                           if rt.stream_phase_lock else None)
+        self._deadline = 0.0  # the deadline the loop is waiting for (commands taken meanwhile are due then)
         self._early_at: float | None = None  # when the early cycle asked for by an input's arrival runs
         self._last_t = float("-inf")  # the time of the last cycle
         self._carry: list[Command] = []  # commands taken between cycles for the early cycle they woke
@@ -285,8 +297,21 @@ class Runner:
             if isinstance(cmd, (Stream, Live, Timecode)):
                 self.trace.taken(cmd.received, taken)
                 if self.phase_lock is not None and not isinstance(cmd, Timecode):
-                    self.phase_lock.arrival(taken if cmd.received is None else min(cmd.received, taken), deadline)
+                    self.phase_lock.arrival(self._lock_time(cmd, taken), deadline)
         return cmds
+
+    def _lock_time(self, cmd: Stream | Live, taken: float) -> float:
+        """When ``cmd`` counts as arrived for the phase lock: its receipt stamp (its take time when unknown); with
+        wake on input (a slotted lock), when it is due, as its early cycle would run it (a live value's time tag, a
+        stream frame's play time), if that is later."""
+        t = taken if cmd.received is None else min(cmd.received, taken)
+        if self.phase_lock is None or not self.phase_lock.slotted:
+            return t
+        if isinstance(cmd, Live):
+            return t if cmd.at is None else max(t, cmd.at)
+        if len(cmd.times):
+            return max(t, float(cmd.times.min()) + self.params.cfg.runtime.stream_delay_s)
+        return t
 
     def _estop_now(self) -> str | None:
         estop = None

@@ -168,3 +168,43 @@ def simulate_p(arrivals: np.ndarray, lock: PhaseLock, cycles: int, period: float
         steps.append(step)
         deadline += period + step
     return waits, steps
+
+
+def simulate_slotted(arrivals: np.ndarray, lock: PhaseLock, hop: float, period: float = P) -> list[float]:
+    """A loop with wake on input (:class:`runtime.runner.Runner`): a frame taken ``hop`` after it arrived runs the
+    cycle at once if its period slot (the period before the next deadline) has begun, else at the slot's start; that
+    cycle serves the deadline, and the next is a period later. With no frame in a slot, the cycle runs at its
+    deadline. Returns each frame's wait from being taken to its cycle."""
+    deadline, waits = 2 * period, []
+    for a in arrivals:
+        taken = a + hop
+        while taken >= deadline:  # slots with no frame: their deadline's own cycle
+            deadline += period + lock.correction()
+        lock.arrival(a, deadline)
+        waits.append(max(taken, deadline - period) - taken)
+        deadline += period + lock.correction()
+    return waits
+
+
+@pytest.mark.parametrize("phase", [0.05, 0.3, 0.55, 0.8, 0.95])
+def test_with_wake_on_input_frames_run_their_cycle_when_taken(phase: float) -> None:
+    """With wake on input the loop runs a frame's cycle as soon as it is taken, once its slot began. The lock must
+    centre the frames in their slots: folded modulo the period, its error is also zero with every slot starting
+    half a period after the frames, which then all wait that long (where the folded lock settles here)."""
+    from runtime.runner import phase_lock
+
+    rng = np.random.default_rng(7)
+    arrivals = np.sort((np.arange(3000) + phase) * P + rng.normal(0, 30e-6, 3000))
+    lock = phase_lock(P, 0.0006, wake_on_input=True)
+    waits = simulate_slotted(arrivals, lock, hop=200e-6)
+    assert lock.locked and lock.slotted
+    assert np.percentile(waits[-500:], 99) < 1e-6  # every frame runs its cycle the moment it is taken
+    folded_waits = simulate_slotted(arrivals, PhaseLock(P, lead=0.5 * P), hop=200e-6)
+    assert np.median(folded_waits[-500:]) > 0.4 * P  # the other equilibrium: every frame waits for its slot
+
+
+def test_without_wake_on_input_the_lock_keeps_its_lead() -> None:
+    from runtime.runner import phase_lock
+
+    lock = phase_lock(P, 0.0006, wake_on_input=False)
+    assert lock.lead == 0.0006 and not lock.slotted
