@@ -4,8 +4,13 @@ A show-control packet crosses three process wake-ups before a bus process writes
 (UDP), the control loop (the command pipe) and the bus process (its wake-up pipe). The floor is the same chain with
 nothing else in it: a sender process (SCHED_FIFO, as the benchmark's senders) sends a UDP datagram carrying its send
 time to a receiver process at the input threads' priority, which writes it to a pipe read by a process at the loop's
-priority, which writes it to a pipe read by a process at normal scheduling (niceness -10, as the bus processes); the
-last stamps its arrival. A single packet waits, besides, for the next control cycle (up to one period).
+priority, which writes it to a pipe read by a process at the bus processes' priority; the last stamps its arrival.
+A single packet waits, besides, for the next control cycle (up to one period).
+
+Measured twice: on the machine as it is (the idle floor), and beside a running daemon (its loop, bus processes and
+emulated drives at work: the loaded floor, the same wake-ups competing for the same two cores, with the relay one
+step below the loop's priority so that it never delays a cycle). The loaded floor is what the host itself costs the
+packet's way at that load, before any of the daemon's own work on it.
 """
 
 from __future__ import annotations
@@ -50,9 +55,9 @@ def _relay(r: int, w: int, fifo: int) -> None:
             return
 
 
-def _last(r: int, out: Any, nice: int) -> None:
+def _last(r: int, out: Any, fifo: int) -> None:
     """Hop 3: the bus process's wake-up; stamps each arrival."""
-    _set_priority(0, nice)
+    _set_priority(fifo, -10)
     lat = []
     while True:
         data = os.read(r, _STAMP.size)
@@ -75,9 +80,10 @@ def _sender(port: int, n: int, fifo: int, seed: int) -> None:
     s.sendto(_STAMP.pack(-1.0), ("127.0.0.1", port))
 
 
-def floor(n: int = 300, input_fifo: int = 20, loop_fifo: int = 80, bus_nice: int = -10,
+def floor(n: int = 300, input_fifo: int = 20, loop_fifo: int = 80, bus_fifo: int = 30,
           sender_fifo: int = 10) -> list[float]:
-    """Latencies (s) of ``n`` datagrams through the three-hop chain (see the module docstring)."""
+    """Latencies (s) of ``n`` datagrams through the three-hop chain (see the module docstring); the defaults are
+    the daemon's (``[runtime] inputs_priority``, ``priority``, ``bus_write_priority``)."""
     ctx = mp.get_context("fork")
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sock.bind(("127.0.0.1", 0))
@@ -87,7 +93,7 @@ def floor(n: int = 300, input_fifo: int = 20, loop_fifo: int = 80, bus_nice: int
     out = ctx.Queue()
     procs = [ctx.Process(target=_receiver, args=(sock, w1, input_fifo), daemon=True),
              ctx.Process(target=_relay, args=(r1, w2, loop_fifo), daemon=True),
-             ctx.Process(target=_last, args=(r2, out, bus_nice), daemon=True)]
+             ctx.Process(target=_last, args=(r2, out, bus_fifo), daemon=True)]
     for p in procs:
         p.start()
     sender = ctx.Process(target=_sender, args=(port, n, sender_fifo, 1), daemon=True)

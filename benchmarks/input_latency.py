@@ -364,6 +364,9 @@ def run_rate(rate: float, args: argparse.Namespace, extra: dict[str, Any], tmp: 
                    "sacn": ("sacn", inputs["sacn"]["bind"].rsplit(":", 1)[0]),
                    "mtc": ("mtc locate", inputs["timecode"]["bind"])}
         single = {targets[k][0]: measure(daemon, args.trials, k, targets[k][1]) for k in args.inputs.split(",") if k}
+        ready(daemon)
+        rt = daemon.cfg.runtime
+        res["floor_loaded"] = floor(args.floor_packets, rt.inputs_priority, rt.priority - 1, rt.bus_write_priority)
         res["state"] = daemon.lifecycle
         res["loop"] = _status(daemon).get("loop", {})
     finally:
@@ -403,6 +406,10 @@ def report(res: dict[str, Any], trials: int, steps: int) -> None:
           f"{res['loop'].get('early', '?')} early cycles (wake on input) [{res['state']}]")
     print(f"  floor (this machine, this run; UDP -> pipe -> pipe, three process wake-ups, {len(res['floor'])} "
           f"packets): p50 {f50:.0f} us, p99 {f99:.0f} us; a single packet also waits up to one period for its cycle")
+    loaded = res.get("floor_loaded")
+    if loaded:
+        print(f"  loaded floor (the same wake-ups beside the running daemon, its loop, bus processes and emulators at "
+              f"work): p50 {D.pct(loaded, 50) * 1e6:.0f} us, p99 {D.pct(loaded, 99) * 1e6:.0f} us")
     print(f"  single packet at a random phase -> bus write (goal p99 <= period + 1 ms = {goal_single:.0f} us; "
           f"floor p99 + period = {f99 + period:.0f} us):")
     for name, tr in res["single"].items():
