@@ -105,3 +105,28 @@ def test_pipe_reader_sees_the_writer_go_and_the_writer_a_missing_reader(tmp_path
     with pytest.raises(BrokenPipeError):
         writer.send(("cmd", "nobody reads"))
     writer.close()
+
+
+def test_a_live_value_crosses_the_pipe_whole_and_small(tmp_path: Path) -> None:
+    """A show-control value (runtime.core.commands.Live) is pickled with its arrays as raw bytes: every field comes
+    back equal, dtypes and shapes included."""
+    from runtime.core.commands import Live
+
+    sent = [Live(7, "sacn", np.array([3, 11, 12], dtype=np.intp), np.array([0.5, -1.25, 2.0]), at=4.5, received=4.25,
+                 takeover=False, watchdog_s=0.5),
+            Live(8, "osc", np.array([1], dtype=np.int32), np.array([3.0], dtype=np.float32)),
+            Live(9)]
+    reader, writer = _pipe(tmp_path)
+    try:
+        for cmd in sent:
+            writer.send(cmd)
+        got = _drain(reader, writer, len(sent))
+    finally:
+        writer.close()
+        reader.close()
+    for a, b in zip(sent, got, strict=True):
+        assert (a.token, a.source, a.at, a.received, a.takeover, a.watchdog_s) == \
+            (b.token, b.source, b.at, b.received, b.takeover, b.watchdog_s)
+        for x, y in ((a.channels, b.channels), (a.values, b.values)):
+            assert x.dtype == y.dtype and x.shape == y.shape
+            np.testing.assert_array_equal(x, y)
