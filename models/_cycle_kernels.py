@@ -87,3 +87,52 @@ def following_watch(posted: np.ndarray, measured: np.ndarray, bus_of: np.ndarray
         else:
             over_since[j] = np.nan
     return due
+
+
+@njit(cache=True, fastmath=False)
+def constrain(x: np.ndarray, current: np.ndarray, lo: np.ndarray, hi: np.ndarray, groups_i: np.ndarray,
+              groups_f: np.ndarray, out: np.ndarray) -> None:
+    """:meth:`runtime.safety.SafetyFilter.constrain` into ``out``: holds (NaN) filled from ``current``, each
+    "together" group set to its gain-scaled mean, each coupled group's spread scaled down to its limit, then clipped
+    to ``[lo, hi]``; the same operations in the same order (the same values; a group of 8 or more members may
+    differ in the last bit, where numpy sums pairwise). The groups are packed by
+    :func:`models.kernel_args.pack_constraints`."""
+    n = x.shape[0]
+    for i in range(n):
+        v = x[i]
+        out[i] = v if np.isfinite(v) else current[i]
+    n_tog, n_cp = groups_i[0], groups_i[1]
+    tog_ptr = 2
+    tog_idx = tog_ptr + n_tog + 1
+    cp_ptr = tog_idx + groups_i[tog_ptr + n_tog]
+    cp_idx = cp_ptr + n_cp + 1
+    for g in range(n_tog):
+        a, b = groups_i[tog_ptr + g], groups_i[tog_ptr + g + 1]
+        total = out[groups_i[tog_idx + a]] / groups_f[a]  # summed in turn, as numpy's reduction up to 7 terms
+        for k in range(a + 1, b):
+            total += out[groups_i[tog_idx + k]] / groups_f[k]
+        common = total / (b - a)
+        for k in range(a, b):
+            out[groups_i[tog_idx + k]] = groups_f[k] * common
+    spreads = groups_i[tog_ptr + n_tog]  # the coupled groups' spreads follow the together gains
+    for g in range(n_cp):
+        a, b = groups_i[cp_ptr + g], groups_i[cp_ptr + g + 1]
+        low = out[groups_i[cp_idx + a]]
+        high = low
+        for k in range(a + 1, b):
+            v = out[groups_i[cp_idx + k]]
+            low = min(low, v)
+            high = max(high, v)
+        spread = groups_f[spreads + g]
+        if high - low > spread:
+            mid = 0.5 * (low + high)
+            for k in range(a, b):
+                j = groups_i[cp_idx + k]
+                out[j] = mid + (out[j] - mid) * (spread / (high - low))
+    for i in range(n):
+        v = out[i]
+        if v < lo[i]:
+            v = lo[i]
+        if v > hi[i]:
+            v = hi[i]
+        out[i] = v

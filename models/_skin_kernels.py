@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from models._cycle_kernels import constrain
 from models.kernel_args import pack_frame_args  # noqa: F401 (the packing solve_values_measured unpacks)
 
 
@@ -226,6 +227,28 @@ def guard_limit(p_from: np.ndarray, p_to: np.ndarray, steps: int, out: np.ndarra
         return 1
     out[:] = p_from
     return 2
+
+
+@njit(cache=True)
+def guard_step(targets: np.ndarray, current: np.ndarray, p_from: np.ndarray, steps: int, out: np.ndarray,
+               lo: np.ndarray, hi: np.ndarray, groups_i: np.ndarray, groups_f: np.ndarray, scale: np.ndarray,
+               shift: np.ndarray, W1: np.ndarray, b1: np.ndarray, s_lo: float, s_hi: float, E: np.ndarray,
+               e0: np.ndarray, C: np.ndarray, idet: np.ndarray, S_ptr: np.ndarray, S_idx: np.ndarray,
+               S_w: np.ndarray) -> int:
+    """The control cycle's guard stage in one call: ``targets`` constrained to the head's limits and groups
+    (:func:`models._cycle_kernels.constrain`, holds from ``current``), then, unless that is ``p_from`` itself
+    (returns -1, ``out`` the constrained target), :func:`guard_limit` from ``p_from`` (its verdict code)."""
+    x = np.empty_like(targets)
+    constrain(targets, current, lo, hi, groups_i, groups_f, x)
+    same = True
+    for i in range(x.shape[0]):
+        if x[i] != p_from[i]:
+            same = False
+            break
+    if same:
+        out[:] = x
+        return -1
+    return guard_limit(p_from, x, steps, out, scale, shift, W1, b1, s_lo, s_hi, E, e0, C, idet, S_ptr, S_idx, S_w)
 
 
 @njit(cache=True)

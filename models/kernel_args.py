@@ -5,7 +5,12 @@ unpacks, and example arguments of :func:`models._cycle_kernels.bezier_sample` an
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
+
+if TYPE_CHECKING:
+    from models.headspec import HeadSpec
 
 
 def pack_frame_args(solve: tuple, measure: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -47,3 +52,19 @@ def following_watch_example() -> tuple:
     posted = np.array([[0.0, 0.1], [0.0, 0.2], [np.nan, np.nan]])
     return (posted, np.array([0.05, 0.5]), np.array([0, 1], np.int64), np.array([0.001, 0.002]), np.array([0.01, 0.01]),
             np.array([0.2, 0.2]), np.array([0.5, 0.5]), np.zeros(2), np.full(2, np.nan), np.zeros(2), 1.0)
+
+
+def pack_constraints(head: HeadSpec) -> tuple[np.ndarray, np.ndarray]:
+    """A head's actuator groups as :func:`models._cycle_kernels.constrain` reads them, the groups
+    :class:`runtime.safety.SafetyFilter` applies ("together" and "mirror" groups with their gains, groups with a
+    ``max_spread``). Ints: the counts of each kind, the together groups' offsets (CSR) and members, the coupled
+    groups' offsets and members; floats: the together gains (one per member), then each coupled group's spread."""
+    index = {n: i for i, n in enumerate(head.actuator_names)}
+    tog = [g for g in head.groups if g.kind in ("together", "mirror")]
+    cp = [g for g in head.groups if g.kind not in ("together", "mirror") and g.max_spread is not None]
+    tog_ptr = np.cumsum([0] + [len(g.actuators) for g in tog])
+    cp_ptr = np.cumsum([0] + [len(g.actuators) for g in cp])
+    ints = [len(tog), len(cp), *tog_ptr, *(index[m] for g in tog for m in g.actuators), *cp_ptr,
+            *(index[m] for g in cp for m in g.actuators)]
+    floats = [float(x) for g in tog for x in g.gains] + [float(g.max_spread) for g in cp]
+    return np.array(ints, dtype=np.int64), np.array(floats, dtype=np.float64)

@@ -48,8 +48,13 @@ def _run_kernels(head: HeadSpec, sp: SkinPredictor) -> None:
 
     guard = StrainGuard.for_head(head, sp)  # compiles the reduced measure and the limit
     if guard is not None:
+        from models.kernel_args import pack_constraints
+
         guard.check(0.5 * (guard.lo + guard.hi))
         guard.limit(guard.lo.copy(), 0.5 * (guard.lo + guard.hi))
+        lo = np.array([a.min for a in head.actuators])  # and the control cycle's guard stage
+        hi = np.array([a.max for a in head.actuators])
+        guard.limit_constrained(0.5 * (lo + hi), lo.copy(), lo.copy(), lo, hi, pack_constraints(head))
     if sp.face_unit_offsets is not None:
         lo = np.maximum([a.min for a in head.actuators], sp.lo)
         hi = np.minimum([a.max for a in head.actuators], sp.hi)

@@ -543,6 +543,21 @@ class StrainGuard:
                                         self._shift, self._W1, self._b1, *self.strain_range, *self.kernel_arrays())
         return out, VERDICTS[verdict]
 
+    def limit_constrained(self, targets: np.ndarray, current: np.ndarray, p_from: np.ndarray, lo: np.ndarray,
+                          hi: np.ndarray, groups: tuple[np.ndarray, np.ndarray], steps: int = 5
+                          ) -> tuple[np.ndarray, str | None]:
+        """``targets`` constrained to ``[lo, hi]`` and the actuator ``groups`` (holds, NaN, from ``current``; the
+        groups packed by :func:`models.kernel_args.pack_constraints`), then :meth:`limit` from ``p_from``, in one
+        compiled call (:func:`models._skin_kernels.guard_step`): the control cycle's guard stage. The verdict is
+        None when the constrained target is ``p_from`` itself (nothing checked). Needs the compiled measure
+        (:attr:`compiled`)."""
+        if not self.compiled:
+            raise RuntimeError("limit_constrained needs the compiled strain measure (numba)")
+        out = np.empty_like(p_from)
+        code = kernel("guard_step")(targets, current, p_from, int(steps), out, lo, hi, *groups, self._scale,
+                                    self._shift, self._W1, self._b1, *self.strain_range, *self.kernel_arrays())
+        return out, None if code < 0 else VERDICTS[code]
+
     def limit_by_checks(self, p_from: np.ndarray, p_to: np.ndarray, steps: int = 5) -> tuple[np.ndarray, str]:
         """:meth:`limit` as a bisection over :meth:`check` (the compiled limit's reference)."""
         p_to = np.asarray(p_to, dtype=np.float64)

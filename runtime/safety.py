@@ -13,6 +13,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from models.headspec import HeadSpec
+from models.kernel_args import pack_constraints
 
 #: Commanded speed stays this fraction below the configured max velocity (the drivers refuse anything above it).
 VELOCITY_MARGIN = 0.95
@@ -38,6 +39,7 @@ class SafetyFilter:
                 self._together.append((idx, np.array(g.gains, dtype=float)))
             elif g.max_spread is not None:
                 self._coupled.append((idx, g.max_spread))
+        self.groups = pack_constraints(head)  # the same groups, as the compiled guard stage reads them
         self.q = self.neutral.copy()
         self.v = np.zeros(len(self.names))
 

@@ -20,9 +20,18 @@ GUARD_BISECTIONS = 3
 class StrainLimiter(Protocol):
     """The skin-strain guard as the core calls it (:class:`models.strain_guard.StrainGuard`)."""
 
+    compiled: bool  # limit_constrained is available (the measure is compiled)
+
     def limit(self, p_from: np.ndarray, p_to: np.ndarray, steps: int = ...) -> tuple[np.ndarray, str]:
         """The furthest pose from ``p_from`` toward ``p_to`` the skin takes, and the verdict (``"ok"`` when
         ``p_to`` itself passes)."""
+        ...
+
+    def limit_constrained(self, targets: np.ndarray, current: np.ndarray, p_from: np.ndarray, lo: np.ndarray,
+                          hi: np.ndarray, groups: tuple[np.ndarray, np.ndarray], steps: int = ...
+                          ) -> tuple[np.ndarray, str | None]:
+        """``targets`` constrained (limits, groups, holds from ``current``), then :meth:`limit` from ``p_from`` in
+        one call; verdict None when the constrained target is ``p_from`` itself."""
         ...
 
 
@@ -38,7 +47,26 @@ class GuardState:
 def guarded(g: GuardState, limiter: StrainLimiter, safety: SafetyFilter, q: np.ndarray,
             targets: np.ndarray) -> np.ndarray:
     """``targets`` constrained to the groups and limits (against the command ``q``), then kept to what the skin
-    takes."""
+    takes: in one compiled call where the guard has one (:meth:`models.strain_guard.StrainGuard.limit_constrained`,
+    the same poses and verdicts as :func:`guarded_by_stages`)."""
+    if g.ok is None:
+        g.ok = q.copy()
+    if not limiter.compiled:
+        return guarded_by_stages(g, limiter, safety, q, targets)
+    p, verdict = limiter.limit_constrained(targets, q, g.ok, safety.lo, safety.hi, safety.groups,
+                                           steps=GUARD_BISECTIONS)
+    if verdict is None:
+        return p
+    g.ok = p
+    if verdict != "ok":
+        g.refused += 1
+    g.verdict = verdict
+    return p
+
+
+def guarded_by_stages(g: GuardState, limiter: StrainLimiter, safety: SafetyFilter, q: np.ndarray,
+                      targets: np.ndarray) -> np.ndarray:
+    """:func:`guarded` as the safety filter's constraints, then the guard's limit (the reference)."""
     x = safety.constrain(targets, q)
     if g.ok is None:
         g.ok = q.copy()
