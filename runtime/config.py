@@ -35,16 +35,16 @@ class RuntimeSettings:
     # (Emulated devices keep normal scheduling too: the CANopen emulator takes ~60 % of a core, too much to run above
     # the API server.)
     bus_priority: int = 0
-    # SCHED_FIFO priority of the API server's request thread and its ZeroMQ I/O thread (0: normal scheduling at raised
-    # niceness, the default). Measured on the sample head (one breakdown of a steady 250 Hz stream each way, in
-    # docs/protocol.md): frames reach the loop with a p99 of 0.6-0.7 ms instead of 2.2 ms and the phase lock holds, but
-    # a flood of requests then takes a core ahead of the bus processes (whose stale feedback faults the head: safe,
-    # but a stop), so it is opt-in. Telemetry, the large-request decoder and the show-control inputs stay normal.
-    api_priority: int = 0
-    # SCHED_FIFO priority of the show-control inputs' receive threads (OSC, sACN, timecode; 0: normal scheduling).
-    # Each keeps a CPU budget (runtime.rtbudget: 20 % of a core over 100 ms, then normal scheduling for the
-    # rest of the window), so a flood cannot take a core from the bus processes; a packet then reaches the loop
-    # without queueing behind the emulators and other work of a busy host (benchmarks/input_latency.py).
+    # SCHED_FIFO priority of the API server process, all its threads (requests, telemetry, the show-control inputs),
+    # within one CPU budget (runtime.rtbudget: runtime.server.SERVER_SHARE, 30 % of a core per 100 ms, then normal
+    # scheduling for the rest of the window), so a flood of requests cannot take a core from the bus processes. One
+    # budget for the whole process: an input thread realtime alone waited for the interpreter lock behind the request
+    # or telemetry thread, preempted on a busy host while holding it (benchmarks/input_latency.py at 500 Hz: send ->
+    # received p99 1.1-2.0 ms with the input threads alone realtime, 0.9-1.3 ms with the whole process). 0: normal
+    # scheduling at raised niceness, the inputs' receive threads at inputs_priority.
+    api_priority: int = 20
+    # With api_priority = 0: SCHED_FIFO priority of the show-control inputs' receive threads (OSC, sACN, timecode;
+    # 0: normal scheduling), each within a CPU budget of its own (runtime.rtbudget: 20 % of a core over 100 ms).
     inputs_priority: int = 20
     # SCHED_FIFO priority of each bus process, all its threads, within a CPU budget (runtime.rtbudget: 60 % of a core
     # per 100 ms, then normal scheduling for the rest of the window), so a driver that spins cannot take a core; new

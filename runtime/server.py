@@ -40,9 +40,9 @@ from runtime.core import commands as C
 from runtime.core.channels import ChannelMap
 from runtime.core.events import Body
 from runtime.decoder import DecodeJob, DecoderProcess, DecoderSpec, ReplyMap, die_with_parent
-from runtime.loop import process_threads
 from runtime.recording_session import RecordingSession
 from runtime.requests import LocalRequest, to_command
+from runtime.rtbudget import RealtimeBudget
 from runtime.strain_check import FullStrainCheck
 from runtime.telemetry import ActuatorUnits, Telemetry
 from runtime.wire_scan import RequestId, request_id_of
@@ -90,28 +90,19 @@ def main(spec: ServerSpec) -> None:
         server.close()
 
 
-def _raise_request_threads(priority: int) -> str:
-    """With ``priority`` > 0, put this process's request thread (the calling one) and ZeroMQ's I/O threads under
-    SCHED_FIFO at ``priority``, after every helper process and thread has started (they keep normal scheduling: the
-    telemetry thread, the large-request decoder, the show-control inputs). Returns what happened, for the log."""
-    if priority <= 0:
-        return "API server at normal priority"
-    me = threading.get_native_id()
-    raised, failed = 0, ""
-    threads = process_threads()
-    if not threads:
-        return "API server at normal priority (no thread list in /proc/self/task)"
-    for tid, name in threads.items():
-        if tid != me and not name.startswith("ZMQbg/IO"):
-            continue
-        try:
-            os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
-            raised += 1
-        except OSError as exc:
-            failed = f"; SCHED_FIFO refused ({exc}): needs CAP_SYS_NICE or an rtprio limit"
-    msg = f"API server request and I/O threads ({raised}) at SCHED_FIFO {priority}{failed}"
-    (log.warning if failed else log.info)("%s", msg)
-    return msg
+#: Share of one CPU the API server process may take at realtime priority (``[runtime] api_priority``), all its threads
+#: together, per ``runtime.rtbudget.WINDOW_S``; past it the process runs at normal scheduling for the rest of the
+#: window. The sample head's server takes about 20 % of a core at 500 Hz with telemetry at 50 Hz.
+SERVER_SHARE = 0.3
+
+
+def server_budget(api_priority: int) -> RealtimeBudget | None:
+    """The API server process's realtime budget: every thread (requests, telemetry, the show-control inputs) at
+    SCHED_FIFO ``api_priority`` within :data:`SERVER_SHARE` of a core; None with 0 (normal scheduling, the inputs'
+    receive threads each within a budget of their own at ``inputs_priority``). One budget for all: an input thread
+    under SCHED_FIFO alone waited for the interpreter lock behind the request or telemetry thread, which a busy host
+    had preempted while it held the lock (a priority inversion through the lock)."""
+    return RealtimeBudget(api_priority, share=SERVER_SHARE, whole_process=True) if api_priority > 0 else None
 
 
 @dataclass(frozen=True)
@@ -175,10 +166,13 @@ class Server:
         self.recording = None
         self.clients = bind_client_sockets(self.ctx, self.head, self.cfg)
         self.telemetry = Telemetry(self.clients.pub, self.head, self.units, spec.strain_check)
+        rt = self.cfg.runtime
+        self.budget = server_budget(rt.api_priority if rt.realtime else 0)
         self.inputs = _start_inputs(self.head, self.channels, self.ctx, self.estop_flag, self.forward,
-                                    self.cfg.runtime.inputs_priority)
+                                    self.budget or (rt.inputs_priority if rt.realtime else 0))
         self.decoder = DecoderProcess(self.ctx, DecoderSpec(spec.channels, spec.safe_speed, spec.inline_bytes))
-        _raise_request_threads(self.cfg.runtime.api_priority)  # logs what it did
+        if self.budget is not None:  # every thread started by now (the inputs' raise those they started)
+            log.info("API server process at %s within a CPU budget", self.budget.enter())
         L.send_ready(self.from_loop, L.ServerReady(self.clients.command_endpoint, self.clients.telemetry_endpoint))
 
     def close(self) -> None:
@@ -211,6 +205,8 @@ class Server:
             if self.to_loop.wants_write != writing:  # watch the pipe only while commands wait for room in it
                 writing = self.to_loop.wants_write
                 poller.register(self.to_loop.fileno(), zmq.POLLOUT if writing else 0)
+            if self.budget is not None:
+                self.budget.rearm()
             events = dict(poller.poll(200))
             if writing and self.to_loop.fileno() in events:
                 try:
@@ -226,6 +222,8 @@ class Server:
                 self._drain_decoded()
             if self.inputs is not None and self.inputs.pull in events:
                 self._drain_inputs()
+            if self.budget is not None:
+                self.budget.spent()  # over its CPU budget: normal scheduling for the rest of the window
             if os.getppid() != parent:
                 return
 
@@ -452,10 +450,12 @@ def _input_origin(cmd: C.Command) -> tuple[str, float]:
 
 
 def _start_inputs(head: HeadSpec, channels: ChannelMap, ctx: zmq.Context, estop: ipc.EStopFlag,
-                  forward: Callable[[C.Command], bool] | None = None, priority: int = 0) -> InputHub | None:
+                  forward: Callable[[C.Command], bool] | None = None,
+                  priority: int | RealtimeBudget = 0) -> InputHub | None:
     """The show-control inputs the head configures (``[inputs]``), started, handing their commands to ``forward``
     (None: queued for :meth:`InputHub.drain`), their receive threads at SCHED_FIFO ``priority`` within a CPU budget
-(:mod:`runtime.rtbudget`; 0: normal scheduling); None when it configures none."""
+    each, or within the process's budget when given one (:mod:`runtime.rtbudget`; 0: normal scheduling); None when
+    it configures none."""
     from runtime.inputs.config import inputs_config
     from runtime.inputs.hub import InputHub
 

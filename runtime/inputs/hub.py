@@ -23,6 +23,7 @@ from runtime.core import commands as C
 from runtime.core.channels import ChannelMap
 from runtime.inputs.config import InputsConfig
 from runtime.inputs.refusals import Refusals
+from runtime.rtbudget import RealtimeBudget
 
 _ENDPOINTS = itertools.count(1)
 
@@ -48,7 +49,7 @@ class InputHub:
     """Starts the configured inputs; :attr:`pull` yields their commands (token 0, to be given one)."""
 
     def __init__(self, cfg: InputsConfig, channels: ChannelMap, ctx: zmq.Context, trip_estop: Callable[[str], None],
-                 forward: Callable[[C.Command], bool] | None = None, priority: int = 0) -> None:
+                 forward: Callable[[C.Command], bool] | None = None, priority: int | RealtimeBudget = 0) -> None:
         self.cfg = cfg
         self.forward = forward  # on the inputs' threads: True once the command is on its way, False when queued
         endpoint = f"inproc://likeness-inputs-{next(_ENDPOINTS)}"

@@ -26,7 +26,7 @@ from runtime.core.channels import ChannelMap
 from runtime.inputs.config import OscConfig
 from runtime.inputs.oscmap import OscMap
 from runtime.inputs.refusals import Refusals
-from runtime.rtbudget import RealtimeBudget
+from runtime.rtbudget import RealtimeBudget, as_budget
 
 
 class _PacketDispatcher(Dispatcher):
@@ -59,9 +59,9 @@ class OscInput:
     name = "osc"
 
     def __init__(self, cfg: OscConfig, channels: ChannelMap, emit: Callable[[C.Command], None],
-                 estop: Callable[[str], None], priority: int = 0) -> None:
+                 estop: Callable[[str], None], priority: int | RealtimeBudget = 0) -> None:
         self.cfg = cfg
-        self.priority = RealtimeBudget(priority)  # the UDP thread's scheduling (TCP connections keep normal)
+        self.priority = as_budget(priority)  # the UDP thread's scheduling (TCP connections keep normal)
         self._udp_thread: int | None = None
         self.map = OscMap(cfg.map, channels, cfg.control_prefix)
         self.emit = emit

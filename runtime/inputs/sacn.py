@@ -30,7 +30,7 @@ from runtime.inputs import e131
 from runtime.inputs.config import SacnConfig
 from runtime.inputs.dmx import Merger, SlotDecoder
 from runtime.inputs.refusals import Refusals, log
-from runtime.rtbudget import RealtimeBudget
+from runtime.rtbudget import RealtimeBudget, as_budget
 
 
 class BoundReceiverSocket(ReceiverSocketBase):
@@ -102,9 +102,9 @@ class SacnInput(ReceiverSocketListener):
     name = "sacn"
 
     def __init__(self, cfg: SacnConfig, channels: ChannelMap, emit: Callable[[C.Command], None],
-                 priority: int = 0) -> None:
+                 priority: int | RealtimeBudget = 0) -> None:
         self.cfg = cfg
-        self.priority = RealtimeBudget(priority)
+        self.priority = as_budget(priority)
         self.emit = emit
         self.decoder = SlotDecoder(cfg.slots)
         self.indices = channels.indices(self.decoder.channels)

@@ -25,7 +25,7 @@ from runtime.core import commands as C
 from runtime.inputs.config import TimecodeConfig
 from runtime.inputs.mtc import MtcAssembler, MtcError, TimecodeSample
 from runtime.inputs.refusals import Refusals, log
-from runtime.rtbudget import RealtimeBudget
+from runtime.rtbudget import RealtimeBudget, as_budget
 
 
 class TimecodeInput:
@@ -33,10 +33,11 @@ class TimecodeInput:
 
     name = "timecode"
 
-    def __init__(self, cfg: TimecodeConfig, emit: Callable[[C.Command], None], priority: int = 0) -> None:
+    def __init__(self, cfg: TimecodeConfig, emit: Callable[[C.Command], None],
+                 priority: int | RealtimeBudget = 0) -> None:
         self.cfg = cfg
         self.emit = emit
-        self.priority = RealtimeBudget(priority)  # the TCP thread's scheduling
+        self.priority = as_budget(priority)  # the TCP thread's scheduling
         self.refusals = Refusals("timecode")
         self.messages = 0
         self.samples = 0
