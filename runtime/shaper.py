@@ -82,8 +82,8 @@ class Shaper:
         self._target = np.full(n, np.nan)
         self._holding = np.zeros(n, dtype=bool)
         self.q = np.zeros(n)
-        self.v = np.zeros(n)
-        self.a = np.zeros(n)
+        self._v: np.ndarray | None = np.zeros(n)  # None: as the ruckig input holds them (the properties v, a)
+        self._a: np.ndarray | None = np.zeros(n)
         #: Cycles in which a plan was replaced by full-limit braking (see the module docstring).
         self.fallbacks = 0
         #: Cycles in which a position was clipped to the limits (last resort; 0 unless reset moving at a limit).
@@ -180,9 +180,9 @@ class Shaper:
         if result == Result.Finished and not self._clamping:
             return self._arrive()
         q = np.array(out.new_position)
-        self.v = np.array(out.new_velocity)
-        self.a = np.array(out.new_acceleration)
         if self._clamping:  # a braking plan that could not stay inside the limits (see the module docstring)
+            self.v = np.array(out.new_velocity)
+            self.a = np.array(out.new_acceleration)
             outside = (q < self.lo_now) | (q > self.hi_now)
             if outside.any():
                 self.clamps += 1
@@ -198,6 +198,7 @@ class Shaper:
                 np.maximum(q, self.lo_now, out=q)
                 np.minimum(q, self.hi_now, out=q)
             out.pass_to_input(inp)
+            self._v = self._a = None  # the plan's new velocity and acceleration, read from the input when asked
         self.q = q
         if self._outside:
             self._narrow()
@@ -222,6 +223,28 @@ class Shaper:
         if self._outside:
             self._narrow()
         return self.q
+
+    @property
+    def v(self) -> np.ndarray:
+        """The commanded velocities (SI), as of the last cycle."""
+        if self._v is None:
+            self._v = np.array(self._inp.current_velocity)
+        return self._v
+
+    @v.setter
+    def v(self, value: np.ndarray) -> None:
+        self._v = value
+
+    @property
+    def a(self) -> np.ndarray:
+        """The commanded accelerations (SI), as of the last cycle."""
+        if self._a is None:
+            self._a = np.array(self._inp.current_acceleration)
+        return self._a
+
+    @a.setter
+    def a(self, value: np.ndarray) -> None:
+        self._a = value
 
     @property
     def outside(self) -> np.ndarray:
@@ -277,9 +300,13 @@ class Shaper:
         """Actuators whose newly computed plan leaves [lo, hi] (beyond a rounding tolerance)."""
         assert self.lo is not None and self.hi is not None and self.lo_now is not None and self.hi_now is not None
         ext = self._out.trajectory.position_extrema
+        tol = 1e-9 * np.maximum(1.0, self.hi - self.lo)
+        floor = (self.lo_now - tol).tolist()
+        ceil = (self.hi_now + tol).tolist()
+        if all(e.min >= f and e.max <= c for e, f, c in zip(ext, floor, ceil, strict=True)):
+            return np.zeros(self.n, dtype=bool)  # the usual case, told without building arrays of the extrema
         lo = np.array([e.min for e in ext])
         hi = np.array([e.max for e in ext])
-        tol = 1e-9 * np.maximum(1.0, self.hi - self.lo)
         return (lo < self.lo_now - tol) | (hi > self.hi_now + tol)
 
     def _brake_fully(self, which: np.ndarray) -> Result:
