@@ -76,7 +76,9 @@ def read(fb: BusesState, params: CoreParams, buses: tuple[BusInput, ...], t: flo
         fb.faults[name] = bus.faults
         connection = bus.connection or ("connected" if bus.connected else "closed")
         retry_in = max(0.0, bus.retry_at - t) if bus.retry_at < 1e300 else None
-        fb.connections[name] = ConnectionInfo(connection, bus.attempts, retry_in)
+        info = fb.connections.get(name)
+        if info is None or (info.state, info.attempts, info.retry_in_s) != (connection, bus.attempts, retry_in):
+            fb.connections[name] = ConnectionInfo(connection, bus.attempts, retry_in)  # else the same one again
 
 
 def announce_connections(fb: BusesState, out: CycleOutputs, t: float) -> None:
