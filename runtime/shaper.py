@@ -23,6 +23,8 @@ Jerk limit: per actuator, or by default ``amax / DEFAULT_JERK_TIME`` (full accel
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from ruckig import ControlInterface, InputParameter, OutputParameter, Result, Ruckig, Synchronization
 
@@ -263,10 +265,13 @@ class Shaper:
     def _set_targets(self, x: np.ndarray) -> None:
         if x.shape != (self.n,):
             raise ValueError(f"targets must have shape ({self.n},), got {x.shape}")
-        if np.any(np.isinf(x)):
+        # One reduction tells the usual case (every target a number: their sum is finite); only then are the NaN
+        # (hold) and infinite targets told apart.
+        all_finite = math.isfinite(float(np.add.reduce(x)))
+        if not all_finite and np.any(np.isinf(x)):
             raise ValueError("targets must be finite or NaN (hold)")
         inp = self._inp
-        if not (self._any_hold or self._replan or np.isnan(x).any()):  # the streaming case: every actuator targeted
+        if not (self._any_hold or self._replan or not all_finite):  # the streaming case: every actuator targeted
             if self.lo is not None:
                 x = np.minimum(np.maximum(x, self.lo), self.hi)  # np.clip costs twice as much on 13 values
             self._target = x
