@@ -136,3 +136,19 @@ def constrain(x: np.ndarray, current: np.ndarray, lo: np.ndarray, hi: np.ndarray
         if v > hi[i]:
             v = hi[i]
         out[i] = v
+
+
+@njit(cache=True, fastmath=False)
+def channel_targets(values: np.ndarray, x: np.ndarray, group_channel: np.ndarray, group_member: np.ndarray,
+                    group_factor: np.ndarray, act_scale: np.ndarray) -> None:
+    """The group and actuator channels of :func:`runtime.core.solve.to_targets` into ``x``: each finite group
+    channel value times its factor onto each member (in the map's order: a later member entry wins), then each finite
+    actuator channel value times its scale (channel k < len(act_scale) is actuator k); NaN channels leave ``x``."""
+    for k in range(group_channel.shape[0]):
+        v = values[group_channel[k]]
+        if np.isfinite(v):
+            x[group_member[k]] = v * group_factor[k]
+    for k in range(act_scale.shape[0]):
+        v = values[k]
+        if np.isfinite(v):
+            x[k] = v * act_scale[k]

@@ -1,7 +1,7 @@
 """Arguments of the in-cycle kernels, built with numpy only (the loop process builds them without numba): the
 constants of the frame solve packed into the four arrays :func:`models._skin_kernels.solve_values_measured`
 unpacks, and example arguments of :func:`models._cycle_kernels.bezier_sample` and
-:func:`models._cycle_kernels.following_watch`."""
+:func:`models._cycle_kernels.following_watch` and :func:`models._cycle_kernels.channel_targets`."""
 
 from __future__ import annotations
 
@@ -52,6 +52,13 @@ def following_watch_example() -> tuple:
     posted = np.array([[0.0, 0.1], [0.0, 0.2], [np.nan, np.nan]])
     return (posted, np.array([0.05, 0.5]), np.array([0, 1], np.int64), np.array([0.001, 0.002]), np.array([0.01, 0.01]),
             np.array([0.2, 0.2]), np.array([0.5, 0.5]), np.zeros(2), np.full(2, np.nan), np.zeros(2), 1.0)
+
+
+def channel_targets_example() -> tuple:
+    """Arguments of the types :func:`runtime.core.solve.to_targets` passes: three channels (two actuators, one group
+    of both), the targets to fill, the map's group and actuator arrays."""
+    return (np.array([0.1, np.nan, 0.2]), np.full(2, np.nan), np.array([2, 2], np.int64), np.array([0, 1], np.int64),
+            np.array([1.0, -1.0]), np.array([1.0, 1.0]))
 
 
 def pack_constraints(head: HeadSpec) -> tuple[np.ndarray, np.ndarray]:

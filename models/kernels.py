@@ -63,11 +63,12 @@ def _run_kernels(head: HeadSpec, sp: SkinPredictor) -> None:
         inv.solve(np.zeros(inv.n_units), p_prev=0.5 * (lo + hi), max_iterations=2, measure=guard)  # and fused
         if guard is not None:  # and the control cycle's frame solve from channel values
             inv.frame_solve(2, 1e-6, 1e-3, guard)(np.full(inv.n_units, np.nan), 0.5 * (lo + hi))
-    from models.kernel_args import bezier_sample_example, following_watch_example
+    from models.kernel_args import bezier_sample_example, channel_targets_example, following_watch_example
     from models.kernels_aot import kernel
 
     kernel("bezier_sample")(*bezier_sample_example())  # a clip's Bezier channels, as the control cycle samples them
-    kernel("following_watch")(*following_watch_example())  # and the core's following-error watch
+    kernel("following_watch")(*following_watch_example())  # the core's following-error watch
+    kernel("channel_targets")(*channel_targets_example())  # and its channels → actuator targets
 
 
 if __name__ == "__main__":

@@ -33,7 +33,7 @@ log = logging.getLogger(__name__)
 
 #: The kernels the control loop calls (the rest of :data:`SOURCES` is reached through them).
 EXPORTS = ("solve_values_measured", "reduced_measure", "solve_frame", "solve_frame_measured", "guard_limit",
-           "guard_step", "bezier_sample", "following_watch")
+           "guard_step", "bezier_sample", "following_watch", "channel_targets")
 #: The modules that define them (numba JIT functions), in :data:`EXPORTS`' order of first use.
 SOURCES = ("_skin_kernels", "_cycle_kernels")
 #: Modules whose functions they compile besides (a clip's Bezier evaluation): their sources are part of :func:`key`.

@@ -304,6 +304,9 @@ class StrainGuard:
         self._H = H
         self._select(samples, tuple(levels), seed)
         self.measure_hidden(np.zeros(3 * H))  # compile (or load the cached kernel) now, never in a control cycle
+        if self.compiled:  # and the control cycle's guard stage (the types it is called with; no groups here)
+            mid = 0.5 * (self.lo + self.hi)
+            self.limit_constrained(mid, mid, mid, self.lo, self.hi, (np.zeros(4, np.int64), np.zeros(0)), steps=1)
 
     # ------------------------------------------------------------------ construction
     @classmethod

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from models.clip import Clip, ClipError
-from models.kernel_args import bezier_sample_example, following_watch_example
+from models.kernel_args import bezier_sample_example, channel_targets_example, following_watch_example
 from models.kernel_support import kernels_available
 from models.kernels_aot import kernel
 from runtime.messages import ClipSpec
@@ -142,11 +142,12 @@ class CompiledClip:
 
 def prepare_kernels() -> None:
     """Load the compiled kernels of the cycle's own stages (the Bezier sampling here, the core's following-error
-    watch; the ahead-of-time module, else numba's JIT) before the loop starts: their first call in a cycle would
-    otherwise load a shared library or compile. Nothing to do without numba."""
+    watch and channel mapping; the ahead-of-time module, else numba's JIT) before the loop starts: their first call
+    in a cycle would otherwise load a shared library or compile. Nothing to do without numba."""
     if kernels_available():
         kernel("bezier_sample")(*bezier_sample_example())
         kernel("following_watch")(*following_watch_example())
+        kernel("channel_targets")(*channel_targets_example())
 
 
 def _cubic(a: np.ndarray | float, b: np.ndarray, c: np.ndarray, d: np.ndarray, s: np.ndarray) -> np.ndarray:

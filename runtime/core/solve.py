@@ -12,6 +12,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from models.kernel_support import kernels_available
+from models.kernels_aot import kernel
 from runtime.core.channels import ChannelMap
 from runtime.core.solvers import ArrayTargetSolver
 
@@ -35,6 +37,14 @@ def to_targets(sv: SolveState, cm: ChannelMap, q: np.ndarray, values: np.ndarray
         np.copyto(x, p, where=np.isfinite(p))
         if extra:
             sv.extra = extra
+    if kernels_available():  # the group and actuator channels in one compiled call
+        kernel("channel_targets")(values, x, cm.group_channel, cm.group_member, cm.group_factor, cm.act_scale)
+        return x
+    return _channels_numpy(cm, values, x)
+
+
+def _channels_numpy(cm: ChannelMap, values: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """:func:`models._cycle_kernels.channel_targets` in numpy (without numba; the reference the tests compare)."""
     if cm.group_channel.size:
         gv = values[cm.group_channel]
         ok = np.isfinite(gv)
