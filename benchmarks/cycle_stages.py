@@ -25,9 +25,9 @@ from typing import Any
 import numpy as np
 
 try:
-    from benchmarks._daemon import ROOT, SAMPLE, performance_daemon
+    from benchmarks._daemon import ROOT, SAMPLE, add_settings, performance_daemon, settings
 except ImportError:  # run as a script
-    from _daemon import ROOT, SAMPLE, performance_daemon
+    from _daemon import ROOT, SAMPLE, add_settings, performance_daemon, settings
 
 #: (label, module, attribute): the core's stage functions, timed where they are looked up (module attributes).
 CORE_STAGES = (("read", "runtime.core.buses", "read"), ("supervise", "runtime.core.lifecycle", "supervise"),
@@ -85,10 +85,11 @@ def install(tm: Timings) -> None:
         setattr(runner.Runner, name, tm.wrap(label, getattr(runner.Runner, name)))
 
 
-def run_loop(tm: Timings, rate_hz: float, performance: Path) -> tuple[dict[str, np.ndarray], Any, list, dict]:
-    """The daemon playing ``performance``: the stages' timings over the play, the daemon, its recorded inputs and
-    the loop's statistics."""
-    with performance_daemon(rate_hz, performance, record_inputs=True) as (daemon, c, reply):
+def run_loop(tm: Timings, rate_hz: float, performance: Path,
+             extra: dict[str, Any] | None = None) -> tuple[dict[str, np.ndarray], Any, list, dict]:
+    """The daemon playing ``performance`` (``extra``: config overrides): the stages' timings over the play, the
+    daemon, its recorded inputs and the loop's statistics."""
+    with performance_daemon(rate_hz, performance, extra, record_inputs=True) as (daemon, c, reply):
         assert daemon.input_log is not None and daemon.runner is not None
         first = len(daemon.input_log)
         tm.on = True
@@ -123,11 +124,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rate", type=float, default=500.0)
     parser.add_argument("--performance", type=Path,
                         default=ROOT / "heads" / "sample" / "performances" / "expressive.json")
+    add_settings(parser)
     args = parser.parse_args(argv)
     tm = Timings()
     install(tm)
     load0 = os.getloadavg()[0]
-    loop, daemon, inputs, stats = run_loop(tm, args.rate, args.performance)
+    loop, daemon, inputs, stats = run_loop(tm, args.rate, args.performance, settings(args))
     warm = replay(tm, daemon, inputs, stats["first"])
     print(f"cycle stages, sample head at {args.rate:g} Hz playing {args.performance.name}: {stats.get('cycles', 0)} "
           f"cycles, {stats.get('missed', 0)} missed, work p50 {stats.get('work_p50_us', float('nan')):.0f} µs; "
