@@ -23,7 +23,7 @@ from runtime.bus import layout as L
 
 #: Seconds between polls: a write stays visible until the next one, at least a quarter period later (0.5 ms at
 #: 500 Hz, 0.25 ms at 1 kHz). The stamps are the bus process's, so the polling delay does not count; each poll is a
-#: realtime wake-up taken from the machine under test (at 0.1 ms the watcher took about a tenth of a core).
+#: realtime wake-up taken from the machine under test (alone: 17 % of a core at 0.1 ms, 9 % at 0.2 ms).
 POLL_S = 200e-6
 
 
