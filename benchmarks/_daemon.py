@@ -224,3 +224,18 @@ def pct(values: Any, q: float) -> float:
     import numpy as np
 
     return float(np.percentile(np.asarray(values, dtype=float), q)) if len(values) else float("nan")
+
+
+def cpu_steal_s() -> float:
+    """Seconds of CPU time the hypervisor has taken from this machine's CPUs since boot (``/proc/stat``'s steal, all
+    CPUs together; NaN where unknown): the difference over a run is time the machine could not run at all, which
+    shows as missed deadlines and latency tails no software on it can avoid."""
+    import math
+    import os
+
+    try:
+        with open("/proc/stat") as f:
+            fields = f.readline().split()
+        return int(fields[8]) / os.sysconf("SC_CLK_TCK") if fields[0] == "cpu" and len(fields) > 8 else math.nan
+    except (OSError, ValueError):
+        return math.nan

@@ -346,13 +346,21 @@ def _stages(trials: list[Trial]) -> np.ndarray:
 
 def run_rate(rate: float, args: argparse.Namespace, extra: dict[str, Any], tmp: Path) -> dict[str, Any]:
     """Everything at one loop rate: the floor, single packets of each input, then the steady senders."""
+    try:
+        from benchmarks._input_floor import FloorRunner
+    except ImportError:
+        from _input_floor import FloorRunner
+    steal0 = D.cpu_steal_s()
+    with FloorRunner() as runner:  # before the daemon: the floor's processes are not forked from the daemon's
+        return _run_rate(rate, args, extra, tmp, runner, steal0)
+
+
+def _run_rate(rate: float, args: argparse.Namespace, extra: dict[str, Any], tmp: Path, runner: Any,
+              steal0: float) -> dict[str, Any]:
+    """:func:`run_rate` with its floor runner; ``steal0``: the hypervisor's steal at the start (s)."""
     from models.client import Client
 
-    try:
-        from benchmarks._input_floor import floor
-    except ImportError:
-        from _input_floor import floor
-    res: dict[str, Any] = {"rate": rate, "floor": floor(args.floor_packets)}
+    res: dict[str, Any] = {"rate": rate, "floor": runner.floor(args.floor_packets)}
     delay = 0.002
     daemon = start_daemon(rate, tmp / f"single-{rate:g}", extra={"runtime.stream_delay_s": delay, **extra})
     try:
@@ -366,7 +374,8 @@ def run_rate(rate: float, args: argparse.Namespace, extra: dict[str, Any], tmp: 
         single = {targets[k][0]: measure(daemon, args.trials, k, targets[k][1]) for k in args.inputs.split(",") if k}
         ready(daemon)
         rt = daemon.cfg.runtime
-        res["floor_loaded"] = floor(args.floor_packets, rt.inputs_priority, rt.priority - 1, rt.bus_write_priority)
+        res["floor_loaded"] = runner.floor(args.floor_packets, rt.api_priority or rt.inputs_priority,
+                                           rt.priority - 1, rt.bus_write_priority)
         res["state"] = daemon.lifecycle
         res["loop"] = _status(daemon).get("loop", {})
     finally:
@@ -385,6 +394,7 @@ def run_rate(rate: float, args: argparse.Namespace, extra: dict[str, Any], tmp: 
                                            args.steps)
         finally:
             daemon.stop()
+    res["steal_s"] = D.cpu_steal_s() - steal0
     return res
 
 
@@ -403,7 +413,8 @@ def report(res: dict[str, Any], trials: int, steps: int) -> None:
     f50, f99 = D.pct(res["floor"], 50) * 1e6, D.pct(res["floor"], 99) * 1e6
     goal_single = period + 1000.0
     print(f"--- {rate:g} Hz (period {period:.0f} us); loop: missed {res['loop'].get('missed', '?')} deadlines, "
-          f"{res['loop'].get('early', '?')} early cycles (wake on input) [{res['state']}]")
+          f"{res['loop'].get('early', '?')} early cycles (wake on input) [{res['state']}]; CPU time the hypervisor "
+          f"took from this machine during this rate's runs: {res.get('steal_s', float('nan')) * 1e3:.0f} ms")
     print(f"  floor (this machine, this run; UDP -> pipe -> pipe, three process wake-ups, {len(res['floor'])} "
           f"packets): p50 {f50:.0f} us, p99 {f99:.0f} us; a single packet also waits up to one period for its cycle")
     loaded = res.get("floor_loaded")
