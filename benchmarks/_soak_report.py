@@ -112,8 +112,11 @@ def print_summary(result: dict[str, Any], path: Path) -> None:
     """The figures against the goals, one line each."""
     m, r, st, mem = result["missed_deadlines"], result["recording"], result["stream"], result["memory_mib"]
     loop = result.get("loop_end") or {}
+    steal = result["settings"].get("hypervisor_steal_s")
     print(f"missed deadlines outside fault handling: {m['outside_fault_handling']} (goal {GOAL_MISSED}); during "
-          f"fault handling {m['during_fault_handling']}; loop total {loop.get('missed')} of {loop.get('cycles')}")
+          f"fault handling {m['during_fault_handling']}; loop total {loop.get('missed')} of {loop.get('cycles')}; "
+          f"CPU time the hypervisor took from this machine meanwhile: "
+          f"{'?' if steal is None else f'{steal * 1e3:.0f} ms'}")
     for f in result["faults"] + result["unexpected_faults"]:
         ttf = "-" if f["time_to_fault_s"] is None else f"{f['time_to_fault_s']:.2f} s"
         ttr = "-" if f["time_to_recover_s"] is None else f"{f['time_to_recover_s']:.2f} s"

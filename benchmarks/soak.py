@@ -33,6 +33,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from benchmarks import _daemon as D  # noqa: E402
 from benchmarks import _soak_clients as SC  # noqa: E402
 from benchmarks import _soak_report as SR  # noqa: E402
 from benchmarks._soak_faults import FaultRun, Operator  # noqa: E402
@@ -204,8 +205,10 @@ def main(argv: list[str] | None = None) -> int:
                                           text=True).stdout.strip())
     print(f"soak: {args.minutes:g} min at {args.rate:g} Hz, a fault every {args.interval:g} s "
           f"({', '.join(args.faults)}); output in {args.out}", flush=True)
+    steal0 = D.cpu_steal_s()
     raw = run_soak(args, args.out)
     settings["load_avg_end"] = os.getloadavg()
+    settings["hypervisor_steal_s"] = D.cpu_steal_s() - steal0  # CPU time no process here could run
     result = SR.summarize(raw, settings, SETTLE_S)
     SR.write_timeline(raw, result, args.out / "timeline.png")
     path = args.out / "report.json"
