@@ -11,9 +11,10 @@ that is dropped by the daemon and counted as lost. Per input, where the time goe
 :mod:`runtime.input_trace`): sender → the input's thread (``received``) → the loop takes it off the command pipe →
 the cycle that applies it wakes → it has posted the targets → the bus process has written them. Steady senders: an
 OSC and an sACN sender each send a value every loop period on a fixed grid (the jaw stepping between 0° and 4°
-every 125–175 packets) to a daemon with ``[runtime] stream_phase_lock = true``; the figure is a step packet's send
-time → the first bus write that moved the jaw (goal: p99 <= 2 ms). Run with nothing else on the machine:
-``python benchmarks/input_latency.py [--trials 100] [--rates 250,500] [--steps 30]``.
+every 0.25–0.35 s) to a daemon with ``[runtime] stream_phase_lock = true``; the figure is a step packet's send
+time → the first bus write that moved the jaw (goal: p99 <= 2 ms; a p99 needs a hundred samples or so: of 30 it is
+the largest). Run with nothing else on the machine:
+``python benchmarks/input_latency.py [--trials 100] [--rates 250,500] [--steps 100]``.
 """
 
 from __future__ import annotations
@@ -60,6 +61,8 @@ lock_samples = 1
 [inputs.timecode.clips]
 ramp = "00:00:10:00"
 """
+#: Seconds between a steady sender's steps (drawn uniformly): a 4° jaw step has settled well before the next.
+STEP_GAP_S = (0.25, 0.35)
 RAMP = {"name": "ramp", "channels": {"jaw": {"interp": "linear", "keys": [[0, 0], [20, 20]]}}}
 
 
@@ -225,7 +228,7 @@ def _first_move(watch: BusWatch, stamp0: float, before: float, until: float) -> 
 
 def _steady_sender(kind: str, target: str, rate: float, steps: int, seed: int, out: Any) -> None:
     """A live sender in a process of its own: one packet per period on a fixed grid (``kind`` "osc" to host:port
-    ``target``, "sacn" unicast to IP ``target``), the jaw stepping between 0° and 4° every 125–175 packets; puts
+    ``target``, "sacn" unicast to IP ``target``), the jaw stepping between 0° and 4° every 0.25–0.35 s; puts
     the send times of the step packets on ``out``. It runs as a sender on a machine of its own would
     (:func:`external_sender`)."""
     D.external_sender()
@@ -256,7 +259,8 @@ def _steady_sender(kind: str, target: str, rate: float, steps: int, seed: int, o
         stop = sender.stop
     period = 1.0 / rate
     sent: list[float] = []
-    value, k, next_step = 0.0, 0, int(rng.integers(125, 175))
+    gap = (round(STEP_GAP_S[0] * rate), round(STEP_GAP_S[1] * rate))  # packets between steps: the jaw settles
+    value, k, next_step = 0.0, 0, int(rng.integers(*gap))
     t_next = time.monotonic() + period
     give_up = time.monotonic() + 30.0 + 2.0 * steps
     while len(sent) < steps and time.monotonic() < give_up:
@@ -266,7 +270,7 @@ def _steady_sender(kind: str, target: str, rate: float, steps: int, seed: int, o
         step = k == next_step
         if step:
             value = 4.0 if value == 0.0 else 0.0
-            next_step = k + int(rng.integers(125, 175))
+            next_step = k + int(rng.integers(*gap))
         t_send = time.monotonic()
         send(value)
         if step:
@@ -479,7 +483,7 @@ def _run(argv: list[str]) -> tuple[int, Path | None]:
     parser.add_argument("--rates", default="250,500", help="loop rates in Hz, comma-separated")
     parser.add_argument("--inputs", default="stream,osc,sacn,mtc",
                         help="single-packet inputs to time, comma-separated (of stream, osc, sacn, mtc; empty: none)")
-    parser.add_argument("--steps", type=int, default=30, help="timed steps per steady sender (0: skip)")
+    parser.add_argument("--steps", type=int, default=100, help="timed steps per steady sender (0: skip)")
     parser.add_argument("--floor-packets", type=int, default=300)
     parser.add_argument("--record", type=Path, default=None, help="also write the report to this file")
     D.add_emulator_nice(parser)

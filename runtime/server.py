@@ -92,8 +92,10 @@ def main(spec: ServerSpec) -> None:
 
 #: Share of one CPU the API server process may take at realtime priority (``[runtime] api_priority``), all its threads
 #: together, per ``runtime.rtbudget.WINDOW_S``; past it the process runs at normal scheduling for the rest of the
-#: window. The sample head's server takes about 20 % of a core at 500 Hz with telemetry at 50 Hz.
-SERVER_SHARE = 0.3
+#: window. The sample head's server takes about 15 % of a core at 500 Hz with telemetry at 50 Hz, and 24-30 % with a
+#: steady sACN sender at 500 Hz besides: at a share of 30 % it ran out in a third of the windows, and a packet that
+#: came then waited behind the emulators for up to 6 ms before it reached the loop.
+SERVER_SHARE = 0.5
 
 
 def server_budget(api_priority: int) -> RealtimeBudget | None:
@@ -123,16 +125,28 @@ class PendingRequests:
     def __init__(self) -> None:
         self._tokens = itertools.count(1)
         self._by_token: dict[int, Pending] = {}
+        self._standing: dict[str, int] = {}  # a show-control input's token for its quiet commands
+        self._standing_input: dict[int, Pending] = {}
 
     def token(self) -> int:
         """A fresh token for the next command."""
         return next(self._tokens)
 
+    def standing(self, source: str) -> int:
+        """The one token of every quiet command of the input ``source`` (the core answers those only to refuse
+        them; the answer names the input by it and leaves it standing)."""
+        token = self._standing.get(source)
+        if token is None:
+            token = self._standing[source] = self.token()
+            self._standing_input[token] = Pending([], None, f"input:{source}", 0.0, input=source)
+        return token
+
     def add(self, token: int, pending: Pending) -> None:
         self._by_token[token] = pending
 
     def pop(self, token: int) -> Pending | None:
-        return self._by_token.pop(token, None)
+        entry = self._by_token.pop(token, None)
+        return self._standing_input.get(token) if entry is None else entry
 
 
 class Server:
@@ -305,20 +319,25 @@ class Server:
     def forward(self, cmd: C.Command) -> bool:
         """A show-control input's command, on the input's thread: a token, then on to the core at once. False when
         part of it waits for room in the pipe (the input hub then wakes :meth:`run`, which writes the rest)."""
-        token = self.pending.token()
-        source, received = _input_origin(cmd)
-        self.pending.add(token, Pending([], None, f"input:{source}", received, input=source))
-        self._to_core(dataclasses.replace(cmd, token=token))
+        self._to_core(self._tokened(cmd))
         return not self.to_loop.wants_write
 
     def _drain_inputs(self) -> None:
         """Commands from the show-control inputs (OSC, sACN, timecode): a token each, then on to the core."""
         assert self.inputs is not None
         for cmd in self.inputs.drain():
-            token = self.pending.token()
-            source, received = _input_origin(cmd)
-            self.pending.add(token, Pending([], None, f"input:{source}", received, input=source))
-            self._to_core(dataclasses.replace(cmd, token=token))
+            self._to_core(self._tokened(cmd))
+
+    def _tokened(self, cmd: C.Command) -> C.Command:
+        """An input's command with its token. A live packet goes quiet (the core answers it only when refused) under
+        its input's one standing token, so nothing is kept per packet; any other waits for its reply as a request
+        does."""
+        source, received = _input_origin(cmd)
+        if isinstance(cmd, C.Live):
+            return dataclasses.replace(cmd, token=self.pending.standing(source), quiet=True)
+        token = self.pending.token()
+        self.pending.add(token, Pending([], None, f"input:{source}", received, input=source))
+        return dataclasses.replace(cmd, token=token)
 
     def _reply(self, envelope: list[bytes], reply: ReplyMap) -> None:
         try:

@@ -41,7 +41,10 @@ log = logging.getLogger(__name__)
 #: ``sys.setswitchinterval`` in the bus process (s): other threads yield the GIL to a write this soon.
 SWITCH_INTERVAL_S = 0.0002
 #: Share of the realtime budget reads may use; the rest is kept for writes (:meth:`RealtimeBudget.keep_for_urgent`).
-READ_SHARE = 0.5
+#: All of it: at :data:`BUS_SHARE` a write and a read fit the budget (the sample head's CAN bus at 500 Hz uses about
+#: half of it), and dropping the process to normal scheduling for a read left its thread, holding the interpreter
+#: lock, preempted by the emulators, so the driver's receive thread waited behind it.
+READ_SHARE = 1.0
 #: Share of a core the bus process may take at realtime priority (all its threads together, over the budget's
 #: window): the sample head's seven CANopen drives at 500 Hz take about 35 % (writes, reads and the driver's receive
 #: thread), so a share of 20 % ran out in every window and the rest of it was written behind the emulators; a
@@ -160,10 +163,8 @@ class BusServer:
                     self.bus.write(dict(zip(self.names, targets.tolist(), strict=True)), stamp=float(snap[0]))
                     self.written = targets
                     self.write_stamp = time.monotonic()
-            # The write is urgent, the read less so: once half the window's realtime budget is spent, reads run at
-            # normal scheduling and the rest is kept for writes (at 500 Hz a write plus a read took more than the
-            # whole budget, and the process wrote at normal priority, behind the emulators, for the rest of every
-            # window; at 250 Hz reads stay realtime, as the feedback watch wants them).
+            # The write is urgent, the read less so: past READ_SHARE of the window's realtime budget, reads run at
+            # normal scheduling and the rest is kept for writes.
             self.budget.keep_for_urgent(READ_SHARE)
             if self.bus.state is not LifecycleState.UNCONFIGURED:
                 states = self.bus.read()

@@ -138,12 +138,13 @@ class Live(_Tokened):
     received: float | None = None
     takeover: bool = True  # False: keeps an active live source alive without taking over (sACN repeats)
     watchdog_s: float | None = None  # silence before the watchdog holds (None: [safety] watchdog_hold_s)
+    quiet: bool = False  # answered only when refused: a show-control packet, whose sender waits for no reply
 
     def __reduce__(self) -> tuple[object, tuple[object, ...]]:
         """Pickled with its two small arrays as raw bytes: every OSC or sACN packet crosses the command pipe as one
         of these, and numpy's own pickling of a one-element array costs about ten times as much each way."""
         return _live_from_wire, (self.token, self.source, *_wire_array(self.channels), *_wire_array(self.values),
-                                 self.at, self.received, self.takeover, self.watchdog_s)
+                                 self.at, self.received, self.takeover, self.watchdog_s, self.quiet)
 
 
 def _wire_array(a: np.ndarray) -> tuple[str, tuple[int, ...], bytes]:
@@ -153,11 +154,11 @@ def _wire_array(a: np.ndarray) -> tuple[str, tuple[int, ...], bytes]:
 
 def _live_from_wire(token: int, source: str, c_dtype: str, c_shape: tuple[int, ...], c_bytes: bytes, v_dtype: str,
                     v_shape: tuple[int, ...], v_bytes: bytes, at: float | None, received: float | None,
-                    takeover: bool, watchdog_s: float | None) -> Live:
+                    takeover: bool, watchdog_s: float | None, quiet: bool = False) -> Live:
     """A :class:`Live` from its pickled form (:meth:`Live.__reduce__`); its arrays are read-only views of the
     bytes."""
     return Live(token, source, np.frombuffer(c_bytes, c_dtype).reshape(c_shape),
-                np.frombuffer(v_bytes, v_dtype).reshape(v_shape), at, received, takeover, watchdog_s)
+                np.frombuffer(v_bytes, v_dtype).reshape(v_shape), at, received, takeover, watchdog_s, quiet)
 
 
 @dataclass(frozen=True)

@@ -161,7 +161,7 @@ def _commands(state: CoreState, params: CoreParams, inputs: CycleInputs, out: Cy
         except Exception as exc:  # refused (a models.errors kind: its protocol code) or a bug (internal): answered,
             out.refuse(cmd.token, exc)  # and the other commands still run
         else:
-            if body is not None:
+            if body is not None and not (isinstance(cmd, C.Live) and cmd.quiet):
                 out.reply(cmd.token, body)
 
 

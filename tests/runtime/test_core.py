@@ -341,3 +341,21 @@ def test_enable_commands_from_the_positions_the_buses_hold() -> None:
     rig2.call(C.Enable)
     first = next(o.write for o in rig2.outputs if o.write is not None)
     assert first[jaw] == pytest.approx(math.radians(4.0), abs=1e-12)
+
+
+def test_a_quiet_live_packet_is_answered_only_when_refused() -> None:
+    rig = Rig()
+    jaw = rig.channels.index_of("jaw")
+
+    def live(token: int) -> C.Live:
+        return C.Live(token, "osc", np.array([jaw]), np.array([6.0]), quiet=True)
+
+    refused = rig.cycle(live(7))  # the head is not active: refused, and the refusal names the packet's token
+    assert [(tok, body["error"]["code"]) for tok, body in refused.replies] == [(7, "bad_state")]
+    rig.call(C.Enable)
+    accepted = rig.cycle(live(7))  # taken: nobody waits for an answer, so none is sent
+    assert accepted.replies == []
+    rig.run(0.3)
+    assert rig.state.mode is Mode.LIVE and rig.deg("jaw") > 1.0
+    loud = rig.cycle(C.Live(8, "osc", np.array([jaw]), np.array([6.0])))  # a client's live values are answered
+    assert [tok for tok, _ in loud.replies] == [8]

@@ -181,6 +181,21 @@ def test_osc_messages_and_bundles_move_the_head(show) -> None:
         _inactive(c)
 
 
+def test_packets_the_core_refuses_are_counted_under_its_reason_each_time(show) -> None:
+    """A live packet crosses to the core unanswered unless refused; every refusal comes back to its input."""
+    from pythonosc.udp_client import SimpleUDPClient
+
+    with Client(show.command_endpoint, timeout=30) as c:
+        host, port = c.call("hello")["inputs"]["osc"]["udp"].rsplit(":", 1)
+        _inactive(c)
+        before = _status(c)["inputs"]["osc"]["refused"].get("bad_state", 0)
+        osc = SimpleUDPClient(host, int(port))
+        for v in (1.0, 2.0, 3.0):  # the head is inactive: the core refuses each
+            osc.send_message("/face/jaw", v)
+        assert wait_until(lambda: _status(c)["inputs"]["osc"]["refused"].get("bad_state", 0) >= before + 3, 30)
+        assert _status(c)["lifecycle"] != "active"
+
+
 # ---------------------------------------------------------------------- sACN
 def _sender(name: str, dest: str, priority: int, jaw: float, brow: float) -> Any:
     import sacn
