@@ -8,10 +8,11 @@ or a limit changes. A NaN target means hold: that actuator brakes to a stop as f
 velocity interface with target velocity 0) instead of being sent back to where it was. ``speed`` in (0, 1] scales
 the velocity and acceleration limits (jerk stays, so slow moves keep short ramps). Targets are expected clipped to the
 position limits already (the safety stage does that). Given ``lo``/``hi``, every newly computed plan is checked
-against them (its position extrema), and an actuator whose plan would leave them (possible only when a target
-arrives closer than its stopping distance right after limits shrank, or from a reset state moving toward a limit)
-brakes at its full limits instead, which stops it before the target it was moving toward; a position that would
-still leave them is clipped and counted in :attr:`clamps`.
+against them (its position extrema; a plan from rest is not: it stays between where it starts and its targets,
+which ``tests/runtime/test_shaper.py`` checks of ruckig on random plans), and an actuator whose plan would leave
+them (possible only when a target arrives closer than its stopping distance right after limits shrank, or from a
+reset state moving toward a limit) brakes at its full limits instead, which stops it before the target it was
+moving toward; a position that would still leave them is clipped and counted in :attr:`clamps`.
 
 A reset outside [lo, hi] (a motor found out of its range when the head enabled) keeps that position: the bound it
 lies beyond is widened to it (:attr:`lo_now`, :attr:`hi_now`) and narrows back with every cycle's command, so the
@@ -142,6 +143,7 @@ class Shaper:
         self._speed = np.full(self.n, np.nan)
         self._speed_scalar: float | None = None
         self._targets_key = b""
+        self._at_rest = not self.v.any()  # every actuator at rest: a new plan stays between start and targets
 
     def step(self, targets: np.ndarray, speed: float | np.ndarray = 1.0, dt: float | None = None) -> np.ndarray:
         """Advance one cycle toward ``targets`` (SI, NaN = hold) at ``speed`` in (0, 1]; returns the new commands.
@@ -169,10 +171,12 @@ class Shaper:
             self._set_speed(np.broadcast_to(np.asarray(speed, dtype=float), (self.n,)))
             self._speed_scalar = None
         inp, out = self._inp, self._out
+        from_rest = self._at_rest
         result = self._otg.update(inp, out)
         if out.new_calculation:
             self._clamping = False
-        if out.new_calculation and self.lo is not None and (result == Result.Working or result == Result.Finished):
+        if (out.new_calculation and not from_rest and self.lo is not None
+                and (result == Result.Working or result == Result.Finished)):
             leaving = self._leaving_limits()
             if leaving.any():
                 result = self._brake_fully(leaving)
@@ -202,6 +206,7 @@ class Shaper:
             out.pass_to_input(inp)
             self._v = self._a = None  # the plan's new velocity and acceleration, read from the input when asked
         self.q = q
+        self._at_rest = False
         if self._outside:
             self._narrow()
         if self._any_hold:  # a held actuator stays where it stops
@@ -222,6 +227,7 @@ class Shaper:
             inp = self._inp
             inp.current_position = self.q.tolist()
             inp.current_velocity = inp.current_acceleration = [0.0] * self.n
+        self._at_rest = True
         if self._outside:
             self._narrow()
         return self.q
@@ -277,20 +283,22 @@ class Shaper:
             self._target = x
             inp.target_position = x.tolist()
             return
-        hold = np.isnan(x)
+        # Few array operations on this path: it runs on every cycle a held target set changes (a show-control
+        # input addressing some channels), before the cycle's post (in the running loop, 97 -> 65 µs).
+        hold = x != x  # NaN: hold
         if self.lo is not None and self.hi is not None:
-            x = np.clip(x, self.lo, self.hi)  # NaN stays NaN
-        hold_changed = self._replan or not np.array_equal(hold, self._holding)
+            x = np.minimum(np.maximum(x, self.lo), self.hi)  # NaN stays NaN
+        hold_changed = self._replan or hold.tobytes() != self._holding.tobytes()
         self._replan = False
         if hold_changed:
             self._holding = hold
             self._any_hold = bool(hold.any())
             inp.per_dof_control_interface = [ControlInterface.Velocity if h else ControlInterface.Position
-                                             for h in hold]
-        changed = ~hold & (x != self._target)
-        if changed.any() or hold_changed:
-            self._target = np.where(hold, self._target, x)
-            inp.target_position = np.where(hold, self.q, self._target).tolist()
+                                             for h in hold.tolist()]
+        target = np.where(hold, self._target, x)
+        if hold_changed or target.tobytes() != self._target.tobytes():
+            self._target = target
+            inp.target_position = np.where(hold, self.q, target).tolist()
 
     def _set_speed(self, s: np.ndarray) -> None:
         if np.array_equal(s, self._speed):

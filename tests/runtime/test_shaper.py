@@ -218,3 +218,52 @@ def test_reset_outside_the_limits_moves_back_never_further_out(start: float, tar
     for _ in range(2000):
         sh.step(np.array([np.nan, np.nan, -5.0]))
     assert sh.q[2] == pytest.approx(LO[2])
+
+
+def test_a_plan_from_rest_stays_between_its_start_and_its_targets() -> None:
+    """The shaper checks a new plan against the limits only when it starts in motion: from rest, ruckig's plans
+    (each actuator on its own, as the shaper plans, or time-synchronized; held actuators braking in the velocity
+    interface) stay between where each actuator starts and its target. Random plans on the sample head's limits, at
+    random speeds."""
+    from ruckig import ControlInterface, InputParameter, OutputParameter, Result, Ruckig, Synchronization
+
+    sh = Shaper.from_head(load_head(HEAD), DT)
+    n, rng = sh.n, np.random.default_rng(3)
+    for k in range(600):
+        otg, inp, out = Ruckig(n, DT), InputParameter(n), OutputParameter(n)
+        inp.synchronization = Synchronization.No if k % 2 else Synchronization.Time  # the shaper's, and ruckig's
+        inp.max_velocity = (sh.vmax * rng.uniform(0.05, 1.0)).tolist()
+        inp.max_acceleration = (sh.amax * rng.uniform(0.05, 1.0)).tolist()
+        inp.max_jerk = sh.jmax.tolist()
+        q, hold = rng.uniform(sh.lo, sh.hi), rng.random(n) < 0.4
+        target = np.where(hold, q, rng.uniform(sh.lo, sh.hi))
+        inp.current_position, inp.target_position = q.tolist(), target.tolist()
+        inp.current_velocity = inp.current_acceleration = [0.0] * n
+        inp.target_velocity = inp.target_acceleration = [0.0] * n
+        inp.per_dof_control_interface = [ControlInterface.Velocity if h else ControlInterface.Position for h in hold]
+        assert otg.update(inp, out) in (Result.Working, Result.Finished)
+        traj = out.trajectory
+        path = np.array([traj.at_time(t)[0] for t in np.linspace(0.0, traj.duration, 60)])  # (60, n) positions
+        tol = 1e-12 * np.maximum(1.0, sh.hi - sh.lo)
+        assert np.all(path >= np.minimum(q, target) - tol) and np.all(path <= np.maximum(q, target) + tol)
+        moving = ~hold  # the position interface's extrema (a held actuator's are not reported from rest)
+        ext = traj.position_extrema
+        assert np.all(np.array([e.min for e in ext])[moving] >= np.minimum(q, target)[moving] - tol[moving])
+        assert np.all(np.array([e.max for e in ext])[moving] <= np.maximum(q, target)[moving] + tol[moving])
+
+
+def test_a_move_from_rest_skips_the_extrema_check_and_one_in_motion_does_not() -> None:
+    sh = make()
+    sh.reset(np.array([0.0, 0.0, 0.5]))
+    calls = []
+    check = sh._leaving_limits
+    sh._leaving_limits = lambda: calls.append(1) or check()  # type: ignore[method-assign]
+    sh.step(np.array([0.5, 0.02, 0.9]))  # from rest
+    assert calls == []
+    sh.step(np.array([-0.4, 0.02, 0.9]))  # a new target while moving: checked
+    assert calls == [1]
+    for _ in range(settle_cycles(sh, np.ones(3))):
+        sh.step(np.array([-0.4, 0.02, 0.9]))
+    assert np.array_equal(sh.q, [-0.4, 0.02, 0.9]) and not sh.v.any()
+    sh.step(np.array([0.6, -0.01, 0.1]))  # at rest again after arriving: not checked
+    assert calls == [1]
