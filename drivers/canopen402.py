@@ -59,6 +59,7 @@ from typing import Any, ClassVar
 
 import can
 import canopen
+from can.interfaces.socketcand import SocketCanDaemonBus as _SocketcandBus
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
 from drivers.base import LifecycleState, MotorBus, MotorConfig, MotorState
@@ -141,6 +142,23 @@ class _QuietPartialReads(logging.Filter):
 _SOCKETCAND_LOG = logging.getLogger("can.interfaces.socketcand.socketcand")
 if not any(isinstance(f, _QuietPartialReads) for f in _SOCKETCAND_LOG.filters):
     _SOCKETCAND_LOG.addFilter(_QuietPartialReads())
+
+
+def send_frames(net: canopen.Network, frames: Sequence[tuple[int, bytes]]) -> None:
+    """Send ``frames`` (11-bit COB-ID, data) on ``net`` in order. Over socketcand they go as one TCP write of the
+    bridge's ASCII commands: python-can writes each frame on its own (a system call, a wake-up of the bridge and a
+    formatted debug line per frame), and a cycle's seven RPDOs and SYNC took 160-220 µs that way. Other interfaces
+    take them one by one, as the CAN controller does anyway."""
+    bus = net.bus
+    tcp_send = getattr(bus, "_tcp_send", None) if isinstance(bus, _SocketcandBus) else None
+    if tcp_send is None:
+        for cob_id, data in frames:
+            net.send_message(cob_id, data)
+        return
+    text = "".join(f"< send {cob_id:03X} {len(data):X} {data.hex(' ')} >" for cob_id, data in frames)
+    with net.send_lock:  # canopen's own sends (SDO, NMT) take the same lock
+        tcp_send(text)
+    net.check()
 
 
 def _where(index: int, subindex: int) -> str:
@@ -672,8 +690,9 @@ class CanOpen402Bus(MotorBus):
             return
         for node in self._nodes.values():
             node.controlword = CW_QUICK_STOP
-            net.send_message(0x200 + node.id, _RPDO1.pack(CW_QUICK_STOP, node.target))
-        self._send_sync()
+        self._count_sync()
+        send_frames(net, [*((0x200 + n.id, _RPDO1.pack(CW_QUICK_STOP, n.target)) for n in self._nodes.values()),
+                          (0x80, b"")])
 
     def _reset_fault(self) -> None:
         self._events.clear()
@@ -702,11 +721,15 @@ class CanOpen402Bus(MotorBus):
     # ------------------------------------------------------------------ cyclic I/O
     def _send_sync(self) -> None:
         assert self._network is not None
+        self._count_sync()
+        self._network.send_message(0x80, b"")
+
+    def _count_sync(self) -> None:
+        """The bookkeeping of a SYNC about to be sent: the feedback of the next cycle is awaited from now."""
         self._sync_count += 1
         self._stats["syncs"] += 1
         self._synced_since_read = True
         self._feedback.clear()
-        self._network.send_message(0x80, b"")
 
     def _write(self, targets: Mapping[str, float]) -> None:
         self._drain_events()
@@ -718,9 +741,9 @@ class CanOpen402Bus(MotorBus):
         for name, value in targets.items():
             node = self._nodes[name]
             node.target = node.motor.to_counts(value)
-        for node in self._nodes.values():
-            net.send_message(0x200 + node.id, _RPDO1.pack(node.controlword, node.target))
-        self._send_sync()
+        frames = [(0x200 + node.id, _RPDO1.pack(node.controlword, node.target)) for node in self._nodes.values()]
+        self._count_sync()
+        send_frames(net, [*frames, (0x80, b"")])  # the RPDOs, then the SYNC that applies them
 
     def _read(self) -> dict[str, MotorState]:
         self._drain_events()

@@ -419,6 +419,36 @@ def test_over_socketcand_in_one_process(drives):
         server.stop()
 
 
+def test_frames_sent_together_over_socketcand_arrive_whole_and_in_order():
+    """A cycle's frames cross the bridge as one TCP write (``send_frames``): on the CAN side, each frame as sent."""
+    import can
+    import canopen
+
+    from drivers.canopen402 import send_frames
+
+    channel = f"test-batch-{uuid.uuid4().hex[:10]}"
+    server = SocketcandServer(bus_kwargs={"interface": "virtual", "channel": channel}, port=0).start()
+    listener = can.Bus(interface="virtual", channel=channel)
+    net = canopen.Network(can.Bus(interface="socketcand", host="127.0.0.1", port=server.port, channel="can0"))
+    net.connect()
+    frames = [(0x201, bytes([0x0F, 0x00, 0x10, 0x27, 0x00, 0x00])), (0x202, bytes(range(250, 256)) + b"\x00\x01"),
+              (0x203, b"\x00"), (0x80, b"")]
+    try:
+        for _ in range(3):
+            send_frames(net, frames)
+        got = []
+        deadline = time.monotonic() + 10.0
+        while len(got) < 3 * len(frames) and time.monotonic() < deadline:
+            msg = listener.recv(0.5)
+            if msg is not None:
+                got.append((msg.arbitration_id, bytes(msg.data)))
+        assert got == 3 * frames
+    finally:
+        net.disconnect()
+        listener.shutdown()
+        server.stop()
+
+
 def test_sample_head_can_bus_in_process():
     """The runtime's path: the sample head's can0 actuators on emulated drives, driver on the same channel."""
     from models.headspec import load_head
