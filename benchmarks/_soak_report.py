@@ -38,6 +38,27 @@ def _missed(states: list[tuple], windows: list[tuple[float, float]], t_from: flo
     return {"outside_fault_handling": outside, "during_fault_handling": inside}
 
 
+def _machine_stalls(states: list[tuple], windows: list[tuple[float, float]], t_from: float, t_to: float,
+                    sentinel: dict[str, Any], near_s: float = 0.05) -> dict[str, Any]:
+    """The bare realtime loop's misses between ``t_from`` and ``t_to`` (:mod:`benchmarks._soak_sentinel`), outside
+    the fault windows, and how many of the daemon's misses outside them came within ``near_s`` of one."""
+    misses = [(t, n, late) for t, n, late in sentinel.get("misses", []) if t_from <= t <= t_to]
+    def outside(t0: float, t1: float) -> bool:
+        return not any(a <= t1 and t0 <= b for a, b in windows)
+    own = sum(n for t, n, _ in misses if outside(t, t))
+    daemon = shared = 0
+    prev = None
+    for t, _cycles, missed, *_ in states:
+        if prev is not None and t_from <= t <= t_to and (step := missed - prev[1]) > 0 and outside(prev[0], t):
+            daemon += step
+            if any(prev[0] - near_s <= ts <= t + near_s for ts, _, _ in misses):
+                shared += step
+        prev = (t, missed)
+    return {"scheduling": sentinel.get("scheduling", ""), "missed_outside_fault_handling": own,
+            "worst_lateness_ms": round(max((late for _, _, late in misses), default=0.0) * 1e3, 2),
+            "daemon_misses_outside": daemon, "daemon_misses_with_one": shared}
+
+
 def recording_rows(path: str | None, period: float) -> dict[str, int]:
     """Rows in a ``.lrec`` file and the control cycles absent from it: the period slots its time column spans less
     its rows. A cycle run early on an input (wake on input) serves its slot ahead of the deadline, so the steps
@@ -65,6 +86,7 @@ def summarize(raw: dict[str, Any], settings: dict[str, Any], settle_s: float) ->
     t_warm = raw["t0"] + float(settings["warmup_s"])
     t_end = states[-1][0] if states else t_warm
     missed = _missed(states, windows, t_warm, t_end)
+    stalls = _machine_stalls(states, windows, t_warm, t_end, raw.get("sentinel") or {})
     runs = [r.summary() for r in raw["runs"]]
     injected = [r for r in runs if r["fault"] != "unexpected"]
     unexpected = [r for r in runs if r["fault"] == "unexpected"]
@@ -90,6 +112,7 @@ def summarize(raw: dict[str, Any], settings: dict[str, Any], settle_s: float) ->
     return {
         "settings": settings,
         "missed_deadlines": missed,
+        "machine_stalls": stalls,
         "faults": injected,
         "unexpected_faults": unexpected,
         "recording": {"samples_reported": int(rec.get("samples", 0)), "rows_in_file": file_rows["rows"],
@@ -117,6 +140,11 @@ def print_summary(result: dict[str, Any], path: Path) -> None:
           f"fault handling {m['during_fault_handling']}; loop total {loop.get('missed')} of {loop.get('cycles')}; "
           f"CPU time the hypervisor took from this machine meanwhile: "
           f"{'?' if steal is None else f'{steal * 1e3:.0f} ms'}")
+    ms = result.get("machine_stalls") or {}
+    if ms:
+        print(f"  bare realtime loops beside it ({ms['scheduling']}) missed {ms['missed_outside_fault_handling']} "
+              f"outside fault handling (worst {ms['worst_lateness_ms']} ms late): {ms['daemon_misses_with_one']} of "
+              f"the daemon's {ms['daemon_misses_outside']} came within 50 ms of one of those")
     for f in result["faults"] + result["unexpected_faults"]:
         ttf = "-" if f["time_to_fault_s"] is None else f"{f['time_to_fault_s']:.2f} s"
         ttr = "-" if f["time_to_recover_s"] is None else f"{f['time_to_recover_s']:.2f} s"

@@ -8,8 +8,11 @@ It reports, against the goals: deadlines missed outside fault handling (goal 0; 
 injection to 2 s after the head is active again), each fault detected and recovered (time to the daemon's fault,
 time from removing the cause to the head active again), frames recorded against control cycles and stream frames
 accepted against sent while active (goal: none lost), and the VmRSS of the daemon's processes (the daemon and its
-children, not the emulators) after the warm-up and at the end (goal: growth <= 10 MiB). It writes ``report.json``
-(figures and settings), ``timeline.png``, the daemon's log and the recording into ``--out``.
+children, not the emulators) after the warm-up and at the end (goal: growth <= 10 MiB). Beside the daemon bare
+realtime loops at its rate and priority, one pinned to each CPU (``benchmarks/_soak_sentinel.py``), count the
+deadlines the machine itself took away (a loop with no work misses one only when its CPU ran no top-priority thread
+for a whole period), and the report says how many of the daemon's misses came with one of those. It writes
+``report.json`` (figures and settings), ``timeline.png``, the daemon's log and the recording into ``--out``.
 
 Run: ``python benchmarks/soak.py [--minutes 10] [--interval 30] [--rate 500] [--out out/soak]``
 (``nice -n 5`` on a shared machine: the daemon's control thread runs SCHED_FIFO regardless).
@@ -37,6 +40,7 @@ from benchmarks import _daemon as D  # noqa: E402
 from benchmarks import _soak_clients as SC  # noqa: E402
 from benchmarks import _soak_report as SR  # noqa: E402
 from benchmarks._soak_faults import FaultRun, Operator  # noqa: E402
+from benchmarks._soak_sentinel import Sentinel  # noqa: E402
 
 SAMPLE = ROOT / "heads" / "sample" / "head.toml"
 PERFORMANCE = ROOT / "heads" / "sample" / "performances" / "expressive.json"
@@ -105,6 +109,9 @@ def run_soak(args: argparse.Namespace, out: Path) -> dict[str, Any]:
         phase = ((t - WARMUP_S) % interval) / interval
         return OSC_FROM <= phase < OSC_TO
 
+    from runtime.config import RuntimeSettings
+
+    sentinel = Sentinel(args.rate, RuntimeSettings().priority).start()  # the daemon's rate and loop priority
     streamer = SC.Streamer(command, clip, args.stream_hz, t0, in_osc_window, collector.active)
     osc = SC.OscSender(osc_port, args.osc_hz, t0, in_osc_window)
     runs: list[FaultRun] = []
@@ -158,8 +165,10 @@ def run_soak(args: argparse.Namespace, out: Path) -> dict[str, Any]:
             daemon.kill()
         collector.stop_event.set()
         collector.join(5)
+        sentinel_misses = sentinel.stop()
     report.update(t0=t0, runs=runs, memory=memory, streamer=streamer.counts, osc_sent=osc.sent,
-                  collector=collector, daemon_rc=daemon.returncode)
+                  collector=collector, daemon_rc=daemon.returncode,
+                  sentinel={"scheduling": sentinel.scheduling, "misses": sentinel_misses})
     return report
 
 

@@ -25,6 +25,37 @@ def test_missed_deadlines_are_split_by_fault_handling_windows() -> None:
     assert SR._missed(states, [], 2.5, 10.0)["outside_fault_handling"] == 3  # only increments inside the span
 
 
+def test_the_daemons_misses_are_set_beside_the_machines_own_stalls() -> None:
+    states = [(t, 0, m, "active", 0.0, 0.0, 0.0) for t, m in [(0.0, 0), (1.0, 0), (2.0, 3), (3.0, 3), (4.0, 5),
+                                                                (5.0, 5), (6.0, 6)]]
+    # the bare loop missed at 1.5 s (with the daemon's 3), at 4.0 s (inside a fault window) and at 5.9 s (with its 1)
+    sentinel = {"scheduling": "SCHED_FIFO 80", "misses": [(1.5, 2, 0.0041), (4.0, 1, 0.0023), (5.9, 1, 0.0021)]}
+    out = SR._machine_stalls(states, [(3.5, 4.5)], 0.5, 10.0, sentinel)
+    assert out == {"scheduling": "SCHED_FIFO 80", "missed_outside_fault_handling": 3, "worst_lateness_ms": 4.1,
+                   "daemon_misses_outside": 4, "daemon_misses_with_one": 4}
+    alone = SR._machine_stalls(states, [(3.5, 4.5)], 0.5, 10.0, {"misses": [(5.9, 1, 0.0021)]})
+    assert (alone["daemon_misses_outside"], alone["daemon_misses_with_one"]) == (4, 1)
+
+
+def test_the_sentinel_counts_a_stall_of_its_own_process() -> None:
+    """A bare loop stopped for 50 ms (SIGSTOP, as a hypervisor takes the CPU) misses about 25 deadlines at 500 Hz."""
+    import os
+    import signal
+    import time
+
+    from benchmarks._soak_sentinel import Sentinel
+
+    s = Sentinel(500.0, 1, cpu=0).start()
+    pid = s._procs[0][1].pid
+    time.sleep(0.3)
+    os.kill(pid, signal.SIGSTOP)
+    time.sleep(0.05)
+    os.kill(pid, signal.SIGCONT)
+    time.sleep(0.3)
+    misses = s.stop()
+    assert sum(n for _, n, _ in misses) >= 20 and max(late for _, _, late in misses) >= 0.04, misses
+
+
 def test_recording_rows_count_the_cycles_absent_from_the_file(tmp_path: Path) -> None:
     period = 0.002
     t = np.concatenate([np.arange(0, 100) * period, (np.arange(103, 200)) * period])  # 3 cycles not run
