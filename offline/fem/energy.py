@@ -415,15 +415,24 @@ def _force_kernel(x, tets, dNdX, wdet, coef, nc):
     return f
 
 
+#: PSD projection of the tangent (numba kernels' ``project`` argument): none, per quadrature point, per element.
+PROJECT_NONE, PROJECT_QUADRATURE, PROJECT_ELEMENT = 0, 1, 2
+
+
 @nb.njit(cache=True)
-def _element_hessian(x, tets, dNdX, wdet, coef, e, He, F, A, C, FC, cof, d, T):
-    """Write the Hessian of element e into He (3n, 3n)."""
+def _element_hessian(x, tets, dNdX, wdet, coef, e, He, F, A, C, FC, cof, d, T, project=0):
+    """Write the Hessian of element e into He (3n, 3n), made positive semidefinite with ``project``
+    (:data:`PROJECT_QUADRATURE`: each quadrature point's material tangent; :data:`PROJECT_ELEMENT`: He itself).
+    Returns whether anything was projected."""
     Q = wdet.shape[1]
     n = tets.shape[1]
     He[:, :] = 0.0
+    projected = False
     for q in range(Q):
         _def_grad(x, tets, dNdX, e, q, F)
         _tangent(F, coef, A, C, FC, cof, d)
+        if project == PROJECT_QUADRATURE and _project_psd_small(A):
+            projected = True
         w = wdet[e, q]
         for r in range(9):
             for b in range(n):
@@ -442,6 +451,9 @@ def _element_hessian(x, tets, dNdX, wdet, coef, e, He, F, A, C, FC, cof, d, T):
             for i in range(3):
                 for k in range(3):
                     He[3 * b + k, 3 * a + i] = He[3 * a + i, 3 * b + k]
+    if project == PROJECT_ELEMENT and _project_psd(He):
+        projected = True
+    return projected
 
 
 @nb.njit(cache=True, inline="always")
@@ -453,7 +465,7 @@ def _hessian_scratch(n):
 
 @nb.njit(cache=True)
 def _project_psd(He):
-    """Clamp negative eigenvalues of symmetric He to zero in place; return True if any was negative."""
+    """Clamp negative eigenvalues of the symmetric element Hessian He to zero in place; True if any was."""
     Hs = 0.5 * (He + He.T)
     lam, V = np.linalg.eigh(Hs)
     if lam[0] >= 0.0:
@@ -466,9 +478,48 @@ def _project_psd(He):
     return True
 
 
+@nb.njit(cache=True)
+def _is_positive_definite(A):
+    """Whether symmetric A has a Cholesky factor (about 300 flops for 9 x 9)."""
+    n = A.shape[0]
+    L = np.zeros((n, n))
+    for j in range(n):
+        s = A[j, j]
+        for k in range(j):
+            s -= L[j, k] * L[j, k]
+        if s <= 0.0:
+            return False
+        L[j, j] = np.sqrt(s)
+        for i in range(j + 1, n):
+            t = A[i, j]
+            for k in range(j):
+                t -= L[i, k] * L[j, k]
+            L[i, j] = t / L[j, j]
+    return True
+
+
+@nb.njit(cache=True)
+def _project_psd_small(A):
+    """Clamp negative eigenvalues of the symmetric material tangent A (9, 9) to zero in place; True if any was.
+
+    Projecting each quadrature point's tangent, rather than the assembled element Hessian (30 x 30 for quadratic
+    tets), keeps the element Hessian positive semidefinite at a fraction of the cost: most points of an element
+    far from equilibrium are definite and pass the Cholesky test alone."""
+    if _is_positive_definite(A):
+        return False
+    lam, V = np.linalg.eigh(0.5 * (A + A.T))
+    if lam[0] >= 0.0:
+        return False
+    for r in range(lam.shape[0]):
+        if lam[r] < 0.0:
+            lam[r] = 0.0
+    A[:, :] = (V * lam) @ V.T
+    return True
+
+
 @nb.njit(cache=True, parallel=True)
 def _element_hessians(x, tets, dNdX, wdet, coef, e0, project, out, nc):
-    """Element Hessians of elements e0 .. e0 + len(out) into ``out``; returns how many were PSD-projected."""
+    """Element Hessians of elements e0 .. e0 + len(out) into ``out``; returns how many had a tangent projected."""
     B = out.shape[0]
     n = tets.shape[1]
     size = (B + nc - 1) // nc
@@ -477,8 +528,7 @@ def _element_hessians(x, tets, dNdX, wdet, coef, e0, project, out, nc):
         F, A, C, FC, cof, d, T = _hessian_scratch(n)
         cnt = 0
         for t in range(c * size, min(B, (c + 1) * size)):
-            _element_hessian(x, tets, dNdX, wdet, coef, e0 + t, out[t], F, A, C, FC, cof, d, T)
-            if project and _project_psd(out[t]):
+            if _element_hessian(x, tets, dNdX, wdet, coef, e0 + t, out[t], F, A, C, FC, cof, d, T, project):
                 cnt += 1
         n_proj += cnt
     return n_proj
@@ -506,7 +556,7 @@ def _gather_hessians(tets, adj_ptr, adj_elem, adj_local, block_base, row_stride,
 @nb.njit(cache=True, parallel=True)
 def _assemble_colored(x, tets, dNdX, wdet, coef, project, color_ptr, order, block_base, row_stride, data):
     """Add every element Hessian straight into CSR ``data``, one colour at a time, the elements of a colour in
-    parallel (they share no node, so no two threads write one row); returns how many were PSD-projected."""
+    parallel (they share no node, so no two threads write one row); returns how many had a tangent projected."""
     n = tets.shape[1]
     nd = 3 * n
     n_proj = 0
@@ -521,8 +571,7 @@ def _assemble_colored(x, tets, dNdX, wdet, coef, project, color_ptr, order, bloc
             cnt = 0
             for t in range(lo + ch * size, min(hi, lo + (ch + 1) * size)):
                 e = order[t]
-                _element_hessian(x, tets, dNdX, wdet, coef, e, He, F, A, C, FC, cof, d, T)
-                if project and _project_psd(He):
+                if _element_hessian(x, tets, dNdX, wdet, coef, e, He, F, A, C, FC, cof, d, T, project):
                     cnt += 1
                 for a in range(n):
                     rs = row_stride[tets[e, a]]
@@ -576,12 +625,30 @@ def internal_forces(mesh: TetMesh, material: Material, x: np.ndarray) -> np.ndar
                          _n_chunks(mesh.n_tets))
 
 
-def stiffness(mesh: TetMesh, material: Material, x: np.ndarray, project_psd: bool = False) -> sp.csr_matrix:
-    """Tangent stiffness d²W/dx² (3N, 3N) CSR, DoF order 3*node + axis; element Hessians PSD-projected if asked."""
+def stiffness(mesh: TetMesh, material: Material, x: np.ndarray, project_psd: bool | str = False
+              ) -> sp.csr_matrix:
+    """Tangent stiffness d²W/dx² (3N, 3N) CSR, DoF order 3*node + axis.
+
+    ``project_psd`` makes every element Hessian, and so K, positive semidefinite (the Newton fallback far from
+    equilibrium): ``True`` or ``"quadrature"`` projects each quadrature point's material tangent ∂²Ψ/∂F² (9 x 9,
+    mostly definite: cheap), ``"element"`` each element Hessian as a whole (30 x 30 for quadratic tets: the nearest
+    PSD element Hessian, several times slower)."""
     return _stiffness(mesh, material, x, project_psd)[0]
 
 
-def _stiffness(mesh: TetMesh, material: Material, x: np.ndarray, project_psd: bool) -> tuple[sp.csr_matrix, int]:
+def _projection_mode(project_psd: bool | str) -> int:
+    if project_psd is False or project_psd is None:
+        return PROJECT_NONE
+    if project_psd is True or project_psd == "quadrature":
+        return PROJECT_QUADRATURE
+    if project_psd == "element":
+        return PROJECT_ELEMENT
+    raise ValueError(f"project_psd must be False, True, 'quadrature' or 'element', got {project_psd!r}")
+
+
+def _stiffness(mesh: TetMesh, material: Material, x: np.ndarray, project_psd: bool | str
+               ) -> tuple[sp.csr_matrix, int]:
+    project_psd = _projection_mode(project_psd)
     d = _mesh_data(mesh)
     pat = _pattern(mesh)
     x = _check_x(mesh, x)

@@ -3,7 +3,7 @@
 A :class:`SparseSolver` is made once per sparsity pattern (:func:`make_solver`); ``solver.factor(A)`` reuses the
 symbolic analysis (fill-reducing ordering) and returns a :class:`Factorization` whose ``solve(b)`` can be called any
 number of times (Newton steps, adjoint solves). Cholesky backends raise :class:`NotPositiveDefinite` when the matrix
-is not positive definite, which the Newton solver uses to switch to PSD-projected element Hessians.
+is not positive definite, which the Newton solver uses to switch to a PSD-projected tangent.
 
 ``"auto"`` picks CHOLMOD (scikit-sparse) if importable, else PARDISO (pypardiso), else SuperLU (always available);
 when CHOLMOD is linked against the reference (unoptimised) BLAS and PARDISO is present, PARDISO comes first.

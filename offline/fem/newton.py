@@ -143,6 +143,7 @@ def solve_load_step(p: NewtonProblem, w: NewtonWork, x_in: np.ndarray, lam: floa
     xk = x_in.copy()
     tiny = 0
     e_known = None  # the potential at xk when the line search already evaluated it
+    indefinite = False  # the last direction needed PSD projection and its step was cut short
     # the last step's target is the goal itself (c + 1.0 * (g - c) may differ from g by round-off)
     target = p.c_goal if lam >= 1.0 else p.c_start + lam * (p.c_goal - p.c_start)
     fext = lam * p.f_grav
@@ -151,7 +152,7 @@ def solve_load_step(p: NewtonProblem, w: NewtonWork, x_in: np.ndarray, lam: floa
         if state.boundary_done and state.res <= state.tolerance(opts):
             _log_converged(p, w, state, step, it)
             return xk
-        direction = _newton_direction(p, w, xk, state)
+        direction = _newton_direction(p, w, xk, state, project=indefinite)
         trial = _line_search(p, w, xk, state, direction)
         w.iterations += 1
         _log_iteration(p, w, state, direction, trial, step, it)
@@ -160,6 +161,9 @@ def solve_load_step(p: NewtonProblem, w: NewtonWork, x_in: np.ndarray, lam: floa
         tiny = tiny + 1 if state.boundary_done and trial.alpha < _STALL_ALPHA else 0
         if tiny >= _STALL_ITERATIONS:
             raise StepFailed(f"Newton stalled ({tiny} steps in a row with alpha < {_STALL_ALPHA:g})")
+        # far from equilibrium the tangent stays indefinite for many iterations: until a projected direction is
+        # taken whole, start projected rather than factor an indefinite tangent first only to see it refused
+        indefinite = direction.projected > 0 and trial.alpha < 1.0
         xk = trial.x
         e_known = trial.energy if state.boundary_done else trial.energy - float(np.sum(fext * trial.x))
     raise StepFailed(f"no convergence in {opts.max_iterations} iterations")
@@ -188,9 +192,9 @@ def _potential(p: NewtonProblem, x: np.ndarray, fext: np.ndarray) -> float:
 
 def _assemble_reduced(p: NewtonProblem, w: NewtonWork, x: np.ndarray, project: bool
                       ) -> tuple[sp.csr_matrix, sp.csr_matrix, int]:
-    """The tangent K at ``x``, its free-free block K_ff, and the number of element Hessians projected to PSD."""
+    """The tangent K at ``x``, its free-free block K_ff, and how many elements had a material tangent projected."""
     t = time.perf_counter()
-    K, n_proj = _stiffness(p.mesh, p.material, x, project)
+    K, n_proj = _stiffness(p.mesh, p.material, x, p.opts.psd_projection if project else False)
     if w.selector is None:
         w.selector = _reduced_selector(K, p.free_idx)
     sel, sub = w.selector
@@ -209,10 +213,11 @@ def _newton_rhs(p: NewtonProblem, K: sp.csr_matrix, state: _Iterate) -> np.ndarr
     return rhs
 
 
-def _newton_direction(p: NewtonProblem, w: NewtonWork, xk: np.ndarray, state: _Iterate) -> _Direction:
+def _newton_direction(p: NewtonProblem, w: NewtonWork, xk: np.ndarray, state: _Iterate, *, project: bool = False
+                      ) -> _Direction:
     """A Newton direction on the free DoFs: CG preconditioned by the cached factorization when allowed, else a new
-    factorization; element Hessians projected to PSD when the tangent is indefinite or the direction is refused."""
-    project = False
+    factorization; the tangent made PSD (:func:`~offline.fem.energy.stiffness` with ``project_psd``) when it is
+    indefinite or the direction is refused, or from the start with ``project``."""
     direct = not p.opts.reuse_factorization
     factor_s, n_kry, factored = 0.0, 0, False
     while True:

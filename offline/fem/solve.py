@@ -5,9 +5,10 @@ The boundary motion (and gravity) is applied in load steps. The first Newton ite
 nodes exactly on the step's targets and predicts the free nodes through K_fc (a linearised extension of the boundary
 increment); the backtracking line search scales only the free part, keeping every element's J > 0, so from then on
 each iteration is Newton on the free DoFs with a fixed boundary and Armijo decrease of the total energy. If no free
-step lets the boundary increment in without inverting an element, the load step is halved. Element
-Hessians are projected to PSD only when the factorization reports an indefinite matrix or the Newton direction is
-not a descent direction. The symbolic factorization is reused across iterations; on failure the load step is
+step lets the boundary increment in without inverting an element, the load step is halved. The tangent is made
+positive semidefinite (each quadrature point's material tangent projected) only when the factorization reports an
+indefinite matrix or the Newton direction is not a descent direction, and stays so while the projected steps are cut
+short by the line search. The symbolic factorization is reused across iterations; on failure the load step is
 halved (and grows back after a success); after ``max_load_step_halvings`` successive halvings a
 :class:`NotConverged` is raised with the last state saved to disk. Here: the boundary conditions, the options and
 result, the load stepping; one load step's Newton iterations are :mod:`offline.fem.newton`.
@@ -150,7 +151,9 @@ class SolverOptions:
     tangent is factored only when CG needs more than ``krylov_max_iterations`` back-substitutions or meets
     non-positive curvature. The convergence test on the force residual is the same either way.
     ``factor_precision="single"`` (PARDISO only, with ``reuse_factorization``) factors in float32 and uses every
-    factorization only as a CG preconditioner, also right after it is made.
+    factorization only as a CG preconditioner, also right after it is made. ``psd_projection``: how an indefinite
+    tangent is made positive semidefinite (``"quadrature"``: each quadrature point's material tangent, the default;
+    ``"element"``: each element Hessian, slower; see :func:`~offline.fem.energy.stiffness`).
     """
 
     backend: str = "auto"
@@ -166,6 +169,7 @@ class SolverOptions:
     krylov_rtol: float = 0.1
     krylov_max_iterations: int = 12
     factor_precision: str = "double"
+    psd_projection: str = "quadrature"
 
     def __post_init__(self) -> None:
         if not (self.tol_force > 0):
@@ -188,6 +192,9 @@ class SolverOptions:
         if self.factor_precision == "single" and not self.reuse_factorization:
             raise ValueError("SolverOptions.factor_precision='single' needs reuse_factorization=True "
                              "(a float32 factorization is used only as a preconditioner)")
+        if self.psd_projection not in ("quadrature", "element"):
+            raise ValueError(f"SolverOptions.psd_projection must be 'quadrature' or 'element', "
+                             f"got {self.psd_projection!r}")
         if self.gravity is not None and np.asarray(self.gravity).shape != (3,):
             raise ValueError(f"SolverOptions.gravity must be a 3-vector or None, got {self.gravity!r}")
 
@@ -196,11 +203,12 @@ class SolverOptions:
 class StaticResult:
     """Outcome of :func:`solve_static`: positions, convergence, per-iteration log, phase timings (s), reactions (N).
 
-    Each ``log`` entry holds step, iteration, energy (J), residual (N), alpha, projected (number of element
-    Hessians projected to PSD), factor_s, tolerance (the residual threshold, N), factorized (whether the tangent was
-    factored) and krylov (CG iterations spent on it). ``reactions`` follows ``dirichlet.nodes``; coordinates a node
-    leaves free carry only the (converged, ≈ 0) residual there. ``factorizations`` counts numeric factorizations
-    (failed ones included), ``krylov_iterations`` the CG iterations of the whole solve.
+    Each ``log`` entry holds step, iteration, energy (J), residual (N), alpha, projected (number of elements
+    with a material tangent projected to PSD), factor_s, tolerance (the residual threshold, N), factorized
+    (whether the tangent was factored) and krylov (CG iterations spent on it). ``reactions`` follows
+    ``dirichlet.nodes``; coordinates a node leaves free carry only the (converged, ≈ 0) residual there.
+    ``factorizations`` counts numeric factorizations (failed ones included), ``krylov_iterations`` the CG
+    iterations of the whole solve.
     """
 
     x: np.ndarray

@@ -85,6 +85,44 @@ def test_projected_stiffness_is_psd_and_unchanged_when_already_psd() -> None:
     assert np.allclose(stiffness(mesh, mat, X, True).toarray(), stiffness(mesh, mat, X).toarray(), atol=1e-6)
 
 
+def test_material_tangent_projection_clamps_negative_eigenvalues_only() -> None:
+    """Each quadrature point's 9 x 9 tangent is projected as an eigenvalue clamp would (NumPy reference); definite
+    ones are left as they are."""
+    from offline.fem.energy import _project_psd_small
+
+    rng = np.random.default_rng(11)
+    for k in range(200):
+        Q, _ = np.linalg.qr(rng.normal(size=(9, 9)))
+        lam = rng.uniform(0.1, 5.0, 9)
+        if k % 2:
+            lam[rng.choice(9, size=1 + k % 4, replace=False)] *= -1.0
+        A = (Q * lam) @ Q.T
+        ref = (Q * np.maximum(lam, 0.0)) @ Q.T
+        got = A.copy()
+        assert _project_psd_small(got) == bool(k % 2)
+        assert np.allclose(got, ref, atol=1e-12 * np.abs(A).max())
+
+
+def test_projected_quadratic_element_hessians_are_psd() -> None:
+    """Quadratic tets under strong shear and compression: every projected element Hessian is PSD, and the assembled
+    tangent too."""
+    from offline.fem import energy as en
+
+    mat = MATERIALS["neo_hookean"]
+    mesh = box_mesh((0.01, 0.01, 0.01), (2, 1, 1), order=2)
+    x = np.asarray(mesh.nodes) * np.array([1.0, 1.0, 0.35])
+    x[:, 0] += 0.4 * x[:, 2]
+    d = _mesh_data(mesh)
+    nd = 3 * mesh.tets.shape[1]
+    He = np.empty((mesh.n_tets, nd, nd))
+    n_proj = en._element_hessians(x, mesh.tets, d.dNdX, d.wdet, mat.coefficients, 0, en.PROJECT_QUADRATURE, He, 1)
+    assert n_proj > 0
+    for h in He:
+        assert np.linalg.eigvalsh(h).min() >= -1e-9 * np.abs(h).max()
+    Kp = stiffness(mesh, mat, x, project_psd=True).toarray()
+    assert np.linalg.eigvalsh(Kp).min() >= -1e-9 * np.abs(Kp).max()
+
+
 def test_energy_is_infinite_for_inverted_elements() -> None:
     mesh = box_mesh((0.01, 0.01, 0.01), (1, 1, 1))
     x = np.asarray(mesh.nodes) * np.array([1.0, 1.0, -1.0])
@@ -106,8 +144,9 @@ def test_coloured_assembly_matches_the_element_by_element_sum(order: int) -> Non
     for c in range(len(ptr) - 1):
         nodes = tets[elems[ptr[c]:ptr[c + 1]]].ravel()
         assert np.unique(nodes).size == nodes.size  # no node twice within one colour
-    for project in (False, True):
-        K = stiffness(mesh, mat, x, project_psd=project).toarray()
+    for name, project in ((False, en.PROJECT_NONE), ("quadrature", en.PROJECT_QUADRATURE),
+                          ("element", en.PROJECT_ELEMENT)):
+        K = stiffness(mesh, mat, x, project_psd=name).toarray()
         nd = 3 * tets.shape[1]
         He = np.empty((mesh.n_tets, nd, nd))
         d = _mesh_data(mesh)
