@@ -49,6 +49,33 @@ def _limit_array(name: str, value: float | np.ndarray, n: int) -> np.ndarray:
     return arr
 
 
+def profile_extrema(profile) -> tuple[float, float]:
+    """Exact position extrema of one DoF's ruckig ``Profile``: its brake pre-profile and its seven constant-jerk
+    segments, each at its ends and where its velocity (a quadratic in time) crosses zero."""
+    brake = profile.brake
+    segments = []
+    if brake.duration > 0.0:
+        segments += zip(brake.t, brake.p, brake.v, brake.a, brake.j, strict=True)
+    lo = hi = float(brake.p[0] if segments else profile.p[0])
+    segments += zip(profile.t, profile.p[:7], profile.v[:7], profile.a[:7], profile.j, strict=True)
+    for t, p, v, a, j in segments:
+        if t <= 0.0:
+            continue
+        times = [t]
+        if j != 0.0:  # v + a τ + j τ²/2 = 0
+            disc = a * a - 2.0 * j * v
+            if disc >= 0.0:
+                root = math.sqrt(disc)
+                times += [(-a - root) / j, (-a + root) / j]
+        elif a != 0.0:
+            times.append(-v / a)
+        for tau in times:
+            if 0.0 < tau <= t:
+                x = p + tau * (v + tau * (a / 2.0 + tau * j / 6.0))
+                lo, hi = min(lo, x), max(hi, x)
+    return lo, hi
+
+
 class Shaper:
     """Jerk-limited online trajectory shaping for N actuators (SI units; one :meth:`step` per control cycle)."""
 
@@ -320,7 +347,16 @@ class Shaper:
             return np.zeros(self.n, dtype=bool)  # the usual case, told without building arrays of the extrema
         lo = np.array([e.min for e in ext])
         hi = np.array([e.max for e in ext])
-        return (lo < self.lo_now - tol) | (hi > self.hi_now + tol)
+        leaving = (lo < self.lo_now - tol) | (hi > self.hi_now + tol)
+        # ruckig (0.19) reports a velocity-interface (braking) DoF's extrema as a range around the true one (0.0 and
+        # an earlier plan's values can be in it): never too small, but a false alarm on a range that excludes them.
+        # Those DoFs are checked again on their own profile.
+        braking = [c == ControlInterface.Velocity for c in self._inp.per_dof_control_interface]
+        for i in np.flatnonzero(leaving).tolist():
+            if braking[i]:
+                p_min, p_max = profile_extrema(self._out.trajectory.profiles[0][i])
+                leaving[i] = p_min < floor[i] or p_max > ceil[i]
+        return leaving
 
     def _brake_fully(self, which: np.ndarray) -> Result:
         """Replan ``which`` actuators as a stop at their full (unscaled) limits; the others keep their plans."""

@@ -267,3 +267,66 @@ def test_a_move_from_rest_skips_the_extrema_check_and_one_in_motion_does_not() -
     assert np.array_equal(sh.q, [-0.4, 0.02, 0.9]) and not sh.v.any()
     sh.step(np.array([0.6, -0.01, 0.1]))  # at rest again after arriving: not checked
     assert calls == [1]
+
+
+def test_a_hold_on_a_range_that_excludes_zero_brakes_on_its_own_plan() -> None:
+    """ruckig counts 0.0 (and an earlier plan's values) among the extrema of a velocity-interface (held) actuator; on
+    a range that excludes them that false bound must not turn a hold into a full-limit brake."""
+    lo, hi = np.array([0.2, 0.2]), np.array([1.0, 1.0])
+    sh = Shaper(np.array([1.0, 1.0]), np.array([4.0, 4.0]), dt=0.002, lo=lo, hi=hi)
+    sh.reset(np.array([0.5, 0.8]), v=np.array([0.5, -0.5]))  # moving (found so on enable), far from the limits
+    for _ in range(300):
+        sh.step(np.array([np.nan, np.nan]), speed=0.5)  # held: each brakes where it is, at half the limits
+    assert sh.fallbacks == 0 and sh.clamps == 0
+    assert not sh.v.any() and sh.q[0] > 0.5 and sh.q[1] < 0.8
+    assert sh.q[0] == pytest.approx(0.5 + 0.5**2 / (2 * 2.0), abs=0.01)  # stopped at half the acceleration
+
+
+def test_a_hold_that_would_carry_past_a_limit_brakes_at_full_limits() -> None:
+    """A hold at half speed while moving toward a limit would need more room than is left: the check sees the hold's
+    own brake (not the extrema of the plan before it) and brakes at the full limits, never commanding a jump."""
+    lo, hi = np.array([-0.5]), np.array([0.5])
+    amax = 4.0
+    sh = Shaper(np.array([1.0]), np.array([amax]), dt=0.002, lo=lo, hi=hi)
+    sh.reset(np.array([0.1]))
+    while sh.q[0] > -0.28:  # a full-speed move to just above the lower limit, in its cruise
+        sh.step(np.array([-0.499]))
+    assert sh.v[0] < -0.9
+    q = [sh.q[0]]
+    for _ in range(400):
+        sh.step(np.array([np.nan]), speed=0.5)  # hold at half the limits: its brake would pass -0.5
+        q.append(sh.q[0])
+    q = np.array(q)
+    assert sh.fallbacks >= 1 and np.all(q >= lo[0])
+    acc = np.diff(q, 2) / sh.dt**2
+    assert np.abs(acc).max() <= amax * 1.05  # stopped by the plan, not by a clip at the limit
+
+
+def test_profile_extrema_match_the_sampled_trajectory() -> None:
+    """The exact extrema of ruckig profiles (position and velocity interface, moving and accelerating starts, brake
+    pre-profiles from states beyond the limits) against the trajectory sampled densely."""
+    from ruckig import ControlInterface, InputParameter, OutputParameter, Result, Ruckig, Synchronization
+
+    from runtime.shaper import profile_extrema
+
+    rng = np.random.default_rng(3)
+    checked = 0
+    for _ in range(300):
+        otg, inp, out = Ruckig(1, 0.002), InputParameter(1), OutputParameter(1)
+        inp.synchronization = Synchronization.No
+        inp.max_velocity, inp.max_acceleration, inp.max_jerk = [1.0], [4.0], [200.0]
+        inp.current_position = [rng.uniform(-0.5, 0.5)]
+        inp.current_velocity = [rng.uniform(-1.3, 1.3)]  # beyond the velocity limit at times: a brake pre-profile
+        inp.current_acceleration = [rng.uniform(-5.0, 5.0)]
+        inp.target_position, inp.target_velocity, inp.target_acceleration = [rng.uniform(-0.5, 0.5)], [0.0], [0.0]
+        if rng.random() < 0.5:
+            inp.per_dof_control_interface = [ControlInterface.Velocity]
+        if otg.update(inp, out) not in (Result.Working, Result.Finished):
+            continue
+        traj = out.trajectory
+        x = np.array([traj.at_time(t)[0][0] for t in np.linspace(0.0, traj.duration, 4001)])
+        lo, hi = profile_extrema(traj.profiles[0][0])
+        step = 1.3 * traj.duration / 4000  # the sampling can miss an extremum by up to a step's travel
+        assert x.min() - step <= lo <= x.min() + 1e-12 and x.max() - 1e-12 <= hi <= x.max() + step
+        checked += 1
+    assert checked > 250
