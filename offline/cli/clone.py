@@ -62,7 +62,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--design-mechanism", action="store_true",
                    help="design the link layout (the mechanism's joint positions, axes, rod lengths and ratios within "
                         "--envelope) together with the actuation, and write DIR/head/, a complete redesigned head "
-                        "folder (docs/mechanism.md, layout design); thickness is not designed in this mode")
+                        "folder (docs/mechanism.md, layout design); thickness only with --design-thickness")
+    p.add_argument("--design-thickness", action="store_true",
+                   help="with --design-mechanism: then design the skin's thickness (with actuation) on the redesigned "
+                        "head, install the optimized skin in DIR/head/skin and export its mold to DIR/mold "
+                        "(the thickness settings above apply; the clone's report in DIR/thickness)")
     p.add_argument("--envelope", default=None,
                    help="mechanical envelope TOML of the layout design (default: joints move <= 15 mm, axes tilt "
                         "<= 20 deg, rod lengths and ratios +-20 %%)")
@@ -93,6 +97,9 @@ def run(args: argparse.Namespace) -> int:
                          f"{args.max_thickness_mm}: need 0 < min < max")
     if args.threads < 1:
         raise UsageError(f"--threads {args.threads}: must be >= 1")
+    if args.design_thickness and not args.design_mechanism:
+        raise UsageError("--design-thickness: only with --design-mechanism (without it, clone designs thickness "
+                         "anyway)")
     if args.ground_truth_test:
         return _ground_truth(args)
     mesh = args.mesh
@@ -114,7 +121,15 @@ def run(args: argparse.Namespace) -> int:
         from offline.design.mechanism_design_job import run_layout_command
 
         with kernel_threads(args.threads):
-            return run_layout_command(args, face, targets, say)
+            if args.dry_run and args.design_thickness:
+                print("then thickness on the redesigned head (estimated on today's head):")
+                _print_estimate(face, targets, settings)
+            rc = run_layout_command(args, face, targets, say, thickness=settings if args.design_thickness else None)
+        if rc or args.dry_run or not args.design_thickness or args.no_mold:
+            return rc
+        say("[thickness] exporting the mold of the redesigned head's skin (STL, mm) and checking it")
+        return print_mold(export_mold(Path(args.out) / "head" / "skin", Path(args.out) / "mold"),
+                          Path(args.out) / "mold")
     with kernel_threads(args.threads):
         if args.dry_run:
             _print_estimate(face, targets, settings)

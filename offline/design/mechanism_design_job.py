@@ -25,6 +25,7 @@ import numpy as np
 from models.mechanism_kin import AssemblyError
 
 from .actuation import TargetResult, optimize_targets
+from .clone import CloneSettings
 from .face import FaceSkin
 from .mechanism_design import (
     LayoutProblem,
@@ -227,8 +228,9 @@ def estimate_layout(lp: LayoutProblem, space: DesignSpace, n_targets: int, itera
 
 
 def run_layout_command(args: Any, face: FaceSkin, targets: Mapping[str, Mapping[str, float]],
-                       say: Progress) -> int:
-    """``likeness offline clone --design-mechanism``: the dry run or the run, and its summary lines."""
+                       say: Progress, thickness: CloneSettings | None = None) -> int:
+    """``likeness offline clone --design-mechanism``: the dry run or the run, and its summary lines; with
+    ``thickness``, the thickness design on the redesigned head after it (:mod:`.mechanism_thickness`)."""
     from models.errors import UsageError
 
     if args.design_iterations < 1:
@@ -265,5 +267,15 @@ def run_layout_command(args: Any, face: FaceSkin, targets: Mapping[str, Mapping[
     print(f"goal mean <= 0.5 mm: {'met' if g['mean_met'] else 'NOT met'}; max <= 4 mm: "
           f"{'met' if g['max_met'] else 'NOT met'}" + (f" (not reached: {', '.join(sm['unreached_targets'])}; see "
                                                        "report.md, binding limits)" if sm["unreached_targets"] else ""))
+    if thickness is not None:
+        from .mechanism_thickness import design_thickness_on_head
+
+        t = design_thickness_on_head(args.out, targets, thickness, targets_file=args.targets, backend=args.backend,
+                                     resume=not args.fresh, progress=say)
+        dh = t["thickness_change"]
+        print(f"thickness on the new layout: surface error mean {t['before']['surface_mean_m'] * mm:.2f} -> "
+              f"{t['after']['surface_mean_m'] * mm:.2f} mm, max {t['before']['surface_max_m'] * mm:.2f} -> "
+              f"{t['after']['surface_max_m'] * mm:.2f} mm; |dh| mean {dh['abs_mean_mm']:.2f} mm, max "
+              f"{dh['abs_max_mm']:.2f} mm ({Path(args.out) / 'thickness' / 'report.json'})")
     print(f"-> {Path(args.out) / 'report.md'}, {Path(args.out) / 'head' / 'head.toml'}")
     return 0

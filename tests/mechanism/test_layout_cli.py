@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from likeness.cli import main
@@ -66,3 +67,45 @@ def test_ring_rounds_below_zero_are_refused(tmp_path, capsys) -> None:
         str(tmp_path / "run")])
     assert rc == 2
     assert "--ring-rounds -1: must be >= 0" in capsys.readouterr().err
+
+
+def test_thickness_design_needs_the_layout_design_and_its_dry_run_estimates_both(tmp_path, capsys) -> None:
+    targets = _targets(tmp_path, {"blink": {"eyeBlinkLeft": 1.0}})
+    rc = main(["offline", "clone", "--config", str(SAMPLE), "--targets", targets, "--design-thickness", "--dry-run",
+               "--out", str(tmp_path / "run")])
+    assert rc == 2
+    assert "--design-thickness: only with --design-mechanism" in capsys.readouterr().err
+    rc = main(["offline", "clone", "--config", str(SAMPLE), "--targets", targets, "--design-mechanism",
+               "--design-thickness", "--dry-run", "--out", str(tmp_path / "run")])
+    assert rc == 0
+    out = capsys.readouterr().out
+    assert "then thickness on the redesigned head" in out and "layout design:" in out
+
+
+@pytest.mark.slow
+def test_layout_then_thickness_installs_the_optimized_skin_in_the_head_folder(tmp_path, capsys) -> None:
+    from offline.fem import load_mesh
+
+    out = tmp_path / "run"
+    env = tmp_path / "env.toml"
+    env.write_text("[envelope]\njoint_move_mm = 5\n[motors.jaw]\nfixed = true\n")
+    args = ["offline", "clone", "--config", str(SAMPLE), "--targets", _targets(tmp_path, {"smile": {
+        "mouthSmileLeft": 0.6, "mouthSmileRight": 0.6}}), "--design-mechanism", "--design-iterations", "1",
+        "--ring-rounds", "0", "--envelope", str(env), "--design-thickness", "--max-outer", "1", "--samples", "8",
+        "--out", str(out)]
+    assert main(args) == 0  # the mold of the new skin passes its checks too
+    report = json.loads((out / "report.json").read_text())
+    t = report["thickness"]
+    assert t["after"]["surface_mean_m"] <= t["before"]["surface_mean_m"] * 1.001  # a worse step is not kept
+    assert "## Thickness on the redesigned head" in (out / "report.md").read_text()
+    # the head folder's skin is the clone's optimized skin, with its provenance ...
+    assert (out / "head" / "skin" / "skin.vtu").read_bytes() == (out / "thickness" / "skin" / "skin.vtu").read_bytes()
+    assert "clone" in json.loads((out / "head" / "skin" / "mesh_report.json").read_text())
+    original = load_mesh(SAMPLE.parent / "skin" / "skin.vtu")
+    designed = load_mesh(out / "head" / "skin" / "skin.vtu")
+    assert designed.n_nodes == original.n_nodes
+    moved = np.linalg.norm(np.asarray(designed.nodes) - np.asarray(original.nodes), axis=1)
+    for name, nodes in original.node_sets.items():  # ... and its attachments are where they were
+        assert np.array_equal(np.asarray(designed.node_sets[name]), np.asarray(nodes))
+        assert moved[np.asarray(nodes)].max() < 1e-9, name
+    assert (out / "mold" / "mold_report.json").is_file()
