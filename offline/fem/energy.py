@@ -464,17 +464,17 @@ def _hessian_scratch(n):
 
 
 @nb.njit(cache=True)
-def _project_psd(He):
-    """Clamp negative eigenvalues of the symmetric element Hessian He to zero in place; True if any was."""
-    Hs = 0.5 * (He + He.T)
+def _project_psd(H):
+    """Clamp negative eigenvalues of symmetric H to zero in place (H = V max(λ, 0) Vᵀ); True if any was negative."""
+    Hs = 0.5 * (H + H.T)
     lam, V = np.linalg.eigh(Hs)
     if lam[0] >= 0.0:
-        He[:, :] = Hs
+        H[:, :] = Hs
         return False
     for r in range(lam.shape[0]):
         if lam[r] < 0.0:
             lam[r] = 0.0
-    He[:, :] = (V * lam) @ V.T
+    H[:, :] = (V * lam) @ V.T
     return True
 
 
@@ -507,14 +507,7 @@ def _project_psd_small(A):
     far from equilibrium are definite and pass the Cholesky test alone."""
     if _is_positive_definite(A):
         return False
-    lam, V = np.linalg.eigh(0.5 * (A + A.T))
-    if lam[0] >= 0.0:
-        return False
-    for r in range(lam.shape[0]):
-        if lam[r] < 0.0:
-            lam[r] = 0.0
-    A[:, :] = (V * lam) @ V.T
-    return True
+    return _project_psd(A)
 
 
 @nb.njit(cache=True, parallel=True)

@@ -12,6 +12,15 @@ from likeness.cli import main
 from tests.runtime.conftest import SAMPLE
 
 
+def _small_layout(tmp_path, targets: dict, iterations: int) -> list[str]:
+    """A layout design of the sample head small enough for a test: the jaw fixed, joints within 5 mm."""
+    env = tmp_path / "env.toml"
+    env.write_text("[envelope]\njoint_move_mm = 5\n[motors.jaw]\nfixed = true\n")
+    return ["offline", "clone", "--config", str(SAMPLE), "--targets", _targets(tmp_path, targets),
+            "--design-mechanism", "--design-iterations", str(iterations), "--envelope", str(env),
+            "--out", str(tmp_path / "run")]
+
+
 def _targets(tmp_path, targets: dict) -> str:
     path = tmp_path / "targets.json"
     path.write_text(json.dumps(targets))
@@ -40,11 +49,7 @@ def test_a_bad_envelope_is_refused_naming_the_file_and_key(tmp_path, capsys) -> 
 @pytest.mark.slow
 def test_a_small_layout_design_writes_its_report_and_head_and_resumes(tmp_path, capsys) -> None:
     out = tmp_path / "run"
-    env = tmp_path / "env.toml"
-    env.write_text("[envelope]\njoint_move_mm = 5\n[motors.jaw]\nfixed = true\n")
-    args = ["offline", "clone", "--config", str(SAMPLE), "--targets", _targets(tmp_path, {"jaw_smile": {
-        "jawOpen": 0.4, "mouthSmileLeft": 0.6}}), "--design-mechanism", "--design-iterations", "2",
-        "--envelope", str(env), "--out", str(out)]
+    args = _small_layout(tmp_path, {"jaw_smile": {"jawOpen": 0.4, "mouthSmileLeft": 0.6}}, 2)
     assert main(args) == 0
     report = json.loads((out / "report.json").read_text())
     row = report["per_target"][0]
@@ -87,12 +92,8 @@ def test_layout_then_thickness_installs_the_optimized_skin_in_the_head_folder(tm
     from offline.fem import load_mesh
 
     out = tmp_path / "run"
-    env = tmp_path / "env.toml"
-    env.write_text("[envelope]\njoint_move_mm = 5\n[motors.jaw]\nfixed = true\n")
-    args = ["offline", "clone", "--config", str(SAMPLE), "--targets", _targets(tmp_path, {"smile": {
-        "mouthSmileLeft": 0.6, "mouthSmileRight": 0.6}}), "--design-mechanism", "--design-iterations", "1",
-        "--ring-rounds", "0", "--envelope", str(env), "--design-thickness", "--max-outer", "1", "--samples", "8",
-        "--out", str(out)]
+    args = [*_small_layout(tmp_path, {"smile": {"mouthSmileLeft": 0.6, "mouthSmileRight": 0.6}}, 1),
+            "--ring-rounds", "0", "--design-thickness", "--max-outer", "1", "--samples", "8"]
     assert main(args) == 0  # the mold of the new skin passes its checks too
     report = json.loads((out / "report.json").read_text())
     t = report["thickness"]
