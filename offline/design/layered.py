@@ -44,6 +44,7 @@ class LayeredSkin:
     columns: np.ndarray
     dropped_set_nodes: int
     untangled_columns: int = 0
+    uncrossed_columns: int = 0
 
     @property
     def layers(self) -> int:
@@ -148,6 +149,42 @@ def untangle_columns(outer_pos: np.ndarray, triangles: np.ndarray, end: np.ndarr
     return outer_pos + h[:, None] * direction, int(changed.sum())
 
 
+def crossing_columns(outer_pos: np.ndarray, triangles: np.ndarray, end: np.ndarray) -> np.ndarray:
+    """Columns (indices of outer vertices) whose end lies on a boundary triangle of the one-layer skin (outer
+    surface, column ends, rim walls) that crosses another: where a concave fold brings the column ends of
+    distant parts of the surface through each other or through the outer surface."""
+    from .mesh_check import self_intersecting_pairs
+
+    S = len(outer_pos)
+    columns = np.arange(2 * S).reshape(2, S).T
+    nodes = np.concatenate([outer_pos, end])
+    faces = boundary_faces(TetMesh(nodes, prism_tets(np.asarray(triangles, dtype=np.int64), columns), {}))
+    pairs = self_intersecting_pairs(nodes * 1e3, faces)  # mm, as the mold checks the skin
+    ends = faces[np.unique(pairs.ravel())].ravel() if len(pairs) else np.zeros(0, dtype=np.int64)
+    return np.unique(ends[ends >= S] - S)
+
+
+def uncross_columns(outer_pos: np.ndarray, triangles: np.ndarray, end: np.ndarray, *, shrink: float = 0.85,
+                    min_height: float = 5e-4, rounds: int = 40) -> tuple[np.ndarray, int]:
+    """Column ends shortened (by ``shrink`` per round, not below ``min_height``) until no boundary triangle of the
+    skin crosses another, and how many columns were shortened: the skin is made locally thinner rather than
+    passing through itself, which no mold could cast. Raises ValueError if ``rounds`` do not clear it."""
+    outer_pos = np.asarray(outer_pos, dtype=np.float64)
+    end = np.array(end, dtype=np.float64)
+    offset = end - outer_pos
+    h = np.linalg.norm(offset, axis=1)
+    direction = offset / h[:, None]
+    changed = np.zeros(len(end), dtype=bool)
+    for _ in range(rounds):
+        cut = crossing_columns(outer_pos, triangles, outer_pos + h[:, None] * direction)
+        if not cut.size:
+            return outer_pos + h[:, None] * direction, int(changed.sum())
+        h[cut] = np.maximum(h[cut] * shrink, min_height)
+        changed[cut] = True
+    raise ValueError(f"the layered skin still passes through itself after {rounds} rounds of shortening "
+                     f"{int(changed.sum())} columns")
+
+
 def _inner_surface(mesh: TetMesh, inner: np.ndarray) -> np.ndarray:
     bf = boundary_faces(mesh)
     mask = np.zeros(mesh.n_nodes, dtype=bool)
@@ -185,6 +222,7 @@ def layered_mesh(source: TetMesh, outer: np.ndarray, triangles: np.ndarray, inne
     S = len(outer)
     columns = np.arange(S * (layers + 1), dtype=np.int64).reshape(layers + 1, S).T  # layer-major numbering
     end, untangled = untangle_columns(outer_pos, triangles, outer_pos + h[:, None] * direction)
+    end, uncrossed = uncross_columns(outer_pos, triangles, end)
     h = np.linalg.norm(end - outer_pos, axis=1)
     direction = (end - outer_pos) / h[:, None]
     frac = np.arange(layers + 1) / layers
@@ -200,7 +238,7 @@ def layered_mesh(source: TetMesh, outer: np.ndarray, triangles: np.ndarray, inne
     tets[neg, 1], tets[neg, 2] = tets[neg, 2].copy(), tets[neg, 1].copy()
     sets, dropped = _column_sets(source, inner, nodes[columns[:, -1]], columns[:, -1], tets, set_distance)
     mesh = TetMesh(nodes, tets, sets)
-    return LayeredSkin(mesh, h, direction, columns, dropped, untangled)
+    return LayeredSkin(mesh, h, direction, columns, dropped, untangled, uncrossed)
 
 
 def _column_sets(source: TetMesh, inner: np.ndarray, points: np.ndarray, ids: np.ndarray, tets: np.ndarray,
@@ -270,6 +308,7 @@ def layered_skin_folder(src_dir: str | Path, out_dir: str | Path, layers: int = 
               "node_sets": {k: len(v) for k, v in lay.mesh.node_sets.items()},
               "set_nodes_trimmed": lay.dropped_set_nodes,
               "columns_untangled": lay.untangled_columns,
+              "columns_shortened_where_the_skin_crossed_itself": lay.uncrossed_columns,
               "thickness_m": {"min": float(lay.thickness.min()), "median": float(np.median(lay.thickness)),
                               "max": float(lay.thickness.max())},
               "quality": {"min": float(q.min()), "median": float(np.median(q))}}

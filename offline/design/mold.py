@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .mesh_check import check_stl, merge_as_stl
+from .mesh_check import check_stl, merge_as_stl, self_intersecting_pairs
 
 
 @dataclass(frozen=True)
@@ -363,7 +363,18 @@ def export_mold(skin_dir: str | Path, out_dir: str | Path, settings: MoldSetting
             raise SpecError(str(fu), "surface_nodes/inner_nodes", "missing: the mold needs both design surfaces")
         outer, inner = np.asarray(z["surface_nodes"]), np.asarray(z["inner_nodes"])
     skin_faces, outer_faces, inner_faces = skin_surfaces(mesh, outer, inner)
-    result = build_mold(np.asarray(mesh.nodes), skin_faces, outer_faces, inner_faces, settings)
+    nodes = np.asarray(mesh.nodes)
+    crossing = self_intersecting_pairs(nodes * 1e3, skin_faces)  # in mm, as the mold is built
+    if len(crossing):
+        at = nodes[skin_faces[np.unique(crossing.ravel())]].reshape(-1, 3).mean(axis=0) * 1e3
+        raise SpecError(str(skin_dir / "skin.vtu"), "surface",
+                        f"{len(crossing)} pairs of its boundary triangles cross each other, around "
+                        f"({at[0]:.1f}, {at[1]:.1f}, {at[2]:.1f}) mm: no mold can be cast from a skin that passes "
+                        "through itself")
+    try:
+        result = build_mold(nodes, skin_faces, outer_faces, inner_faces, settings)
+    except ValueError as exc:
+        raise SpecError(str(skin_dir / "skin.vtu"), "mold", str(exc)) from exc
     flash = float(result["flash_mm3"])
     out.mkdir(parents=True, exist_ok=True)
     files = {}

@@ -71,6 +71,10 @@ def test_sample_skin_extruded_in_two_layers(tmp_path: Path):
     with np.load(SKIN / "face_units.npz") as z:
         n_tri = len(z["surface_triangles"])
     assert len(boundary_faces(mesh)) > 2 * n_tri  # outer, inner and the rims' walls
+    # and nowhere does the skin pass through itself (a mold could not cast it): the columns that did are shorter
+    from offline.design.mesh_check import self_intersecting_pairs
+
+    assert len(self_intersecting_pairs(np.asarray(mesh.nodes) * 1e3, boundary_faces(mesh))) == 0
 
 
 def test_a_folded_column_is_untangled():
@@ -85,6 +89,27 @@ def test_a_folded_column_is_untangled():
 
     fixed, changed = untangle_columns(pos, tris, end)
     assert folded_prisms(pos, tris, fixed).size == 0 and changed > 0
+
+
+def test_columns_that_meet_across_a_fold_are_shortened_until_the_skin_no_longer_crosses_itself():
+    from offline.design.layered import crossing_columns, uncross_columns
+
+    # two strips 1 mm apart facing each other (a fold of the surface), columns 1.5 mm long: each side's column
+    # ends pass through the other side
+    x, z = np.meshgrid(np.arange(5.0), np.arange(3.0), indexing="ij")
+    strip = np.c_[x.ravel(), np.zeros(x.size), z.ravel()] * 1e-3
+    idx = np.arange(15).reshape(5, 3)
+    tris = np.concatenate([np.stack([idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()], 1),
+                           np.stack([idx[:-1, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()], 1)])
+    pos = np.concatenate([strip, strip + np.array([0.5e-3, 1e-3, 0.5e-3])])  # offset: no edges shared
+    tris = np.concatenate([tris, tris[:, ::-1] + 15])
+    inward = np.repeat([[0.0, 1.0, 0.0], [0.0, -1.0, 0.0]], 15, axis=0)
+    end = pos + 1.5e-3 * inward
+    assert crossing_columns(pos, tris, end).size > 0
+    fixed, changed = uncross_columns(pos, tris, end)
+    assert crossing_columns(pos, tris, fixed).size == 0 and changed > 0
+    h = np.linalg.norm(fixed - pos, axis=1)
+    assert np.all(h[crossing_columns(pos, tris, end)] < 1.5e-3) and h.max() <= 1.5e-3
 
 
 def test_rest_shape_derivatives_on_the_layered_skin():

@@ -137,3 +137,23 @@ def test_export_mold_cli_names_a_bad_skin_folder(tmp_path):
                        env=env, cwd=ROOT)
     assert r.returncode != 0
     assert "skin.vtu" in r.stderr
+
+
+def test_export_mold_refuses_a_skin_that_passes_through_itself(tmp_path):
+    """A skin whose boundary crosses itself is refused before any boolean, naming the file and where."""
+    from models.errors import SpecError
+    from offline.fem import load_mesh
+
+    skin = ROOT / "heads" / "sample" / "skin"
+    mesh = load_mesh(skin / "skin.vtu")
+    with np.load(skin / "face_units.npz") as z:
+        outer, inner = np.asarray(z["surface_nodes"]), np.asarray(z["inner_nodes"])
+    nodes = np.array(mesh.nodes)
+    X = nodes[outer]
+    k = int(inner[len(inner) // 2])
+    nearest = X[np.argmin(np.linalg.norm(X - nodes[k], axis=1))]
+    nodes[k] += 3.0 * (nearest - nodes[k])  # an inner node pushed out through the outer surface
+    save_mesh(tmp_path / "skin.vtu", TetMesh(nodes, mesh.tets, mesh.node_sets))
+    (tmp_path / "face_units.npz").write_bytes((skin / "face_units.npz").read_bytes())
+    with pytest.raises(SpecError, match=r"skin\.vtu: surface: \d+ pairs of its boundary triangles cross each other"):
+        export_mold(tmp_path, tmp_path / "mold")
