@@ -33,7 +33,7 @@ in the channels is a sprue to trim from the cast skin.
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -64,6 +64,11 @@ class MoldSettings:
     pin_radius_mm: float = 2.5  # registration pins of the left shell half in sockets of the right half
     pin_length_mm: float = 5.0
     pin_clearance_mm: float = 0.15
+
+
+#: (vertex-merging tolerance, notch width) in mm a mold is built again with, in turn, when its parts keep STL
+#: defects at the settings given.
+REPAIR_STEPS_MM = ((0.05, 0.15), (0.01, 0.3), (0.05, 0.3))
 
 
 def _manifold(vertices: np.ndarray, faces: np.ndarray):
@@ -161,7 +166,7 @@ def _repair(m, settings: MoldSettings, rounds: int = 4):
         m = _clean(m - _notch(segs, settings.notch_mm), settings.sliver_mm3, settings.tolerance_mm)
         removed += before - m.volume()
     if len(_stl_defects(m)):
-        raise ValueError("a mold part keeps pinched or crossing walls after repair; try another tolerance_mm")
+        raise ValueError("a mold part keeps pinched or crossing walls after repair")
     return m, removed
 
 
@@ -371,10 +376,22 @@ def export_mold(skin_dir: str | Path, out_dir: str | Path, settings: MoldSetting
                         f"{len(crossing)} pairs of its boundary triangles cross each other, around "
                         f"({at[0]:.1f}, {at[1]:.1f}, {at[2]:.1f}) mm: no mold can be cast from a skin that passes "
                         "through itself")
-    try:
-        result = build_mold(nodes, skin_faces, outer_faces, inner_faces, settings)
-    except ValueError as exc:
-        raise SpecError(str(skin_dir / "skin.vtu"), "mold", str(exc)) from exc
+    # A part whose STL defects the notches cannot clear is built again with a coarser vertex-merging tolerance and
+    # wider notches (flash the casting fills; all still below a printer's resolution): a layered skin's finer inner
+    # surface needs it.
+    tries = [settings, *(replace(settings, tolerance_mm=max(t, settings.tolerance_mm),
+                                 notch_mm=max(n, settings.notch_mm)) for t, n in REPAIR_STEPS_MM
+                         if t > settings.tolerance_mm or n > settings.notch_mm)]
+    for k, attempt in enumerate(tries):
+        try:
+            result = build_mold(nodes, skin_faces, outer_faces, inner_faces, attempt)
+            break
+        except ValueError as exc:
+            if k == len(tries) - 1:
+                tried = ", ".join(f"{t.tolerance_mm:g}/{t.notch_mm:g}" for t in tries)
+                raise SpecError(str(skin_dir / "skin.vtu"), "mold",
+                                f"{exc} (tolerance/notch tried: {tried} mm)") from exc
+    settings = attempt
     flash = float(result["flash_mm3"])
     out.mkdir(parents=True, exist_ok=True)
     files = {}
