@@ -28,6 +28,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="sample within this fraction of each actuator's span around neutral (default 1: full range); "
                    "the dataset and the predictor trained on it record the sampled range")
     p.add_argument("--max-poses", type=int, default=None, help="stop after solving this many new poses")
+    p.add_argument("--start", choices=("nearest", "rest"), default="nearest",
+                   help="where each pose's solve starts: the nearest pose solved so far (default; faster, but a skin "
+                   "with several equilibria then takes whichever branch its neighbour was on, and that depends on "
+                   "the order the workers finish in) or the skin at rest (every pose the equilibrium reached from "
+                   "neutral: the same on every run)")
     p.add_argument("--element-order", type=int, choices=(1, 2), default=1,
                    help="1: the mesh's linear tets; 2: the same tets quadratic (mid-edge nodes; about 5x the time "
                    "per Newton iteration, far less discretization error in a thin skin)")
@@ -56,7 +61,8 @@ def run(args: argparse.Namespace) -> int:
         config=args.config, out=args.out, poses=args.poses, mesh=args.mesh, linkmap=args.linkmap,
         synthetic=args.synthetic, engine=args.engine, workers=args.workers,
         threads_per_worker=args.threads_per_worker, seed=args.seed, boundary_prob=args.boundary_prob,
-        range_fraction=args.range_fraction, max_poses=args.max_poses, element_order=args.element_order,
+        range_fraction=args.range_fraction, max_poses=args.max_poses, start=args.start,
+        element_order=args.element_order,
         backend=args.backend, select=args.select, budget=args.budget, batch=args.batch, init=args.init,
         policy=args.policy)
 

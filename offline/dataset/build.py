@@ -38,6 +38,7 @@ class DatasetSettings:
     boundary_prob: float = 0.25
     range_fraction: float = 1.0
     max_poses: int | None = None
+    start: str = "nearest"
     element_order: int = 1
     backend: str = "auto"
     select: str | None = None
@@ -134,7 +135,7 @@ def build_dataset(settings: DatasetSettings, progress_stream: TextIO | None = sy
             return generate_dataset(
                 settings.out, spec, samples, head=head.name, names=head.actuator_names, units=units, lo=lo, hi=hi,
                 engine=engine, seed=settings.seed, sampling=sampling, progress_stream=progress_stream,
-                max_poses=settings.max_poses, rest_pose=rest_pose)
+                max_poses=settings.max_poses, rest_pose=rest_pose, start=settings.start)
         import torch
 
         from offline.active.loop import grow_dataset

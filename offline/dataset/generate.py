@@ -88,8 +88,12 @@ def generate_dataset(root: str | Path, spec: ProblemSpec, samples: np.ndarray, *
                      engine: Engine, seed: int, sampling: dict[str, Any],
                      progress_stream: TextIO | None = sys.stderr, max_in_flight: int | None = None,
                      max_poses: int | None = None, indices: Sequence[int] | None = None,
-                     rest_pose: Sequence[float] | None = None) -> dict[str, Any]:
+                     rest_pose: Sequence[float] | None = None, start: str = "nearest") -> dict[str, Any]:
     """Create (or resume) the dataset at ``root`` and solve every missing pose; returns a summary.
+
+    ``start``: each solve starts from the nearest converged pose (``"nearest"``) or from rest (``"rest"``: labels
+    that do not depend on the order poses finish in, for skins with several equilibria); recorded in the manifest
+    as ``start`` (a dataset without it was made from the nearest pose), and a resume must use the same.
 
     ``rest_pose``: actuator values (SI) at which the problem's surface is exactly at rest (the head's neutral pose
     for the FEM skin, where the link map moves nothing); stored in the manifest so training can pin the predictor
@@ -109,6 +113,9 @@ def generate_dataset(root: str | Path, spec: ProblemSpec, samples: np.ndarray, *
         "n_poses": len(samples), "seed": int(seed), "sampling": sampling, "problem": spec.describe(),
         "n_vertices": int(problem.base_surface().shape[0]), "mesh": problem.mesh_info(),
     }
+    if start not in ("nearest", "rest"):
+        raise ValueError(f"start must be 'nearest' or 'rest', got {start!r}")
+    manifest["start"] = start
     if rest_pose is not None:
         rest = [float(x) for x in rest_pose]
         if len(rest) != len(names) or not all(np.isfinite(rest)):
@@ -136,7 +143,7 @@ def generate_dataset(root: str | Path, spec: ProblemSpec, samples: np.ndarray, *
 
     def make_args(i: int) -> tuple[Any, ...]:
         warm = None
-        if solved_idx:
+        if solved_idx and start == "nearest":
             cand = np.asarray(solved_idx)
             j = int(cand[np.argmin(((xs[cand] - xs[i]) ** 2).sum(axis=1))])
             warm = str(store.pose_path(j))

@@ -89,6 +89,10 @@ class PoseStore:
                     raise SpecError(str(self.root / "dataset.json"), key,
                                     "folder holds a dataset made with different settings; use a new --out",
                                     old.get(key))
+            if old.get("start", "nearest") != manifest.get("start", "nearest"):
+                raise SpecError(str(self.root / "dataset.json"), "start",
+                                f"folder holds a dataset solved from {old.get('start', 'nearest')!r}; resume it with "
+                                f"--start {old.get('start', 'nearest')} or use a new --out", manifest.get("start"))
             if "rest_pose" in manifest and "rest_pose" not in old:  # written before rest poses were recorded
                 doc = {**old, "rest_pose": manifest["rest_pose"]}
                 write_bytes(self.root / "dataset.json", json.dumps(doc, indent=1).encode())

@@ -177,3 +177,26 @@ def test_the_neutral_pose_is_the_rest_state_recorded_as_the_dataset_rest_pose(bo
                      names=head.actuator_names, units=["m", "m"], lo=lo, hi=hi, engine=SerialEngine(), seed=0,
                      sampling={}, progress_stream=None, rest_pose=neutral)
     np.testing.assert_array_equal(PoseDataset(tmp_path / "ds").rest_pose, neutral)
+
+
+def test_poses_solved_from_rest_do_not_depend_on_each_other_and_a_resume_keeps_the_choice(box_problem, tmp_path):
+    """``start="rest"``: every stored pose is the equilibrium a solve from rest reaches, bit for bit, whatever was
+    solved before it; the manifest records it, and resuming from the nearest pose instead is refused by name."""
+    _root, head, spec, _mesh = box_problem
+    prob = spec.build()
+    samples = np.array([[0.0015, 0.001], [0.0014, 0.0009], [-0.0005, 0.0012]])
+    lo = np.array([a.min for a in head.actuators])
+    hi = np.array([a.max for a in head.actuators])
+    kwargs = dict(head="box", names=head.actuator_names, units=["m", "m"], lo=lo, hi=hi, engine=SerialEngine(),
+                  seed=0, sampling={}, progress_stream=None)
+    generate_dataset(tmp_path / "rest", spec, samples, start="rest", **kwargs)
+    generate_dataset(tmp_path / "near", spec, samples, **kwargs)
+    rest, near = PoseStore(tmp_path / "rest"), PoseStore(tmp_path / "near")
+    assert rest.manifest()["start"] == "rest" and near.manifest()["start"] == "nearest"
+    for i, p in enumerate(samples):
+        alone = prob.solve(p, None)
+        assert np.array_equal(rest.read_pose(i).surface, alone.surface.astype(np.float32))  # as stored
+        assert rest.read_pose(i).iterations == alone.iterations
+    assert near.read_pose(1).iterations < rest.read_pose(1).iterations  # its neighbour was the start there
+    with pytest.raises(SpecError, match="start: folder holds a dataset solved from 'rest'"):
+        generate_dataset(tmp_path / "rest", spec, samples, **kwargs)
