@@ -75,6 +75,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ring-rounds", type=int, default=3,
                    help="layout design: rounds of the attachment-ring step at most, between continuous rounds "
                         "(default 3; 0: node sets stay as they are); the envelope's attachment_rings limits each set")
+    p.add_argument("--no-attachment-bound", action="store_true",
+                   help="layout design: skip the attachments' own reach (each attachment set moved freely, no "
+                        "mechanism: the best any layout could do with these node sets; about as long as the after "
+                        "stage)")
 
 
 def run(args: argparse.Namespace) -> int:

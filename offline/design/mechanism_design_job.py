@@ -94,9 +94,10 @@ def run_layout_design(face: FaceSkin, targets: Mapping[str, Mapping[str, float]]
                       settings: LayoutSettings, *, config: str | Path, envelope: str | Path | None = None,
                       targets_file: str | None = None, resume: bool = True, write_head_folder: bool = True,
                       map_samples: int = 300, strain: bool = True, rings: RingSettings | None = None,
-                      progress: Progress = print) -> dict[str, Any]:
+                      bound: bool = True, progress: Progress = print) -> dict[str, Any]:
     """Run (or resume) the layout design of ``face`` for ``targets`` and write ``out``/report.json, report.md,
-    the pictures and ``out/head/``; returns the report. ``rings``: the attachment-ring step's stopping rule."""
+    the pictures and ``out/head/``; returns the report. ``rings``: the attachment-ring step's stopping rule;
+    ``bound``: also find the attachments' own reach (:mod:`.attachment_bound`), what no layout can beat."""
     from .mechanism_design_report import write_layout_report
 
     out = Path(out)
@@ -173,6 +174,9 @@ def run_layout_design(face: FaceSkin, targets: Mapping[str, Mapping[str, float]]
         arrays.update(P_after=np.array([r.p for r in after]), X_after=np.array([r.x for r in after]),
                       W_after=np.array([r.strain_weight for r in after]))
         checkpoint(state)
+    if bound and "P_bound" not in arrays:
+        arrays.update(_bound(lp, names, arrays, progress))
+        checkpoint(state)
     seconds = base + time.perf_counter() - t_mark
     head_dir = out / "head"
     ring_report = {"limits": step.limits, "settings": asdict(rings), "sets": step.summary(), "rounds": rounds,
@@ -227,6 +231,25 @@ def estimate_layout(lp: LayoutProblem, space: DesignSpace, n_targets: int, itera
             "estimate_s": n_targets * 16 * t_solve + iterations * per_it}
 
 
+def _bound(lp: LayoutProblem, names: list[str], arrays: Mapping[str, np.ndarray],
+           say: Progress) -> dict[str, np.ndarray]:
+    """The attachments' own reach, each target started from the new layout's solution (the after stage)."""
+    from .attachment_bound import attachment_bound, bound_problem
+
+    problem, free = bound_problem(lp.face, strain=lp.problem.strain is not None,
+                                  margin=lp.settings.strain_margin, tol_force=lp.settings.tol_force)
+    say(f"[bound] the attachments moved freely (6 x {len(free.links)} coordinates a target, no mechanism): the best "
+        "any layout could do with these attachment sets")
+    starts = []
+    for p, x in zip(arrays["P_after"], arrays["X_after"], strict=True):
+        T = lp.boundary.transforms(p)
+        starts.append(({n: T[n] for n in free.links if n in T}, x))
+    res = attachment_bound(problem, free, lp.targets, starts=starts, weights=arrays["W_after"], progress=say,
+                           labels=names)
+    return {"P_bound": np.array([r.p for r in res]), "X_bound": np.array([r.x for r in res]),
+            "bound_links": np.array(json.dumps(list(free.links)))}
+
+
 def run_layout_command(args: Any, face: FaceSkin, targets: Mapping[str, Mapping[str, float]],
                        say: Progress, thickness: CloneSettings | None = None) -> int:
     """``likeness offline clone --design-mechanism``: the dry run or the run, and its summary lines; with
@@ -255,7 +278,8 @@ def run_layout_command(args: Any, face: FaceSkin, targets: Mapping[str, Mapping[
         return 0
     report = run_layout_design(face, targets, args.out, settings, config=args.config, envelope=args.envelope,
                                targets_file=args.targets, resume=not args.fresh,
-                               strain=not args.no_strain_constraint, rings=rings, progress=say)
+                               strain=not args.no_strain_constraint, rings=rings,
+                               bound=not args.no_attachment_bound, progress=say)
     sm = report["summary"]
     mm = 1e3
     for label in ("before", "after"):
@@ -263,6 +287,10 @@ def run_layout_command(args: Any, face: FaceSkin, targets: Mapping[str, Mapping[
         print(f"{label}: surface error mean {v['surface_mean_m'] * mm:.2f} mm, max {v['surface_max_m'] * mm:.2f} mm; "
               f"strain {v['strain_min']:+.1%} .. {v['strain_max']:+.1%} "
               f"({'all inside' if v['all_inside_strain_range'] else 'NOT all inside'} the range)")
+    if "bound" in sm:
+        v = sm["bound"]
+        print(f"attachments moved freely (any layout's limit): surface error mean {v['surface_mean_m'] * mm:.2f} mm, "
+              f"max {v['surface_max_m'] * mm:.2f} mm")
     g = sm["goal"]
     print(f"goal mean <= 0.5 mm: {'met' if g['mean_met'] else 'NOT met'}; max <= 4 mm: "
           f"{'met' if g['max_met'] else 'NOT met'}" + (f" (not reached: {', '.join(sm['unreached_targets'])}; see "

@@ -28,6 +28,13 @@ from .mechanism_design_envelope import VariableGroup
 
 GOAL_MEAN_M = 0.5e-3
 GOAL_MAX_M = 4e-3
+#: What the free-attachment figures mean (in the report beside them).
+BOUND_NOTE = ("Each attachment node set moved by any rigid motion of its own, per target (no mechanism, no "
+              "envelope), the actuation optimizer's objective and strain constraint, started from the new layout's "
+              "solution: every layout's attachment motions are among these, so a target these motions cannot bring "
+              "within the goal is out of reach of every layout with these attachment sets and this skin. The "
+              "optimizer is local and lowers the objective (the sum of squared vertex errors, and the strain "
+              "penalty), so its mean and max can differ from the layout's in either direction by a little.")
 
 
 def _sha256(path: str | Path | None) -> str | None:
@@ -172,6 +179,7 @@ def write_layout_report(lp: LayoutProblem, state: LayoutState, arrays: Mapping[s
 
     before = target_errors(lp, arrays["X_before"])
     after = target_errors(lp, arrays["X_after"])
+    bound = target_errors(lp, arrays["X_bound"]) if "X_bound" in arrays else None
     head = lp.face.skin.head
     con = lp.measure
     Z_after = np.array([lp.aspace.reduce(p) for p in arrays["P_after"]])
@@ -203,6 +211,11 @@ def write_layout_report(lp: LayoutProblem, state: LayoutState, arrays: Mapping[s
             row["target_inside_strain_range"] = bool(con.inside(own[k]))
         reached = after[k]["surface_mean_m"] <= GOAL_MEAN_M and after[k]["surface_max_m"] <= GOAL_MAX_M
         row["reached"] = bool(reached)
+        if bound is not None:
+            row["bound"] = bound[k]
+            row["bound_link_changes"] = _link_changes(lp, arrays["P_after"][k], arrays["P_bound"][k])
+            row["bound_reaches_goal"] = bool(bound[k]["surface_mean_m"] <= GOAL_MEAN_M
+                                             and bound[k]["surface_max_m"] <= GOAL_MAX_M)
         if not reached:
             row["binding"] = sorted(
                 ({"item": b["item"], "what": b["what"], "rms_now_mm": t["rms_now_mm"],
@@ -219,6 +232,13 @@ def write_layout_report(lp: LayoutProblem, state: LayoutState, arrays: Mapping[s
                 "all_inside_strain_range": all(r.get("strain_inside", True) for r in rows)}
 
     sb, sa = summary(before), summary(after)
+    extra = {}
+    if bound is not None:
+        sbd = summary(bound)
+        extra["bound"] = {**sbd, "mean_met": sbd["surface_mean_m"] <= GOAL_MEAN_M,
+                          "max_met": sbd["surface_max_m"] <= GOAL_MAX_M,
+                          "links": json.loads(str(arrays["bound_links"])),
+                          "note": BOUND_NOTE}
     report = {
         "command": "likeness offline clone --design-mechanism",
         "head": head.name, "targets": list(names), "seconds": seconds,
@@ -235,7 +255,7 @@ def write_layout_report(lp: LayoutProblem, state: LayoutState, arrays: Mapping[s
                              "mean_met": sa["surface_mean_m"] <= GOAL_MEAN_M,
                              "max_met": sa["surface_max_m"] <= GOAL_MAX_M,
                              "strain_met": sa["all_inside_strain_range"]},
-                    "unreached_targets": [r["target"] for r in per_target if not r["reached"]]},
+                    "unreached_targets": [r["target"] for r in per_target if not r["reached"]], **extra},
         "per_target": per_target, "moved_parameters": moved_parameters(lp, state.theta),
         "binding_limits": binding, "head_folder": head_checks, "pictures": pictures,
     }
@@ -277,8 +297,10 @@ def report_markdown(r: Mapping[str, Any]) -> str:
              f"`{r['command']}`, {len(r['targets'])} targets, {r['design_variables']} design variables, "
              f"{r['iterations']} iterations, {r['seconds'] / 60:.1f} min.", "",
              "| | surface error mean | max | strain min .. max | all inside |", "|---|---|---|---|---|"]
-    for label, key in (("before (today's mechanism, actuation optimized)", "before"),
-                       ("after (layout + actuation)", "after")):
+    rows = [("before (today's mechanism, actuation optimized)", "before"), ("after (layout + actuation)", "after")]
+    if "bound" in s:
+        rows.append(("attachments moved freely (any layout's limit)", "bound"))
+    for label, key in rows:
         v = s[key]
         lines.append(f"| {label} | {v['surface_mean_m'] * mm:.2f} mm | {v['surface_max_m'] * mm:.2f} mm | "
                      f"{(v['strain_min'] or 0):+.1%} .. {(v['strain_max'] or 0):+.1%} | "
@@ -312,6 +334,7 @@ def report_markdown(r: Mapping[str, Any]) -> str:
                      f"model moves it to {b['would_move_to']:.2f} {b['unit']} ({b['beyond_limit_by']:+.2f} past the "
                      f"limit), objective gain {b['predicted_objective_gain']:.4g}")
     lines += _rings_markdown(r.get("attachment_rings"))
+    lines += _bound_markdown(r)
     un = [t for t in r["per_target"] if not t["reached"]]
     if un:
         lines += ["", "## Targets out of reach", ""]
@@ -324,6 +347,12 @@ def report_markdown(r: Mapping[str, Any]) -> str:
                    "it exactly, whatever the mechanism" + (f"; also {why}" if why else ""))
         if not t.get("binding"):
             why += ("; " if why else "") + "no envelope limit binds for it"
+        if "bound" in t:
+            bd = t["bound"]
+            why += (f"; with its attachment sets moved freely it gets to {bd['surface_mean_m'] * mm:.2f} / "
+                    f"{bd['surface_max_m'] * mm:.2f} mm mean / max: "
+                    + ("reachable in principle, so the mechanism's structure or envelope limits it" if
+                       t["bound_reaches_goal"] else "out of reach of any layout with these attachment sets"))
         wv = t["after"]["worst_vertex"]
         why = (f"largest vertex error {t['after']['vertex_max_m'] * mm:.1f} mm in region {wv['region']} (the target "
                f"moves that vertex {wv['target_moves_it_m'] * mm:.1f} mm), {t['after']['vertices_over_4mm']} of "
@@ -337,6 +366,46 @@ def report_markdown(r: Mapping[str, Any]) -> str:
                      "needs") + ")."]
     lines += ["", "![before](pictures/mechanism_before.png)", "![after](pictures/mechanism_after.png)", ""]
     return "\n".join(lines)
+
+
+def _link_changes(lp: LayoutProblem, p_after: np.ndarray, p_free: np.ndarray) -> list[dict[str, Any]]:
+    """How far each link's free motion is from the layout's motion at the same target: its attachment set's
+    centroid (mm) and its rotation (deg), largest first. What a mechanism would have to do differently."""
+    from scipy.spatial.transform import Rotation
+
+    from .attachment_bound import FreeAttachments
+
+    free = FreeAttachments(lp.face)
+    Ta, Tb = lp.boundary.transforms(p_after), free.transforms(p_free)
+    out = []
+    for link, c in zip(free.links, free.centers, strict=True):
+        a = Ta.get(link, np.eye(4))
+        b = Tb[link]
+        shift = (b[:3, :3] @ c + b[:3, 3]) - (a[:3, :3] @ c + a[:3, 3])
+        turn = Rotation.from_matrix(b[:3, :3] @ a[:3, :3].T).magnitude()
+        out.append({"link": link, "centroid_mm": float(np.linalg.norm(shift) * 1e3),
+                    "centroid_shift_mm": (shift * 1e3).tolist(), "rotation_deg": float(np.degrees(turn))})
+    return sorted(out, key=lambda r: -r["centroid_mm"])
+
+
+def _bound_markdown(r: Mapping[str, Any]) -> list[str]:
+    """The attachments' own reach: per target the layout's result against the free attachment motions'."""
+    if "bound" not in r["summary"]:
+        return []
+    mm = 1e3
+    lines = ["", "## The attachments' own reach (any layout)", "", r["summary"]["bound"]["note"], "",
+             "| target | after mean / max (mm) | attachments free mean / max (mm) | strain, free | goal reachable | "
+             "links moved most differently from the layout (centroid mm, rotation deg) |",
+             "|---|---|---|---|---|---|"]
+    for t in r["per_target"]:
+        a, b = t["after"], t["bound"]
+        moved = ", ".join(f"{c['link']} {c['centroid_mm']:.1f} mm / {c['rotation_deg']:.1f}°"
+                          for c in t["bound_link_changes"][:3])
+        lines.append(f"| {t['target']} | {a['surface_mean_m'] * mm:.2f} / {a['surface_max_m'] * mm:.2f} | "
+                     f"{b['surface_mean_m'] * mm:.2f} / {b['surface_max_m'] * mm:.2f} | "
+                     f"{b.get('strain_min', 0):+.1%} .. {b.get('strain_max', 0):+.1%} | "
+                     f"{'yes' if t['bound_reaches_goal'] else 'no'} | {moved} |")
+    return lines
 
 
 def _rings_markdown(rings: Mapping[str, Any] | None) -> list[str]:

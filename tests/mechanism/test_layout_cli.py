@@ -59,11 +59,16 @@ def test_a_small_layout_design_writes_its_report_and_head_and_resumes(tmp_path, 
     assert all(p.get("move", 0.0) <= 5.0 + 1e-9 for p in report["moved_parameters"])
     assert report["head_folder"]["file_vs_design_max_mm"] < 1e-3
     assert (out / "head" / "head.toml").is_file() and (out / "pictures" / "mechanism_after.png").is_file()
+    # the attachments' own reach: every link freed, its figures beside the layout's
+    assert report["summary"]["bound"]["links"] and row["bound"]["surface_mean_m"] > 0
+    assert {c["link"] for c in row["bound_link_changes"]} == set(report["summary"]["bound"]["links"])
+    assert "## The attachments' own reach" in (out / "report.md").read_text()
     capsys.readouterr()
     assert main(args) == 0  # again: resumed from the checkpoint, nothing recomputed but the report
     assert "resuming from" in capsys.readouterr().out
     again = json.loads((out / "report.json").read_text())
     assert again["per_target"][0]["after"] == row["after"]
+    assert again["per_target"][0]["bound"] == row["bound"]  # the bound stage is checkpointed too
 
 
 def test_ring_rounds_below_zero_are_refused(tmp_path, capsys) -> None:
