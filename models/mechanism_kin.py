@@ -33,7 +33,12 @@ PREDICT_MAX = 0.5
 
 
 class AssemblyError(LikenessError, ValueError):
-    """A linkage cannot assemble at the requested motor values; names the loop and the motor values."""
+    """A linkage cannot assemble at the requested motor values; names the loop and the motor values. ``bodies``: the
+    loop's bodies, for a caller that changes only what that loop depends on."""
+
+    def __init__(self, message: str, bodies: tuple[str, ...] = ()) -> None:
+        super().__init__(message)
+        self.bodies = tuple(bodies)
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -394,7 +399,7 @@ def _assembly_error(st: Structure, group: Group, goal: Mapping[str, float], at: 
 
     return AssemblyError(f"{spec.source}: the loop of {', '.join(names)} (couplers {', '.join(rods) or 'none'}) "
                          f"cannot assemble at motor values {show(goal)}: Newton fails at {show(at)} (a rod too "
-                         "short or too long there, or a dead point)")
+                         "short or too long there, or a dead point)", bodies=tuple(names))
 
 
 # ---------------------------------------------------------------------------- checks and derivatives

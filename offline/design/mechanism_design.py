@@ -21,7 +21,7 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -150,9 +150,9 @@ class LayoutProblem:
         return (0.5 * rho * float(np.sum((theta / s) ** 2)), rho * theta / s ** 2, rho / s ** 2)
 
     def evaluate_all(self, theta: np.ndarray, Z: np.ndarray, X: Sequence[np.ndarray | None],
-                     weights: np.ndarray) -> list[Evaluation] | None:
-        """Every target simulated at design θ and actuation Z (None when the mechanism cannot assemble or a pose
-        does not converge); the boundary is left at θ."""
+                     weights: np.ndarray, raise_assembly: bool = False) -> list[Evaluation] | None:
+        """Every target simulated at design θ and actuation Z (None when the mechanism cannot assemble, or with
+        ``raise_assembly`` its AssemblyError, or when a pose does not converge); the boundary is left at θ."""
         try:
             self.boundary.set_design(theta)
             out = []
@@ -162,6 +162,8 @@ class LayoutProblem:
                     return None
                 out.append(ev)
         except AssemblyError:
+            if raise_assembly:
+                raise
             return None
         return out
 
@@ -238,6 +240,7 @@ class LayoutState:
     iteration: int = 0
     done: bool = False
     seconds: float = 0.0  # time spent on this design over every invocation (resumed runs add up)
+    held_back: dict[str, int] = field(default_factory=dict)  # loops whose part of a step was cut, and how often
 
 
 Progress = Callable[[str], None]
@@ -264,6 +267,7 @@ def design_layout(lp: LayoutProblem, state: LayoutState, *, progress: Progress =
         F = lp.total(state.theta, evs)
         lins = [lp.linearize(ev, q) for ev, q in zip(evs, lp.targets, strict=True)]
         g, H = normal_equations(lp, state.theta, evs, lins)
+        state.held_back = {}
         new, F_new = _trial_step(lp, state, evs, g, H, F)
         state.iteration += 1
         elapsed = time.perf_counter() - t0
@@ -284,12 +288,15 @@ def design_layout(lp: LayoutProblem, state: LayoutState, *, progress: Progress =
                  "design_step_scaled": moved, "seconds": time.perf_counter() - it_t0,
                  "strain_min": min((a for a, _ in strain), default=None),
                  "strain_max": max((b for _, b in strain), default=None),
-                 "outside": [k for k, e in enumerate(evs) if con is not None and not con.inside(e.strain)]}
+                 "outside": [k for k, e in enumerate(evs) if con is not None and not con.inside(e.strain)],
+                 "loops_cut": dict(state.held_back)}
         state.log.append(entry)
         rel = (F - F_new) / max(abs(F), 1e-300)
         progress(f"[design] it {state.iteration}/{s.iterations} objective {F:.5g} -> {F_new:.5g} (match "
                  f"{match:.5g}, {len(entry['outside'])} pose(s) outside the strain range), design step "
-                 f"{moved:.2f} scales, {entry['seconds']:.0f}s  ETA {left / 60:.1f} min")
+                 f"{moved:.2f} scales, {entry['seconds']:.0f}s  ETA {left / 60:.1f} min"
+                 + (f"; step cut where a loop would not assemble: {_cuts(state.held_back)}" if state.held_back
+                    else ""))
         if rel < s.tol and not entry["outside"]:
             state.done = True
             progress(f"[design] relative decrease {rel:.2e} below {s.tol:.0e}: converged")
@@ -309,8 +316,7 @@ def _trial_step(lp: LayoutProblem, state: LayoutState, evs: list[Evaluation], g:
     for _ in range(8):
         step = np.linalg.solve(Hs + state.mu * np.diag(diag), -gs) * dscale
         Z_t = np.array([lp.aspace.project(state.Z[k] + step[k * Zn:(k + 1) * Zn]) for k in range(K)])
-        theta_t = lp.space.project(state.theta + step[K * Zn:])
-        trial = lp.evaluate_all(theta_t, Z_t, state.X, state.weights)
+        theta_t, trial = _assembling_step(lp, state.theta, step[K * Zn:], Z_t, state)
         if trial is not None:
             F_t = lp.total(theta_t, trial)
             if F_t < F:
@@ -318,6 +324,35 @@ def _trial_step(lp: LayoutProblem, state: LayoutState, evs: list[Evaluation], g:
                 return (theta_t, trial), F_t
         state.mu = max(state.mu * 10.0, 1e-6)
     return None, F
+
+
+def _cuts(held: Mapping[str, int]) -> str:
+    return "; ".join(f"{loop} x{n}" for loop, n in sorted(held.items(), key=lambda kv: -kv[1]))
+
+
+def _assembling_step(lp: LayoutProblem, theta: np.ndarray, d_theta: np.ndarray, Z_t: np.ndarray,
+                     state: LayoutState) -> tuple[np.ndarray, list[Evaluation] | None]:
+    """The design trial θ + d_theta, evaluated; a linkage loop that would not assemble over its motors' range has
+    its own variables' part of the step cut (by 4 each time, then dropped) and the trial is made again, so one
+    loop at the edge of assembling does not hold back the others' steps. (θ itself assembles, so dropping every
+    failing loop's part always ends with a design that assembles.)"""
+    factor = np.ones(lp.space.size)
+    theta_t = lp.space.project(theta + d_theta)
+    for _ in range(LOOP_BACKOFFS):
+        try:
+            return theta_t, lp.evaluate_all(theta_t, Z_t, state.X, state.weights, raise_assembly=True)
+        except AssemblyError as exc:
+            mask = lp.space.touching(exc.bodies)
+            if not mask.any() or not np.any(factor[mask] > 0):
+                return theta_t, None
+            factor[mask] = np.where(factor[mask] > 1.0 / 64, factor[mask] / 4.0, 0.0)
+            state.held_back[", ".join(exc.bodies)] = state.held_back.get(", ".join(exc.bodies), 0) + 1
+            theta_t = lp.space.project(theta + d_theta * factor)
+    return theta_t, None
+
+
+#: Trials of one design step before it is given up (each cuts the failing loop's part of the step).
+LOOP_BACKOFFS = 12
 
 
 # ------------------------------------------------------------------------------------------------ checkpoint

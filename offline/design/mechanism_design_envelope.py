@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import math
 import tomllib
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -234,6 +234,29 @@ class DesignSpace:
             else:
                 t[i] = np.clip(t[i], g.lo, g.hi)
         return t
+
+    def touching(self, bodies: Iterable[str]) -> np.ndarray:
+        """Mask of the variables of the joints, couplers and motors acting on any of ``bodies`` (the design of one
+        linkage loop, when an :class:`~models.mechanism_kin.AssemblyError` names its bodies)."""
+        bodies = set(bodies)
+        spec = self.spec
+        mask = np.zeros(self.size, dtype=bool)
+        for g in self.groups:
+            kind, name = g.item.split(".", 1)
+            if kind == "joints":
+                j = spec.joints[name]
+                hit = j.parent in bodies or j.child in bodies
+            elif kind == "couplers":
+                c = spec.couplers[name]
+                hit = c.a in bodies or c.b in bodies
+            elif kind == "motors":
+                j = spec.joints[spec.motors[name].joint]
+                hit = j.parent in bodies or j.child in bodies
+            else:
+                hit = False
+            if hit:
+                mask[list(g.index)] = True
+        return mask
 
     def active(self, theta: np.ndarray, tol: float = 1e-3) -> list[VariableGroup]:
         """The groups at their bound (within ``tol`` of it, relative)."""
