@@ -66,3 +66,24 @@ def test_the_runtime_map_of_the_sample_mechanism_agrees_with_it_within_0_05_mm()
             worst = max(worst, float(np.linalg.norm(truth[n][:3, 3] - fast[n][:3, 3])),
                         float(np.linalg.norm((truth[n][:3, :3] - fast[n][:3, :3]) @ [0.03, 0.0, 0.0])))
     assert worst < 0.05e-3, worst
+
+
+def test_a_map_of_the_highest_degree_a_head_folder_writes_loads_back(tmp_path) -> None:
+    """The redesigned head's map may be quintic (MAP_TRIES): the file it writes must load where the head is used."""
+    from models.errors import SpecError
+    from models.linkmap import MAX_DEGREE, LinkMap
+    from offline.design.mechanism_design_head import MAP_TRIES
+
+    head = load_head(SAMPLE_HEAD)
+    degree = max(d for d, _ in MAP_TRIES)
+    assert degree <= MAX_DEGREE
+    lm = linkmap_from_mechanism(Mechanism.load(SAMPLE_MECHANISM), head, samples=120, degree=degree)
+    back = LinkMap.load(lm.save(tmp_path / "linkmap.json"))
+    p = np.array([a.min + 0.3 * (a.max - a.min) for a in head.actuators])
+    assert back.degree == degree
+    for n, T in lm.poses(p).items():
+        assert np.allclose(back.poses(p)[n], T, atol=1e-12)
+    doc = lm.to_dict()
+    doc["degree"] = MAX_DEGREE + 1
+    with pytest.raises(SpecError, match=f"degree: must be an integer from 2 to {MAX_DEGREE}"):
+        LinkMap.from_dict(doc, "linkmap.json")
