@@ -392,6 +392,13 @@ class TargetResult:
     strain_weight: float = 0.0
 
 
+def strain_text(res: TargetResult) -> str:
+    """``, strain −a % / +b % (inside|OUTSIDE)`` for a progress line ('' without a strain constraint)."""
+    if res.strain is None:
+        return ""
+    return f", strain {res.strain[0]:+.1%} / {res.strain[1]:+.1%} ({'inside' if res.strain_inside else 'OUTSIDE'})"
+
+
 def _gauss_newton(problem: ActuationProblem, target: np.ndarray, ev: Evaluation, w: float,
                   lam: np.ndarray | None, max_iterations: int, tol_step: float, tol_value: float, log: list[dict],
                   t0: float, progress: Callable[[dict], None] | None, seen: Callable[[Evaluation], None]

@@ -21,7 +21,7 @@ from scipy.spatial.transform import Rotation
 
 from offline.fem.solve import Dirichlet, SolverOptions, rigid_transform_dirichlet
 
-from .actuation import ActuationProblem, ActuationSpace, TargetResult, optimize_targets
+from .actuation import ActuationProblem, ActuationSpace, TargetResult, optimize_targets, strain_text
 from .face import FaceSkin
 
 #: Bounds of the free motion, per coordinate: far past any linkage's travel (a rotation vector component in rad,
@@ -126,8 +126,7 @@ def attachment_bound(problem: ActuationProblem, free: FreeAttachments, targets: 
         res = optimize_targets(problem, [target], previous=previous, max_iterations=iterations,
                                tol_value=1e-4)[0]
         name = labels[k] if labels is not None else str(k)
-        strain = "" if res.strain is None else (f", strain {res.strain[0]:+.1%} / {res.strain[1]:+.1%} "
-                                                f"({'inside' if res.strain_inside else 'OUTSIDE'})")
+        strain = strain_text(res)
         progress(f"[bound] target {k + 1}/{len(targets)} {name}: {res.iterations} it from {res.start}, match "
                  f"{res.match:.4g}{strain} ({time.perf_counter() - t0:.0f}s)")
         out.append(res)

@@ -24,7 +24,7 @@ import numpy as np
 
 from models.mechanism_kin import AssemblyError
 
-from .actuation import TargetResult, optimize_targets
+from .actuation import TargetResult, optimize_targets, strain_text
 from .clone import CloneSettings
 from .face import FaceSkin
 from .mechanism_design import (
@@ -69,8 +69,7 @@ def _actuation(lp: LayoutProblem, names: list[str], previous: list[TargetResult]
         t0 = time.perf_counter()
         res = optimize_targets(lp.problem, [lp.targets[k]], previous=[previous[k]] if previous else None,
                                starts=[out[-1].p] if out else None, max_iterations=iterations, tol_value=1e-3)[0]
-        strain = "" if res.strain is None else (f", strain {res.strain[0]:+.1%} / {res.strain[1]:+.1%} "
-                                                f"({'inside' if res.strain_inside else 'OUTSIDE'})")
+        strain = strain_text(res)
         say(f"[layout] {label} target {k + 1}/{len(names)} {name}: {res.iterations} it, match {res.match:.4g}"
             f"{strain} ({time.perf_counter() - t0:.0f}s)")
         out.append(res)

@@ -76,3 +76,19 @@ def every_kind() -> dict[str, Any]:
     })
     doc["motors"]["s"] = {"joint": "slider_crank_pivot", "ratio": 0.6}
     return doc
+
+
+def sample_layout(weights: dict[str, float]):
+    """The layout-design problem of the sample head's face for one target (ARKit unit weights), default envelope."""
+    from models.mechanism import load_mechanism
+    from offline.design.face import load_face
+    from offline.design.mechanism_design import LayoutProblem, LayoutSettings
+    from offline.design.mechanism_design_envelope import Envelope, design_space
+    from offline.design.targets import target_surface
+    from tests.runtime.conftest import SAMPLE
+
+    face = load_face(SAMPLE)
+    space = design_space(load_mechanism(face.skin.head.path("mechanism")), Envelope())
+    names, offsets = face.skin.face_units()
+    rest = np.asarray(face.mesh.nodes)[face.outer]
+    return LayoutProblem(face, [target_surface(rest, offsets, names, weights)], space, LayoutSettings())

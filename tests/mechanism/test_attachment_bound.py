@@ -7,26 +7,15 @@ import numpy as np
 import pytest
 
 from offline.design.attachment_bound import FreeAttachments, attachment_bound, bound_problem
-from offline.design.mechanism_design import LayoutProblem, LayoutSettings
-from offline.design.mechanism_design_envelope import Envelope, design_space
-from tests.runtime.conftest import SAMPLE
+from tests.mechanism._builders import sample_layout
 
 
 @pytest.fixture(scope="module")
 def layout():
-    from models.mechanism import load_mechanism
-    from offline.design.face import load_face
-    from offline.design.targets import target_surface
-
-    face = load_face(SAMPLE)
-    space = design_space(load_mechanism(face.skin.head.path("mechanism")), Envelope())
-    names, offsets = face.skin.face_units()
-    rest = np.asarray(face.mesh.nodes)[face.outer]
-    target = target_surface(rest, offsets, names, {"jawOpen": 0.6, "mouthSmileLeft": 0.5})
-    lp = LayoutProblem(face, [target], space, LayoutSettings())
-    theta = space.project(np.random.default_rng(5).normal(size=space.size) * space.scale * 0.1)
-    lp.boundary.set_design(theta)
-    head = face.skin.head
+    lp = sample_layout({"jawOpen": 0.6, "mouthSmileLeft": 0.5})
+    space = lp.space
+    lp.boundary.set_design(space.project(np.random.default_rng(5).normal(size=space.size) * space.scale * 0.1))
+    head = lp.face.skin.head
     p = np.array(head.neutral_pose, dtype=float)
     for name, deg in (("jaw", 10.0), ("lip_corner_l_up", 15.0), ("lip_corner_l_back", 10.0)):
         p[head.actuator_names.index(name)] = np.radians(deg)

@@ -7,9 +7,7 @@ import numpy as np
 import pytest
 
 from offline.design.actuation import evaluate
-from offline.design.mechanism_design import LayoutProblem, LayoutSettings
-from offline.design.mechanism_design_envelope import Envelope, design_space
-from tests.runtime.conftest import SAMPLE
+from tests.mechanism._builders import sample_layout
 
 CHECKED = ("joints.jaw_hinge.anchor[1]", "joints.jaw_hinge.axis_tilt[0]", "couplers.jaw_rod.length",
            "couplers.jaw_rod.a_point[2]", "motors.jaw.ratio", "joints.lower_lip_guide.axis_tilt[1]",
@@ -18,19 +16,11 @@ CHECKED = ("joints.jaw_hinge.anchor[1]", "joints.jaw_hinge.axis_tilt[0]", "coupl
 
 @pytest.fixture(scope="module")
 def layout():
-    from models.mechanism import load_mechanism
-    from offline.design.face import load_face
-    from offline.design.targets import target_surface
-
-    face = load_face(SAMPLE)
-    space = design_space(load_mechanism(face.skin.head.path("mechanism")), Envelope())
-    names, offsets = face.skin.face_units()
-    rest = np.asarray(face.mesh.nodes)[face.outer]
-    target = target_surface(rest, offsets, names, {"jawOpen": 0.5, "mouthSmileLeft": 0.5})
-    lp = LayoutProblem(face, [target], space, LayoutSettings())
+    lp = sample_layout({"jawOpen": 0.5, "mouthSmileLeft": 0.5})
+    space = lp.space
     theta = space.project(np.random.default_rng(3).normal(size=space.size) * space.scale * 0.05)
     lp.boundary.set_design(theta)
-    head = face.skin.head
+    head = lp.face.skin.head
     p = np.array(head.neutral_pose, dtype=float)
     for name, deg in (("jaw", 12.0), ("lower_lip", 10.0), ("lip_corner_l_up", 20.0), ("lip_corner_l_back", 15.0)):
         p[head.actuator_names.index(name)] = np.radians(deg)

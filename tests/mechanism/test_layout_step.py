@@ -8,25 +8,15 @@ import numpy as np
 import pytest
 
 from models.mechanism_kin import AssemblyError
-from offline.design.mechanism_design import LayoutProblem, LayoutSettings, LayoutState, _assembling_step
-from offline.design.mechanism_design_envelope import Envelope, design_space
-from tests.runtime.conftest import SAMPLE
+from offline.design.mechanism_design import LayoutState, _assembling_step
+from tests.mechanism._builders import sample_layout
 
 LID_L = ("lid_l", "lid_l_crank")
 
 
 @pytest.fixture(scope="module")
 def layout():
-    from models.mechanism import load_mechanism
-    from offline.design.face import load_face
-    from offline.design.targets import target_surface
-
-    face = load_face(SAMPLE)
-    space = design_space(load_mechanism(face.skin.head.path("mechanism")), Envelope())
-    names, offsets = face.skin.face_units()
-    rest = np.asarray(face.mesh.nodes)[face.outer]
-    target = target_surface(rest, offsets, names, {"eyeBlinkLeft": 0.5, "jawOpen": 0.2})
-    return LayoutProblem(face, [target], space, LayoutSettings())
+    return sample_layout({"eyeBlinkLeft": 0.5, "jawOpen": 0.2})
 
 
 def test_a_loop_names_the_variables_that_act_on_it(layout) -> None:
