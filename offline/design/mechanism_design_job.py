@@ -211,10 +211,16 @@ def _resume_rings(lp: LayoutProblem, space: DesignSpace, step: RingStep, state: 
     return state, arrays
 
 
-def estimate_layout(lp: LayoutProblem, space: DesignSpace, n_targets: int, iterations: int) -> dict[str, Any]:
+#: Pose solves per target of the bound stage, typical of the sample head (3 to 96 Gauss-Newton iterations a target,
+#: about 300 solves for its 8 targets).
+BOUND_SOLVES = 40
+
+
+def estimate_layout(lp: LayoutProblem, space: DesignSpace, n_targets: int, iterations: int,
+                    bound: bool = True) -> dict[str, Any]:
     """Problem size and a rough time estimate: one timed pose solve and one timed design Jacobian, scaled by what
     a run needs (before and after: ~8 solves per target; per iteration: a linearization and ~2 trial solves per
-    target)."""
+    target; the bound stage: ~BOUND_SOLVES solves per target)."""
     from .actuation import simulate
 
     x0 = simulate(lp.problem, lp.aspace.neutral)
@@ -226,8 +232,9 @@ def estimate_layout(lp: LayoutProblem, space: DesignSpace, n_targets: int, itera
     lp.boundary.design_jacobian(p)
     t_jac = time.perf_counter() - t0
     per_it = n_targets * (t_jac + 3 * t_solve)
-    return {"pose_solve_s": t_solve, "design_jacobian_s": t_jac,
-            "estimate_s": n_targets * 16 * t_solve + iterations * per_it}
+    bound_s = n_targets * BOUND_SOLVES * t_solve if bound else 0.0
+    return {"pose_solve_s": t_solve, "design_jacobian_s": t_jac, "bound_s": bound_s,
+            "estimate_s": n_targets * 16 * t_solve + iterations * per_it + bound_s}
 
 
 def _bound(lp: LayoutProblem, names: list[str], arrays: Mapping[str, np.ndarray],
@@ -263,7 +270,7 @@ def run_layout_command(args: Any, face: FaceSkin, targets: Mapping[str, Mapping[
     rings = RingSettings(max_rounds=args.ring_rounds)
     if args.dry_run:
         lp, space = layout_problem(face, targets, args.envelope, settings, strain=not args.no_strain_constraint)
-        est = estimate_layout(lp, space, len(targets), settings.iterations)
+        est = estimate_layout(lp, space, len(targets), settings.iterations, bound=not args.no_attachment_bound)
         print(f"head {face.skin.head.name}: {face.mesh.n_nodes} nodes, {face.mesh.n_tets} tets; "
               f"{len(targets)} targets: {', '.join(targets)}")
         print(f"layout design: {space.size} design variables in {len(space.groups)} groups (envelope "
@@ -273,7 +280,9 @@ def run_layout_command(args: Any, face: FaceSkin, targets: Mapping[str, Mapping[
             for line in dry_run_lines(RingStep(lp)):
                 print(line)
         print(f"one pose solve {est['pose_solve_s']:.2f} s, one design Jacobian {est['design_jacobian_s']:.2f} s; "
-              f"estimated time about {est['estimate_s'] / 60:.0f} min (rough upper bound)")
+              f"estimated time about {est['estimate_s'] / 60:.0f} min (rough upper bound"
+              + (f"; the attachments' own reach about {est['bound_s'] / 60:.0f} min of it" if est["bound_s"] else "")
+              + ")")
         return 0
     report = run_layout_design(face, targets, args.out, settings, config=args.config, envelope=args.envelope,
                                targets_file=args.targets, resume=not args.fresh,

@@ -326,6 +326,14 @@ def report_markdown(r: Mapping[str, Any]) -> str:
                      f"{p['unit']}){' **at the limit**' if p['at_limit'] else ''}")
     if len(r["moved_parameters"]) > 25:
         lines.append(f"- ... {len(r['moved_parameters']) - 25} more in report.json")
+    cut: dict[str, int] = {}
+    for entry in r["log"]:
+        for loop in entry.get("loops_cut", {}):
+            cut[loop] = cut.get(loop, 0) + 1
+    if cut:
+        lines += ["", "Design steps cut where a linkage loop would not assemble over its motors' range (that loop's "
+                  "part of the step only; iterations with a cut, of " + f"{len(r['log'])}): "
+                  + "; ".join(f"{loop} ({n})" for loop, n in sorted(cut.items(), key=lambda kv: -kv[1])) + "."]
     lines += ["", "## Binding envelope limits", ""]
     if not r["binding_limits"]:
         lines.append("No design variable ends at its envelope limit.")

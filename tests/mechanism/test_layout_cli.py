@@ -34,7 +34,11 @@ def test_the_dry_run_states_the_problem_and_stops(tmp_path, capsys) -> None:
     text = capsys.readouterr().out
     assert rc == 0
     assert "layout design: 222 design variables in 100 groups" in text and "estimated time" in text
+    assert "the attachments' own reach about" in text  # the bound stage is part of the estimate ...
     assert not out.exists()
+    assert main(["offline", "clone", "--config", str(SAMPLE), "--targets", _targets(tmp_path, {"blink": {
+        "eyeBlinkLeft": 1.0}}), "--design-mechanism", "--dry-run", "--no-attachment-bound", "--out", str(out)]) == 0
+    assert "own reach" not in capsys.readouterr().out  # ... unless it is skipped
 
 
 def test_a_bad_envelope_is_refused_naming_the_file_and_key(tmp_path, capsys) -> None:
