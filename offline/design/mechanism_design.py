@@ -326,7 +326,12 @@ def _trial_step(lp: LayoutProblem, state: LayoutState, evs: list[Evaluation], g:
     return None, F
 
 
+#: Trials of one design step before it is given up (each cuts the failing loop's part of the step).
+LOOP_BACKOFFS = 12
+
+
 def _cuts(held: Mapping[str, int]) -> str:
+    """The loops whose part of a step was cut, most often first, for the progress line."""
     return "; ".join(f"{loop} x{n}" for loop, n in sorted(held.items(), key=lambda kv: -kv[1]))
 
 
@@ -334,8 +339,9 @@ def _assembling_step(lp: LayoutProblem, theta: np.ndarray, d_theta: np.ndarray, 
                      state: LayoutState) -> tuple[np.ndarray, list[Evaluation] | None]:
     """The design trial θ + d_theta, evaluated; a linkage loop that would not assemble over its motors' range has
     its own variables' part of the step cut (by 4 each time, then dropped) and the trial is made again, so one
-    loop at the edge of assembling does not hold back the others' steps. (θ itself assembles, so dropping every
-    failing loop's part always ends with a design that assembles.)"""
+    loop at the edge of assembling does not hold back the others' steps. θ itself assembles, so dropping every
+    failing loop's part ends with a design that assembles unless LOOP_BACKOFFS trials run out first (then None, and
+    the caller damps the whole step as before)."""
     factor = np.ones(lp.space.size)
     theta_t = lp.space.project(theta + d_theta)
     for _ in range(LOOP_BACKOFFS):
@@ -349,10 +355,6 @@ def _assembling_step(lp: LayoutProblem, theta: np.ndarray, d_theta: np.ndarray, 
             state.held_back[", ".join(exc.bodies)] = state.held_back.get(", ".join(exc.bodies), 0) + 1
             theta_t = lp.space.project(theta + d_theta * factor)
     return theta_t, None
-
-
-#: Trials of one design step before it is given up (each cuts the failing loop's part of the step).
-LOOP_BACKOFFS = 12
 
 
 # ------------------------------------------------------------------------------------------------ checkpoint
