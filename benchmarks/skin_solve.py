@@ -8,7 +8,9 @@ each after the same sweep over more memory than a core's cache (as a control cyc
 * kernel (the baseline): the bare compiled call (``models._skin_kernels.solve_values_measured``, the build
   ``models.kernels_aot.kernel`` gives the loop: ahead of time where built, else numba's JIT; weights from the
   channel values, the inverse, the guard's reduced measure) with its arguments gathered beforehand, on the array
-  path's frame from the same start;
+  path's frame from the same start, keeping its Gauss-Newton matrix across frames as the loop's solve does;
+* kernel, plain G-N: the same call forming JᵀJ in every iteration (``HessianReuse`` with 0 frames), as the solve did
+  before it kept the matrix: what keeping it saves;
 * array path: ``SkinTargetSolver.solve_array``, what the core calls every cycle (plus the guard's verdict, the
   warm start and the telemetry figures); the goal is p99 ≤ 0.1 ms;
 * mapping API: ``SkinTargetSolver.solve`` from a name → value map (built outside the timing), the same compiled
@@ -22,7 +24,8 @@ Timings need a quiet machine: on a loaded one read the ratios to the kernel and 
 ``--profile`` adds a cProfile look at where the array path's and the mapping API's time goes. Then it prints the
 agreements stored in the guard's report (``likeness offline guard evaluate``).
 
-Run: ``python benchmarks/skin_solve.py [--random 1000] [--profile] [--report heads/sample/skin_guard_report.json]``.
+Run: ``python benchmarks/skin_solve.py [--random 1000] [--profile] [--report heads/sample/skin_guard_report.json]
+[--config HEAD.toml]``.
 """
 
 from __future__ import annotations
@@ -50,6 +53,7 @@ sys.path.insert(0, str(ROOT))
 from benchmarks._skin_reference import ReferenceInverse, reference_guard_ok  # noqa: E402
 from models.clip import load_clip_file  # noqa: E402
 from models.headspec import HeadSpec, load_head  # noqa: E402
+from models.ksnn_solve import HessianReuse  # noqa: E402
 from runtime.core.solvers import ArraySolver  # noqa: E402
 from runtime.skin import SkinTargetSolver  # noqa: E402
 
@@ -57,7 +61,7 @@ HEAD = ROOT / "heads" / "sample" / "head.toml"
 CLIP = ROOT / "heads" / "sample" / "performances" / "blendshapes.json"
 REPORT = ROOT / "heads" / "sample" / "skin_guard_report.json"
 GOAL_US = 100.0
-PATHS = ("kernel", "array", "mapping", "adapter", "reference", "forward")
+PATHS = ("kernel", "plain", "array", "mapping", "adapter", "reference", "forward")
 
 
 def frames(channels: list[str], n_random: int, seed: int = 0) -> list[tuple[str, np.ndarray]]:
@@ -103,6 +107,10 @@ class Paths:
         self.kernel_args = self.array.frame.kernel_args  # the settings the solver's frame solve has bound
         self.kernel_w = np.zeros(inv.n_units)
         self.kernel_p = np.empty(len(self.array.names))
+        n = len(self.array.names)
+        self.kernel_reuse = HessianReuse(n, self.array.frame.reuse.frames)  # its own kept matrix, as the loop's
+        self.plain_reuse = HessianReuse(n, 0)  # every iteration forms J^T J: the solve before matrices were kept
+        self.free_reuse = HessianReuse(n, self.array.frame.reuse.frames)
         self.p_free = self.array.neutral.copy()  # the unguarded chain, compared with the reference's
         sp = self.array.predictor
         self.ref = ReferenceInverse(sp.weights, sp.face_unit_offsets, smoothness=inv.smoothness, lo=self.array.lo,
@@ -127,13 +135,19 @@ class Paths:
         dt: dict[str, float] = {}
         self.cool()
         t0 = clock()
-        self.kernel_fn(values, self.kernel_w, start, self.kernel_p, *self.kernel_args)
+        self.kernel_fn(values, self.kernel_w, start, self.kernel_p, self.kernel_reuse.matrix, self.kernel_reuse.state,
+                       *self.kernel_args)
         t1 = clock()
         self.cool()
         t2 = clock()
         got, _ = self.array.solve_array(values, self.q)
         t3 = clock()
         dt["kernel"], dt["array"] = t1 - t0, t3 - t2
+        self.cool()
+        t0 = clock()
+        self.kernel_fn(values, self.kernel_w, start, self.kernel_p, self.plain_reuse.matrix, self.plain_reuse.state,
+                       *self.kernel_args)
+        dt["plain"] = clock() - t0
         targets = {ch: float(v) for ch, v in zip(self.channels, values.tolist(), strict=True) if v == v}
         self.cool()
         t0 = clock()
@@ -156,7 +170,8 @@ class Paths:
             times[name].append(dt[name])
         self.mismatch += int(not np.array_equal(got, [res.actuators[n] for n in self.array.names]))
         free = np.empty_like(self.p_free)
-        self.kernel_fn(values, self.kernel_w, self.p_free, free, *self.kernel_args)
+        self.kernel_fn(values, self.kernel_w, self.p_free, free, self.free_reuse.matrix, self.free_reuse.state,
+                       *self.kernel_args)
         self.dev = max(self.dev, float(np.abs(free - r_ref.p).max()))
         self.p_free, self.p_ref = free, r_ref.p
 
@@ -167,8 +182,9 @@ def report_times(kind: str, tk: dict[str, list[float]]) -> None:
     kernel = np.asarray(tk["kernel"])
     print(f"  {kind} ({len(tk['kernel'])} frames)             p50      p99      max       p1   p50/p99 ÷ kernel   "
           "(+ per-frame excess over the kernel, p50)")
-    labels = {"kernel": "kernel (baseline)", "array": "array path (core)", "mapping": "mapping API",
-              "adapter": "by-name adapter", "reference": "previous solve+guard", "forward": "one predictor pass"}
+    labels = {"kernel": "kernel (baseline)", "plain": "kernel, plain G-N", "array": "array path (core)",
+              "mapping": "mapping API", "adapter": "by-name adapter", "reference": "previous solve+guard",
+              "forward": "one predictor pass"}
     for name in PATHS:
         a50, a99, amax, a1 = stats(tk[name])
         goal = ""
@@ -217,15 +233,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--random", type=int, default=1000, help="random frames after the performance (default 1000)")
     ap.add_argument("--profile", action="store_true", help="add a cProfile look at the array path and mapping API")
     ap.add_argument("--report", default=str(REPORT), help="guard agreement report to print")
+    ap.add_argument("--config", default=str(HEAD),
+                    help="head config whose predictor is timed (default: the sample head; e.g. a copy of its folder "
+                    "with a candidate predictor, before it is shipped)")
     args = ap.parse_args(argv)
-    paths = Paths(load_head(HEAD))
+    paths = Paths(load_head(Path(args.config)))
     fr = frames(paths.channels, args.random)
     times = {k: {name: [] for name in PATHS} for k in ("performance", "random")}
     for kind, values in fr:
         paths.run(values, times[kind])
     guard, solver = paths.guard, paths.array
     load = os.getloadavg()
-    print(f"skin ARKit frame solve, sample head ({len(paths.channels)} units, {solver.max_iterations} "
+    print(f"skin ARKit frame solve, {args.config} (H = {paths.array.predictor.weights.hidden} per axis, "
+          f"{len(paths.channels)} units, {solver.max_iterations} "
           f"iterations/frame, reduced guard: {guard.calibration.patches} patches, {guard.calibration.vertices} "
           f"vertices); µs; load average {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f} on {os.cpu_count()} CPUs")
     print("  timings need a quiet machine (load average well under the CPU count); on a loaded one compare the "

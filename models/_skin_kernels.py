@@ -12,7 +12,10 @@ import numpy as np
 from numba import njit
 
 from models._cycle_kernels import constrain
-from models.kernel_args import pack_frame_args  # noqa: F401 (the packing solve_values_measured unpacks)
+from models.kernel_args import (
+    REFRESH_STEP,
+    pack_frame_args,  # noqa: F401 (the packing solve_values_measured unpacks)
+)
 
 
 @njit(cache=True, fastmath=False)
@@ -66,10 +69,13 @@ def _hidden_residual(x: np.ndarray, W1: np.ndarray, b1: np.ndarray, Rb: np.ndarr
 def gauss_newton(x: np.ndarray, x_prev: np.ndarray, smooth: bool, lam_s: float, W1: np.ndarray, b1: np.ndarray,
                  W1b: np.ndarray, Rb: np.ndarray, q: np.ndarray, kq: float, xlo: np.ndarray, xhi: np.ndarray,
                  mid: np.ndarray, ihalf: np.ndarray, mu: float, max_iterations: int, tol: float,
-                 xtol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, int, bool]:
+                 xtol: float, H0: np.ndarray,
+                 state: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, int, bool]:
     """The damped, projected Gauss-Newton of :meth:`models.ksnn_solve.KsnnInverse.solve`, step for step.
 
-    Returns (x, h, r, f, iterations, converged) in normalized units."""
+    ``H0`` (A × A) and ``state`` (int64: age in frames of ``H0``, -1 none; the age up to which it is reused, 0 never;
+    Gauss-Newton matrices formed) carry the reuse of the Gauss-Newton matrix JᵀJ across iterations and frames
+    (:class:`models.ksnn_solve.HessianReuse`). Returns (x, h, r, f, iterations, converged) in normalized units."""
     A = x.shape[0]
     H = Rb.shape[1]
     h = np.empty(3 * H)
@@ -87,12 +93,31 @@ def gauss_newton(x: np.ndarray, x_prev: np.ndarray, smooth: bool, lam_s: float, 
     J = np.empty((3 * H, A))
     step = np.empty(A)
     fixed = np.zeros(A, dtype=np.bool_)
+    reuse = state[1] > 0
+    stored = reuse and 0 <= state[0] < state[1]  # this frame starts from the kept JᵀJ
+    g = np.empty(A)
+    t = np.empty(H)
     for it in range(1, max_iterations + 1):  # noqa: B007 - it is returned
-        for k in range(3):
-            s = 1.0 - h[k * H:(k + 1) * H] ** 2
-            J[k * H:(k + 1) * H] = (Rb[k] * s.reshape(1, H)) @ W1b[k]
-        g = J.T @ r
-        Hm = J.T @ J
+        exact = not stored
+        if exact:  # J = R diag(1 − h²) W1 per axis block: the O(H² A) part
+            for k in range(3):
+                s = 1.0 - h[k * H:(k + 1) * H] ** 2
+                J[k * H:(k + 1) * H] = (Rb[k] * s.reshape(1, H)) @ W1b[k]
+            g = J.T @ r
+            Hm = J.T @ J
+            state[2] += 1
+            if reuse:
+                H0[:, :] = Hm
+                state[0] = 0
+                stored = True
+        else:  # the exact gradient Jᵀr = W1ᵀ diag(1 − h²) Rᵀ r without forming J, the kept JᵀJ
+            g[:] = 0.0
+            for k in range(3):
+                t[:] = Rb[k].T @ r[k * H:(k + 1) * H]
+                for i in range(H):
+                    t[i] *= 1.0 - h[k * H + i] ** 2
+                g += W1b[k].T @ t
+            Hm = H0.copy()
         if smooth:
             g += lam_s * (x - x_prev)
         if on_bound:
@@ -133,6 +158,9 @@ def gauss_newton(x: np.ndarray, x_prev: np.ndarray, smooth: bool, lam_s: float, 
                 accepted = True
                 break
             mu = max(mu * 10.0, 1e-12 * max(abs(f), 1e-30))
+        if not accepted and not exact:  # the kept matrix gave no descent: form it afresh (the next iteration)
+            stored = False
+            continue
         if not accepted:
             converged = True  # no descent possible within damping limits: at a (local) minimum
             break
@@ -143,9 +171,19 @@ def gauss_newton(x: np.ndarray, x_prev: np.ndarray, smooth: bool, lam_s: float, 
         h, h_new = h_new, h
         r, r_new = r_new, r
         on_bound = u >= 1.0 - 1e-12
-        if decrease <= tol * max(f, 1e-30) or (xtol > 0.0 and np.max(np.abs(step)) <= xtol):
+        largest = np.max(np.abs(step))
+        if xtol > 0.0 and largest <= xtol:
             converged = True
             break
+        if decrease <= tol * max(f, 1e-30):
+            if exact:
+                converged = True
+                break
+            stored = False  # a kept matrix's small decrease is no proof of a minimum: check with a fresh one
+        elif largest > REFRESH_STEP:
+            stored = False  # a long step: the pose moved far from where the kept matrix was formed
+    if reuse and state[0] >= 0:
+        state[0] += 1
     return x, h, r, f, it, converged
 
 
@@ -256,7 +294,8 @@ def solve_frame(wts: np.ndarray, p_prev: np.ndarray, p0: np.ndarray, lo: np.ndar
                 scale_in: np.ndarray, const_b: float, e: np.ndarray, M: np.ndarray, q0: np.ndarray, Qd: np.ndarray,
                 lam_s: float, W1: np.ndarray, b1: np.ndarray, W1b: np.ndarray, Rb: np.ndarray, xlo: np.ndarray,
                 xhi: np.ndarray, mid: np.ndarray, ihalf: np.ndarray, mu: float, max_iterations: int, tol: float,
-                xtol: float) -> tuple[np.ndarray, np.ndarray, float, float, int, bool]:
+                xtol: float, H0: np.ndarray,
+                state: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, float, int, bool]:
     """One frame of :meth:`models.ksnn_solve.KsnnInverse.solve` from face-unit weights to actuator values: the
     objective's terms, the start (``p0``, else ``p_prev``, else mid-range; empty arrays mean absent), the
     iteration. Returns (p, hidden, unscaled squared error, objective, iterations, converged)."""
@@ -273,7 +312,7 @@ def solve_frame(wts: np.ndarray, p_prev: np.ndarray, p0: np.ndarray, lo: np.ndar
     q = q0 - Qd @ wts
     kq = kappa - q @ q
     x, h, r, f, it, converged = gauss_newton(x, x_prev, smooth, lam_s, W1, b1, W1b, Rb, q, kq, xlo, xhi, mid,
-                                             ihalf, mu, max_iterations, tol, xtol)
+                                             ihalf, mu, max_iterations, tol, xtol, H0, state)
     p = lo + x * (hi - lo)
     return p, h, max(r @ r + kq, 0.0), f, it, converged
 
@@ -283,23 +322,25 @@ def solve_frame_measured(wts: np.ndarray, p_prev: np.ndarray, p0: np.ndarray, lo
                          scale_in: np.ndarray, const_b: float, e: np.ndarray, M: np.ndarray, q0: np.ndarray,
                          Qd: np.ndarray, lam_s: float, W1: np.ndarray, b1: np.ndarray, W1b: np.ndarray, Rb: np.ndarray,
                          xlo: np.ndarray, xhi: np.ndarray, mid: np.ndarray, ihalf: np.ndarray, mu: float,
-                         max_iterations: int, tol: float, xtol: float, E: np.ndarray, ge0: np.ndarray, C: np.ndarray,
-                         idet: np.ndarray, S_ptr: np.ndarray, S_idx: np.ndarray, S_w: np.ndarray):
+                         max_iterations: int, tol: float, xtol: float, H0: np.ndarray, state: np.ndarray, E: np.ndarray,
+                         ge0: np.ndarray, C: np.ndarray, idet: np.ndarray, S_ptr: np.ndarray, S_idx: np.ndarray,
+                         S_w: np.ndarray):
     """:func:`solve_frame` and the strain guard's :func:`reduced_measure` of its solution in one call (a frame's
     whole in-cycle work, one dispatch); returns solve_frame's tuple plus (strain min, strain max)."""
     p, h, fit, f, it, conv = solve_frame(wts, p_prev, p0, lo, hi, scale_in, const_b, e, M, q0, Qd, lam_s, W1, b1,
-                                         W1b, Rb, xlo, xhi, mid, ihalf, mu, max_iterations, tol, xtol)
+                                         W1b, Rb, xlo, xhi, mid, ihalf, mu, max_iterations, tol, xtol, H0, state)
     s_lo, s_hi = reduced_measure(h, E, ge0, C, idet, S_ptr, S_idx, S_w)
     return p, h, fit, f, it, conv, s_lo, s_hi
 
 
 @njit(cache=True)
 def solve_values_measured(values: np.ndarray, wts: np.ndarray, p_prev: np.ndarray, p_out: np.ndarray,
-                          f64: np.ndarray, f32: np.ndarray, i64: np.ndarray,
+                          H0: np.ndarray, state: np.ndarray, f64: np.ndarray, f32: np.ndarray, i64: np.ndarray,
                           dims: np.ndarray) -> tuple[float, int, float, float]:
     """A control frame from channel values: the face-unit weights (a value clamped to 0..1, a non-finite one, i.e.
     not set, as 0) written into ``wts``, then :func:`solve_frame_measured` warm-started from ``p_prev`` on the
-    constants :func:`pack_frame_args` packed, its pose written into ``p_out`` (no array crosses back into Python).
+    constants :func:`pack_frame_args` packed, its pose written into ``p_out`` (no array crosses back into Python);
+    ``H0`` and ``state``: the frame solve's kept Gauss-Newton matrix (:func:`gauss_newton`).
     Returns (unscaled squared error, iterations, strain min, strain max)."""
     for i in range(wts.shape[0]):
         v = values[i]
@@ -343,6 +384,6 @@ def solve_values_measured(values: np.ndarray, wts: np.ndarray, p_prev: np.ndarra
     S_idx = i64[P1:P1 + NZ]
     p, _, fit, _, it, _, s_lo, s_hi = solve_frame_measured(
         wts, p_prev, np.empty(0), lo, hi, scale_in, const_b, e, M, q0, Qd, lam_s, W1, b1, W1b, Rb, xlo, xhi, mid,
-        ihalf, mu, max_iterations, tol, xtol, E, ge0, C, idet, S_ptr, S_idx, S_w)
+        ihalf, mu, max_iterations, tol, xtol, H0, state, E, ge0, C, idet, S_ptr, S_idx, S_w)
     p_out[:] = p
     return fit, it, s_lo, s_hi

@@ -12,6 +12,11 @@ import numpy as np
 if TYPE_CHECKING:
     from models.headspec import HeadSpec
 
+#: A frame solve's step taken with a kept Gauss-Newton matrix longer than this (normalized actuator units: each range
+#: is 1) forms the matrix afresh for the next iteration: the pose moved far from where it was formed
+#: (:class:`models.ksnn_solve.HessianReuse`).
+REFRESH_STEP = 0.02
+
 
 def pack_frame_args(solve: tuple, measure: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The constants of a frame solve (``KsnnInverse.kernel_arrays()`` + max iterations, tol, xtol) and of the

@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from models.kernel_args import REFRESH_STEP
 from models.kernel_support import kernels_available
 from models.predictor import KsnnWeights
 
@@ -27,6 +28,8 @@ if TYPE_CHECKING:
     from models.strain_guard import StrainGuard
 
 _EMPTY = np.empty(0)
+#: Frames a control frame solve keeps its Gauss-Newton matrix (:class:`HessianReuse`): 16 at 500 Hz is 32 ms.
+REUSE_FRAMES = 16
 
 
 @dataclass(frozen=True)
@@ -136,9 +139,10 @@ class KsnnInverse:
                 self.smoothness / self.scale, self._W1, self._b1, self._W1b, self._Rb, self._xlo, self._xhi,
                 self._mid, self._ihalf, self.damping / self.scale)
 
-    def frame_solve(self, max_iterations: int, tol: float, xtol: float, measure: StrainGuard) -> FrameSolve:
+    def frame_solve(self, max_iterations: int, tol: float, xtol: float, measure: StrainGuard,
+                    reuse_frames: int = REUSE_FRAMES) -> FrameSolve:
         """The in-cycle solve with these settings and ``measure`` bound (see :class:`FrameSolve`)."""
-        return FrameSolve(self, max_iterations, tol, xtol, measure)
+        return FrameSolve(self, max_iterations, tol, xtol, measure, reuse_frames)
 
     def _terms(self, wts: np.ndarray) -> tuple[np.ndarray, float]:
         """Linear term c and constant κ of f(h) = hᵀGh + 2hᵀc + κ (the unscaled squared surface error)."""
@@ -158,7 +162,7 @@ class KsnnInverse:
 
     def solve(self, unit_weights: np.ndarray, p_prev: np.ndarray | None = None, p0: np.ndarray | None = None,
               max_iterations: int = 20, tol: float = 1e-9, xtol: float = 0.0,
-              measure: StrainGuard | None = None) -> SolveResult:
+              measure: StrainGuard | None = None, reuse: HessianReuse | None = None) -> SolveResult:
         """Damped, projected Gauss-Newton from ``p0`` (default ``p_prev``, else mid-range) for face-unit weights.
 
         ``tol`` bounds the relative decrease of the objective that counts as converged; ``xtol`` (normalized
@@ -167,7 +171,9 @@ class KsnnInverse:
         few dozen small array operations (O(H² A) flops) and one 13×13-sized Cholesky solve (LAPACK ``dposv``);
         variables at a bound whose gradient pushes outward are held (their rows become identity). ``measure``, a
         :class:`models.strain_guard.StrainGuard` on the same predictor, adds its reduced strain measure at the
-        solution (``SolveResult.strain``), computed in the same compiled call when both are compiled.
+        solution (``SolveResult.strain``), computed in the same compiled call when both are compiled. ``reuse`` keeps
+        the Gauss-Newton matrix between iterations and calls (:class:`HessianReuse`); without it every iteration
+        forms its own.
         """
         wts = np.asarray(unit_weights, dtype=np.float64)
         if wts.shape != (self.n_units,) or not np.isfinite(wts @ wts):
@@ -176,9 +182,10 @@ class KsnnInverse:
             from models.kernels_aot import kernel
 
             none = _EMPTY
+            kept = HessianReuse(len(self.lo), 0) if reuse is None else reuse
             args = (wts, none if p_prev is None else np.asarray(p_prev, dtype=np.float64),
                     none if p0 is None else np.asarray(p0, dtype=np.float64), *self.kernel_arrays(),
-                    max_iterations, tol, xtol)
+                    max_iterations, tol, xtol, kept.matrix, kept.state)
             strain = None
             if measure is not None and measure.compiled:
                 p, h, fit, f, it, conv, s_lo, s_hi = kernel("solve_frame_measured")(*args, *measure.kernel_arrays())
@@ -218,11 +225,25 @@ class KsnnInverse:
         on_bound = float((np.abs(x - mid) * ihalf).max()) >= 1.0 - 1e-12
         converged = False
         it = 0
+        state = None if reuse is None or reuse.frames <= 0 else reuse.state
+        stored = state is not None and 0 <= state[0] < state[1]
         for it in range(1, max_iterations + 1):  # noqa: B007 - it is reported
-            J = np.matmul(Rb * (1.0 - h * h).reshape(3, 1, H), W1b).reshape(3 * H, A)
-            JT = J.T
-            g = JT @ r
-            Hm = JT @ J
+            exact = not stored
+            if exact:
+                J = np.matmul(Rb * (1.0 - h * h).reshape(3, 1, H), W1b).reshape(3 * H, A)
+                JT = J.T
+                g = JT @ r
+                Hm = JT @ J
+                if reuse is not None:
+                    reuse.state[2] += 1
+                if state is not None:
+                    reuse.matrix[:] = Hm
+                    state[0] = 0
+                    stored = True
+            else:  # the exact gradient without forming J, the kept matrix
+                t = np.matmul(np.swapaxes(Rb, 1, 2), r.reshape(3, H, 1)).reshape(3, H) * (1.0 - h * h).reshape(3, H)
+                g = np.matmul(np.swapaxes(W1b, 1, 2), t.reshape(3, H, 1)).reshape(3, A).sum(axis=0)
+                Hm = reuse.matrix.copy()
             if smooth:
                 g += lam_s * dx
             if on_bound:
@@ -255,6 +276,9 @@ class KsnnInverse:
                     accepted = True
                     break
                 mu = max(mu * 10.0, 1e-12 * max(abs(f), 1e-30))
+            if not accepted and not exact:  # the kept matrix gave no descent: form it afresh
+                stored = False
+                continue
             if not accepted:
                 converged = True  # no descent possible within damping limits: at a (local) minimum
                 break
@@ -264,14 +288,50 @@ class KsnnInverse:
             on_bound = u >= 1.0 - 1e-12
             if smooth:
                 dx = dx_new
-            if decrease <= tol * max(f, 1e-30) or (xtol > 0.0 and float(np.abs(step).max()) <= xtol):
+            largest = float(np.abs(step).max())
+            if xtol > 0.0 and largest <= xtol:
                 converged = True
                 break
+            if decrease <= tol * max(f, 1e-30):
+                if exact:
+                    converged = True
+                    break
+                stored = False  # a kept matrix's small decrease is no proof of a minimum: check with a fresh one
+            elif largest > REFRESH_STEP:
+                stored = False  # a long step: far from where the kept matrix was formed
+        if state is not None and state[0] >= 0:
+            state[0] += 1
         p = w.lo + x * (w.hi - w.lo)
         fit = max(float(r @ r) + kq, 0.0) * self.scale
         return SolveResult(p=p, residual_rms=float(np.sqrt(fit)), iterations=it, converged=converged,
                            objective=f * self.scale, hidden=h,
                            strain=None if measure is None else measure.measure_hidden(h))
+
+
+class HessianReuse:
+    """The Gauss-Newton matrix JᵀJ kept across a frame solve's iterations and frames.
+
+    Forming J = R diag(1 − h²) W1 costs O(H² A) per iteration, most of a frame's arithmetic; the gradient Jᵀr costs
+    O(H² + H A) without it. Frame to frame at the control rate the pose, and with it JᵀJ, barely changes, so a kept
+    matrix still gives a descent direction with the exact gradient (the damped step is checked to lower the
+    objective; when it does not, the matrix is formed afresh). It is formed again once it is ``frames`` frames old
+    (0: every iteration, plain Gauss-Newton), and after :meth:`forget` (a jump of the warm start)."""
+
+    def __init__(self, n_actuators: int, frames: int) -> None:
+        self.frames = int(frames)
+        self.matrix = np.zeros((n_actuators, n_actuators))
+        #: the kernels' view: age of ``matrix`` in frames (-1: none kept), the age up to which it is used, and the
+        #: count of matrices formed
+        self.state = np.array([-1, self.frames, 0], dtype=np.int64)
+
+    @property
+    def formed(self) -> int:
+        """Gauss-Newton matrices formed so far."""
+        return int(self.state[2])
+
+    def forget(self) -> None:
+        """Form the matrix afresh on the next solve."""
+        self.state[0] = -1
 
 
 class FrameSolve:
@@ -286,7 +346,7 @@ class FrameSolve:
     """
 
     def __init__(self, inverse: KsnnInverse, max_iterations: int, tol: float, xtol: float,
-                 measure: StrainGuard) -> None:
+                 measure: StrainGuard, reuse_frames: int = 0) -> None:
         n = inverse.n_units
         self.inverse = inverse
         self.measure = measure
@@ -298,6 +358,7 @@ class FrameSolve:
         self.residual_rms = 0.0  # m, of the last solve
         self.iterations = 0
         self.strain: tuple[float, float] = (0.0, 0.0)  # the guard's reduced measure (min, max) at the last solution
+        self.reuse = HessianReuse(len(inverse.lo), reuse_frames)  # the Gauss-Newton matrix kept frame to frame
         self._scale = inverse.scale
         self._kernel = None
         self.kernel_args: tuple[np.ndarray, ...] = ()  # what the compiled call takes after values, weights, poses
@@ -323,7 +384,8 @@ class FrameSolve:
         if self._kernel is not None:
             a, b = self._poses
             p = b if p_prev is a else a
-            fit, it, s_lo, s_hi = self._kernel(buf, self.weights, p_prev, p, *self.kernel_args)
+            fit, it, s_lo, s_hi = self._kernel(buf, self.weights, p_prev, p, self.reuse.matrix, self.reuse.state,
+                                               *self.kernel_args)
             self.residual_rms = math.sqrt(fit * self._scale)
             self.iterations = it
             self.strain = (s_lo, s_hi)
@@ -332,7 +394,7 @@ class FrameSolve:
         np.clip(buf, 0.0, 1.0, out=w)
         w[~np.isfinite(buf)] = 0.0
         res = self.inverse.solve(w, p_prev=p_prev, max_iterations=self.max_iterations, tol=self.tol, xtol=self.xtol,
-                                 measure=self.measure)
+                                 measure=self.measure, reuse=self.reuse)
         self.residual_rms = res.residual_rms
         self.iterations = res.iterations
         self.strain = res.strain if res.strain is not None else self.measure.measure(res.p)

@@ -98,6 +98,7 @@ class SkinTargetSolver:
         self.telemetry = SkinTelemetry()
         # compile (or load) the fused solve-and-measure kernel now, never in a control cycle
         self.frame(self.frame.values, self.neutral)
+        self.frame.reuse.forget()
 
     @classmethod
     def build(cls, head: HeadSpec, predictor: SkinPredictor | str | Path,
@@ -153,6 +154,7 @@ class SkinTargetSolver:
         ok = np.isfinite(q)
         acc[ok] = np.minimum(np.maximum(q[ok], self.lo[ok]), self.hi[ok])
         self._accepted = acc
+        self.frame.reuse.forget()  # the warm start jumped: its Gauss-Newton matrix is formed afresh
 
     def _step(self, values: np.ndarray, t0: float) -> np.ndarray:
         """One frame: the compiled solve of ``values`` from the last accepted pose, the guard's verdict on it (and
@@ -192,6 +194,7 @@ class SkinTargetSolver:
     def reset(self, positions: Mapping[str, float] | None = None) -> None:
         """Forget the warm start (on enable, fault, e-stop and reset): continue from ``positions`` or neutral."""
         self._accepted = self.neutral.copy()
+        self.frame.reuse.forget()
         if positions:
             for i, n in enumerate(self.names):
                 if n in positions and np.isfinite(positions[n]):

@@ -109,3 +109,55 @@ def test_the_compiled_iteration_takes_the_numpy_steps(seed):
         at_bound += int(np.any((a.p <= w.lo + 1e-12) | (a.p >= w.hi - 1e-12)))
         p_prev = a.p if rng.random() < 0.7 else None
     assert at_bound > 0  # the bound handling was exercised
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_a_kept_gauss_newton_matrix_takes_the_same_steps_compiled_and_in_numpy(seed):
+    """With a kept JᵀJ (HessianReuse) the compiled and numpy solves still take the same steps, and form the matrix
+    equally often: afresh when it is too old, after forget, and when it gave no descent."""
+    from models.ksnn_solve import HessianReuse
+
+    w = weights(seed)
+    rng = np.random.default_rng(40 + seed)
+    fu = rng.normal(size=(6, w.n_vertices, 3)) * 2e-3
+    fast = KsnnInverse(w, fu)
+    ref = KsnnInverse(w, fu, compiled=False)
+    ka, kb = HessianReuse(w.n_actuators, 4), HessianReuse(w.n_actuators, 4)
+    p_prev = None
+    for i in range(60):
+        u = rng.uniform(0, 1, 6) * (rng.random(6) < 0.5)
+        a = fast.solve(u, p_prev=p_prev, max_iterations=4, reuse=ka)
+        b = ref.solve(u, p_prev=p_prev, max_iterations=4, reuse=kb)
+        assert (a.iterations, a.converged, ka.formed) == (b.iterations, b.converged, kb.formed)
+        np.testing.assert_allclose(a.p, b.p, rtol=0, atol=1e-12 * np.max(w.hi - w.lo))
+        np.testing.assert_allclose(ka.matrix, kb.matrix, rtol=0, atol=1e-12 * np.abs(kb.matrix).max())
+        p_prev = a.p
+        if i == 30:
+            ka.forget()
+            kb.forget()
+    assert 60 // 4 <= ka.formed < 60 * 4  # at least once per 4 frames, far fewer than every iteration
+
+
+def test_a_kept_matrix_reaches_the_same_fit_along_a_smooth_trajectory():
+    """Solving a slowly moving target frame after frame, the kept matrix fits as well as plain Gauss-Newton (it
+    changes the steps, not the objective they lower) while forming JᵀJ a fraction of the times."""
+    from models.ksnn_solve import HessianReuse
+
+    w = weights(5)
+    rng = np.random.default_rng(6)
+    p_true = [w.lo + rng.uniform(0.2, 0.8, w.n_actuators) * (w.hi - w.lo) for _ in range(3)]
+    fu = np.stack([w.offsets(p) for p in p_true])
+    inv = KsnnInverse(w, fu, smoothness=1e-6)
+    kept = HessianReuse(w.n_actuators, 16)
+    p_plain = p_kept = w.lo + 0.5 * (w.hi - w.lo)
+    fit_plain, fit_kept, iters = [], [], 0
+    for s in np.linspace(0.0, 1.0, 200):
+        u = np.array([1.0 - s, s, 0.0])
+        a = inv.solve(u, p_prev=p_plain, max_iterations=3, tol=1e-6, xtol=1e-3)
+        b = inv.solve(u, p_prev=p_kept, max_iterations=3, tol=1e-6, xtol=1e-3, reuse=kept)
+        p_plain, p_kept = a.p, b.p
+        fit_plain.append(a.residual_rms)
+        fit_kept.append(b.residual_rms)
+        iters += a.iterations
+    assert np.mean(fit_kept) <= 1.05 * np.mean(fit_plain) + 1e-9
+    assert kept.formed < iters / 3

@@ -208,21 +208,24 @@ def test_the_fresh_pose_agreement_of_the_report_counts_what_the_check_and_the_fu
 
 def test_the_frame_solve_from_channel_values_is_the_fused_solve(guard):
     """``KsnnInverse.frame_solve``: channel values (NaN: not set → 0, clamped to 0..1) give the fused solve's pose,
-    iterations and measure of the clamped weights exactly, and the numpy path's within rounding."""
-    from models.ksnn_solve import KsnnInverse
+    iterations and measure of the clamped weights exactly (keeping its Gauss-Newton matrix across frames as the
+    fused solve does with the same :class:`HessianReuse`), and the numpy path's within rounding."""
+    from models.ksnn_solve import HessianReuse, KsnnInverse
 
     sp = guard.predictor
     fast = KsnnInverse(sp.weights, sp.face_unit_offsets)
     ref = KsnnInverse(sp.weights, sp.face_unit_offsets, compiled=False)
     frame = fast.frame_solve(3, 1e-6, 1e-3, guard)
     slow = ref.frame_solve(3, 1e-6, 1e-3, guard)
+    assert frame.reuse.frames > 0  # the control frame keeps its matrix
+    kept = HessianReuse(len(sp.lo), frame.reuse.frames)
     rng = np.random.default_rng(5)
     p_prev = 0.5 * (sp.lo + sp.hi)
     for _ in range(20):
         values = np.where(rng.random(fast.n_units) < 0.2, rng.uniform(-0.3, 1.3, fast.n_units), np.nan)
         values[0] = np.inf
         w = np.where(np.isfinite(values), np.clip(values, 0.0, 1.0), 0.0)
-        a = fast.solve(w, p_prev=p_prev, max_iterations=3, tol=1e-6, xtol=1e-3, measure=guard)
+        a = fast.solve(w, p_prev=p_prev, max_iterations=3, tol=1e-6, xtol=1e-3, measure=guard, reuse=kept)
         p = frame(values, p_prev)
         np.testing.assert_array_equal(frame.weights, w)
         np.testing.assert_array_equal(p, a.p)
@@ -230,4 +233,6 @@ def test_the_frame_solve_from_channel_values_is_the_fused_solve(guard):
         q = slow(values, p_prev)
         np.testing.assert_allclose(q, p, rtol=0, atol=1e-12 * np.max(sp.hi - sp.lo))
         np.testing.assert_allclose(slow.strain, frame.strain, rtol=0, atol=1e-6)
+        assert frame.reuse.formed == kept.formed == slow.reuse.formed
         p_prev = p.copy()
+    assert 0 < frame.reuse.formed < 20 * 3  # matrices were kept, and formed afresh when too old or no help
