@@ -98,6 +98,8 @@ COMMANDS: tuple[Command, ...] = (
             "train the KSNN skin predictor on a pose dataset, export ONNX + report"),
     Command("evaluate", OFFLINE, "offline.cli.evaluate",
             "recompute a predictor's test metrics and compare with its report"),
+    Command("capacity", OFFLINE, "offline.cli.capacity",
+            "the error floor each hidden size sets on a dataset's poses (the output layer's rank)"),
     Command("guard", OFFLINE, "offline.cli.guard",
             "skin-strain guard: footprint, FEM poses, agreement and refinement reports"),
     Command("refinement-study", OFFLINE, "offline.cli.refinement_study",
