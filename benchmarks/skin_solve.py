@@ -8,7 +8,8 @@ each after the same sweep over more memory than a core's cache (as a control cyc
 * kernel (the baseline): the bare compiled call (``models._skin_kernels.solve_values_measured``, the build
   ``models.kernels_aot.kernel`` gives the loop: ahead of time where built, else numba's JIT; weights from the
   channel values, the inverse, the guard's reduced measure) with its arguments gathered beforehand, on the array
-  path's frame from the same start, keeping its Gauss-Newton matrix across frames as the loop's solve does;
+  path's frame from the same start, keeping its Gauss-Newton matrix across frames as the loop's solve does, and
+  the guard's search when the solution leaves the strain range, in the same call;
 * kernel, plain G-N: the same call forming JᵀJ in every iteration (``HessianReuse`` with 0 frames), as the solve did
   before it kept the matrix: what keeping it saves;
 * array path: ``SkinTargetSolver.solve_array``, what the core calls every cycle (plus the guard's verdict, the
@@ -53,6 +54,7 @@ sys.path.insert(0, str(ROOT))
 from benchmarks._skin_reference import ReferenceInverse, reference_guard_ok  # noqa: E402
 from models.clip import load_clip_file  # noqa: E402
 from models.headspec import HeadSpec, load_head  # noqa: E402
+from models.kernel_args import pack_frame_args  # noqa: E402
 from models.ksnn_solve import HessianReuse  # noqa: E402
 from runtime.core.solvers import ArraySolver  # noqa: E402
 from runtime.skin import SkinTargetSolver  # noqa: E402
@@ -111,6 +113,9 @@ class Paths:
         self.kernel_reuse = HessianReuse(n, self.array.frame.reuse.frames)  # its own kept matrix, as the loop's
         self.plain_reuse = HessianReuse(n, 0)  # every iteration forms J^T J: the solve before matrices were kept
         self.free_reuse = HessianReuse(n, self.array.frame.reuse.frames)
+        frame = self.array.frame  # the same solve without the guard's search, for the unguarded chain
+        self.free_args = pack_frame_args((*inv.kernel_arrays(), frame.max_iterations, frame.tol, frame.xtol),
+                                         guard.kernel_arrays())
         self.p_free = self.array.neutral.copy()  # the unguarded chain, compared with the reference's
         sp = self.array.predictor
         self.ref = ReferenceInverse(sp.weights, sp.face_unit_offsets, smoothness=inv.smoothness, lo=self.array.lo,
@@ -171,7 +176,7 @@ class Paths:
         self.mismatch += int(not np.array_equal(got, [res.actuators[n] for n in self.array.names]))
         free = np.empty_like(self.p_free)
         self.kernel_fn(values, self.kernel_w, self.p_free, free, self.free_reuse.matrix, self.free_reuse.state,
-                       *self.kernel_args)
+                       *self.free_args)
         self.dev = max(self.dev, float(np.abs(free - r_ref.p).max()))
         self.p_free, self.p_ref = free, r_ref.p
 

@@ -229,17 +229,57 @@ def reduced_measure(h: np.ndarray, E: np.ndarray, e0: np.ndarray, C: np.ndarray,
 
 
 @njit(cache=True)
+def _passes_measured(p: np.ndarray, scale: np.ndarray, shift: np.ndarray, W1: np.ndarray, b1: np.ndarray,
+                     s_lo: float, s_hi: float, E: np.ndarray, e0: np.ndarray, C: np.ndarray, idet: np.ndarray,
+                     S_ptr: np.ndarray, S_idx: np.ndarray, S_w: np.ndarray) -> tuple[bool, float, float]:
+    """:meth:`models.strain_guard.StrainGuard.check` and the reduced measure it read (NaN when ``p`` lies outside
+    the trained range: normalized within 1e-6 of [0, 1]; NaN fails)."""
+    x = p * scale + shift
+    for v in x:
+        if not (v >= -1e-6 and v <= 1.0 + 1e-6):
+            return False, np.nan, np.nan
+    lo, hi = reduced_measure(np.tanh(W1 @ x + b1), E, e0, C, idet, S_ptr, S_idx, S_w)
+    return s_lo <= lo and hi <= s_hi, lo, hi
+
+
+@njit(cache=True)
 def _passes(p: np.ndarray, scale: np.ndarray, shift: np.ndarray, W1: np.ndarray, b1: np.ndarray, s_lo: float,
             s_hi: float, E: np.ndarray, e0: np.ndarray, C: np.ndarray, idet: np.ndarray, S_ptr: np.ndarray,
             S_idx: np.ndarray, S_w: np.ndarray) -> bool:
     """:meth:`models.strain_guard.StrainGuard.check`: ``p`` inside the trained range (normalized within 1e-6 of [0,
     1]; NaN fails) and its reduced measure within [s_lo, s_hi]."""
-    x = p * scale + shift
-    for v in x:
-        if not (v >= -1e-6 and v <= 1.0 + 1e-6):
-            return False
-    lo, hi = reduced_measure(np.tanh(W1 @ x + b1), E, e0, C, idet, S_ptr, S_idx, S_w)
-    return s_lo <= lo and hi <= s_hi
+    return _passes_measured(p, scale, shift, W1, b1, s_lo, s_hi, E, e0, C, idet, S_ptr, S_idx, S_w)[0]
+
+
+@njit(cache=True)
+def _limit_from(p_from: np.ndarray, p_to: np.ndarray, steps: int, out: np.ndarray, scale: np.ndarray,
+                shift: np.ndarray, W1: np.ndarray, b1: np.ndarray, s_lo: float, s_hi: float, E: np.ndarray,
+                e0: np.ndarray, C: np.ndarray, idet: np.ndarray, S_ptr: np.ndarray, S_idx: np.ndarray,
+                S_w: np.ndarray, measure_held: bool) -> tuple[int, float, float]:
+    """:func:`guard_limit` once ``p_to`` is known to fail: ``out`` the furthest passing point of the segment from
+    ``p_from`` found by ``steps`` bisections (1), else ``p_from`` (2); with the reduced measure of ``out`` as
+    :meth:`models.strain_guard.StrainGuard.measure` gives it (at the pose clamped to the trained range; for
+    ``p_from`` only with ``measure_held``, else NaN)."""
+    d = p_to - p_from
+    lo_t, hi_t, found = 0.0, 1.0, False
+    m_lo, m_hi = 0.0, 0.0
+    for _ in range(steps):
+        mid = 0.5 * (lo_t + hi_t)
+        ok, a, b = _passes_measured(p_from + mid * d, scale, shift, W1, b1, s_lo, s_hi, E, e0, C, idet, S_ptr,
+                                    S_idx, S_w)
+        if ok:
+            lo_t, found, m_lo, m_hi = mid, True, a, b
+        else:
+            hi_t = mid
+    if found:
+        out[:] = p_from + lo_t * d
+        return 1, m_lo, m_hi
+    out[:] = p_from
+    if not measure_held:
+        return 2, np.nan, np.nan
+    x = np.minimum(np.maximum(p_from * scale + shift, 0.0), 1.0)
+    m_lo, m_hi = reduced_measure(np.tanh(W1 @ x + b1), E, e0, C, idet, S_ptr, S_idx, S_w)
+    return 2, m_lo, m_hi
 
 
 @njit(cache=True)
@@ -252,19 +292,8 @@ def guard_limit(p_from: np.ndarray, p_to: np.ndarray, steps: int, out: np.ndarra
     if _passes(p_to, scale, shift, W1, b1, s_lo, s_hi, E, e0, C, idet, S_ptr, S_idx, S_w):
         out[:] = p_to
         return 0
-    d = p_to - p_from
-    lo_t, hi_t, found = 0.0, 1.0, False
-    for _ in range(steps):
-        mid = 0.5 * (lo_t + hi_t)
-        if _passes(p_from + mid * d, scale, shift, W1, b1, s_lo, s_hi, E, e0, C, idet, S_ptr, S_idx, S_w):
-            lo_t, found = mid, True
-        else:
-            hi_t = mid
-    if found:
-        out[:] = p_from + lo_t * d
-        return 1
-    out[:] = p_from
-    return 2
+    return _limit_from(p_from, p_to, steps, out, scale, shift, W1, b1, s_lo, s_hi, E, e0, C, idet, S_ptr, S_idx,
+                       S_w, False)[0]
 
 
 @njit(cache=True)
@@ -336,12 +365,15 @@ def solve_frame_measured(wts: np.ndarray, p_prev: np.ndarray, p0: np.ndarray, lo
 @njit(cache=True)
 def solve_values_measured(values: np.ndarray, wts: np.ndarray, p_prev: np.ndarray, p_out: np.ndarray,
                           H0: np.ndarray, state: np.ndarray, f64: np.ndarray, f32: np.ndarray, i64: np.ndarray,
-                          dims: np.ndarray) -> tuple[float, int, float, float]:
+                          dims: np.ndarray) -> tuple[float, int, float, float, int]:
     """A control frame from channel values: the face-unit weights (a value clamped to 0..1, a non-finite one, i.e.
     not set, as 0) written into ``wts``, then :func:`solve_frame_measured` warm-started from ``p_prev`` on the
-    constants :func:`pack_frame_args` packed, its pose written into ``p_out`` (no array crosses back into Python);
-    ``H0`` and ``state``: the frame solve's kept Gauss-Newton matrix (:func:`gauss_newton`).
-    Returns (unscaled squared error, iterations, strain min, strain max)."""
+    constants :func:`pack_frame_args` packed; ``H0`` and ``state``: the frame solve's kept Gauss-Newton matrix
+    (:func:`gauss_newton`). When the solution's measure leaves the strain range, the guard's search
+    (:func:`guard_limit`) from ``p_prev`` toward it, with the packed number of bisections (none packed: no guard).
+    The pose is written into ``p_out`` (no array crosses back into Python). Returns (unscaled squared error of the
+    solution, iterations, strain min, strain max of the pose written, verdict: 0 the solution passed, 1 limited,
+    2 held at ``p_prev``, -1 not guarded)."""
     for i in range(wts.shape[0]):
         v = values[i]
         wts[i] = min(max(v, 0.0), 1.0) if np.isfinite(v) else 0.0
@@ -378,6 +410,11 @@ def solve_values_measured(values: np.ndarray, wts: np.ndarray, p_prev: np.ndarra
     S_w = f64[o:o + NZ]
     o += NZ
     const_b, lam_s, mu, tol, xtol = f64[o], f64[o + 1], f64[o + 2], f64[o + 3], f64[o + 4]
+    o += 5
+    g_scale = f64[o:o + A]
+    g_shift = f64[o + A:o + 2 * A]
+    lim_lo, lim_hi = f64[o + 2 * A], f64[o + 2 * A + 1]
+    steps = dims[8]
     E = f32[0:3 * H * E2].reshape(3, H, E2)
     ge0 = f32[3 * H * E2:3 * H * E2 + 3 * E2].reshape(3, 1, E2)
     S_ptr = i64[0:P1]
@@ -385,5 +422,12 @@ def solve_values_measured(values: np.ndarray, wts: np.ndarray, p_prev: np.ndarra
     p, _, fit, _, it, _, s_lo, s_hi = solve_frame_measured(
         wts, p_prev, np.empty(0), lo, hi, scale_in, const_b, e, M, q0, Qd, lam_s, W1, b1, W1b, Rb, xlo, xhi, mid,
         ihalf, mu, max_iterations, tol, xtol, H0, state, E, ge0, C, idet, S_ptr, S_idx, S_w)
-    p_out[:] = p
-    return fit, it, s_lo, s_hi
+    if steps < 0:
+        p_out[:] = p
+        return fit, it, s_lo, s_hi, -1
+    if lim_lo <= s_lo and s_hi <= lim_hi:  # the solution lies in the trained range by construction
+        p_out[:] = p
+        return fit, it, s_lo, s_hi, 0
+    verdict, s_lo, s_hi = _limit_from(p_prev, p, steps, p_out, g_scale, g_shift, W1, b1, lim_lo, lim_hi, E, ge0, C,
+                                      idet, S_ptr, S_idx, S_w, True)
+    return fit, it, s_lo, s_hi, verdict

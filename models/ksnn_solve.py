@@ -23,6 +23,7 @@ import numpy as np
 from models.kernel_args import REFRESH_STEP
 from models.kernel_support import kernels_available
 from models.predictor import KsnnWeights
+from models.strain_guard import VERDICTS
 
 if TYPE_CHECKING:
     from models.strain_guard import StrainGuard
@@ -140,9 +141,9 @@ class KsnnInverse:
                 self._mid, self._ihalf, self.damping / self.scale)
 
     def frame_solve(self, max_iterations: int, tol: float, xtol: float, measure: StrainGuard,
-                    reuse_frames: int = REUSE_FRAMES) -> FrameSolve:
+                    reuse_frames: int = REUSE_FRAMES, guard_steps: int | None = None) -> FrameSolve:
         """The in-cycle solve with these settings and ``measure`` bound (see :class:`FrameSolve`)."""
-        return FrameSolve(self, max_iterations, tol, xtol, measure, reuse_frames)
+        return FrameSolve(self, max_iterations, tol, xtol, measure, reuse_frames, guard_steps)
 
     def _terms(self, wts: np.ndarray) -> tuple[np.ndarray, float]:
         """Linear term c and constant κ of f(h) = hᵀGh + 2hᵀc + κ (the unscaled squared surface error)."""
@@ -336,7 +337,10 @@ class HessianReuse:
 
 class FrameSolve:
     """One control frame's inverse solve with its settings bound: face-unit channel values → actuator values, the
-    residual and the strain guard's reduced measure of the solution, in one compiled call.
+    residual and the strain guard's reduced measure of the solution, in one compiled call; with ``guard_steps``
+    also the guard's verdict, and its search from the warm start toward a solution that leaves the strain range
+    (:meth:`models.strain_guard.StrainGuard.limit` with that many bisections), so that a limited frame costs no
+    second call.
 
     Built once (:meth:`KsnnInverse.frame_solve`) so that a frame gathers no arguments and allocates no inputs: a value
     is clamped to 0..1 and a non-finite one (NaN: not set) counts as 0, as the weights of :meth:`KsnnInverse.solve`;
@@ -346,7 +350,7 @@ class FrameSolve:
     """
 
     def __init__(self, inverse: KsnnInverse, max_iterations: int, tol: float, xtol: float,
-                 measure: StrainGuard, reuse_frames: int = 0) -> None:
+                 measure: StrainGuard, reuse_frames: int = 0, guard_steps: int | None = None) -> None:
         n = inverse.n_units
         self.inverse = inverse
         self.measure = measure
@@ -357,7 +361,9 @@ class FrameSolve:
         self.weights = np.zeros(n)  # the face-unit weights they gave
         self.residual_rms = 0.0  # m, of the last solve
         self.iterations = 0
-        self.strain: tuple[float, float] = (0.0, 0.0)  # the guard's reduced measure (min, max) at the last solution
+        self.strain: tuple[float, float] = (0.0, 0.0)  # the guard's reduced measure (min, max) at the last pose
+        self.guard_steps = guard_steps
+        self.verdict = "ok"  # the guard's on the last pose: ok, limited, held (always ok without guard_steps)
         self.reuse = HessianReuse(len(inverse.lo), reuse_frames)  # the Gauss-Newton matrix kept frame to frame
         self._scale = inverse.scale
         self._kernel = None
@@ -368,7 +374,8 @@ class FrameSolve:
 
             self._kernel = kernel("solve_values_measured")
             self.kernel_args = pack_frame_args((*inverse.kernel_arrays(), self.max_iterations, self.tol, self.xtol),
-                                               measure.kernel_arrays())
+                                               measure.kernel_arrays(),
+                                               None if guard_steps is None else measure.search_args(guard_steps))
         # the compiled call writes the pose into whichever of these the start is not
         self._poses = (np.empty(len(inverse.lo)), np.empty(len(inverse.lo)))
 
@@ -384,11 +391,12 @@ class FrameSolve:
         if self._kernel is not None:
             a, b = self._poses
             p = b if p_prev is a else a
-            fit, it, s_lo, s_hi = self._kernel(buf, self.weights, p_prev, p, self.reuse.matrix, self.reuse.state,
-                                               *self.kernel_args)
+            fit, it, s_lo, s_hi, verdict = self._kernel(buf, self.weights, p_prev, p, self.reuse.matrix,
+                                                        self.reuse.state, *self.kernel_args)
             self.residual_rms = math.sqrt(fit * self._scale)
             self.iterations = it
             self.strain = (s_lo, s_hi)
+            self.verdict = VERDICTS[verdict] if verdict >= 0 else "ok"
             return p
         w = self.weights
         np.clip(buf, 0.0, 1.0, out=w)
@@ -398,6 +406,11 @@ class FrameSolve:
         self.residual_rms = res.residual_rms
         self.iterations = res.iterations
         self.strain = res.strain if res.strain is not None else self.measure.measure(res.p)
+        self.verdict = "ok"
+        if self.guard_steps is not None and not self.measure.passes(self.strain):
+            pose, self.verdict = self.measure.limit(p_prev, res.p, self.guard_steps)
+            self.strain = self.measure.measure(pose)
+            return pose
         return res.p
 
 

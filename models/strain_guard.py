@@ -466,6 +466,11 @@ class StrainGuard:
         patch weights by patch: pointers, triangles, weights)."""
         return self._E, self._e0, self._C, self._idet, self._S_ptr, self._S_idx, self._S_w
 
+    def search_args(self, steps: int) -> tuple[np.ndarray, np.ndarray, float, float, int]:
+        """What the compiled guard search takes besides the measure's arrays: the input scale and shift, the strain
+        range and the bisections (:func:`models.kernel_args.pack_frame_args`)."""
+        return self._scale, self._shift, float(self.strain_range[0]), float(self.strain_range[1]), int(steps)
+
     def measure_hidden(self, h: np.ndarray) -> tuple[float, float]:
         """Reduced measure (min, max) from hidden activations (3H,) (for callers that already have them);
         compiled (:mod:`models._skin_kernels`) unless ``compiled`` is False."""

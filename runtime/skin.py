@@ -29,6 +29,9 @@ from models.skin_targets import PREFIX, SkinTargets, skin_targets, skin_targets_
 from models.strain_guard import StrainGuard
 from runtime.solve import SolveResult, TargetSolver
 
+#: Bisections of the guard's search when a frame's solution leaves the strain range (1/32 of the way back).
+GUARD_STEPS = 5
+
 
 class SkinTelemetry(Mapping[str, float | int | str | list[float]]):
     """The telemetry fields of the last skin solve (``skin_residual_mm``, ``skin_iterations``, ``skin_solve_us``,
@@ -93,7 +96,8 @@ class SkinTargetSolver:
         self._accepted = self.neutral.copy()
         self._index = {PREFIX + n: i for n, i in self.units.items()}  # channel → face unit (its place in the block)
         # the bound in-cycle solve
-        self.frame = self.inverse.frame_solve(self.max_iterations, self.tol, xtol, self.strain_guard)
+        self.frame = self.inverse.frame_solve(self.max_iterations, self.tol, xtol, self.strain_guard,
+                                              guard_steps=GUARD_STEPS)
         self._out = np.empty(len(self.names))  # solve_array's result
         self.telemetry = SkinTelemetry()
         # compile (or load) the fused solve-and-measure kernel now, never in a control cycle
@@ -157,21 +161,16 @@ class SkinTargetSolver:
         self.frame.reuse.forget()  # the warm start jumped: its Gauss-Newton matrix is formed afresh
 
     def _step(self, values: np.ndarray, t0: float) -> np.ndarray:
-        """One frame: the compiled solve of ``values`` from the last accepted pose, the guard's verdict on it (and
-        its limit when it fails), the telemetry figures; returns the accepted pose."""
+        """One frame: the compiled solve of ``values`` from the last accepted pose with the guard's verdict on it
+        (and its limit when it fails) in the same call, the telemetry figures; returns the accepted pose."""
         frame = self.frame
         p = frame(values, self._accepted)
-        strain = frame.strain
-        if self.strain_guard.passes(strain):  # the solution lies in the trained range by construction
-            guard = "ok"
-        else:
-            p, guard, strain = self.guard(p)
         self._accepted = p
         tel = self.telemetry
         tel.residual_rms = frame.residual_rms
         tel.iterations = frame.iterations
-        tel.strain = strain
-        tel.guard = guard
+        tel.strain = frame.strain
+        tel.guard = frame.verdict
         tel.solve_us = (time.perf_counter() - t0) * 1e6
         return p
 
@@ -185,7 +184,7 @@ class SkinTargetSolver:
         """The guard's reduced strain measure (min, max) at pose p."""
         return self.strain_guard.measure(p)
 
-    def guard(self, p: np.ndarray, steps: int = 5) -> tuple[np.ndarray, str, tuple[float, float]]:
+    def guard(self, p: np.ndarray, steps: int = GUARD_STEPS) -> tuple[np.ndarray, str, tuple[float, float]]:
         """Accept p if the guard passes it; else the furthest passing point toward p from the last accepted pose
         (bisection), else hold the last accepted pose. Returns (pose, "ok"|"limited"|"held", strain)."""
         pose, outcome = self.strain_guard.limit(self._accepted, p, steps)

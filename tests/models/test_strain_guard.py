@@ -236,3 +236,39 @@ def test_the_frame_solve_from_channel_values_is_the_fused_solve(guard):
         assert frame.reuse.formed == kept.formed == slow.reuse.formed
         p_prev = p.copy()
     assert 0 < frame.reuse.formed < 20 * 3  # matrices were kept, and formed afresh when too old or no help
+
+
+def test_the_guarded_frame_solve_is_the_solve_then_the_guards_search_in_one_call(guard):
+    """With ``guard_steps`` the frame's call also runs the guard: a solution inside the strain range comes back as
+    solved ("ok"); one outside it comes back as ``StrainGuard.limit`` from the warm start gives it ("limited" or
+    "held") with ``StrainGuard.measure`` of that pose; the numpy path gives the same."""
+    from models.ksnn_solve import HessianReuse, KsnnInverse
+
+    sp = guard.predictor
+    fast = KsnnInverse(sp.weights, sp.face_unit_offsets)
+    ref = KsnnInverse(sp.weights, sp.face_unit_offsets, compiled=False)
+    frame = fast.frame_solve(3, 1e-6, 1e-3, guard, guard_steps=5)
+    slow = ref.frame_solve(3, 1e-6, 1e-3, guard, guard_steps=5)
+    kept = HessianReuse(len(sp.lo), frame.reuse.frames)
+    rng = np.random.default_rng(8)
+    p_prev = 0.5 * (sp.lo + sp.hi)
+    seen = set()
+    for _ in range(150):
+        values = np.where(rng.random(fast.n_units) < 0.3, rng.uniform(0.0, 1.0, fast.n_units), np.nan)
+        w = np.where(np.isfinite(values), values, 0.0)
+        a = fast.solve(w, p_prev=p_prev, max_iterations=3, tol=1e-6, xtol=1e-3, measure=guard, reuse=kept)
+        if guard.passes(a.strain):
+            want, verdict, strain = a.p, "ok", a.strain
+        else:
+            want, verdict = guard.limit(p_prev, a.p, 5)
+            strain = guard.measure(want)
+        p = frame(values, p_prev)
+        np.testing.assert_array_equal(p, want)
+        assert frame.verdict == verdict
+        np.testing.assert_allclose(frame.strain, strain, rtol=0, atol=1e-12)
+        q = slow(values, p_prev)
+        np.testing.assert_allclose(q, p, rtol=0, atol=1e-9 * np.max(sp.hi - sp.lo))
+        assert slow.verdict == verdict
+        seen.add(verdict)
+        p_prev = p.copy()
+    assert {"ok", "limited"} <= seen  # both sides of the guard were exercised
