@@ -26,7 +26,7 @@ Timings need a quiet machine: on a loaded one read the ratios to the kernel and 
 agreements stored in the guard's report (``likeness offline guard evaluate``).
 
 Run: ``python benchmarks/skin_solve.py [--random 1000] [--profile] [--report heads/sample/skin_guard_report.json]
-[--config HEAD.toml]``.
+[--config HEAD.toml] [--record docs/skin_solve.txt]``.
 """
 
 from __future__ import annotations
@@ -234,6 +234,28 @@ def report_guard(path: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the benchmark; with ``--record PATH`` the report is also written there (atomically), headed by the
+    command, the commit and the hashes of the head config and its predictor."""
+    from benchmarks._record import captured, write_report
+
+    args_list = sys.argv[1:] if argv is None else list(argv)
+    with captured() as out:
+        args = _run(args_list)
+    if args.record is not None:
+        import hashlib
+        import subprocess
+
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                                cwd=ROOT).stdout.strip() or "unknown"
+        head = load_head(Path(args.config))
+        digests = "; ".join(f"{p.name} sha256 {hashlib.sha256(p.read_bytes()).hexdigest()[:16]}"
+                            for p in (Path(args.config), head.path("predictor")) if p is not None)
+        write_report(args.record, f"# python benchmarks/skin_solve.py {' '.join(args_list)}\n# commit {commit}; "
+                     f"{digests}; {os.cpu_count()} CPUs\n", out.getvalue())
+    return 0
+
+
+def _run(argv: list[str]) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--random", type=int, default=1000, help="random frames after the performance (default 1000)")
     ap.add_argument("--profile", action="store_true", help="add a cProfile look at the array path and mapping API")
@@ -241,6 +263,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--config", default=str(HEAD),
                     help="head config whose predictor is timed (default: the sample head; e.g. a copy of its folder "
                     "with a candidate predictor, before it is shipped)")
+    ap.add_argument("--record", type=Path, default=None, help="also write the report to this file")
     args = ap.parse_args(argv)
     paths = Paths(load_head(Path(args.config)))
     fr = frames(paths.channels, args.random)
@@ -263,7 +286,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.profile:
         profile(paths, fr)
     report_guard(Path(args.report))
-    return 0
+    return args
 
 
 if __name__ == "__main__":
