@@ -109,6 +109,7 @@ class Paths:
         self.kernel_args = self.array.frame.kernel_args  # the settings the solver's frame solve has bound
         self.kernel_w = np.zeros(inv.n_units)
         self.kernel_p = np.empty(len(self.array.names))
+        self.plain_p = np.empty(len(self.array.names))
         n = len(self.array.names)
         self.kernel_reuse = HessianReuse(n, self.array.frame.reuse.frames)  # its own kept matrix, as the loop's
         self.plain_reuse = HessianReuse(n, 0)  # every iteration forms J^T J: the solve before matrices were kept
@@ -126,13 +127,14 @@ class Paths:
         self.ref_ok = 0
         self.mismatch = 0
         self.dev = 0.0
+        self.kept_vs_plain: dict[str, float] = {}  # largest pose difference (rad) per kind of frame
 
     def cool(self) -> None:
         """Other work between two timed calls, as a control cycle has: a sweep over more memory than the core's
         cache holds, so that each timed path starts with its data and code as cold as the others'."""
         np.add(self._junk, 1.0, out=self._junk)
 
-    def run(self, values: np.ndarray, times: dict[str, list[float]]) -> None:
+    def run(self, values: np.ndarray, times: dict[str, list[float]], kind: str) -> None:
         """Every path on one frame, each timed after the same :meth:`cool`; the kernel solves the array path's frame
         from the same start. Records whether the array path and the mapping API agree."""
         clock = time.perf_counter
@@ -150,9 +152,11 @@ class Paths:
         dt["kernel"], dt["array"] = t1 - t0, t3 - t2
         self.cool()
         t0 = clock()
-        self.kernel_fn(values, self.kernel_w, start, self.kernel_p, self.plain_reuse.matrix, self.plain_reuse.state,
+        self.kernel_fn(values, self.kernel_w, start, self.plain_p, self.plain_reuse.matrix, self.plain_reuse.state,
                        *self.kernel_args)
         dt["plain"] = clock() - t0
+        gap = float(np.abs(self.plain_p - self.kernel_p).max())
+        self.kept_vs_plain[kind] = max(self.kept_vs_plain.get(kind, 0.0), gap)
         targets = {ch: float(v) for ch, v in zip(self.channels, values.tolist(), strict=True) if v == v}
         self.cool()
         t0 = clock()
@@ -269,7 +273,7 @@ def _run(argv: list[str]) -> argparse.Namespace:
     fr = frames(paths.channels, args.random)
     times = {k: {name: [] for name in PATHS} for k in ("performance", "random")}
     for kind, values in fr:
-        paths.run(values, times[kind])
+        paths.run(values, times[kind], kind)
     guard, solver = paths.guard, paths.array
     load = os.getloadavg()
     print(f"skin ARKit frame solve, {args.config} (H = {paths.array.predictor.weights.hidden} per axis, "
@@ -283,6 +287,8 @@ def _run(argv: list[str]) -> argparse.Namespace:
     print(f"  array path vs mapping API: {paths.mismatch} of {len(fr)} frames differ; largest pose difference from "
           f"the reference solve {np.degrees(paths.dev):.4f}° (early stop at {solver.xtol:g} of the range); "
           f"unguarded reference solutions passed by the previous guard {paths.ref_ok} of {len(fr)}")
+    print("  kept Gauss-Newton matrix vs plain, same frame from the same start: largest pose difference "
+          + ", ".join(f"{np.degrees(v):.4f}° ({k})" for k, v in paths.kept_vs_plain.items()))
     if args.profile:
         profile(paths, fr)
     report_guard(Path(args.report))
