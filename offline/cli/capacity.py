@@ -19,6 +19,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="hidden sizes: integers or multiples of the actuator count A (default A 2A 4A 6A)")
     p.add_argument("--goal-max-mm", type=float, default=1.0, help="max error goal counted per pose (default 1 mm)")
     p.add_argument("--predictor", default=None, help="an ONNX predictor to evaluate on the same poses")
+    p.add_argument("--out", default=None, help="also write the report (JSON, with this command) to this file")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -49,11 +50,23 @@ def run(args: argparse.Namespace) -> int:
             out = {"dataset": {"source": args.dataset, "hash": ds.content_hash(), "split": args.split,
                                "poses": int(poses.size), "vertices": int(ds.offsets.shape[1])},
                    "floor": {str(h): floor_summary(floors[h], poses, args.goal_max_mm * 1e-3) for h in hidden}}
+            for h in hidden:  # with as many dimensions as poses, any set of poses is fitted exactly: no floor
+                if h >= poses.size - 1:
+                    out["floor"][str(h)]["note"] = f"H >= poses - 1 ({poses.size}): fitted exactly, says nothing"
             if args.predictor:
                 errors = evaluate_predictor(args.predictor, ds, args.split)
                 out["predictor"] = {"path": args.predictor, **{k: errors[k] for k in (
                     "rms_euclidean_um", "mean_euclidean_um", "p99_euclidean_um", "max_euclidean_um", "max_at")}}
         except (ValueError, FileNotFoundError) as exc:
             raise ConfigError(str(exc)) from exc
+    if args.out:
+        import shlex
+        import sys
+
+        from models.atomic import write_bytes
+
+        argv = sys.argv[3:] if sys.argv[1:3] == ["offline", "capacity"] else sys.argv[1:]
+        out["command"] = "likeness offline capacity " + " ".join(shlex.quote(a) for a in argv)
+        write_bytes(args.out, (json.dumps(out, indent=1) + "\n").encode())
     print(json.dumps(out, indent=1))
     return 0
