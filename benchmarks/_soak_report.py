@@ -40,23 +40,32 @@ def _missed(states: list[tuple], windows: list[tuple[float, float]], t_from: flo
 
 def _machine_stalls(states: list[tuple], windows: list[tuple[float, float]], t_from: float, t_to: float,
                     sentinel: dict[str, Any], near_s: float = 0.05) -> dict[str, Any]:
-    """The bare realtime loop's misses between ``t_from`` and ``t_to`` (:mod:`benchmarks._soak_sentinel`), outside
-    the fault windows, and how many of the daemon's misses outside them came within ``near_s`` of one."""
+    """The bare realtime loop's misses between ``t_from`` and ``t_to`` (:mod:`benchmarks._soak_sentinel`) and its
+    slow wake-ups, outside the fault windows, and how many of the daemon's misses outside them came within ``near_s``
+    of a miss, and of a miss or a slow wake-up."""
     misses = [(t, n, late) for t, n, late in sentinel.get("misses", []) if t_from <= t <= t_to]
+    slow = [t for t, _ in sentinel.get("slow", []) if t_from <= t <= t_to]
     def outside(t0: float, t1: float) -> bool:
         return not any(a <= t1 and t0 <= b for a, b in windows)
     own = sum(n for t, n, _ in misses if outside(t, t))
-    daemon = shared = 0
+    daemon = shared = with_slow = 0
     prev = None
     for t, _cycles, missed, *_ in states:
         if prev is not None and t_from <= t <= t_to and (step := missed - prev[1]) > 0 and outside(prev[0], t):
             daemon += step
-            if any(prev[0] - near_s <= ts <= t + near_s for ts, _, _ in misses):
+            near_miss = any(prev[0] - near_s <= ts <= t + near_s for ts, _, _ in misses)
+            if near_miss:
                 shared += step
+            if near_miss or any(prev[0] - near_s <= ts <= t + near_s for ts in slow):
+                with_slow += step
         prev = (t, missed)
     return {"scheduling": sentinel.get("scheduling", ""), "missed_outside_fault_handling": own,
             "worst_lateness_ms": round(max((late for _, _, late in misses), default=0.0) * 1e3, 2),
-            "daemon_misses_outside": daemon, "daemon_misses_with_one": shared}
+            "slow_wakeups_outside_fault_handling": sum(1 for t in slow if outside(t, t)),
+            "probe_median_us": [round(m * 1e6, 1) for m in sentinel.get("probe_median", [])],
+            "slow_factor": sentinel.get("slow_factor"),
+            "daemon_misses_outside": daemon, "daemon_misses_with_one": shared,
+            "daemon_misses_with_a_miss_or_slow_wakeup": with_slow}
 
 
 def recording_rows(path: str | None, period: float) -> dict[str, int]:
@@ -145,6 +154,12 @@ def print_summary(result: dict[str, Any], path: Path) -> None:
         print(f"  bare realtime loops beside it ({ms['scheduling']}) missed {ms['missed_outside_fault_handling']} "
               f"outside fault handling (worst {ms['worst_lateness_ms']} ms late): {ms['daemon_misses_with_one']} of "
               f"the daemon's {ms['daemon_misses_outside']} came within 50 ms of one of those")
+        if "slow_wakeups_outside_fault_handling" in ms:
+            print(f"  their probe (fixed interpreter work, median {ms['probe_median_us']} µs) ran over "
+                  f"{ms['slow_factor']}x its median at {ms['slow_wakeups_outside_fault_handling']} wake-ups outside "
+                  "fault handling: "
+                  f"{ms['daemon_misses_with_a_miss_or_slow_wakeup']} of the daemon's "
+                  f"{ms['daemon_misses_outside']} came within 50 ms of a miss or a slow wake-up")
     for f in result["faults"] + result["unexpected_faults"]:
         ttf = "-" if f["time_to_fault_s"] is None else f"{f['time_to_fault_s']:.2f} s"
         ttr = "-" if f["time_to_recover_s"] is None else f"{f['time_to_recover_s']:.2f} s"

@@ -40,7 +40,7 @@ from benchmarks import _daemon as D  # noqa: E402
 from benchmarks import _soak_clients as SC  # noqa: E402
 from benchmarks import _soak_report as SR  # noqa: E402
 from benchmarks._soak_faults import FaultRun, Operator  # noqa: E402
-from benchmarks._soak_sentinel import Sentinel  # noqa: E402
+from benchmarks._soak_sentinel import SLOW_FACTOR, Sentinel  # noqa: E402
 
 SAMPLE = ROOT / "heads" / "sample" / "head.toml"
 PERFORMANCE = ROOT / "heads" / "sample" / "performances" / "expressive.json"
@@ -168,7 +168,8 @@ def run_soak(args: argparse.Namespace, out: Path) -> dict[str, Any]:
         sentinel_misses = sentinel.stop()
     report.update(t0=t0, runs=runs, memory=memory, streamer=streamer.counts, osc_sent=osc.sent,
                   collector=collector, daemon_rc=daemon.returncode,
-                  sentinel={"scheduling": sentinel.scheduling, "misses": sentinel_misses})
+                  sentinel={"scheduling": sentinel.scheduling, "misses": sentinel_misses, "slow": sentinel.slow,
+                            "probe_median": sentinel.probe_median, "slow_factor": SLOW_FACTOR})
     return report
 
 

@@ -32,9 +32,18 @@ def test_the_daemons_misses_are_set_beside_the_machines_own_stalls() -> None:
     sentinel = {"scheduling": "SCHED_FIFO 80", "misses": [(1.5, 2, 0.0041), (4.0, 1, 0.0023), (5.9, 1, 0.0021)]}
     out = SR._machine_stalls(states, [(3.5, 4.5)], 0.5, 10.0, sentinel)
     assert out == {"scheduling": "SCHED_FIFO 80", "missed_outside_fault_handling": 3, "worst_lateness_ms": 4.1,
-                   "daemon_misses_outside": 4, "daemon_misses_with_one": 4}
+                   "slow_wakeups_outside_fault_handling": 0, "probe_median_us": [], "slow_factor": None,
+                   "daemon_misses_outside": 4, "daemon_misses_with_one": 4,
+                   "daemon_misses_with_a_miss_or_slow_wakeup": 4}
     alone = SR._machine_stalls(states, [(3.5, 4.5)], 0.5, 10.0, {"misses": [(5.9, 1, 0.0021)]})
     assert (alone["daemon_misses_outside"], alone["daemon_misses_with_one"]) == (4, 1)
+    # slow wake-ups (the probe over its factor) at 1.98 s (beside the daemon's 3 of 1..2 s), 4.2 s (in a fault
+    # window) and 8.0 s (no daemon miss near)
+    slow = SR._machine_stalls(states, [(3.5, 4.5)], 0.5, 10.0, {"misses": [(5.9, 1, 0.0021)], "slow_factor": 3.0,
+                                                                   "slow": [(1.98, 9e-5), (4.2, 8e-5), (8.0, 7e-5)],
+                                                                   "probe_median": [2.1e-5, 2.2e-5]})
+    assert slow["slow_wakeups_outside_fault_handling"] == 2 and slow["probe_median_us"] == [21.0, 22.0]
+    assert (slow["daemon_misses_with_one"], slow["daemon_misses_with_a_miss_or_slow_wakeup"]) == (1, 4)
 
 
 def test_the_sentinel_counts_a_stall_of_its_own_process() -> None:
@@ -47,13 +56,20 @@ def test_the_sentinel_counts_a_stall_of_its_own_process() -> None:
 
     s = Sentinel(500.0, 1, cpu=0).start()
     pid = s._procs[0][1].pid
-    time.sleep(0.3)
+    time.sleep(0.6)
     os.kill(pid, signal.SIGSTOP)
     time.sleep(0.05)
     os.kill(pid, signal.SIGCONT)
     time.sleep(0.3)
     misses = s.stop()
     assert sum(n for _, n, _ in misses) >= 20 and max(late for _, _, late in misses) >= 0.04, misses
+    assert len(s.probe_median) == 1 and 0 < s.probe_median[0] < 1e-3  # calibrated over the first 250 wake-ups
+
+
+def test_a_sentinels_probe_is_fixed_work() -> None:
+    from benchmarks._soak_sentinel import _probe
+
+    assert _probe() == _probe() and _probe(10) != _probe(200)
 
 
 def test_recording_rows_count_the_cycles_absent_from_the_file(tmp_path: Path) -> None:
