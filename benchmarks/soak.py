@@ -11,7 +11,10 @@ accepted against sent while active (goal: none lost), and the VmRSS of the daemo
 children, not the emulators) after the warm-up and at the end (goal: growth <= 10 MiB). Beside the daemon bare
 realtime loops at its rate and priority, one pinned to each CPU (``benchmarks/_soak_sentinel.py``), count the
 deadlines the machine itself took away (a loop with no work misses one only when its CPU ran no top-priority thread
-for a whole period), and the report says how many of the daemon's misses came with one of those. It writes
+for a whole period), and the report says how many of the daemon's misses came with one of those; each of those
+loops also times a fixed piece of interpreter work at every wake-up, and the report counts the wake-ups where it ran
+several times slower than its median (a CPU running slowly, which a sleeping loop does not see) and how many of the
+daemon's misses came with one of those or a miss. It writes
 ``report.json`` (figures and settings), ``timeline.png``, the daemon's log and the recording into ``--out``.
 
 Run: ``python benchmarks/soak.py [--minutes 10] [--interval 30] [--rate 500] [--out out/soak]``
