@@ -94,6 +94,8 @@ COMMANDS: tuple[Command, ...] = (
             "pack a pose dataset into one compressed file (lossless, hash-checked)"),
     Command("dataset-unpack", OFFLINE, "offline.cli.dataset_unpack",
             "unpack a dataset pack into a dataset folder (hash-checked)"),
+    Command("dataset-merge", OFFLINE, "offline.cli.dataset_merge",
+            "join datasets of one head and skin, every pose keeping its split"),
     Command("train", OFFLINE, "offline.cli.train",
             "train the KSNN skin predictor on a pose dataset, export ONNX + report"),
     Command("evaluate", OFFLINE, "offline.cli.evaluate",

@@ -288,6 +288,14 @@ class PoseDataset:
         h.update(json.dumps(self.splits.to_json(), sort_keys=True).encode())
         return "sha256:" + h.hexdigest()
 
+    def planned_samples(self) -> np.ndarray:
+        """The sampler's planned values of every pose index, converged or not (``samples.npy``)."""
+        return self._store.samples()
+
+    def base_arrays(self) -> dict[str, np.ndarray]:
+        """Everything ``base.npz`` holds: the base surface, faces, face units, regions."""
+        return self._store.base()
+
     @property
     def usable(self) -> np.ndarray:
         """Indices of converged poses (the only ones used for training)."""

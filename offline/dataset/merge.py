@@ -1,0 +1,99 @@
+"""Datasets of one head and skin joined into one, every pose keeping its split: a dataset grown by more poses.
+
+A predictor's dataset grows by simulating more poses (another seed, more of them at the range ends, poses a
+selection rule chose) into a second dataset and joining the two. The joined dataset is what training reads; each
+pose keeps the split its own dataset gave it, so a pose that was ever test stays test and a predictor trained on the
+joined dataset is still judged on poses it never saw. Only datasets of the same physics join: the same actuators and
+ranges, the same base surface and face units, the same FEM problem (element order, material, alignment).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from models.atomic import write_bytes
+from models.errors import SpecError
+from offline.dataset.splits import SPLIT_NAMES, SPLITS_FILE, Splits
+from offline.dataset.store import PoseDataset, atomic_save_npy, atomic_savez
+
+#: Problem fields that name where an input was read from, not what it is (the base surface is compared instead).
+_LOCATIONS = ("config", "mesh", "linkmap", "backend")
+
+
+def merge_datasets(sources: Sequence[str | Path], out: str | Path) -> PoseDataset:
+    """Join the consolidated datasets ``sources`` (in order) into the dataset folder ``out``; returns it opened.
+
+    Refuses fewer than two sources, sources of different physics (:func:`check_joinable` names the difference) and
+    an ``out`` that already holds a dataset. The manifest is the first source's with the pose count and a
+    ``merged_from`` list (each source's id, content hash, pose count, seed and sampling)."""
+    if len(sources) < 2:
+        raise ValueError(f"need at least two datasets to join, got {len(sources)}")
+    out = Path(out)
+    if (out / "dataset.json").exists():
+        raise SpecError(str(out), "dataset", "already holds a dataset; join into a new folder")
+    parts = [PoseDataset(s) for s in sources]
+    for other, path in zip(parts[1:], sources[1:], strict=True):
+        check_joinable(parts[0], other, str(path))
+    sizes = [len(p.status) for p in parts]
+    starts = np.cumsum([0, *sizes[:-1]])
+    splits = Splits(n=int(sum(sizes)), seed=parts[0].splits.seed, fractions=parts[0].splits.fractions,
+                    **{name: np.concatenate([p.splits[name] + s for p, s in zip(parts, starts, strict=True)])
+                       for name in SPLIT_NAMES})
+    manifest: dict[str, Any] = dict(parts[0].manifest)
+    manifest["n_poses"] = splits.n
+    manifest["id"] = out.name
+    manifest["merged_from"] = [{"id": p.id, "hash": p.content_hash(), "n_poses": n, "seed": p.manifest.get("seed"),
+                                "sampling": p.manifest.get("sampling")} for p, n in zip(parts, sizes, strict=True)]
+    out.mkdir(parents=True, exist_ok=True)
+    # arrays first, the manifest last: a folder without dataset.json is not a dataset, so a killed join is redone
+    atomic_savez(out / "base.npz", **parts[0].base_arrays())
+    atomic_save_npy(out / "samples.npy", np.concatenate([p.planned_samples() for p in parts]))
+    atomic_save_npy(out / "actuators.npy", np.concatenate([p.actuators for p in parts]))
+    atomic_save_npy(out / "status.npy", np.concatenate([p.status for p in parts]))
+    atomic_save_npy(out / "offsets.npy", np.concatenate([np.asarray(p.offsets) for p in parts]))
+    write_bytes(out / SPLITS_FILE, json.dumps(splits.to_json()).encode())
+    write_bytes(out / "dataset.json", json.dumps(manifest, indent=1).encode())
+    return PoseDataset(out)
+
+
+def check_joinable(a: PoseDataset, b: PoseDataset, where: str) -> None:
+    """Raise :class:`SpecError` naming the first thing in which dataset ``b`` (at ``where``) differs from ``a``
+    so that their poses would not be of one skin: actuators, ranges, rest pose, base surface, face units, regions,
+    FEM problem."""
+    checks: list[tuple[str, Any, Any]] = [
+        ("actuators", a.names, b.names), ("units", a.units, b.units),
+        ("actuator ranges", (a.lo.tolist(), a.hi.tolist()), (b.lo.tolist(), b.hi.tolist())),
+        ("head", a.head, b.head),
+        ("rest_pose", None if a.rest_pose is None else a.rest_pose.tolist(),
+         None if b.rest_pose is None else b.rest_pose.tolist()),
+        ("face units", a.face_unit_names, b.face_unit_names), ("regions", a.region_names, b.region_names),
+        ("problem", _physics(a.manifest.get("problem")), _physics(b.manifest.get("problem")))]
+    for what, x, y in checks:
+        if x != y:
+            raise SpecError(where, what, f"differs from the first dataset's ({_short(x)})", _short(y))
+    for what, x, y in (("base surface", a.base_vertices, b.base_vertices), ("faces", a.faces, b.faces),
+                       ("face unit offsets", a.face_unit_offsets, b.face_unit_offsets),
+                       ("vertex regions", a.vertex_region, b.vertex_region)):
+        if (x is None) != (y is None) or (x is not None and not np.array_equal(x, y)):
+            raise SpecError(where, what, "differs from the first dataset's")
+
+
+def _physics(problem: Any) -> Any:
+    """The problem record without the places its inputs were read from; a missing element order is 1 (linear tets,
+    what datasets wrote before the field existed)."""
+    if not isinstance(problem, dict):
+        return problem
+    out = {k: v for k, v in problem.items() if k not in _LOCATIONS}
+    if out.get("kind") == "fem":
+        out.setdefault("element_order", 1)
+    return out
+
+
+def _short(value: Any) -> str:
+    text = json.dumps(value, default=str)
+    return text if len(text) <= 200 else text[:200] + "..."
