@@ -29,8 +29,9 @@ def merge_datasets(sources: Sequence[str | Path], out: str | Path) -> PoseDatase
     """Join the consolidated datasets ``sources`` (in order) into the dataset folder ``out``; returns it opened.
 
     Refuses fewer than two sources, sources of different physics (:func:`check_joinable` names the difference) and
-    an ``out`` that already holds a dataset. The manifest is the first source's with the pose count and a
-    ``merged_from`` list (each source's id, content hash, pose count, seed and sampling)."""
+    an ``out`` that already holds a dataset. The manifest is the first source's with the pose count, its
+    ``sampling`` and ``start`` set to None where the sources differ in them, and a ``merged_from`` list (each
+    source's id, content hash, pose count, seed, sampling and start)."""
     if len(sources) < 2:
         raise ValueError(f"need at least two datasets to join, got {len(sources)}")
     out = Path(out)
@@ -47,8 +48,12 @@ def merge_datasets(sources: Sequence[str | Path], out: str | Path) -> PoseDatase
     manifest: dict[str, Any] = dict(parts[0].manifest)
     manifest["n_poses"] = splits.n
     manifest["id"] = out.name
+    for key in ("sampling", "start"):  # one value for the whole dataset only where every source had it
+        values = [p.manifest.get(key) for p in parts]
+        manifest[key] = values[0] if all(v == values[0] for v in values) else None
     manifest["merged_from"] = [{"id": p.id, "hash": p.content_hash(), "n_poses": n, "seed": p.manifest.get("seed"),
-                                "sampling": p.manifest.get("sampling")} for p, n in zip(parts, sizes, strict=True)]
+                                "sampling": p.manifest.get("sampling"), "start": p.manifest.get("start")}
+                               for p, n in zip(parts, sizes, strict=True)]
     out.mkdir(parents=True, exist_ok=True)
     # arrays first, the manifest last: a folder without dataset.json is not a dataset, so a killed join is redone
     atomic_savez(out / "base.npz", **parts[0].base_arrays())

@@ -54,6 +54,7 @@ def test_the_joined_dataset_holds_every_pose_with_its_own_split(two, tmp_path):
     froms = m.manifest["merged_from"]
     assert [f["n_poses"] for f in froms] == [30, 20] and froms[1]["hash"] == b.content_hash()
     assert froms[1]["sampling"]["boundary_prob"] == 0.5 and m.manifest["n_poses"] == 50
+    assert m.manifest["sampling"] is None  # the sources were sampled differently: no one value describes the join
     with pytest.raises(SpecError, match="already holds a dataset"):
         merge_datasets(two, tmp_path / "ab")
 
