@@ -68,22 +68,22 @@ def merge_datasets(sources: Sequence[str | Path], out: str | Path) -> PoseDatase
 
 def check_joinable(a: PoseDataset, b: PoseDataset, where: str) -> None:
     """Raise :class:`SpecError` naming the first thing in which dataset ``b`` (at ``where``) differs from ``a``
-    so that their poses would not be of one skin: actuators, ranges, rest pose, base surface, face units, regions,
-    FEM problem."""
+    so that their poses would not be of one skin: actuators, ranges, rest pose, base surface, face units, FEM
+    problem. The vertices' region labels are not compared: they name where errors are reported, and the joined
+    dataset keeps the first source's (their assignment has changed between versions of the dataset command)."""
     checks: list[tuple[str, Any, Any]] = [
         ("actuators", a.names, b.names), ("units", a.units, b.units),
         ("actuator ranges", (a.lo.tolist(), a.hi.tolist()), (b.lo.tolist(), b.hi.tolist())),
         ("head", a.head, b.head),
         ("rest_pose", None if a.rest_pose is None else a.rest_pose.tolist(),
          None if b.rest_pose is None else b.rest_pose.tolist()),
-        ("face units", a.face_unit_names, b.face_unit_names), ("regions", a.region_names, b.region_names),
+        ("face units", a.face_unit_names, b.face_unit_names),
         ("problem", _physics(a.manifest.get("problem")), _physics(b.manifest.get("problem")))]
     for what, x, y in checks:
         if x != y:
             raise SpecError(where, what, f"differs from the first dataset's ({_short(x)})", _short(y))
     for what, x, y in (("base surface", a.base_vertices, b.base_vertices), ("faces", a.faces, b.faces),
-                       ("face unit offsets", a.face_unit_offsets, b.face_unit_offsets),
-                       ("vertex regions", a.vertex_region, b.vertex_region)):
+                       ("face unit offsets", a.face_unit_offsets, b.face_unit_offsets)):
         if (x is None) != (y is None) or (x is not None and not np.array_equal(x, y)):
             raise SpecError(where, what, "differs from the first dataset's")
 
