@@ -64,13 +64,15 @@ def test_bad_offsets_and_ranks_are_refused():
         rank_floor(np.zeros((5, 4, 3)), [0])
 
 
-def test_the_command_on_the_shipped_dataset_sets_the_predictor_beside_its_floor():
+def test_the_command_on_the_shipped_dataset_sets_the_predictor_beside_its_floor(tmp_path):
     res = subprocess.run([sys.executable, "-m", "likeness", "offline", "capacity", "--dataset",
                           str(ROOT / "heads/sample/predictor_dataset.npz"), "--hidden", "A", "2A", "--split", "test",
-                          "--predictor", str(ROOT / "heads/sample/predictor.onnx")],
+                          "--predictor", str(ROOT / "heads/sample/predictor.onnx"), "--out", str(tmp_path / "f.json")],
                          capture_output=True, text=True, cwd=ROOT, timeout=120)
     assert res.returncode == 0, res.stderr
     out = json.loads(res.stdout)
+    written = json.loads((tmp_path / "f.json").read_text())  # the printed report, with the command that made it
+    assert written == out and written["command"].startswith("likeness offline capacity --dataset ")
     assert out["dataset"]["poses"] == 75 and set(out["floor"]) == {"13", "26"}
     assert out["floor"]["13"]["rms_floor_um"] > out["floor"]["26"]["rms_floor_um"] > 0
     # the shipped predictor has 26 units per axis: its RMS error on these poses is above that size's floor
