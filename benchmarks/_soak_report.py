@@ -68,6 +68,32 @@ def _machine_stalls(states: list[tuple], windows: list[tuple[float, float]], t_f
             "daemon_misses_with_a_miss_or_slow_wakeup": with_slow}
 
 
+def _miss_causes(events: list[dict[str, Any]], windows: list[tuple[float, float]], t_from: float, t_to: float,
+                 sentinel: dict[str, Any], near_s: float = 0.05) -> dict[str, Any]:
+    """The daemon's own account of its misses outside the fault windows (:mod:`runtime.cycle_forensics`, the
+    ``causes`` of its ``deadline_miss`` events): deadlines missed per cause, and per cause how many came within
+    ``near_s`` of a bare loop's miss or slow wake-up (a sign of the host)."""
+    host = [t for t, _, _ in sentinel.get("misses", [])] + [t for t, _ in sentinel.get("slow", [])]
+    by_cause: dict[str, dict[str, int]] = {}
+    worst: dict[str, dict[str, Any]] = {}
+    for e in events:
+        if e.get("event") != "deadline_miss":
+            continue
+        for rec in e.get("causes") or []:
+            t = float(rec["t"])
+            if not t_from <= t <= t_to or any(a <= t <= b for a, b in windows):
+                continue
+            c = by_cause.setdefault(rec["cause"], {"missed": 0, "records": 0, "with_host_sign": 0})
+            c["missed"] += int(rec["missed"])
+            c["records"] += 1
+            if any(t - near_s <= th <= t + near_s for th in host):
+                c["with_host_sign"] += int(rec["missed"])
+            if rec["late_ms"] > worst.get(rec["cause"], {}).get("late_ms", -1.0):
+                worst[rec["cause"]] = rec
+    return {"by_cause": by_cause, "worst_record_per_cause": worst,
+            "recorded_missed": sum(c["missed"] for c in by_cause.values())}
+
+
 def recording_rows(path: str | None, period: float) -> dict[str, int]:
     """Rows in a ``.lrec`` file and the control cycles absent from it: the period slots its time column spans less
     its rows. A cycle run early on an input (wake on input) serves its slot ahead of the deadline, so the steps
@@ -96,6 +122,7 @@ def summarize(raw: dict[str, Any], settings: dict[str, Any], settle_s: float) ->
     t_end = states[-1][0] if states else t_warm
     missed = _missed(states, windows, t_warm, t_end)
     stalls = _machine_stalls(states, windows, t_warm, t_end, raw.get("sentinel") or {})
+    causes = _miss_causes(raw["collector"].events, windows, t_warm, t_end, raw.get("sentinel") or {})
     runs = [r.summary() for r in raw["runs"]]
     injected = [r for r in runs if r["fault"] != "unexpected"]
     unexpected = [r for r in runs if r["fault"] == "unexpected"]
@@ -122,6 +149,7 @@ def summarize(raw: dict[str, Any], settings: dict[str, Any], settle_s: float) ->
         "settings": settings,
         "missed_deadlines": missed,
         "machine_stalls": stalls,
+        "miss_causes": causes,
         "faults": injected,
         "unexpected_faults": unexpected,
         "recording": {"samples_reported": int(rec.get("samples", 0)), "rows_in_file": file_rows["rows"],
@@ -160,6 +188,11 @@ def print_summary(result: dict[str, Any], path: Path) -> None:
                   "fault handling: "
                   f"{ms['daemon_misses_with_a_miss_or_slow_wakeup']} of the daemon's "
                   f"{ms['daemon_misses_outside']} came within 50 ms of a miss or a slow wake-up")
+    mc = result.get("miss_causes") or {}
+    if mc.get("by_cause"):
+        parts = ", ".join(f"{k} {v['missed']} ({v['with_host_sign']} near a sign of the host)"
+                          for k, v in sorted(mc["by_cause"].items(), key=lambda kv: -kv[1]["missed"]))
+        print(f"  the loop's own account of {mc['recorded_missed']} of them (runtime.cycle_forensics): {parts}")
     for f in result["faults"] + result["unexpected_faults"]:
         ttf = "-" if f["time_to_fault_s"] is None else f"{f['time_to_fault_s']:.2f} s"
         ttr = "-" if f["time_to_recover_s"] is None else f"{f['time_to_recover_s']:.2f} s"

@@ -39,6 +39,7 @@ from runtime.core.commands import Command, Live, Stream, Timecode
 from runtime.core.cycle import BusInput, CycleInputs, CycleOutputs
 from runtime.core.params import CoreParams
 from runtime.core.state import CoreState
+from runtime.cycle_forensics import CycleForensics
 from runtime.input_trace import InputTrace
 from runtime.loop import LoopStats, RateScheduler, SwitchInterval, drop_realtime, freeze_heap, try_realtime
 from runtime.phaselock import PhaseLock
@@ -96,6 +97,7 @@ class Runner:
         self._last_t = float("-inf")  # the time of the last cycle
         self._carry: list[Command] = []  # commands taken between cycles for the early cycle they woke
         self.trace = InputTrace()  # live values' and stream frames' stamps on their way to the bus
+        self.forensics = CycleForensics(params.period)  # what a missed deadline's cycle left as evidence
 
     def stop(self) -> None:
         self._stop.set()
@@ -134,6 +136,7 @@ class Runner:
                     # cycle (wake on input) has no deadline: its time is when it runs.
                     t = woke if sched.early else sched.next - self.params.period
                     self._last_t = t
+                    self.forensics.woke(t, late, missed)
                     inputs = self._inputs(t)
                     try:
                         out = K.control(self.state, self.params, inputs)
@@ -155,13 +158,14 @@ class Runner:
                         self.stats.early += 1
                     if pending_misses and t - last_miss_event >= 1.0:
                         self._send(L.Event({"event": "deadline_miss", "t": t, "count": pending_misses,
-                                            "total": self.stats.missed}))
+                                            "total": self.stats.missed, "causes": self.forensics.take()}))
                         pending_misses = 0
                         last_miss_event = t
                     self._outbox(out)
                     if t >= next_stats:
                         next_stats = t + STATS_EVERY_S
                         self._send_stats()
+                    self.forensics.work_done()
                     if not sched.early:  # an early cycle has no deadline to be late for
                         self.stats.add(late, self.clock() - t, t)
                     if self.phase_lock is not None:
@@ -233,6 +237,7 @@ class Runner:
                       f"taking commands failed: {type(exc).__name__}: {exc}")
             self._write(out, t)
             self._outbox(out)
+            self.forensics.between(self.clock() - t)
 
     def _margin_wake(self, fd: int, until: float) -> bool:
         """The margin before a cycle (``COMMAND_MARGIN_S``), with wake on input: commands that arrive are taken off

@@ -60,6 +60,7 @@ class BenchmarkJob:
     clusters: int | None = None
     cluster_spread: float | None = None
     policy_model: str | None = None
+    element_order: int | None = None
 
 
 def settings_of(job: BenchmarkJob) -> tuple[PoolSettings, BenchmarkSettings, PolicySettings, LearnerConfig]:
@@ -95,6 +96,13 @@ def settings_of(job: BenchmarkJob) -> tuple[PoolSettings, BenchmarkSettings, Pol
     if (job.clusters is not None and job.clusters < 0) or (job.cluster_spread is not None and job.cluster_spread <= 0):
         raise UsageError("--clusters must be >= 0 and --cluster-spread positive")
     pool = replace(pool, **pool_over, policy_fraction=job.policy_fraction)
+    if job.element_order is not None:
+        if job.element_order not in (1, 2):
+            raise UsageError(f"--element-order must be 1 or 2, got {job.element_order}")
+        if pool.synthetic and job.element_order != 1:
+            raise UsageError("--element-order 2 makes the FEM pool quadratic; the analytic sheet (--quick, "
+                             "--synthetic) has no elements")
+        pool = replace(pool, element_order=job.element_order)
     if job.policy_model is not None:
         from offline.active.policy import MODELS
 
@@ -115,7 +123,8 @@ def pool_pack(job: BenchmarkJob, settings: PoolSettings) -> str | None:
     the default FEM pool; None to simulate (or for ``pool``, ``quick``, ``synthetic``)."""
     from offline.dataset.pack import read_header
 
-    if job.pool is not None or job.simulate_pool or settings.synthetic or settings.nu is not None or settings.clusters:
+    if (job.pool is not None or job.simulate_pool or settings.synthetic or settings.nu is not None
+            or settings.clusters or (settings.element_order != 1 and not job.pool_pack)):
         if job.pool_pack and (job.pool is not None or job.simulate_pool or settings.nu is not None):
             raise UsageError("--pool-pack cannot be combined with --pool, --simulate-pool or --skin-nu")
         return None
@@ -131,6 +140,8 @@ def pool_pack(job: BenchmarkJob, settings: PoolSettings) -> str | None:
     got = {k: manifest.get(k) for k in want}
     if got["sampling"] is not None:
         got["sampling"] = {k: got["sampling"].get(k) for k in want["sampling"]}
+    want["element_order"] = settings.element_order
+    got["element_order"] = (manifest.get("problem") or {}).get("element_order", 1)
     if got != want:
         raise UsageError(f"{path}: the pack holds a different pool ({got}) than this run asks for ({want}); "
                          "pass --simulate-pool to simulate it, or --pool DATASET")

@@ -43,6 +43,8 @@ class PoolSettings:
     clusters: int = 0
     cluster_spread: float = 0.05
     policy_fraction: float = 0.35  # the benchmark's, so the clustered rows are the benchmark pool's
+    #: FEM pool: 1 the mesh's linear tets, 2 the same tets quadratic (the sample predictor's dataset is quadratic).
+    element_order: int = 1
 
 
 #: Share of the policy pool made of clustered candidates (the rest stays i.i.d.: the policy's pseudo-test poses).
@@ -117,7 +119,8 @@ def ensure_pool(head, config: str, mesh: str | None, out: str | Path, settings: 
                 raise ValueError("--skin-nu needs the head's [skin_material] to change")
             material["poisson_ratio"] = settings.nu
             material["material_source"] += f"; nu replaced by {settings.nu} for this pool (al-benchmark --skin-nu)"
-        spec = FemSpec(config=str(config), mesh=str(mesh), linkmap=str(linkmap), **material)
+        spec = FemSpec(config=str(config), mesh=str(mesh), linkmap=str(linkmap),
+                       element_order=settings.element_order, **material)
         spec.check()
     samples = sample_poses(head, settings.poses, seed=settings.seed, boundary_prob=settings.boundary_prob,
                            range_fraction=settings.range_fraction)

@@ -50,6 +50,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="with --clusters: jitter of a pose around its centre, share of each range (default 0.05)")
     p.add_argument("--policy-model", default=None,
                    help="GEN-LAL regressor: features (ridge on uncertainty features, default) or cnn (the paper's)")
+    p.add_argument("--element-order", type=int, choices=(1, 2), default=None,
+                   help="FEM pool: 1 the skin mesh's linear tets (default, the shipped pack's), 2 the same tets "
+                   "quadratic (the sample predictor's dataset; about 5x the time per pose)")
     p.add_argument("--workers", type=int, default=None, help="FEM worker processes for the pool (default: CPUs)")
     p.add_argument("--engine", default="local", help="engine for the pool's FEM poses: local, dask-local, dask://")
 
@@ -67,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
         policy_fraction=args.policy_fraction, synthetic=args.synthetic, sheet_grid=args.sheet_grid,
         sheet_stiffening=args.sheet_stiffening, skin_nu=args.skin_nu, workers=args.workers, engine=args.engine,
         pool_poses=args.pool_poses, clusters=args.clusters, cluster_spread=args.cluster_spread,
-        policy_model=args.policy_model)
+        policy_model=args.policy_model, element_order=args.element_order)
     try:
         run_al_benchmark(job)
     except KeyboardInterrupt:

@@ -46,6 +46,21 @@ def test_the_daemons_misses_are_set_beside_the_machines_own_stalls() -> None:
     assert (slow["daemon_misses_with_one"], slow["daemon_misses_with_a_miss_or_slow_wakeup"]) == (1, 4)
 
 
+def test_the_loops_own_account_of_its_misses_is_counted_per_cause_outside_fault_handling() -> None:
+    def rec(t: float, cause: str, missed: int = 1, late_ms: float = 2.5) -> dict:
+        return {"t": t, "cause": cause, "missed": missed, "late_ms": late_ms}
+
+    events = [{"event": "deadline_miss", "t": 1.2, "causes": [rec(1.1, "work_slow", 2), rec(1.15, "preempted")]},
+              {"event": "deadline_miss", "t": 4.1, "causes": [rec(4.0, "work_slow")]},  # inside the fault window
+              {"event": "fault", "t": 4.0},
+              {"event": "deadline_miss", "t": 6.0, "causes": [rec(5.9, "work_slow", 1, 7.0)]}]
+    sentinel = {"misses": [(5.92, 1, 0.002)], "slow": [(1.16, 9e-5)]}
+    out = SR._miss_causes(events, [(3.5, 4.5)], 0.5, 10.0, sentinel)
+    assert out["by_cause"] == {"work_slow": {"missed": 3, "records": 2, "with_host_sign": 1},
+                               "preempted": {"missed": 1, "records": 1, "with_host_sign": 1}}
+    assert out["recorded_missed"] == 4 and out["worst_record_per_cause"]["work_slow"]["t"] == 5.9
+
+
 def test_the_sentinel_counts_a_stall_of_its_own_process() -> None:
     """A bare loop stopped for 50 ms (SIGSTOP, as a hypervisor takes the CPU) misses about 25 deadlines at 500 Hz."""
     import os

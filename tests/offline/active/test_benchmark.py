@@ -132,3 +132,23 @@ def test_quick_benchmark_writes_a_well_formed_report_and_resumes_from_its_checkp
     assert "loaded" in second.stderr
     again = json.loads((out / "report.json").read_text())
     assert again["runs"] == report["runs"]
+
+
+def test_a_quadratic_pool_is_simulated_not_taken_from_the_linear_shipped_pack():
+    """``--element-order 2`` asks for the skin's quadratic tets: the shipped linear pack must not stand in for it."""
+    from models.errors import UsageError
+    from offline.active.benchmark_job import BenchmarkJob, pool_pack, settings_of
+
+    config = str(ROOT / "heads" / "sample" / "head.toml")
+    quad = BenchmarkJob(config=config, out="unused", element_order=2)
+    settings = settings_of(quad)[0]
+    assert settings.element_order == 2
+    assert pool_pack(quad, settings) is None  # simulated
+    shipped = str(ROOT / "heads" / "sample" / "al_pool.npz")
+    given = BenchmarkJob(config=config, out="unused", element_order=2, pool_pack=shipped)
+    with pytest.raises(UsageError, match="element_order"):
+        pool_pack(given, settings_of(given)[0])
+    linear = BenchmarkJob(config=config, out="unused")
+    assert pool_pack(linear, settings_of(linear)[0]) == shipped
+    with pytest.raises(UsageError, match="--element-order 2"):
+        settings_of(BenchmarkJob(config=config, out="unused", synthetic=True, element_order=2))
