@@ -38,34 +38,72 @@ def _missed(states: list[tuple], windows: list[tuple[float, float]], t_from: flo
     return {"outside_fault_handling": outside, "during_fault_handling": inside}
 
 
+def _covered(points: list[float], near_s: float, windows: list[tuple[float, float]], t_from: float,
+             t_to: float) -> float:
+    """Share of the time from ``t_from`` to ``t_to`` outside ``windows`` that lies within ``near_s`` of a point:
+    the chance that a moment picked at random there comes "near" one by coincidence."""
+    import numpy as np
+
+    if t_to <= t_from:
+        return 0.0
+    grid = np.linspace(t_from, t_to, max(2, int((t_to - t_from) / 1e-3)))
+    keep = np.ones(len(grid), bool)
+    for a, b in windows:
+        keep &= ~((grid >= a) & (grid <= b))
+    if not keep.any():
+        return 0.0
+    pts = np.sort(np.asarray(points, float))
+    if not len(pts):
+        return 0.0
+    g = grid[keep]
+    i = np.clip(np.searchsorted(pts, g), 1, len(pts) - 1) if len(pts) > 1 else np.zeros(len(g), int)
+    dist = np.minimum(np.abs(g - pts[i]), np.abs(g - pts[np.maximum(i - 1, 0)]))
+    return float(np.mean(dist <= near_s))
+
+
 def _machine_stalls(states: list[tuple], windows: list[tuple[float, float]], t_from: float, t_to: float,
-                    sentinel: dict[str, Any], near_s: float = 0.05) -> dict[str, Any]:
+                    sentinel: dict[str, Any], near_s: float = 0.05,
+                    records: list[tuple[float, int]] | None = None) -> dict[str, Any]:
     """The bare realtime loop's misses between ``t_from`` and ``t_to`` (:mod:`benchmarks._soak_sentinel`) and its
     slow wake-ups, outside the fault windows, and how many of the daemon's misses outside them came within ``near_s``
-    of a miss, and of a miss or a slow wake-up."""
+    of a miss, and of a miss or a slow wake-up, with the chance of that by coincidence (the share of the time within
+    ``near_s`` of one).
+
+    ``records``: the daemon's misses at their own times ((t, deadlines), the loop's ``deadline_miss`` causes). Without
+    them each miss is placed between the two state messages whose counters differ, which trail the miss by up to
+    the loop's statistics period (0.5 s): too late to match a sign of the host 50 ms away."""
     misses = [(t, n, late) for t, n, late in sentinel.get("misses", []) if t_from <= t <= t_to]
     slow = [t for t, _ in sentinel.get("slow", []) if t_from <= t <= t_to]
     def outside(t0: float, t1: float) -> bool:
         return not any(a <= t1 and t0 <= b for a, b in windows)
     own = sum(n for t, n, _ in misses if outside(t, t))
+    spans: list[tuple[float, float, int]] = []
+    if records is not None:
+        spans = [(t, t, n) for t, n in records if t_from <= t <= t_to and outside(t, t)]
+    else:
+        prev = None
+        for t, _cycles, missed, *_ in states:
+            if prev is not None and t_from <= t <= t_to and (step := missed - prev[1]) > 0 and outside(prev[0], t):
+                spans.append((prev[0], t, step))
+            prev = (t, missed)
     daemon = shared = with_slow = 0
-    prev = None
-    for t, _cycles, missed, *_ in states:
-        if prev is not None and t_from <= t <= t_to and (step := missed - prev[1]) > 0 and outside(prev[0], t):
-            daemon += step
-            near_miss = any(prev[0] - near_s <= ts <= t + near_s for ts, _, _ in misses)
-            if near_miss:
-                shared += step
-            if near_miss or any(prev[0] - near_s <= ts <= t + near_s for ts in slow):
-                with_slow += step
-        prev = (t, missed)
+    for t0, t1, step in spans:
+        daemon += step
+        near_miss = any(t0 - near_s <= ts <= t1 + near_s for ts, _, _ in misses)
+        if near_miss:
+            shared += step
+        if near_miss or any(t0 - near_s <= ts <= t1 + near_s for ts in slow):
+            with_slow += step
     return {"scheduling": sentinel.get("scheduling", ""), "missed_outside_fault_handling": own,
             "worst_lateness_ms": round(max((late for _, _, late in misses), default=0.0) * 1e3, 2),
             "slow_wakeups_outside_fault_handling": sum(1 for t in slow if outside(t, t)),
             "probe_median_us": [round(m * 1e6, 1) for m in sentinel.get("probe_median", [])],
             "slow_factor": sentinel.get("slow_factor"),
             "daemon_misses_outside": daemon, "daemon_misses_with_one": shared,
-            "daemon_misses_with_a_miss_or_slow_wakeup": with_slow}
+            "daemon_misses_with_a_miss_or_slow_wakeup": with_slow,
+            "matched_by": "the loop's own miss times" if records is not None else "state messages (late by <= 0.5 s)",
+            "chance_near_a_miss_or_slow_wakeup": round(
+                _covered([t for t, _, _ in misses] + slow, near_s, windows, t_from, t_to), 4)}
 
 
 def _miss_causes(events: list[dict[str, Any]], windows: list[tuple[float, float]], t_from: float, t_to: float,
@@ -76,6 +114,7 @@ def _miss_causes(events: list[dict[str, Any]], windows: list[tuple[float, float]
     host = [t for t, _, _ in sentinel.get("misses", [])] + [t for t, _ in sentinel.get("slow", [])]
     by_cause: dict[str, dict[str, int]] = {}
     worst: dict[str, dict[str, Any]] = {}
+    kept: list[dict[str, Any]] = []
     for e in events:
         if e.get("event") != "deadline_miss":
             continue
@@ -83,6 +122,7 @@ def _miss_causes(events: list[dict[str, Any]], windows: list[tuple[float, float]
             t = float(rec["t"])
             if not t_from <= t <= t_to or any(a <= t <= b for a, b in windows):
                 continue
+            kept.append(rec)
             c = by_cause.setdefault(rec["cause"], {"missed": 0, "records": 0, "with_host_sign": 0})
             c["missed"] += int(rec["missed"])
             c["records"] += 1
@@ -91,7 +131,7 @@ def _miss_causes(events: list[dict[str, Any]], windows: list[tuple[float, float]
             if rec["late_ms"] > worst.get(rec["cause"], {}).get("late_ms", -1.0):
                 worst[rec["cause"]] = rec
     return {"by_cause": by_cause, "worst_record_per_cause": worst,
-            "recorded_missed": sum(c["missed"] for c in by_cause.values())}
+            "recorded_missed": sum(c["missed"] for c in by_cause.values()), "records": kept}
 
 
 def recording_rows(path: str | None, period: float) -> dict[str, int]:
@@ -121,8 +161,11 @@ def summarize(raw: dict[str, Any], settings: dict[str, Any], settle_s: float) ->
     t_warm = raw["t0"] + float(settings["warmup_s"])
     t_end = states[-1][0] if states else t_warm
     missed = _missed(states, windows, t_warm, t_end)
-    stalls = _machine_stalls(states, windows, t_warm, t_end, raw.get("sentinel") or {})
     causes = _miss_causes(raw["collector"].events, windows, t_warm, t_end, raw.get("sentinel") or {})
+    # the loop's own miss times, when it accounted for every miss outside fault handling (16 records a second at most)
+    exact = ([(float(r["t"]), int(r["missed"])) for r in causes["records"]]
+             if causes["recorded_missed"] == missed["outside_fault_handling"] else None)
+    stalls = _machine_stalls(states, windows, t_warm, t_end, raw.get("sentinel") or {}, records=exact)
     runs = [r.summary() for r in raw["runs"]]
     injected = [r for r in runs if r["fault"] != "unexpected"]
     unexpected = [r for r in runs if r["fault"] == "unexpected"]
@@ -187,7 +230,9 @@ def print_summary(result: dict[str, Any], path: Path) -> None:
                   f"{ms['slow_factor']}x its median at {ms['slow_wakeups_outside_fault_handling']} wake-ups outside "
                   "fault handling: "
                   f"{ms['daemon_misses_with_a_miss_or_slow_wakeup']} of the daemon's "
-                  f"{ms['daemon_misses_outside']} came within 50 ms of a miss or a slow wake-up")
+                  f"{ms['daemon_misses_outside']} came within 50 ms of a miss or a slow wake-up (matched by "
+                  f"{ms.get('matched_by', '?')}; a moment picked at random comes that near with chance "
+                  f"{ms.get('chance_near_a_miss_or_slow_wakeup', float('nan')):.3f})")
     mc = result.get("miss_causes") or {}
     if mc.get("by_cause"):
         parts = ", ".join(f"{k} {v['missed']} ({v['with_host_sign']} near a sign of the host)"

@@ -31,10 +31,12 @@ def test_the_daemons_misses_are_set_beside_the_machines_own_stalls() -> None:
     # the bare loop missed at 1.5 s (with the daemon's 3), at 4.0 s (inside a fault window) and at 5.9 s (with its 1)
     sentinel = {"scheduling": "SCHED_FIFO 80", "misses": [(1.5, 2, 0.0041), (4.0, 1, 0.0023), (5.9, 1, 0.0021)]}
     out = SR._machine_stalls(states, [(3.5, 4.5)], 0.5, 10.0, sentinel)
-    assert out == {"scheduling": "SCHED_FIFO 80", "missed_outside_fault_handling": 3, "worst_lateness_ms": 4.1,
-                   "slow_wakeups_outside_fault_handling": 0, "probe_median_us": [], "slow_factor": None,
-                   "daemon_misses_outside": 4, "daemon_misses_with_one": 4,
-                   "daemon_misses_with_a_miss_or_slow_wakeup": 4}
+    expect = {"scheduling": "SCHED_FIFO 80", "missed_outside_fault_handling": 3, "worst_lateness_ms": 4.1,
+              "slow_wakeups_outside_fault_handling": 0, "probe_median_us": [], "slow_factor": None,
+              "daemon_misses_outside": 4, "daemon_misses_with_one": 4,
+              "daemon_misses_with_a_miss_or_slow_wakeup": 4}
+    assert {k: out[k] for k in expect} == expect
+    assert out["matched_by"].startswith("state messages")
     alone = SR._machine_stalls(states, [(3.5, 4.5)], 0.5, 10.0, {"misses": [(5.9, 1, 0.0021)]})
     assert (alone["daemon_misses_outside"], alone["daemon_misses_with_one"]) == (4, 1)
     # slow wake-ups (the probe over its factor) at 1.98 s (beside the daemon's 3 of 1..2 s), 4.2 s (in a fault
@@ -44,6 +46,20 @@ def test_the_daemons_misses_are_set_beside_the_machines_own_stalls() -> None:
                                                                    "probe_median": [2.1e-5, 2.2e-5]})
     assert slow["slow_wakeups_outside_fault_handling"] == 2 and slow["probe_median_us"] == [21.0, 22.0]
     assert (slow["daemon_misses_with_one"], slow["daemon_misses_with_a_miss_or_slow_wakeup"]) == (1, 4)
+
+
+def test_the_daemons_misses_at_their_own_times_match_only_the_host_signs_beside_them() -> None:
+    states = [(t, 0, m, "active", 0.0, 0.0, 0.0) for t, m in [(0.0, 0), (1.0, 0), (2.0, 3), (3.0, 3), (4.0, 5),
+                                                                (5.0, 5), (6.0, 6)]]
+    sentinel = {"misses": [(1.5, 2, 0.0041), (5.9, 1, 0.0021)], "slow": [(1.98, 9e-5)]}
+    # the loop's own times: 3 at 1.2 s (no sign within 50 ms: the state span 1..2 s would have matched both),
+    # 1 at 5.93 s (beside the bare loop's miss at 5.9 s)
+    out = SR._machine_stalls(states, [(3.5, 4.5)], 0.5, 10.0, sentinel, records=[(1.2, 3), (5.93, 1)])
+    assert out["matched_by"] == "the loop's own miss times"
+    assert (out["daemon_misses_outside"], out["daemon_misses_with_one"],
+            out["daemon_misses_with_a_miss_or_slow_wakeup"]) == (4, 1, 1)
+    # three signs outside the fault window, each covering 0.1 s of the 9.5 - 1.0 s outside it
+    assert out["chance_near_a_miss_or_slow_wakeup"] == pytest.approx(0.3 / 8.5, abs=2e-3)
 
 
 def test_the_loops_own_account_of_its_misses_is_counted_per_cause_outside_fault_handling() -> None:
