@@ -273,7 +273,18 @@ def write_timeline(raw: dict[str, Any], result: dict[str, Any], path: Path) -> N
     axes[0].set_ylabel("jaw (deg)")
     axes[0].legend(loc="upper right", fontsize=8)
     missed0 = states[0][2] if states else 0
-    axes[1].step(t, [s[2] - missed0 for s in states], where="post", color="C3")
+    axes[1].step(t, [s[2] - missed0 for s in states], where="post", color="C3", label="daemon (state messages)")
+    bare = sorted((m[0] - t0, m[1]) for m in (raw.get("sentinel") or {}).get("misses", []) if m[0] >= t0)
+    if bare:  # the bare realtime loops beside it: their misses are the host's
+        cum = [0]
+        for _, n in bare:
+            cum.append(cum[-1] + n)
+        axes[1].step([0.0] + [b[0] for b in bare], cum, where="post", color="0.5", lw=0.8,
+                     label="bare realtime loops (the host)")
+    own = [float(r["t"]) - t0 for r in (result.get("miss_causes") or {}).get("records", [])]
+    if own:
+        axes[1].plot(own, [0.0] * len(own), "|", color="C3", ms=12, label="daemon misses at their own times")
+    axes[1].legend(loc="upper left", fontsize=7)
     axes[1].set_ylabel("missed deadlines\n(cumulative)")
     axes[2].plot(t, [1e3 * s[6] if not math.isnan(s[6]) else math.nan for s in states], lw=0.6, color="C2")
     axes[2].set_ylabel("oldest bus\nfeedback (ms)")
