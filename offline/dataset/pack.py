@@ -3,8 +3,11 @@
 ``pack_dataset`` gathers what training and evaluation read (manifest, planned samples, base surface, splits,
 actuators, offsets, status) into one ``.npz``; ``unpack_dataset`` writes it back as a consolidated dataset folder
 without per-pose files (the sample head's 480-pose FEM pool packs into about 6 MB; the float32 offsets are most of
-it and compress little). The pack records the dataset's content hash and unpacking checks it, so an unpacked
-dataset is bit for bit what was packed; ``made_by`` records the command that simulated it.
+it and compress little). Since version 2 the offsets are stored byte-planed (the first bytes of every value, then the
+second, ...: the exponent bytes of neighbouring values repeat, so the planes compress about a fifth smaller) and
+restored bit for bit; version 1 packs are read as before. The pack records the dataset's content hash and
+unpacking checks it, so an unpacked dataset is bit for bit what was packed; ``made_by`` records the command that
+simulated it.
 """
 
 from __future__ import annotations
@@ -23,7 +26,23 @@ from offline.dataset.splits import SPLITS_FILE
 from offline.dataset.store import PoseDataset, atomic_save_npy, atomic_savez
 
 PACK_FORMAT = "likeness-pose-dataset-pack"
-PACK_VERSION = 1
+PACK_VERSION = 2
+#: Pack versions this code reads (1: offsets stored as plain float32).
+READ_VERSIONS = (1, 2)
+
+
+def byte_planes(a: np.ndarray) -> np.ndarray:
+    """The bytes of float32 ``a`` regrouped by position in the value (all first bytes, then all second, ...)."""
+    flat = np.ascontiguousarray(a, dtype="<f4").view(np.uint8).reshape(-1, 4)
+    return np.ascontiguousarray(flat.T).reshape(-1)
+
+
+def from_byte_planes(planes: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """The float32 array of ``shape`` whose :func:`byte_planes` are ``planes`` (bit for bit)."""
+    n = int(np.prod(shape))
+    if planes.dtype != np.uint8 or planes.size != 4 * n:
+        raise ValueError(f"offset planes hold {planes.size} bytes for an array of shape {tuple(shape)}")
+    return np.ascontiguousarray(planes.reshape(4, n).T).view("<f4").reshape(shape).astype(np.float32)
 
 
 def pack_dataset(dataset_dir: str | Path, out: str | Path, made_by: str = "") -> dict[str, Any]:
@@ -37,7 +56,8 @@ def pack_dataset(dataset_dir: str | Path, out: str | Path, made_by: str = "") ->
               "manifest": np.frombuffer(json.dumps(ds.manifest).encode(), dtype=np.uint8),
               "splits": np.frombuffer(json.dumps(ds.splits.to_json()).encode(), dtype=np.uint8),
               "samples": ds._store.samples(), "actuators": ds.actuators, "status": ds.status,
-              "offsets": np.asarray(ds.offsets, dtype=np.float32),
+              "offset_planes": byte_planes(ds.offsets),
+              "offsets_shape": np.asarray(ds.offsets.shape, dtype=np.int64),
               **{f"base_{k}": v for k, v in base.items()}}
     buf = io.BytesIO()
     np.savez_compressed(buf, **arrays)
@@ -56,8 +76,8 @@ def read_header(path: str | Path) -> dict[str, Any]:
         raise SpecError(str(path), "file", f"not a readable dataset pack: {exc}") from exc
     if header.get("format") != PACK_FORMAT:
         raise SpecError(str(path), "format", f"expected {PACK_FORMAT!r}", header.get("format"))
-    if header.get("format_version") != PACK_VERSION:
-        raise SpecError(str(path), "format_version", f"this version reads {PACK_VERSION}",
+    if header.get("format_version") not in READ_VERSIONS:
+        raise SpecError(str(path), "format_version", f"this version reads {', '.join(map(str, READ_VERSIONS))}",
                         header.get("format_version"))
     return {"header": header, "manifest": manifest}
 
@@ -77,6 +97,12 @@ def unpack_dataset(path: str | Path, out_dir: str | Path) -> PoseDataset:
         return ds
     with np.load(path) as z:
         arrays = {k: z[k] for k in z.files}
+    if "offset_planes" in arrays:
+        try:
+            arrays["offsets"] = from_byte_planes(arrays.pop("offset_planes"),
+                                                 tuple(int(v) for v in arrays.pop("offsets_shape")))
+        except (KeyError, ValueError) as exc:
+            raise SpecError(str(path), "offset_planes", str(exc)) from exc
     out_dir.mkdir(parents=True, exist_ok=True)
     base = {k[5:]: v for k, v in arrays.items() if k.startswith("base_")}
     # Arrays first, the manifest last: a folder without dataset.json is not a dataset, so a killed unpack is redone.

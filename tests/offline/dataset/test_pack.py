@@ -67,8 +67,8 @@ def test_a_damaged_pack_is_refused_and_leaves_no_dataset_behind(dataset, tmp_pat
     pack_dataset(dataset, tmp_path / "ds.npz")
     with np.load(tmp_path / "ds.npz") as z:
         arrays = {k: z[k] for k in z.files}
-    arrays["offsets"] = arrays["offsets"].copy()
-    arrays["offsets"][3, 5, 1] += 1e-6
+    arrays["offset_planes"] = arrays["offset_planes"].copy()
+    arrays["offset_planes"][1234] ^= 1  # one bit of one offset
     np.savez_compressed(tmp_path / "bad.npz", **arrays)
     with pytest.raises(SpecError, match="content_hash"):
         unpack_dataset(tmp_path / "bad.npz", tmp_path / "out")
@@ -137,3 +137,15 @@ def test_the_unpack_command_writes_the_dataset_and_refuses_another_in_its_folder
     assert "40 poses" in out and "made by: likeness offline dataset --seed 1" in out
     assert main(["offline", "dataset-unpack", str(SHIPPED), "--out", str(tmp_path / "out")]) == 2
     assert "holds a different dataset" in capsys.readouterr().err
+
+
+def test_offsets_stored_as_byte_planes_come_back_bit_for_bit():
+    from offline.dataset.pack import byte_planes, from_byte_planes
+
+    rng = np.random.default_rng(3)
+    a = (rng.normal(size=(7, 5, 3)) * 1e-3).astype(np.float32)
+    a.flat[:4] = [np.nan, np.inf, -0.0, np.float32(1e-42)]  # a NaN, an infinity, a signed zero, a subnormal
+    back = from_byte_planes(byte_planes(a), a.shape)
+    assert back.dtype == np.float32 and back.tobytes() == a.tobytes()
+    with pytest.raises(ValueError, match="bytes for an array of shape"):
+        from_byte_planes(byte_planes(a)[:-1], a.shape)
