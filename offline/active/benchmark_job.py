@@ -119,15 +119,17 @@ def settings_of(job: BenchmarkJob) -> tuple[PoolSettings, BenchmarkSettings, Pol
 
 
 def pool_pack(job: BenchmarkJob, settings: PoolSettings) -> str | None:
-    """The dataset pack to unpack as the pool: ``pool_pack``, else the one shipped beside the config when it holds
-    the default FEM pool; None to simulate (or for ``pool``, ``quick``, ``synthetic``)."""
+    """The dataset pack to unpack as the pool: ``pool_pack`` (any pool, checked against the run's settings), else the
+    one shipped beside the config when it holds the default FEM pool; None to simulate (or for ``pool``, ``quick``,
+    ``synthetic``)."""
     from offline.dataset.pack import read_header
 
-    if (job.pool is not None or job.simulate_pool or settings.synthetic or settings.nu is not None
-            or settings.clusters or (settings.element_order != 1 and not job.pool_pack)):
+    if job.pool is not None or job.simulate_pool or settings.synthetic or settings.nu is not None:
         if job.pool_pack and (job.pool is not None or job.simulate_pool or settings.nu is not None):
             raise UsageError("--pool-pack cannot be combined with --pool, --simulate-pool or --skin-nu")
         return None
+    if not job.pool_pack and (settings.clusters or settings.element_order != 1):
+        return None  # the shipped default pack holds neither: simulate
     shipped = Path(job.config).parent / PACK_NAME
     path = Path(job.pool_pack) if job.pool_pack else shipped
     if not path.is_file():
@@ -135,13 +137,15 @@ def pool_pack(job: BenchmarkJob, settings: PoolSettings) -> str | None:
             raise UsageError(f"--pool-pack: {path} not found")
         return None
     manifest = read_header(path)["manifest"]
-    want = {"n_poses": settings.poses, "seed": settings.seed,
-            "sampling": {"boundary_prob": settings.boundary_prob, "range_fraction": settings.range_fraction}}
-    got = {k: manifest.get(k) for k in want}
-    if got["sampling"] is not None:
-        got["sampling"] = {k: got["sampling"].get(k) for k in want["sampling"]}
-    want["element_order"] = settings.element_order
-    got["element_order"] = (manifest.get("problem") or {}).get("element_order", 1)
+    sampling = {"boundary_prob": settings.boundary_prob, "range_fraction": settings.range_fraction,
+                "clusters": settings.clusters or None,
+                "cluster_spread": settings.cluster_spread if settings.clusters else None}
+    want = {"n_poses": settings.poses, "seed": settings.seed, "sampling": sampling,
+            "element_order": settings.element_order}
+    held = manifest.get("sampling") or {}
+    got = {"n_poses": manifest.get("n_poses"), "seed": manifest.get("seed"),
+           "sampling": {k: held.get(k) for k in sampling},
+           "element_order": (manifest.get("problem") or {}).get("element_order", 1)}
     if got != want:
         raise UsageError(f"{path}: the pack holds a different pool ({got}) than this run asks for ({want}); "
                          "pass --simulate-pool to simulate it, or --pool DATASET")

@@ -19,8 +19,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mesh", default=None, help="skin mesh folder (default: skin/ beside the config)")
     p.add_argument("--pool", default=None, help="use this consolidated pose dataset instead of DIR/pool")
     p.add_argument("--pool-pack", default=None,
-                   help="unpack this dataset pack into DIR/pool instead of simulating the FEM pool (default: "
-                   "al_pool.npz beside the config when it exists and matches the default pool)")
+                   help="unpack this dataset pack into DIR/pool instead of simulating the FEM pool, after checking "
+                   "that it holds the pool the run asks for (poses, seed, sampling, clusters, element order; "
+                   "default: al_pool.npz beside the config when it exists and matches the default pool)")
     p.add_argument("--simulate-pool", action="store_true",
                    help="simulate the FEM pool even when a pack (al_pool.npz) is shipped beside the config")
     p.add_argument("--policy", default=None, help="use this learned policy file instead of learning one")

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from models.errors import SpecError
+from models.errors import SpecError, UsageError
 from models.headspec import load_head
 from offline.active.data import PoolSettings
 from offline.active.pool import load_benchmark_data
@@ -149,3 +149,36 @@ def test_offsets_stored_as_byte_planes_come_back_bit_for_bit():
     assert back.dtype == np.float32 and back.tobytes() == a.tobytes()
     with pytest.raises(ValueError, match="bytes for an array of shape"):
         from_byte_planes(byte_planes(a)[:-1], a.shape)
+
+
+def test_a_pack_of_a_clustered_pool_stands_in_for_it_only_with_the_same_clusters(tmp_path):
+    """``--pool-pack`` with ``--clusters``: a pack whose manifest records the same clustered sampling is unpacked
+    instead of simulating; the shipped i.i.d. pack, or other clusters, are refused by name."""
+    from offline.active.benchmark_job import BenchmarkJob, pool_pack, settings_of
+    from offline.active.data import clustered_candidates, clustered_policy_rows
+
+    head = load_head(HEAD_PATH)
+    lo = np.array([a.min for a in head.actuators])
+    hi = np.array([a.max for a in head.actuators])
+    job = BenchmarkJob(config=str(HEAD_PATH), out=str(tmp_path / "bench"), pool_poses=60, clusters=4)
+    settings = settings_of(job)[0]
+    samples = clustered_candidates(head, sample_poses(head, 60, seed=settings.seed,
+                                                      boundary_prob=settings.boundary_prob), settings)
+    sampling = {"boundary_prob": settings.boundary_prob, "range_fraction": settings.range_fraction,
+                "clusters": 4, "cluster_spread": settings.cluster_spread,
+                "clustered_policy_rows": clustered_policy_rows(60, settings).tolist()}
+    generate_dataset(tmp_path / "ds", SyntheticSpec(tuple(lo), tuple(hi), grid=6), samples, head=head.name,
+                     names=head.actuator_names, units=["rad"] * len(lo), lo=lo, hi=hi, engine=SerialEngine(),
+                     seed=settings.seed, sampling=sampling, progress_stream=None)
+    pack_dataset(tmp_path / "ds", tmp_path / "clustered.npz")
+    assert pool_pack(job, settings) is None  # no pack given: simulated
+    given = BenchmarkJob(config=str(HEAD_PATH), out="unused", pool_poses=60, clusters=4,
+                         pool_pack=str(tmp_path / "clustered.npz"))
+    assert pool_pack(given, settings_of(given)[0]) == str(tmp_path / "clustered.npz")
+    other = BenchmarkJob(config=str(HEAD_PATH), out="unused", pool_poses=60, clusters=5,
+                         pool_pack=str(tmp_path / "clustered.npz"))
+    with pytest.raises(UsageError, match="'clusters': 4"):
+        pool_pack(other, settings_of(other)[0])
+    iid = BenchmarkJob(config=str(HEAD_PATH), out="unused", clusters=60, pool_pack=str(SHIPPED))
+    with pytest.raises(UsageError, match="different pool"):
+        pool_pack(iid, settings_of(iid)[0])
