@@ -3,7 +3,9 @@
 For each seed, all methods start from the same random initial labelled set drawn from the pool and add ``batch``
 poses per step until ``budget``; after each step the predictor is retrained from scratch (same schedule and seed
 for every method) and its test mean Euclidean error and L1 are recorded. Each (method, seed) run is checkpointed
-after every batch (``runs/METHOD_sSEED.json``), so a killed benchmark resumes where it stopped.
+after every batch (``runs/METHOD_sSEED.json``), so a killed benchmark resumes where it stopped. With ``workers`` > 1
+the runs go to that many worker processes (one interpreter and one thread each; a run is deterministic given its
+seed, so the curves are the same as one process computes them).
 
 ``fraction_to_random_final``: per seed, the sample count at which a method's error curve first reaches random's
 final error (linear interpolation between batches), divided by random's final sample count; the report gives the
@@ -182,22 +184,67 @@ def summarize(runs: dict[str, list[dict[str, Any]]]) -> dict[str, Any]:
 
 
 def run_benchmark(data: BenchmarkData, selectors: dict[str, Selector], settings: BenchmarkSettings,
-                  cfg: LearnerConfig, out_dir: str | Path, log: Callable[[str], None] = print) -> dict[str, Any]:
-    """Run every method for every seed (resumable); returns the per-method runs and their summary."""
+                  cfg: LearnerConfig, out_dir: str | Path, log: Callable[[str], None] = print,
+                  workers: int = 1) -> dict[str, Any]:
+    """Run every method for every seed (resumable; in ``workers`` processes); returns the per-method runs and their
+    summary."""
     if settings.budget > len(data.pool) or settings.init >= settings.budget:
         raise ValueError(f"budget {settings.budget} must exceed init {settings.init} and fit in the pool "
                          f"({len(data.pool)} poses)")
     runs_dir = Path(out_dir) / "runs"
     runs_dir.mkdir(parents=True, exist_ok=True)
-    runs: dict[str, list[dict[str, Any]]] = {name: [] for name in selectors}
-    total = len(selectors) * settings.seeds
-    k = 0
-    for seed in range(settings.seeds):
-        for name, sel in selectors.items():
-            k += 1
+    jobs = [(name, seed) for seed in range(settings.seeds) for name in selectors]
+    total = len(jobs)
+    done: dict[tuple[str, int], dict[str, Any]] = {}
+
+    def finished(name: str, seed: int, run: dict[str, Any], seconds: float) -> None:
+        done[name, seed] = run
+        log(f"[{len(done)}/{total}] {name} seed {seed}: final test error {run['mean_euclidean_um'][-1]:.1f} µm "
+            f"with {run['n_labelled'][-1]} poses ({seconds:.0f} s)")
+
+    if workers <= 1 or total <= 1:
+        for name, seed in jobs:
             t0 = time.perf_counter()
-            run = run_method(name, sel, data, seed, settings, cfg, runs_dir / f"{name}_s{seed}.json", log=log)
-            runs[name].append(run)
-            log(f"[{k}/{total}] {name} seed {seed}: final test error {run['mean_euclidean_um'][-1]:.1f} µm "
-                f"with {run['n_labelled'][-1]} poses ({time.perf_counter() - t0:.0f} s)")
+            run = run_method(name, selectors[name], data, seed, settings, cfg, runs_dir / f"{name}_s{seed}.json",
+                             log=log)
+            finished(name, seed, run, time.perf_counter() - t0)
+    else:
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor, as_completed
+
+        # the slowest rules first, so that no long run is left alone at the end
+        slow_first = sorted(jobs, key=lambda j: (j[0] not in _SLOW, j[1]))
+        with ProcessPoolExecutor(min(workers, total), mp_context=mp.get_context("spawn"), initializer=_worker_init,
+                                 initargs=(data, selectors, settings, cfg, runs_dir)) as ex:
+            futures = {ex.submit(_worker_run, name, seed): (name, seed) for name, seed in slow_first}
+            for fut in as_completed(futures):
+                run, seconds = fut.result()
+                finished(*futures[fut], run, seconds)
+    runs = {name: [done[name, seed] for seed in range(settings.seeds)] for name in selectors}
     return {"runs": runs, "summary": summarize(runs), "settings": asdict(settings), "learner": asdict(cfg)}
+
+
+#: Rules that retrain many predictors per batch (the oracle's family, the committee): started first in parallel.
+_SLOW = ("greedy", "committee", "genlal")
+_WORKER: dict[str, Any] = {}
+
+
+def _worker_init(data: BenchmarkData, selectors: dict[str, Selector], settings: BenchmarkSettings,
+                 cfg: LearnerConfig, runs_dir: Path) -> None:
+    """A benchmark worker process: one thread for torch and BLAS (the runs are the parallelism), the shared
+    inputs kept for its runs."""
+    import torch
+    from threadpoolctl import threadpool_limits
+
+    torch.set_num_threads(1)
+    _WORKER["limits"] = threadpool_limits(1)
+    _WORKER.update(data=data, selectors=selectors, settings=settings, cfg=cfg, runs_dir=runs_dir)
+
+
+def _worker_run(name: str, seed: int) -> tuple[dict[str, Any], float]:
+    """One (method, seed) run in a worker; its curve and its seconds."""
+    w = _WORKER
+    t0 = time.perf_counter()
+    run = run_method(name, w["selectors"][name], w["data"], seed, w["settings"], w["cfg"],
+                     w["runs_dir"] / f"{name}_s{seed}.json", log=lambda msg: None)
+    return run, time.perf_counter() - t0

@@ -118,6 +118,17 @@ def settings_of(job: BenchmarkJob) -> tuple[PoolSettings, BenchmarkSettings, Pol
     return pool, bench, policy, cfg
 
 
+def run_workers(workers: int | None) -> int:
+    """Processes for the methods' runs: ``workers``, else one per CPU this process may use."""
+    import os
+
+    if workers is not None:
+        if workers < 1:
+            raise UsageError(f"--workers must be positive, got {workers}")
+        return workers
+    return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
+
+
 def pool_pack(job: BenchmarkJob, settings: PoolSettings) -> str | None:
     """The dataset pack to unpack as the pool: ``pool_pack`` (any pool, checked against the run's settings), else the
     one shipped beside the config when it holds the default FEM pool; None to simulate (or for ``pool``, ``quick``,
@@ -208,7 +219,8 @@ def run_al_benchmark(job: BenchmarkJob, log: Callable[[str], None] | None = None
         _prepare_pool(job, head, pool_settings, pool_dir, log)
     try:
         run_and_report(pool_dir, out, methods, bench, policy, cfg, job.policy, pool_settings,
-                       config=job.config, log=log, policy_fraction=job.policy_fraction)
+                       config=job.config, log=log, policy_fraction=job.policy_fraction,
+                       workers=run_workers(job.workers))
     except SpecError:
         raise
     except ValueError as exc:

@@ -38,8 +38,10 @@ def _file_hash(path: str | Path) -> str:
 
 def run_and_report(pool_dir: str | Path, out: str | Path, methods: Sequence[str], bench: BenchmarkSettings,
                    policy_settings: PolicySettings, cfg: LearnerConfig, policy_path: str | None, pool_settings: Any,
-                   config: str, log: Callable[[str], None] = print, policy_fraction: float = 0.35) -> dict[str, Any]:
-    """The whole benchmark after the pool exists; returns the report (also written to ``out/report.json``)."""
+                   config: str, log: Callable[[str], None] = print, policy_fraction: float = 0.35,
+                   workers: int = 1) -> dict[str, Any]:
+    """The whole benchmark after the pool exists; returns the report (also written to ``out/report.json``). The
+    methods' runs go to ``workers`` processes."""
     t0 = time.perf_counter()
     out = Path(out)
     data = load_benchmark_data(pool_dir, policy_fraction=policy_fraction)
@@ -73,7 +75,7 @@ def run_and_report(pool_dir: str | Path, out: str | Path, methods: Sequence[str]
                            "learned": policy.info}
     for name in methods:
         selectors[name] = genlal_selector(policy) if name == "genlal" else BASELINES[name]
-    result = run_benchmark(data, selectors, bench, cfg, out, log=log)
+    result = run_benchmark(data, selectors, bench, cfg, out, log=log, workers=workers)
     report = {
         "format": REPORT_FORMAT, "format_version": REPORT_VERSION,
         "units": "µm; n_labelled in poses",

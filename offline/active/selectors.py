@@ -153,15 +153,22 @@ def select_maxdist(ctx: SelectionContext) -> np.ndarray:
     return _bmdal(ctx, "maxdist")
 
 
-def genlal_selector(policy) -> Selector:
-    """Algorithm 2 with a learned :class:`~offline.active.policy.Policy`."""
+class GenlalSelector:
+    """Algorithm 2 with a learned :class:`~offline.active.policy.Policy` (an object, not a closure, so a benchmark
+    can hand it to its worker processes)."""
 
-    def select(ctx: SelectionContext) -> np.ndarray:
-        pos = policy.select(ctx.state, ctx.x[ctx.labelled], ctx.y_labelled, ctx.x[ctx.candidates], ctx.batch,
-                            ctx.config)
+    def __init__(self, policy) -> None:
+        self.policy = policy
+
+    def __call__(self, ctx: SelectionContext) -> np.ndarray:
+        pos = self.policy.select(ctx.state, ctx.x[ctx.labelled], ctx.y_labelled, ctx.x[ctx.candidates], ctx.batch,
+                                 ctx.config)
         return ctx.candidates[pos]
 
-    return select
+
+def genlal_selector(policy) -> Selector:
+    """Algorithm 2 with a learned :class:`~offline.active.policy.Policy`."""
+    return GenlalSelector(policy)
 
 
 BASELINES: dict[str, Selector] = {

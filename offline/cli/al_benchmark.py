@@ -54,7 +54,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--element-order", type=int, choices=(1, 2), default=None,
                    help="FEM pool: 1 the skin mesh's linear tets (default, the shipped pack's), 2 the same tets "
                    "quadratic (the sample predictor's dataset; about 5x the time per pose)")
-    p.add_argument("--workers", type=int, default=None, help="FEM worker processes for the pool (default: CPUs)")
+    p.add_argument("--workers", type=int, default=None,
+                   help="worker processes for the pool's FEM poses and for the methods' runs (default: CPUs; the "
+                   "curves are the same with any number)")
     p.add_argument("--engine", default="local", help="engine for the pool's FEM poses: local, dask-local, dask://")
 
 

@@ -152,3 +152,21 @@ def test_a_quadratic_pool_is_simulated_not_taken_from_the_linear_shipped_pack():
     assert pool_pack(linear, settings_of(linear)[0]) == shipped
     with pytest.raises(UsageError, match="--element-order 2"):
         settings_of(BenchmarkJob(config=config, out="unused", synthetic=True, element_order=2))
+
+
+def test_runs_in_worker_processes_give_the_curves_one_process_gives(tiny, cfg, tmp_path):
+    """The benchmark's runs spread over two processes: every method's poses and errors as computed serially."""
+    from offline.active.benchmark import run_benchmark
+
+    settings = BenchmarkSettings(init=6, batch=6, budget=18, seeds=2)
+    selectors = {name: BASELINES[name] for name in ("random", "space_filling", "greedy")}
+    serial = run_benchmark(tiny, selectors, settings, cfg, tmp_path / "one", log=lambda m: None)
+    lines: list[str] = []
+    parallel = run_benchmark(tiny, selectors, settings, cfg, tmp_path / "two", log=lines.append, workers=2)
+    assert len(lines) == 6 and all("final test error" in line for line in lines)
+    for name in selectors:
+        for a, b in zip(serial["runs"][name], parallel["runs"][name], strict=True):
+            assert a["seed"] == b["seed"] and a["labelled"] == b["labelled"]
+            np.testing.assert_allclose(a["mean_euclidean_um"], b["mean_euclidean_um"], rtol=1e-9)
+    assert serial["summary"].keys() == parallel["summary"].keys()
+    assert len(list((tmp_path / "two" / "runs").glob("*.json"))) == 6  # checkpoints written by the workers
