@@ -25,9 +25,10 @@ import hashlib
 import io
 import json
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -277,10 +278,11 @@ def validation_curve(policy: Policy | None, x: np.ndarray, y: np.ndarray, settin
 
 def learn_policy(x: np.ndarray, y: np.ndarray, base: np.ndarray, settings: PolicySettings, cfg: LearnerConfig,
                  work_dir: str | Path, log: Callable[[str], None] = print,
-                 clustered: np.ndarray | None = None) -> Policy:
+                 clustered: np.ndarray | None = None, workers: int = 1) -> Policy:
     """Algorithm 1 on the policy pool (x, y): simulated runs (checkpointed in ``work_dir``), the regressor, its
     held-out fit, and the selection setting chosen on the validation part. ``clustered`` marks the policy pool's
-    clustered candidate rows (see :func:`offline.active.labels.split_simulation`)."""
+    clustered candidate rows (see :func:`offline.active.labels.split_simulation`). The simulated runs and the
+    validation curves go to ``workers`` processes (each deterministic given its seed: the same policy)."""
     if settings.model not in MODELS:
         raise ValueError(f"unknown policy model {settings.model!r}; choose from {', '.join(MODELS)}")
     work = Path(work_dir)
@@ -294,23 +296,22 @@ def learn_policy(x: np.ndarray, y: np.ndarray, base: np.ndarray, settings: Polic
     n_val = round(settings.validation_fraction * len(x))
     sim, val = perm[n_val:], perm[:n_val]
     order, scale = morton_order(base), offset_scale(y)
-    runs: list[RunLabels] = []
     t0 = time.perf_counter()
+    csim = None if clustered is None else clustered[sim]
+    found: dict[int, RunLabels] = {}
     for tau in range(settings.n_runs):
         path = work / f"run_{tau:03d}.npz"
         if path.exists():
-            runs.append(RunLabels.load(path))
+            found[tau] = RunLabels.load(path)
             log(f"policy: simulated run {tau + 1}/{settings.n_runs} loaded from {path}")
-            continue
-        t1 = time.perf_counter()
-        csim = None if clustered is None else clustered[sim]
-        run = simulate_batch_run(x[sim], y[sim], csim, tau, settings.label_settings(), cfg) \
-            if settings.label_mode == "batch" else \
-            simulate_run(x[sim], y[sim], tau, settings.label_settings(), cfg, order, scale, csim)
-        run.save(path)
-        runs.append(run)
+    args = (x[sim], y[sim], csim, settings, cfg, order, scale)
+    for tau, run, seconds in _in_workers(_simulate, [(tau, *args) for tau in range(settings.n_runs)
+                                                     if tau not in found], workers):
+        run.save(work / f"run_{tau:03d}.npz")
+        found[tau] = run
         log(f"policy: simulated run {tau + 1}/{settings.n_runs}: {len(run.delta)} candidates labelled in "
-            f"{time.perf_counter() - t1:.0f} s (mean reduction {100 * run.delta.mean():.2f} %)")
+            f"{seconds:.0f} s (mean reduction {100 * run.delta.mean():.2f} %)")
+    runs = [found[tau] for tau in range(settings.n_runs)]
     fit_stats = heldout_fit(runs, settings)
     for f in fit_stats:
         log(f"policy: held-out fit at {f['n_labelled']} labelled: R² {f['r2']:+.3f}, rank correlation "
@@ -328,13 +329,13 @@ def learn_policy(x: np.ndarray, y: np.ndarray, base: np.ndarray, settings: Polic
     best = values[0]
     if len(values) > 1:  # one value needs no choosing
 
-        def score(pol: Policy | None) -> list[float]:
-            return [float(np.mean(np.log(validation_curve(pol, x[val], y[val], settings, cfg, s, cval))))
-                    for s in range(settings.validation_seeds)]
-
-        choices = {"random": score(None)}
-        for v in values:
-            choices[str(v)] = score(policy.with_setting(key, v))
+        candidates: list[tuple[str, Policy | None]] = [("random", None)]
+        candidates += [(str(v), policy.with_setting(key, v)) for v in values]
+        jobs = [(name, pol, x[val], y[val], settings, cfg, s, cval) for name, pol in candidates
+                for s in range(settings.validation_seeds)]
+        choices = {name: [] for name, _ in candidates}
+        for name, value in sorted(_in_workers(_validation_score, jobs, workers), key=lambda r: r[1]):
+            choices[name].append(value[1])
         best = min(values, key=lambda v: np.mean(choices[str(v)]))
         log(f"policy: validation mean log error per {key}: " +
             ", ".join(f"{k} {np.mean(v):.4f}" for k, v in choices.items()) + f"; chose {best}")
@@ -343,3 +344,47 @@ def learn_policy(x: np.ndarray, y: np.ndarray, base: np.ndarray, settings: Polic
     policy.info.update({"validation_mean_log_error": choices, "seconds": round(time.perf_counter() - t0, 1)})
     log(f"policy: {settings.model} regressor on {len(rows.target)} labelled candidates ({policy.info['seconds']} s)")
     return policy
+
+
+def _simulate(tau: int, x: np.ndarray, y: np.ndarray, clustered: np.ndarray | None, settings: PolicySettings,
+              cfg: LearnerConfig, order: np.ndarray, scale: np.ndarray) -> tuple[int, RunLabels, float]:
+    """Simulated run ``tau`` of Algorithm 1 on the simulation part; its labels and seconds."""
+    t1 = time.perf_counter()
+    run = simulate_batch_run(x, y, clustered, tau, settings.label_settings(), cfg) \
+        if settings.label_mode == "batch" else \
+        simulate_run(x, y, tau, settings.label_settings(), cfg, order, scale, clustered)
+    return tau, run, time.perf_counter() - t1
+
+
+def _validation_score(name: str, pol: Policy | None, x: np.ndarray, y: np.ndarray, settings: PolicySettings,
+                      cfg: LearnerConfig, seed: int, clustered: np.ndarray | None) -> tuple[str, tuple[int, float]]:
+    """Mean log pseudo-test error of a short simulated AL run with ``pol`` (None: random) on the validation part."""
+    return name, (seed, float(np.mean(np.log(validation_curve(pol, x, y, settings, cfg, seed, clustered)))))
+
+
+def _in_workers(fn: Callable[..., Any], jobs: list[tuple], workers: int) -> Iterator[Any]:
+    """``fn(*job)`` for every job, in ``workers`` processes (one thread each) when there are several; results as
+    they finish."""
+    if workers <= 1 or len(jobs) <= 1:
+        for job in jobs:
+            yield fn(*job)
+        return
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=mp.get_context("spawn"),
+                             initializer=_one_thread) as ex:
+        for fut in as_completed([ex.submit(fn, *job) for job in jobs]):
+            yield fut.result()
+
+
+def _one_thread() -> None:
+    """A policy worker process: one thread for torch and BLAS (the jobs are the parallelism)."""
+    import torch
+    from threadpoolctl import threadpool_limits
+
+    torch.set_num_threads(1)
+    _LIMITS.append(threadpool_limits(1))
+
+
+_LIMITS: list[Any] = []

@@ -69,7 +69,8 @@ def run_and_report(pool_dir: str | Path, out: str | Path, methods: Sequence[str]
                 log(f"policy: learning on the policy pool ({len(data.policy)} poses, {policy_settings.n_runs} "
                     "simulated runs)")
                 policy = learn_policy(data.policy.x, data.policy.y, data.base, policy_settings, cfg,
-                                      out / "policy_runs", log=log, clustered=data.policy_clustered)
+                                      out / "policy_runs", log=log, clustered=data.policy_clustered,
+                                      workers=workers)
                 policy.save(learned)
             policy_info = {"source": "learned on the policy pool", "path": str(learned), "hash": _file_hash(learned),
                            "learned": policy.info}

@@ -33,6 +33,17 @@ def policy(tiny, cfg, tmp_path_factory) -> Policy:
     return learn_policy(tiny.policy.x, tiny.policy.y, tiny.base, SMALL, cfg, work, log=lambda m: None)
 
 
+def test_a_policy_learned_in_two_worker_processes_is_the_one_learned_in_one(tiny, cfg, policy, tmp_path):
+    """Simulated runs and validation curves spread over two processes: the same labels, regressor and choice."""
+    two = learn_policy(tiny.policy.x, tiny.policy.y, tiny.base, SMALL, cfg, tmp_path, log=lambda m: None, workers=2)
+    assert sorted(p.name for p in tmp_path.glob("run_*.npz")) == ["run_000.npz", "run_001.npz"]
+    np.testing.assert_allclose(np.frombuffer(two.regressor, np.float64), np.frombuffer(policy.regressor, np.float64),
+                               rtol=1e-7, atol=1e-9)
+    assert two.family == policy.family
+    got, want = two.info["validation_mean_log_error"], policy.info["validation_mean_log_error"]
+    assert got.keys() == want.keys() and all(got[k] == pytest.approx(want[k], rel=1e-9) for k in want)
+
+
 def test_morton_order_is_a_permutation_that_keeps_neighbours_close():
     g = np.stack(np.meshgrid(np.arange(16.0), np.arange(16.0), indexing="ij"), -1).reshape(-1, 2)
     pts = np.c_[g, np.zeros(len(g))]
