@@ -38,6 +38,22 @@ class FeedbackSeen:
 
 
 @dataclass
+class MissesSeen:
+    """The loop's missed deadlines during one performance, by the cause its own record names (the ``causes`` of its
+    ``deadline_miss`` events, :mod:`runtime.cycle_forensics`)."""
+
+    by_cause: dict[str, int] = field(default_factory=dict)
+
+    def take(self, topic: str, body: Mapping[str, Any]) -> None:
+        """Fold one telemetry message in."""
+        if topic != "event" or body.get("event") != "deadline_miss":
+            return
+        for rec in body.get("causes") or []:
+            cause = str(rec.get("cause", "unknown"))
+            self.by_cause[cause] = self.by_cause.get(cause, 0) + int(rec.get("missed", 1))
+
+
+@dataclass
 class DemoRun:
     """What the performance left: each played clip with its recording's ``record stop`` reply and what its buses'
     feedback showed, the daemon's last status, and the fault or e-stop event that cut it short (None when every
@@ -45,6 +61,7 @@ class DemoRun:
 
     recordings: list[tuple[Clip, dict[str, Any]]] = field(default_factory=list)
     feedback: dict[str, FeedbackSeen] = field(default_factory=dict)
+    misses: dict[str, MissesSeen] = field(default_factory=dict)
     status: dict[str, Any] = field(default_factory=dict)
     fault: dict[str, Any] | None = None
 
@@ -73,7 +90,8 @@ def play_performance(command_endpoint: str, telemetry_endpoint: str,
         time.sleep(0.2)  # let the telemetry subscription settle
         for data, clip in clips:
             seen = result.feedback[clip.name] = FeedbackSeen()
-            result.fault = _play(client, tel, data, clip, say, seen)
+            misses = result.misses[clip.name] = MissesSeen()
+            result.fault = _play(client, tel, data, clip, say, seen, misses)
             rec_reply = client.call("record", action="stop")
             if result.fault is not None:
                 break
@@ -85,9 +103,9 @@ def play_performance(command_endpoint: str, telemetry_endpoint: str,
 
 
 def _play(client: Client, tel: Telemetry, data: Mapping[str, Any], clip: Clip,
-          say: Callable[..., None], seen: FeedbackSeen) -> dict[str, Any] | None:
-    """Load, record and play one clip with a progress bar, watching the buses' feedback age (``seen``); returns the
-    fault or e-stop event that cut it short."""
+          say: Callable[..., None], seen: FeedbackSeen, misses: MissesSeen) -> dict[str, Any] | None:
+    """Load, record and play one clip with a progress bar, watching the buses' feedback age (``seen``) and the
+    loop's missed deadlines (``misses``); returns the fault or e-stop event that cut it short."""
     reply = client.call("load_clip", clip=data)
     say(f"performance {clip.name!r}: {reply['duration']:.2f} s, {len(reply['channels'])} channels, "
         f"{reply['keys']} keys")
@@ -100,6 +118,7 @@ def _play(client: Client, tel: Telemetry, data: Mapping[str, Any], clip: Clip,
         msg = tel.recv(0.5)
         while msg is not None:  # every message that came meanwhile, so no late event goes unseen
             seen.take(msg[0], msg[1])
+            misses.take(msg[0], msg[1])
             if msg[0] == "event" and msg[1]["event"] in ("fault", "estop") and stop is None:
                 stop = msg[1]
             msg = tel.recv(0.0)

@@ -96,6 +96,13 @@ def _print_results(head: HeadSpec, result: DemoRun, out: Path) -> None:
           f"p50 {loop.get('jitter_p50_us', 0):.1f} us, p99 {loop.get('jitter_p99_us', 0):.1f} us, max "
           f"{loop.get('jitter_max_us', 0):.1f} us; cycle work p50 {loop.get('work_p50_us', 0):.0f} us, "
           f"p99 {loop.get('work_p99_us', 0):.0f} us")
+    causes: dict[str, int] = {}
+    for seen in result.misses.values():
+        for cause, n in seen.by_cause.items():
+            causes[cause] = causes.get(cause, 0) + n
+    if causes:
+        print("  missed deadlines during the performances, by what held the loop (docs/operations.md, the soak): "
+              + ", ".join(f"{k} {v}" for k, v in sorted(causes.items(), key=lambda kv: -kv[1])))
 
 
 def _print_feedback(result: DemoRun, only: str | None = None) -> None:

@@ -34,3 +34,15 @@ def test_demo_plays_the_performance_and_writes_a_plot(tmp_path: Path) -> None:
     assert (tmp_path / "blendshapes.png").read_bytes()[:4] == b"\x89PNG"
     moved = abs(shapes["measured"]).max(axis=0)  # config units (degrees)
     assert (moved > 0.5).sum() >= 5, dict(zip(shapes["names"], moved, strict=True))
+
+
+def test_the_demo_counts_the_loops_missed_deadlines_by_their_recorded_cause() -> None:
+    from runtime.demo import MissesSeen
+
+    seen = MissesSeen()
+    seen.take("state", {"loop": {"missed": 3}})  # the counter alone names no cause
+    seen.take("event", {"event": "fault", "t": 1.0})
+    seen.take("event", {"event": "deadline_miss", "count": 3, "causes": [
+        {"cause": "not_scheduled", "missed": 2}, {"cause": "work_slow", "missed": 1}]})
+    seen.take("event", {"event": "deadline_miss", "count": 1, "causes": [{"cause": "not_scheduled", "missed": 1}]})
+    assert seen.by_cause == {"not_scheduled": 3, "work_slow": 1}
