@@ -279,11 +279,13 @@ def write_timeline(raw: dict[str, Any], result: dict[str, Any], path: Path) -> N
         cum = [0]
         for _, n in bare:
             cum.append(cum[-1] + n)
-        axes[1].step([0.0] + [b[0] for b in bare], cum, where="post", color="0.5", lw=0.8,
-                     label="bare realtime loops (the host)")
+        t_last = max(t[-1] if t else 0.0, bare[-1][0])
+        axes[1].step([0.0, *(b[0] for b in bare), t_last], [*cum, cum[-1]], where="post", color="0.5", lw=0.8,
+                     label="bare realtime loops beside it (the host)")
     own = [float(r["t"]) - t0 for r in (result.get("miss_causes") or {}).get("records", [])]
     if own:
-        axes[1].plot(own, [0.0] * len(own), "|", color="C3", ms=12, label="daemon misses at their own times")
+        axes[1].plot(own, [0.0] * len(own), "|", color="C3", ms=12,
+                     label="daemon's misses outside fault handling, at their own times")
     axes[1].legend(loc="upper left", fontsize=7)
     axes[1].set_ylabel("missed deadlines\n(cumulative)")
     axes[2].plot(t, [1e3 * s[6] if not math.isnan(s[6]) else math.nan for s in states], lw=0.6, color="C2")
