@@ -61,6 +61,7 @@ class BenchmarkJob:
     cluster_spread: float | None = None
     policy_model: str | None = None
     element_order: int | None = None
+    validation_seeds: int | None = None
 
 
 def settings_of(job: BenchmarkJob) -> tuple[PoolSettings, BenchmarkSettings, PolicySettings, LearnerConfig]:
@@ -103,6 +104,10 @@ def settings_of(job: BenchmarkJob) -> tuple[PoolSettings, BenchmarkSettings, Pol
             raise UsageError("--element-order 2 makes the FEM pool quadratic; the analytic sheet (--quick, "
                              "--synthetic) has no elements")
         pool = replace(pool, element_order=job.element_order)
+    if job.validation_seeds is not None:
+        if job.validation_seeds < 1:
+            raise UsageError(f"--validation-seeds must be positive, got {job.validation_seeds}")
+        policy = replace(policy, validation_seeds=job.validation_seeds)
     if job.policy_model is not None:
         from offline.active.policy import MODELS
 

@@ -64,6 +64,8 @@ def run_and_report(pool_dir: str | Path, out: str | Path, methods: Sequence[str]
                 policy = Policy.load(learned)
                 if policy.info.get("policy_pool_hash") not in (None, pool_digest(data.policy.x, data.policy.y)):
                     raise ValueError(f"{learned} was learned on a different policy pool; use a new --out")
+                if policy.info.get("settings") not in (None, json.loads(json.dumps(asdict(policy_settings)))):
+                    raise ValueError(f"{learned} was learned with other policy settings; use a new --out")
                 log(f"policy: loaded {learned} (learned by an earlier run)")
             else:
                 log(f"policy: learning on the policy pool ({len(data.policy)} poses, {policy_settings.n_runs} "

@@ -49,6 +49,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "recorded performances); the test poses stay i.i.d. (default 0: i.i.d. candidates)")
     p.add_argument("--cluster-spread", type=float, default=None,
                    help="with --clusters: jitter of a pose around its centre, share of each range (default 0.05)")
+    p.add_argument("--validation-seeds", type=int, default=None,
+                   help="GEN-LAL: simulated AL runs per candidate setting on the policy pool's validation part when "
+                   "the setting is chosen (default 1; more make a small difference less a matter of chance)")
     p.add_argument("--policy-model", default=None,
                    help="GEN-LAL regressor: features (ridge on uncertainty features, default) or cnn (the paper's)")
     p.add_argument("--element-order", type=int, choices=(1, 2), default=None,
@@ -73,7 +76,8 @@ def run(args: argparse.Namespace) -> int:
         policy_fraction=args.policy_fraction, synthetic=args.synthetic, sheet_grid=args.sheet_grid,
         sheet_stiffening=args.sheet_stiffening, skin_nu=args.skin_nu, workers=args.workers, engine=args.engine,
         pool_poses=args.pool_poses, clusters=args.clusters, cluster_spread=args.cluster_spread,
-        policy_model=args.policy_model, element_order=args.element_order)
+        policy_model=args.policy_model, element_order=args.element_order,
+        validation_seeds=args.validation_seeds)
     try:
         run_al_benchmark(job)
     except KeyboardInterrupt:

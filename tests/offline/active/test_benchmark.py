@@ -132,6 +132,10 @@ def test_quick_benchmark_writes_a_well_formed_report_and_resumes_from_its_checkp
     assert "loaded" in second.stderr
     again = json.loads((out / "report.json").read_text())
     assert again["runs"] == report["runs"]
+    # Other policy settings in the same folder: refused by name, not answered with the policy learned before.
+    third = subprocess.run([*cmd, "--validation-seeds", "2"], cwd=ROOT, env=env, capture_output=True, text=True,
+                           timeout=600)
+    assert third.returncode != 0 and "learned with other policy settings" in third.stderr
 
 
 def test_a_quadratic_pool_is_simulated_not_taken_from_the_linear_shipped_pack():
