@@ -104,7 +104,7 @@ def _print_results(head: HeadSpec, result: DemoRun, out: Path) -> None:
         print("  missed deadlines during the performances, by what held the loop (docs/operations.md, the soak): "
               + ", ".join(f"{k} {v}" for k, v in sorted(causes.items(), key=lambda kv: -kv[1])))
     elif loop["missed"]:
-        print("  none of the missed deadlines came during the performances (they came as the head started)")
+        print("  none of the missed deadlines came during the performances (they came before, between or after them)")
 
 
 def _print_feedback(result: DemoRun, only: str | None = None) -> None:
