@@ -25,8 +25,9 @@ QUICK = {"pool": {"poses": 150, "seed": 11, "synthetic": True, "synthetic_grid":
                     "epochs": 8, "committee": 2, "diversity": (0.0, 1.0), "validation_seeds": 1,
                     "family": 4, "family_sizes": (1, 4)},
          "learner": {"iterations": 25, "fine_tune_iterations": 4}}
-#: The FEM pool shipped beside a head's config (``likeness offline dataset-pack`` of the default pool's dataset).
-PACK_NAME = "al_pool.npz"
+#: The packs beside a head's config (``likeness offline dataset-pack`` of a pool's dataset) that a run takes as its
+#: pool when one holds the pool it asks for: the default pool in ``al_pool.npz``, others under their own names.
+PACK_GLOB = "al_pool*.npz"
 
 
 @dataclass(frozen=True)
@@ -134,38 +135,48 @@ def run_workers(workers: int | None) -> int:
     return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
 
 
-def pool_pack(job: BenchmarkJob, settings: PoolSettings) -> str | None:
-    """The dataset pack to unpack as the pool: ``pool_pack`` (any pool, checked against the run's settings), else the
-    one shipped beside the config when it holds the default FEM pool; None to simulate (or for ``pool``, ``quick``,
-    ``synthetic``)."""
+def _wanted_pool(settings: PoolSettings) -> dict:
+    """What a pack's manifest must record to stand in for the pool of ``settings``."""
+    sampling = {"boundary_prob": settings.boundary_prob, "range_fraction": settings.range_fraction,
+                "clusters": settings.clusters or None,
+                "cluster_spread": settings.cluster_spread if settings.clusters else None}
+    return {"n_poses": settings.poses, "seed": settings.seed, "sampling": sampling,
+            "element_order": settings.element_order}
+
+
+def _held_pool(path: Path) -> dict:
+    """The pool a pack holds, in the terms of :func:`_wanted_pool` (read from its header only)."""
     from offline.dataset.pack import read_header
 
+    manifest = read_header(path)["manifest"]
+    held = manifest.get("sampling") or {}
+    return {"n_poses": manifest.get("n_poses"), "seed": manifest.get("seed"),
+            "sampling": {k: held.get(k) for k in ("boundary_prob", "range_fraction", "clusters", "cluster_spread")},
+            "element_order": (manifest.get("problem") or {}).get("element_order", 1)}
+
+
+def pool_pack(job: BenchmarkJob, settings: PoolSettings) -> str | None:
+    """The dataset pack to unpack as the pool: ``pool_pack`` (any pool, checked against the run's settings), else
+    the first pack shipped beside the config (``al_pool*.npz``) that holds the pool the run asks for; None to
+    simulate (and for ``pool``, ``simulate_pool``, the analytic sheet and ``skin_nu``)."""
     if job.pool is not None or job.simulate_pool or settings.synthetic or settings.nu is not None:
         if job.pool_pack and (job.pool is not None or job.simulate_pool or settings.nu is not None):
             raise UsageError("--pool-pack cannot be combined with --pool, --simulate-pool or --skin-nu")
         return None
-    if not job.pool_pack and (settings.clusters or settings.element_order != 1):
-        return None  # the shipped default pack holds neither: simulate
-    shipped = Path(job.config).parent / PACK_NAME
-    path = Path(job.pool_pack) if job.pool_pack else shipped
-    if not path.is_file():
-        if job.pool_pack:
+    want = _wanted_pool(settings)
+    if job.pool_pack:
+        path = Path(job.pool_pack)
+        if not path.is_file():
             raise UsageError(f"--pool-pack: {path} not found")
-        return None
-    manifest = read_header(path)["manifest"]
-    sampling = {"boundary_prob": settings.boundary_prob, "range_fraction": settings.range_fraction,
-                "clusters": settings.clusters or None,
-                "cluster_spread": settings.cluster_spread if settings.clusters else None}
-    want = {"n_poses": settings.poses, "seed": settings.seed, "sampling": sampling,
-            "element_order": settings.element_order}
-    held = manifest.get("sampling") or {}
-    got = {"n_poses": manifest.get("n_poses"), "seed": manifest.get("seed"),
-           "sampling": {k: held.get(k) for k in sampling},
-           "element_order": (manifest.get("problem") or {}).get("element_order", 1)}
-    if got != want:
-        raise UsageError(f"{path}: the pack holds a different pool ({got}) than this run asks for ({want}); "
-                         "pass --simulate-pool to simulate it, or --pool DATASET")
-    return str(path)
+        got = _held_pool(path)
+        if got != want:
+            raise UsageError(f"{path}: the pack holds a different pool ({got}) than this run asks for ({want}); "
+                             "pass --simulate-pool to simulate it, or --pool DATASET")
+        return str(path)
+    for path in sorted(Path(job.config).parent.glob(PACK_GLOB)):
+        if _held_pool(path) == want:
+            return str(path)
+    return None
 
 
 def _prepare_pool(job: BenchmarkJob, head: HeadSpec, settings: PoolSettings, pool_dir: Path,

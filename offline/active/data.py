@@ -129,8 +129,10 @@ def ensure_pool(head, config: str, mesh: str | None, out: str | Path, settings: 
         samples = clustered_candidates(head, samples, settings)
         sampling.update(clusters=settings.clusters, cluster_spread=settings.cluster_spread,
                         clustered_policy_rows=clustered_policy_rows(len(samples), settings).tolist())
+    # The FEM skin is at rest at the head's neutral pose: recorded, as `likeness offline dataset` records it, so a
+    # pool can be merged with the predictor's datasets and trained on with the prediction pinned there.
+    rest_pose = None if settings.synthetic else head.neutral_pose
     with make_engine(engine_name, workers, 1) as engine:
         return generate_dataset(out, spec, samples, head=head.name, names=head.actuator_names, units=units, lo=lo,
-                                hi=hi, engine=engine, seed=settings.seed,
-                                sampling=sampling,
-                                progress_stream=progress)
+                                hi=hi, engine=engine, seed=settings.seed, sampling=sampling,
+                                progress_stream=progress, rest_pose=rest_pose)

@@ -21,9 +21,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pool-pack", default=None,
                    help="unpack this dataset pack into DIR/pool instead of simulating the FEM pool, after checking "
                    "that it holds the pool the run asks for (poses, seed, sampling, clusters, element order; "
-                   "default: al_pool.npz beside the config when it exists and matches the default pool)")
+                   "default: the first al_pool*.npz beside the config that holds this pool)")
     p.add_argument("--simulate-pool", action="store_true",
-                   help="simulate the FEM pool even when a pack (al_pool.npz) is shipped beside the config")
+                   help="simulate the FEM pool even when a pack of it (al_pool*.npz) is shipped beside the config")
     p.add_argument("--policy", default=None, help="use this learned policy file instead of learning one")
     p.add_argument("--methods", default=None, help="comma-separated subset of the methods (default: all)")
     p.add_argument("--init", type=int, default=None, help="random initial poses per seed (default 10; quick 6)")

@@ -138,6 +138,24 @@ def test_quick_benchmark_writes_a_well_formed_report_and_resumes_from_its_checkp
     assert third.returncode != 0 and "learned with other policy settings" in third.stderr
 
 
+def test_the_shipped_clustered_quadratic_pool_is_found_beside_the_config_by_what_it_holds():
+    """The 4,000-pose clustered quadratic-tet pool ships as its own pack: a run asking for that pool takes it
+    without ``--pool-pack``; a run asking for the same clusters on linear tets, or for other clusters, does not."""
+    from offline.active.benchmark_job import BenchmarkJob, pool_pack, settings_of
+    from offline.dataset.pack import read_header
+
+    config = str(ROOT / "heads" / "sample" / "head.toml")
+    shipped = ROOT / "heads" / "sample" / "al_pool_c60_quadratic.npz"
+    manifest = read_header(shipped)["manifest"]
+    assert manifest["n_poses"] == 4000 and manifest["sampling"]["clusters"] == 60
+    assert manifest["problem"]["element_order"] == 2
+    job = BenchmarkJob(config=config, out="unused", pool_poses=4000, clusters=60, element_order=2)
+    assert pool_pack(job, settings_of(job)[0]) == str(shipped)
+    for other in (BenchmarkJob(config=config, out="unused", pool_poses=4000, clusters=60),
+                  BenchmarkJob(config=config, out="unused", pool_poses=4000, clusters=30, element_order=2)):
+        assert pool_pack(other, settings_of(other)[0]) is None  # simulated
+
+
 def test_a_quadratic_pool_is_simulated_not_taken_from_the_linear_shipped_pack():
     """``--element-order 2`` asks for the skin's quadratic tets: the shipped linear pack must not stand in for it."""
     from models.errors import UsageError

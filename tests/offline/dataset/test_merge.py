@@ -88,3 +88,20 @@ def test_the_command_joins_a_pack_and_a_folder(two, tmp_path):
                          capture_output=True, text=True, cwd=ROOT, timeout=120)
     assert res.returncode == 0, res.stderr
     assert "50 poses" in res.stdout and len(PoseDataset(tmp_path / "ab").status) == 50
+
+
+def test_the_shipped_quadratic_pool_joins_the_predictors_datasets(tmp_path):
+    """The clustered quadratic-tet pool shipped for active learning was solved on the predictor's skin and records the
+    head's rest pose, so it joins the predictor's own datasets into one to train on, every pose kept with its split."""
+    from offline.dataset.pack import read_header, unpack_dataset
+
+    sample = ROOT / "heads" / "sample"
+    head = load_head(HEAD_PATH)
+    packs = [sample / "predictor_dataset.npz", sample / "al_pool_c60_quadratic.npz"]
+    assert read_header(packs[1])["manifest"]["rest_pose"] == list(head.neutral_pose)
+    sizes = [read_header(p)["manifest"]["n_poses"] for p in packs]
+    for i, p in enumerate(packs):
+        unpack_dataset(p, tmp_path / str(i))
+    merged = merge_datasets([tmp_path / "0", tmp_path / "1"], tmp_path / "merged")
+    assert len(merged.status) == sum(sizes)
+    assert merged.manifest["rest_pose"] == list(head.neutral_pose)
