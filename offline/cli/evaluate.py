@@ -14,9 +14,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                        "errors) and compare with predictor_report.json (beside the predictor unless --report is "
                        "given). Exit status 1 when the report does not match.")
     p.add_argument("--predictor", required=True, help="predictor ONNX file")
-    p.add_argument("--dataset", required=True, help="pose dataset the predictor was trained on: its folder, or a "
-                   "dataset pack (.npz from `likeness offline dataset-pack`; unpacked to a temporary folder and "
-                   "hash-checked)")
+    p.add_argument("--dataset", nargs="+", required=True, help="pose dataset the predictor was trained on: its "
+                   "folder, or a dataset pack (.npz from `likeness offline dataset-pack`; unpacked to a temporary "
+                   "folder and hash-checked); several are joined in the order given, as `likeness offline "
+                   "dataset-merge` joins them, for a predictor trained on a joined dataset")
     p.add_argument("--report", default=None, help="report to check (default: predictor_report.json beside the "
                    "predictor; no check if there is none)")
     p.add_argument("--split", default="test", choices=("train", "validation", "test", "all"),
@@ -36,7 +37,7 @@ def run(args: argparse.Namespace) -> int:
     report = Path(args.report) if args.report else Path(args.predictor).with_name(REPORT_NAME)
     with tempfile.TemporaryDirectory(prefix="likeness-eval-") as tmp:
         try:
-            dataset = _dataset_folder(Path(args.dataset), Path(tmp))
+            dataset = _joined_folder([Path(d) for d in args.dataset], Path(tmp))
             result = _evaluate(args, report, dataset)
         except (ValueError, FileNotFoundError) as exc:
             raise ConfigError(str(exc)) from exc
@@ -52,6 +53,16 @@ def _dataset_folder(path: Path, tmp: Path) -> Path:
 
     unpack_dataset(path, tmp / "dataset")
     return tmp / "dataset"
+
+
+def _joined_folder(paths: list[Path], tmp: Path) -> Path:
+    """The one dataset folder that ``paths`` name: itself (unpacked if a pack), or the join of several under ``tmp``."""
+    if len(paths) == 1:
+        return _dataset_folder(paths[0], tmp)
+    from offline.dataset.merge import merge_datasets
+
+    folders = [_dataset_folder(p, tmp / str(i)) for i, p in enumerate(paths)]
+    return merge_datasets(folders, tmp / "joined").root
 
 
 def _evaluate(args: argparse.Namespace, report: Path, dataset: Path) -> dict[str, Any]:
