@@ -390,6 +390,16 @@ def _drag(page: Any, name: str, dx: float, dy: float) -> None:
     page.mouse.up()
 
 
+def _shown_at(page: Any, name: str, t: float) -> None:
+    """Wait until the timeline control ``name`` says it is at ``t`` s (its description, to the millisecond)."""
+    page.wait_for_function(
+        """([name, t]) => {
+             const k = document.querySelector(`[aria-label="${name}"]`);
+             const m = k && /^at (\\S+) s/.exec(k.getAttribute("aria-description") || "");
+             return m !== null && Math.abs(parseFloat(m[1]) - t) < 1.5e-3;
+           }""", arg=[name, t], timeout=30_000)
+
+
 def _wav(path: Path, seconds: float, rate: int = 8000) -> Path:
     """A mono 16-bit WAV: a 220 Hz tone, loud and soft in turn every quarter second (a visible waveform)."""
     import wave
@@ -434,7 +444,9 @@ def test_the_timeline_edits_tracks_keys_and_handles_with_undo_and_plays_audio_wi
     _drag(page, "blink key 1", -30, 0)
     assert wait_until(lambda: doc.tracks["blink"].keys[0].t < 0.5, 30)
     assert doc.tracks["blink"].keys[0].t == pytest.approx(0.5 - 30 * s_per_px, abs=3 * s_per_px)
-    # The keyboard moves a focused key a frame.
+    # The keyboard moves a focused key a frame. Each server update redraws the timeline and focuses the selected key
+    # (the one just dragged), so focus the other key once the page shows the drag's last update.
+    _shown_at(page, "blink key 1", doc.tracks["blink"].keys[0].t)
     blink2 = page.get_by_role("button", name="blink key 2", exact=True)
     blink2.focus()
     page.keyboard.press("ArrowRight")
