@@ -28,7 +28,7 @@ def run(args: argparse.Namespace) -> int:
     with tempfile.TemporaryDirectory(prefix="likeness-merge-") as tmp:
         try:
             folders = [_dataset_folder(Path(d), Path(tmp) / str(i)) for i, d in enumerate(args.dataset)]
-            ds = merge_datasets(folders, args.out)
+            ds = merge_datasets(folders, args.out, names=args.dataset)
         except SpecError:
             raise
         except (OSError, ValueError) as exc:

@@ -62,7 +62,7 @@ def _joined_folder(paths: list[Path], tmp: Path) -> Path:
     from offline.dataset.merge import merge_datasets
 
     folders = [_dataset_folder(p, tmp / str(i)) for i, p in enumerate(paths)]
-    return merge_datasets(folders, tmp / "joined").root
+    return merge_datasets(folders, tmp / "joined", names=[str(p) for p in paths]).root
 
 
 def _evaluate(args: argparse.Namespace, report: Path, dataset: Path) -> dict[str, Any]:

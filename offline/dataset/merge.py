@@ -25,8 +25,10 @@ from offline.dataset.store import PoseDataset, atomic_save_npy, atomic_savez
 _LOCATIONS = ("config", "mesh", "linkmap", "backend")
 
 
-def merge_datasets(sources: Sequence[str | Path], out: str | Path) -> PoseDataset:
+def merge_datasets(sources: Sequence[str | Path], out: str | Path, names: Sequence[str] | None = None) -> PoseDataset:
     """Join the consolidated datasets ``sources`` (in order) into the dataset folder ``out``; returns it opened.
+    ``names`` are what errors call the sources (default their paths): the files a user gave, where ``sources`` are
+    the folders they were unpacked to.
 
     Refuses fewer than two sources, sources of different physics (:func:`check_joinable` names the difference) and
     an ``out`` that already holds a dataset. The manifest is the first source's with the pose count, its
@@ -37,9 +39,12 @@ def merge_datasets(sources: Sequence[str | Path], out: str | Path) -> PoseDatase
     out = Path(out)
     if (out / "dataset.json").exists():
         raise SpecError(str(out), "dataset", "already holds a dataset; join into a new folder")
+    labels = [str(s) for s in sources] if names is None else [str(n) for n in names]
+    if len(labels) != len(sources):
+        raise ValueError(f"{len(labels)} names for {len(sources)} datasets")
     parts = [PoseDataset(s) for s in sources]
-    for other, path in zip(parts[1:], sources[1:], strict=True):
-        check_joinable(parts[0], other, str(path))
+    for other, label in zip(parts[1:], labels[1:], strict=True):
+        check_joinable(parts[0], other, label)
     sizes = [len(p.status) for p in parts]
     starts = np.cumsum([0, *sizes[:-1]])
     splits = Splits(n=int(sum(sizes)), seed=parts[0].splits.seed, fractions=parts[0].splits.fractions,

@@ -90,6 +90,28 @@ def test_the_command_joins_a_pack_and_a_folder(two, tmp_path):
     assert "50 poses" in res.stdout and len(PoseDataset(tmp_path / "ab").status) == 50
 
 
+def test_a_pack_of_other_physics_is_named_as_given_not_by_where_it_was_unpacked(two, tmp_path):
+    """Packs are joined from temporary folders; a refusal names the pack the user gave, for the join command and
+    for ``evaluate``, which joins its datasets the same way."""
+    import shutil
+
+    from offline.dataset.pack import pack_dataset
+
+    other = tmp_path / "other"
+    shutil.copytree(two[1], other)
+    doc = json.loads((other / "dataset.json").read_text())
+    doc["problem"] = {**doc["problem"], "kind": "fem", "element_order": 2}
+    (other / "dataset.json").write_text(json.dumps(doc))
+    pack_dataset(other, tmp_path / "other.npz")
+    for args in (["dataset-merge", "--out", str(tmp_path / "ab")],
+                 ["evaluate", "--predictor", str(ROOT / "heads" / "sample" / "predictor.onnx")]):
+        res = subprocess.run([sys.executable, "-m", "likeness", "offline", *args, "--dataset", str(two[0]),
+                              str(tmp_path / "other.npz")], capture_output=True, text=True, cwd=ROOT, timeout=120)
+        assert res.returncode != 0
+        assert f"{tmp_path / 'other.npz'}: problem" in res.stderr, res.stderr
+    assert not (tmp_path / "ab" / "dataset.json").exists()
+
+
 def test_the_shipped_quadratic_pool_joins_the_predictors_datasets(tmp_path):
     """The clustered quadratic-tet pool shipped for active learning was solved on the predictor's skin and records the
     head's rest pose, so it joins the predictor's own datasets into one to train on, every pose kept with its split."""
