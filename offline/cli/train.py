@@ -29,6 +29,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="weight of a surface-strain term in the loss (squared error of each surface edge's vector "
                    "over its rest length) beside the offsets' scaled MSE; it also enters the validation objective "
                    "(default 0: offsets only)")
+    p.add_argument("--error-power", type=float, default=2.0,
+                   help="power p of the offsets' loss term: the mean of each vertex's squared error to the p/2, "
+                   "to the 2/p; 2 (default) is the MSE, a larger p aims the fit at the largest errors; it also "
+                   "enters the validation objective")
     p.add_argument("--int8", action="store_true", help="also export the int8 (MatMulNBits) variant and its error")
 
 
@@ -44,9 +48,11 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError("--epochs and --batch-size must be positive")
     if not args.edge_weight >= 0:
         raise UsageError(f"--edge-weight must be zero or positive, got {args.edge_weight}")
+    if not args.error_power >= 2.0:
+        raise UsageError(f"--error-power must be at least 2, got {args.error_power}")
     config = TrainConfig(epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, seed=args.seed,
                          patience=args.patience, threads=args.threads, rest_anchor=not args.no_rest_anchor,
-                         edge_weight=args.edge_weight)
+                         edge_weight=args.edge_weight, error_power=args.error_power)
     try:
         report = train_pipeline(args.dataset, args.out, config, hidden=args.hidden, int8=args.int8)
     except (ValueError, FileNotFoundError) as exc:

@@ -77,3 +77,51 @@ def test_the_command_on_the_shipped_dataset_sets_the_predictor_beside_its_floor(
     assert out["floor"]["13"]["rms_floor_um"] > out["floor"]["26"]["rms_floor_um"] > 0
     # the shipped predictor has 26 units per axis: its RMS error on these poses is above that size's floor
     assert out["predictor"]["rms_euclidean_um"] >= out["floor"]["26"]["rms_floor_um"]
+
+
+def test_a_fit_aimed_at_the_max_trades_rms_for_a_lower_max_and_projects_poses_of_its_subspace_exactly():
+    from offline.train.capacity import fit_subspaces, max_aimed_fit, project
+
+    rng = np.random.default_rng(4)
+    P, V = 200, 40
+    modes = np.zeros((4, V))
+    modes[0], modes[1], modes[2] = 1.0, np.linspace(-0.5, 0.5, V), 0.2 * np.cos(np.arange(V))  # broad modes (mm)...
+    modes[3, 0] = 3.0  # ...and a rim vertex's own, moving in few poses: little energy, a large peak
+    coef = rng.normal(size=(P, 4))
+    coef[10:, 3] = 0.0
+    X = np.repeat((coef @ modes)[:, :, None] * 1e-3, 3, axis=2)
+    ls = rank_floor(X, [3])[3]
+    fit, dist, round_ = max_aimed_fit(X, 3, rounds=30)
+    assert round_ > 0 and dist.max() < 0.5 * ls.max()  # the max falls by more than half...
+    assert np.sqrt(np.mean(dist ** 2)) > np.sqrt(np.mean(ls ** 2))  # ...at the cost of the RMS, which LS minimizes
+    np.testing.assert_allclose(project(X, fit), dist, atol=1e-12)  # its distances are its projection's
+    np.testing.assert_allclose(project(X, fit_subspaces(X, 3)), ls, atol=1e-9)  # unit weights: least squares
+    inside = np.stack([fit.centres[k] + (rng.normal(size=(5, 3)) @ (fit.bases[k] / fit.vertex_weights[:, None]).T)
+                       for k in range(3)], axis=2)  # poses in the fit's subspaces, never fitted on
+    assert project(inside, fit).max() < 1e-12
+    with pytest.raises(ValueError, match="to project on this fit"):
+        project(np.zeros((2, V + 1, 3)), fit)
+    with pytest.raises(ValueError, match="rounds must be positive"):
+        max_aimed_fit(X, 3, rounds=0)
+
+
+def test_the_command_fits_aimed_at_the_max_and_projects_other_poses(tmp_path):
+    res = subprocess.run([sys.executable, "-m", "likeness", "offline", "capacity", "--dataset",
+                          str(ROOT / "heads/sample/predictor_dataset.npz"), "--hidden", "A", "2A", "--split",
+                          "test", "--max-aimed", "3", "--project", str(ROOT / "heads/sample/predictor_dataset_ends.npz"),
+                          "--predictor", str(ROOT / "heads/sample/predictor.onnx")],
+                         capture_output=True, text=True, cwd=ROOT, timeout=180)
+    assert res.returncode == 0, res.stderr
+    out = json.loads(res.stdout)
+    aimed, floor = out["max_aimed"]["13"], out["floor"]["13"]
+    assert out["max_aimed"]["rounds"] == 3 and aimed["max_euclidean_um"] <= floor["max_euclidean_um"]
+    assert aimed["rms_floor_um"] >= floor["rms_floor_um"] * (1 - 1e-9)  # least squares has the least RMS
+    proj = out["project"]
+    assert proj["poses"] == 173 and set(proj["least_squares"]) == set(proj["max_aimed"]) == {"13", "26"}
+    ls = proj["least_squares"]
+    assert ls["13"]["rms_floor_um"] > ls["26"]["rms_floor_um"] > 0  # nested subspaces: more units, closer fit
+    assert ls["13"]["strain_p99_abs"] > ls["26"]["strain_p99_abs"] > 0 and proj["predictor"]["strain_p99_abs"] > 0
+    bad = subprocess.run([sys.executable, "-m", "likeness", "offline", "capacity", "--dataset",
+                          str(ROOT / "heads/sample/predictor_dataset.npz"), "--max-aimed", "-1"],
+                         capture_output=True, text=True, cwd=ROOT, timeout=60)
+    assert bad.returncode == 2 and "--max-aimed" in bad.stderr

@@ -296,3 +296,28 @@ def test_the_edge_strain_term_weighs_each_edge_error_over_its_rest_length_and_ke
     assert b["training"]["config"]["edge_weight"] == 10.0
     assert "surface_strain" in b["training"]["per_hidden"]["13"]["validation"]
     assert a["test"]["mean_euclidean_um"] != b["test"]["mean_euclidean_um"]  # the term changed what was learned
+
+
+def test_a_larger_error_power_weighs_a_pose_s_worst_vertex_more_and_keeps_its_own_checkpoints(dataset, tmp_path):
+    from offline.train.ksnn import make_objective
+
+    scale = np.ones(3)
+    target = torch.zeros(3, 2, 4)
+    spread = torch.full((3, 2, 4), 0.1)  # every vertex off by 0.1 on every axis
+    peaked = torch.zeros(3, 2, 4)
+    peaked[:, 0, 0] = 0.1 * np.sqrt(8)  # the same squared error, all on one vertex of one pose
+    mse, l8 = make_objective(scale, None, 0.0), make_objective(scale, None, 0.0, error_power=8.0)
+    assert float(mse(spread, target)) == pytest.approx(float(mse(peaked, target)))
+    assert float(l8(spread, target)) == pytest.approx(0.01, rel=1e-5)  # spread evenly: the power mean is the MSE
+    # all on one of 8 vertices: mean of (8 * 0.01)^4 over 8, to the 1/4 = 0.08 / 8^(1/4)
+    assert float(l8(peaked, target)) == pytest.approx(0.08 / 8 ** 0.25, rel=1e-5)
+    with pytest.raises(ValueError, match="error_power must be at least 2"):
+        make_objective(scale, None, 0.0, error_power=1.0)
+    root, _ = dataset
+    logs: list[str] = []
+    train_pipeline(root, tmp_path / "out", TrainConfig(epochs=4, batch_size=32, patience=30), hidden=["A"],
+                   log=lambda s: None)
+    b = train_pipeline(root, tmp_path / "out", TrainConfig(epochs=4, batch_size=32, patience=30, error_power=6.0),
+                       hidden=["A"], log=logs.append)  # the MSE run's checkpoint is not resumed
+    assert not any("resumed" in line for line in logs)
+    assert b["training"]["config"]["error_power"] == 6.0
