@@ -52,16 +52,19 @@ def _cholesky_solve(A: np.ndarray, b: np.ndarray, out: np.ndarray) -> bool:
 @njit(cache=True)
 def _hidden_residual(x: np.ndarray, W1: np.ndarray, b1: np.ndarray, Rb: np.ndarray, q: np.ndarray,
                      h: np.ndarray, r: np.ndarray) -> float:
-    """h = tanh(W1 x + b1); r = R h + q (R block diagonal, blocks Rb); returns r·r."""
+    """h = tanh(W1 x + b1); r = R h + q (R block diagonal, blocks Rb); returns r·r. Written into ``h`` and ``r``
+    without temporaries: at these sizes allocating them costs as much as the arithmetic."""
     H = Rb.shape[1]
-    h[:] = np.tanh(W1 @ x + b1)
+    np.dot(W1, x, h)
+    for i in range(h.shape[0]):
+        h[i] = np.tanh(h[i] + b1[i])
     rr = 0.0
     for k in range(3):
-        rk = Rb[k] @ h[k * H:(k + 1) * H]
-        for i in range(H):
-            v = rk[i] + q[k * H + i]
-            r[k * H + i] = v
-            rr += v * v
+        np.dot(Rb[k], h[k * H:(k + 1) * H], r[k * H:(k + 1) * H])
+    for i in range(r.shape[0]):
+        v = r[i] + q[i]
+        r[i] = v
+        rr += v * v
     return rr
 
 
@@ -96,14 +99,21 @@ def gauss_newton(x: np.ndarray, x_prev: np.ndarray, smooth: bool, lam_s: float, 
     reuse = state[1] > 0
     stored = reuse and 0 <= state[0] < state[1]  # this frame starts from the kept JᵀJ
     g = np.empty(A)
+    gk = np.empty(A)
     t = np.empty(H)
+    SW = np.empty((H, A))  # diag(1 − h²) W1 of one axis
+    M = np.empty((A, A))  # the damped matrix, factored in place
+    x_new = np.empty(A)  # the trial point
     for it in range(1, max_iterations + 1):  # noqa: B007 - it is returned
         exact = not stored
-        if exact:  # J = R diag(1 − h²) W1 per axis block: the O(H² A) part
+        if exact:  # J = R diag(1 − h²) W1 per axis block: the O(H² A) part, into J without temporaries
             for k in range(3):
-                s = 1.0 - h[k * H:(k + 1) * H] ** 2
-                J[k * H:(k + 1) * H] = (Rb[k] * s.reshape(1, H)) @ W1b[k]
-            g = J.T @ r
+                for j in range(H):
+                    sj = 1.0 - h[k * H + j] ** 2
+                    for a in range(A):
+                        SW[j, a] = W1b[k, j, a] * sj
+                np.dot(Rb[k], SW, J[k * H:(k + 1) * H])
+            np.dot(r, J, g)
             Hm = J.T @ J
             state[2] += 1
             if reuse:
@@ -113,10 +123,12 @@ def gauss_newton(x: np.ndarray, x_prev: np.ndarray, smooth: bool, lam_s: float, 
         else:  # the exact gradient Jᵀr = W1ᵀ diag(1 − h²) Rᵀ r without forming J, the kept JᵀJ
             g[:] = 0.0
             for k in range(3):
-                t[:] = Rb[k].T @ r[k * H:(k + 1) * H]
+                np.dot(r[k * H:(k + 1) * H], Rb[k], t)
                 for i in range(H):
                     t[i] *= 1.0 - h[k * H + i] ** 2
-                g += W1b[k].T @ t
+                np.dot(t, W1b[k], gk)
+                for a in range(A):
+                    g[a] += gk[a]
             Hm = H0.copy()
         if smooth:
             g += lam_s * (x - x_prev)
@@ -139,21 +151,26 @@ def gauss_newton(x: np.ndarray, x_prev: np.ndarray, smooth: bool, lam_s: float, 
         accepted = False
         f_new = f
         u = 0.0
-        x_new = x
         for _ in range(8):
-            M = Hm.copy()
+            M[:, :] = Hm
             for a in range(A):
                 M[a, a] += base + mu
             if not _cholesky_solve(M, g, step):
                 mu = max(mu * 10.0, 1e-12 * max(abs(f), 1e-30))
                 continue
-            y = x - step
-            u = np.max(np.abs(y - mid) * ihalf)
-            x_new = np.minimum(np.maximum(y, xlo), xhi) if u > 1.0 else y
+            u = 0.0  # the trial point x − step, projected on the box when it leaves it
+            for a in range(A):
+                x_new[a] = x[a] - step[a]
+                u = max(u, abs(x_new[a] - mid[a]) * ihalf[a])
+            if u > 1.0:
+                for a in range(A):
+                    x_new[a] = min(max(x_new[a], xlo[a]), xhi[a])
             f_new = _hidden_residual(x_new, W1, b1, Rb, q, h_new, r_new) + kq
             if smooth:
-                dxn = x_new - x_prev
-                f_new += lam_s * (dxn @ dxn)
+                ss = 0.0
+                for a in range(A):
+                    ss += (x_new[a] - x_prev[a]) ** 2
+                f_new += lam_s * ss
             if f_new <= f:
                 accepted = True
                 break
@@ -166,12 +183,14 @@ def gauss_newton(x: np.ndarray, x_prev: np.ndarray, smooth: bool, lam_s: float, 
             break
         mu *= 0.3
         decrease = f - f_new
-        x = x_new
+        x, x_new = x_new, x
         f = f_new
         h, h_new = h_new, h
         r, r_new = r_new, r
         on_bound = u >= 1.0 - 1e-12
-        largest = np.max(np.abs(step))
+        largest = 0.0
+        for a in range(A):
+            largest = max(largest, abs(step[a]))
         if xtol > 0.0 and largest <= xtol:
             converged = True
             break
@@ -195,8 +214,13 @@ def reduced_measure(h: np.ndarray, E: np.ndarray, e0: np.ndarray, C: np.ndarray,
     H = E.shape[1]
     n = E.shape[2] // 2
     e = np.empty((3, 2 * n), dtype=np.float32)
+    hk = np.empty(H, dtype=np.float32)
     for k in range(3):
-        e[k] = h[k * H:(k + 1) * H].astype(np.float32) @ E[k] + e0[k, 0]
+        for i in range(H):
+            hk[i] = h[k * H + i]
+        np.dot(hk, E[k], e[k])
+        for i in range(2 * n):
+            e[k, i] += e0[k, 0, i]
     lam_lo = np.empty(n)
     lam_hi = np.empty(n)
     for t in range(n):
