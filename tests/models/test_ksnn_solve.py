@@ -161,3 +161,14 @@ def test_a_kept_matrix_reaches_the_same_fit_along_a_smooth_trajectory():
         iters += a.iterations
     assert np.mean(fit_kept) <= 1.05 * np.mean(fit_plain) + 1e-9
     assert kept.formed < iters / 3
+
+
+def test_the_kernel_ab_benchmark_names_a_revision_it_cannot_read():
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    res = subprocess.run([sys.executable, "benchmarks/skin_kernel_ab.py", "--against", "no-such-revision"],
+                         capture_output=True, text=True, cwd=root, timeout=120)
+    assert res.returncode == 2 and "models/_skin_kernels.py at no-such-revision" in res.stderr

@@ -108,7 +108,8 @@ def test_a_fit_aimed_at_the_max_trades_rms_for_a_lower_max_and_projects_poses_of
 def test_the_command_fits_aimed_at_the_max_and_projects_other_poses(tmp_path):
     res = subprocess.run([sys.executable, "-m", "likeness", "offline", "capacity", "--dataset",
                           str(ROOT / "heads/sample/predictor_dataset.npz"), "--hidden", "A", "2A", "--split",
-                          "test", "--max-aimed", "3", "--project", str(ROOT / "heads/sample/predictor_dataset_ends.npz"),
+                          "test", "--max-aimed", "3", "--project",
+                          str(ROOT / "heads/sample/predictor_dataset_ends.npz"),
                           "--predictor", str(ROOT / "heads/sample/predictor.onnx")],
                          capture_output=True, text=True, cwd=ROOT, timeout=180)
     assert res.returncode == 0, res.stderr
