@@ -93,7 +93,8 @@ def main(argv: list[str] | None = None) -> int:
     lines = [f"# python benchmarks/skin_kernel_ab.py {' '.join(sys.argv[1:] if argv is None else argv)}",
              f"# baseline {SOURCE} at {rev}; this tree's sha256 {tree}; {os.cpu_count()} CPUs; load average "
              + " / ".join(f"{x:.1f}" for x in os.getloadavg()),
-             f"frame solve kernel, {args.config} (H = {paths.array.inverse.weights.hidden} per axis), interleaved; µs"]
+             f"frame solve kernel, {args.config} (H = {paths.array.inverse.weights.hidden} per axis, output rank "
+             f"{paths.array.inverse.rank}), interleaved; µs"]
     for kind in ("performance", "random"):
         lines.append(f"  {kind} ({len(times['baseline'][kind])} frames)      p1      p50      p99")
         pct = {k: np.percentile(np.array(times[k][kind]) * 1e6, [1, 50, 99]) for k in kernels}

@@ -52,15 +52,16 @@ def _cholesky_solve(A: np.ndarray, b: np.ndarray, out: np.ndarray) -> bool:
 @njit(cache=True)
 def _hidden_residual(x: np.ndarray, W1: np.ndarray, b1: np.ndarray, Rb: np.ndarray, q: np.ndarray,
                      h: np.ndarray, r: np.ndarray) -> float:
-    """h = tanh(W1 x + b1); r = R h + q (R block diagonal, blocks Rb); returns r·r. Written into ``h`` and ``r``
-    without temporaries: at these sizes allocating them costs as much as the arithmetic."""
-    H = Rb.shape[1]
+    """h = tanh(W1 x + b1); r = R h + q (R block diagonal, blocks Rb: r × H per axis); returns r·r. Written into
+    ``h`` and ``r`` without temporaries: at these sizes allocating them costs as much as the arithmetic."""
+    n = Rb.shape[1]
+    H = Rb.shape[2]
     np.dot(W1, x, h)
     for i in range(h.shape[0]):
         h[i] = np.tanh(h[i] + b1[i])
     rr = 0.0
     for k in range(3):
-        np.dot(Rb[k], h[k * H:(k + 1) * H], r[k * H:(k + 1) * H])
+        np.dot(Rb[k], h[k * H:(k + 1) * H], r[k * n:(k + 1) * n])
     for i in range(r.shape[0]):
         v = r[i] + q[i]
         r[i] = v
@@ -80,11 +81,12 @@ def gauss_newton(x: np.ndarray, x_prev: np.ndarray, smooth: bool, lam_s: float, 
     Gauss-Newton matrices formed) carry the reuse of the Gauss-Newton matrix JᵀJ across iterations and frames
     (:class:`models.ksnn_solve.HessianReuse`). Returns (x, h, r, f, iterations, converged) in normalized units."""
     A = x.shape[0]
-    H = Rb.shape[1]
+    n = Rb.shape[1]  # residual rows per axis: the output layer's rank (H when full)
+    H = Rb.shape[2]
     h = np.empty(3 * H)
-    r = np.empty(3 * H)
+    r = np.empty(3 * n)
     h_new = np.empty(3 * H)
-    r_new = np.empty(3 * H)
+    r_new = np.empty(3 * n)
     x = x.copy()
     f = _hidden_residual(x, W1, b1, Rb, q, h, r) + kq
     if smooth:
@@ -93,7 +95,7 @@ def gauss_newton(x: np.ndarray, x_prev: np.ndarray, smooth: bool, lam_s: float, 
     on_bound = np.max(np.abs(x - mid) * ihalf) >= 1.0 - 1e-12
     converged = False
     it = 0
-    J = np.empty((3 * H, A))
+    J = np.empty((3 * n, A))
     step = np.empty(A)
     fixed = np.zeros(A, dtype=np.bool_)
     reuse = state[1] > 0
@@ -106,13 +108,13 @@ def gauss_newton(x: np.ndarray, x_prev: np.ndarray, smooth: bool, lam_s: float, 
     x_new = np.empty(A)  # the trial point
     for it in range(1, max_iterations + 1):  # noqa: B007 - it is returned
         exact = not stored
-        if exact:  # J = R diag(1 − h²) W1 per axis block: the O(H² A) part, into J without temporaries
+        if exact:  # J = R diag(1 − h²) W1 per axis block: the O(n H A) part, into J without temporaries
             for k in range(3):
                 for j in range(H):
                     sj = 1.0 - h[k * H + j] ** 2
                     for a in range(A):
                         SW[j, a] = W1b[k, j, a] * sj
-                np.dot(Rb[k], SW, J[k * H:(k + 1) * H])
+                np.dot(Rb[k], SW, J[k * n:(k + 1) * n])
             np.dot(r, J, g)
             Hm = J.T @ J
             state[2] += 1
@@ -123,7 +125,7 @@ def gauss_newton(x: np.ndarray, x_prev: np.ndarray, smooth: bool, lam_s: float, 
         else:  # the exact gradient Jᵀr = W1ᵀ diag(1 − h²) Rᵀ r without forming J, the kept JᵀJ
             g[:] = 0.0
             for k in range(3):
-                np.dot(r[k * H:(k + 1) * H], Rb[k], t)
+                np.dot(r[k * n:(k + 1) * n], Rb[k], t)
                 for i in range(H):
                     t[i] *= 1.0 - h[k * H + i] ** 2
                 np.dot(t, W1b[k], gk)
@@ -402,7 +404,9 @@ def solve_values_measured(values: np.ndarray, wts: np.ndarray, p_prev: np.ndarra
         v = values[i]
         wts[i] = min(max(v, 0.0), 1.0) if np.isfinite(v) else 0.0
     A, U, H, T, P1, NZ, E2, max_iterations = dims[0], dims[1], dims[2], dims[3], dims[4], dims[5], dims[6], dims[7]
+    n = dims[9]  # residual rows per axis (the output layer's rank)
     H3 = 3 * H
+    N3 = 3 * n
     lo = f64[0:A]
     hi = f64[A:2 * A]
     scale_in = f64[2 * A:3 * A]
@@ -415,18 +419,18 @@ def solve_values_measured(values: np.ndarray, wts: np.ndarray, p_prev: np.ndarra
     o += U
     M = f64[o:o + U * U].reshape(U, U)
     o += U * U
-    q0 = f64[o:o + H3]
-    o += H3
-    Qd = f64[o:o + H3 * U].reshape(H3, U)
-    o += H3 * U
+    q0 = f64[o:o + N3]
+    o += N3
+    Qd = f64[o:o + N3 * U].reshape(N3, U)
+    o += N3 * U
     W1 = f64[o:o + H3 * A].reshape(H3, A)
     o += H3 * A
     b1 = f64[o:o + H3]
     o += H3
     W1b = f64[o:o + H3 * A].reshape(3, H, A)
     o += H3 * A
-    Rb = f64[o:o + H3 * H].reshape(3, H, H)
-    o += H3 * H
+    Rb = f64[o:o + N3 * H].reshape(3, n, H)
+    o += N3 * H
     C = f64[o:o + 4 * T].reshape(2, 2, T)
     o += 4 * T
     idet = f64[o:o + T]

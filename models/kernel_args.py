@@ -36,8 +36,8 @@ def pack_frame_args(solve: tuple, measure: tuple, guard: tuple | None = None
         [const_b, lam_s, mu, tol, xtol], g_scale, g_shift, [s_min, s_max])])
     f32 = np.concatenate([np.ravel(np.asarray(E, dtype=np.float32)), np.ravel(np.asarray(ge0, dtype=np.float32))])
     i64 = np.concatenate([np.asarray(S_ptr, dtype=np.int64), np.asarray(S_idx, dtype=np.int64)])
-    dims = np.array([len(lo), len(e), Rb.shape[1], len(idet), len(S_ptr), len(S_idx), E.shape[2], int(max_iterations),
-                     int(steps)], dtype=np.int64)
+    dims = np.array([len(lo), len(e), Rb.shape[2], len(idet), len(S_ptr), len(S_idx), E.shape[2], int(max_iterations),
+                     int(steps), Rb.shape[1]], dtype=np.int64)
     return f64, f32, i64, dims
 
 

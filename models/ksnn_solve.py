@@ -6,10 +6,11 @@ surface is base + Σ wᵢ Δᵢ (face-unit offsets Δᵢ), so with vertex weight
     ‖S (y − Σ wᵢ Δᵢ)‖² = Σ_k h_kᵀ G_k h_k + 2 h_kᵀ (c_k − D_k w) + const(w),
     G_k = W2_k S² W2_kᵀ (H×H),  c_k = W2_k S² b2_k,  D_k = W2_k S² Δ_kᵀ (H×U),
 
-is exact in the H-dimensional hidden space. Factoring G_k = R_kᵀ R_k (eigen-decomposition) turns it into the
-least-squares residual ρ = R h + q(w) of size 3H, so each damped Gauss-Newton step costs O(H² A + H U) and does
-not depend on the vertex count. Inputs are solved in normalized units p̂ ∈ [0, 1] with box limits (projected,
-with an active set), a temporal smoothness term towards the previous frame, and a warm start.
+is exact in the H-dimensional hidden space. Factoring G_k = R_kᵀ R_k (eigen-decomposition) turns it into the least-
+squares residual ρ = R h + q(w) of size 3r (r ≤ H the rank of the output layer W2_k), so each damped Gauss-Newton
+step costs O(r H A + r U) and does not depend on the vertex count. Inputs are solved in normalized units p̂ ∈ [0, 1]
+with box limits (projected, with an active set), a temporal smoothness term towards the previous frame, and a warm
+start.
 """
 
 from __future__ import annotations
@@ -81,38 +82,44 @@ class KsnnInverse:
         self._xhi = w.normalize(self.hi)
         H = w.hidden
         A = w.n_actuators
-        R = np.zeros((3 * H, 3 * H))
-        P = np.zeros((3 * H, 3 * H))
-        q0 = np.zeros(3 * H)
-        Qd = np.zeros((3 * H, self.n_units))
+        # G_k's eigen-decomposition; only its nonzero part enters the residual, so an output layer of rank r < H
+        # (a wide hidden layer feeding fewer output directions) gives a residual of 3r and J of O(r H A) per step.
+        eig = []
+        for k in range(3):
+            W2s = w.W2[k] * s2[None, :]  # (H, V)
+            lam, Q = np.linalg.eigh(W2s @ w.W2[k].T)
+            keep = lam > lam.max() * 1e-10  # singular values of W2 S under 1e-5 of the largest: float32 noise
+            eig.append((W2s, lam[keep], Q[:, keep]))
+        r = max(len(lam) for _, lam, _ in eig)  # rows per axis block (an axis of lower rank: zero rows first)
+        R = np.zeros((3 * r, 3 * H))
+        P = np.zeros((3 * r, 3 * H))
+        q0 = np.zeros(3 * r)
+        Qd = np.zeros((3 * r, self.n_units))
         const_b = 0.0
         e = np.zeros(self.n_units)
         M = np.zeros((self.n_units, self.n_units))
-        for k in range(3):
-            sl = slice(k * H, (k + 1) * H)
-            W2s = w.W2[k] * s2[None, :]  # (H, V)
-            G = W2s @ w.W2[k].T
+        for k, (W2s, lam, Q) in enumerate(eig):
+            rows = slice((k + 1) * r - len(lam), (k + 1) * r)
+            cols = slice(k * H, (k + 1) * H)
             c = W2s @ w.b2[k]
             D = W2s @ fu[:, :, k].T  # (H, U)
-            lam, Q = np.linalg.eigh(G)
-            keep = lam > lam.max() * 1e-12
-            sq = np.sqrt(np.where(keep, lam, 1.0))
-            Rk = (Q * np.where(keep, sq, 0.0)).T  # R_kᵀ R_k = G
-            Pk = (Q * np.where(keep, 1.0 / sq, 0.0)).T  # maps c − D w to q
-            R[sl, sl] = Rk
-            P[sl, sl] = Pk
-            q0[sl] = Pk @ c
-            Qd[sl] = Pk @ D
+            sq = np.sqrt(lam)
+            Pk = (Q / sq).T  # maps c − D w to q
+            R[rows, cols] = (Q * sq).T  # R_kᵀ R_k = G_k
+            P[rows, cols] = Pk
+            q0[rows] = Pk @ c
+            Qd[rows] = Pk @ D
             const_b += float(w.b2[k] @ (s2 * w.b2[k]))
             fs = fu[:, :, k] * s2[None, :]
             e += fs @ w.b2[k]
             M += fs @ fu[:, :, k].T
+        self.rank = r
         G = R.T @ R  # block-diagonal PSD Gram of the hidden layer (3H × 3H)
         self._G = np.ascontiguousarray(G)
         self._Gb = np.ascontiguousarray(np.stack([G[k * H:(k + 1) * H, k * H:(k + 1) * H] for k in range(3)]))
         self._c0 = R.T @ q0  # linear term: c(w) = c0 − Cd w
         self._R = np.ascontiguousarray(R)
-        self._Rb = np.ascontiguousarray(np.stack([R[k * H:(k + 1) * H, k * H:(k + 1) * H] for k in range(3)]))
+        self._Rb = np.ascontiguousarray(np.stack([R[k * r:(k + 1) * r, k * H:(k + 1) * H] for k in range(3)]))
         self._q0 = q0
         self._Qd = np.ascontiguousarray(Qd)
         self._Cd = np.ascontiguousarray(R.T @ Qd)
@@ -169,7 +176,7 @@ class KsnnInverse:
         ``tol`` bounds the relative decrease of the objective that counts as converged; ``xtol`` (normalized
         units, 0 = off) the largest actuator step that does (a warm-started frame whose first step is that small
         is done). Each iteration costs a
-        few dozen small array operations (O(H² A) flops) and one 13×13-sized Cholesky solve (LAPACK ``dposv``);
+        few dozen small array operations (O(r H A) flops) and one 13×13-sized Cholesky solve (LAPACK ``dposv``);
         variables at a bound whose gradient pushes outward are held (their rows become identity). ``measure``, a
         :class:`models.strain_guard.StrainGuard` on the same predictor, adds its reduced strain measure at the
         solution (``SolveResult.strain``), computed in the same compiled call when both are compiled. ``reuse`` keeps
@@ -231,7 +238,7 @@ class KsnnInverse:
         for it in range(1, max_iterations + 1):  # noqa: B007 - it is reported
             exact = not stored
             if exact:
-                J = np.matmul(Rb * (1.0 - h * h).reshape(3, 1, H), W1b).reshape(3 * H, A)
+                J = np.matmul(Rb * (1.0 - h * h).reshape(3, 1, H), W1b).reshape(-1, A)
                 JT = J.T
                 g = JT @ r
                 Hm = JT @ J
@@ -242,7 +249,7 @@ class KsnnInverse:
                     state[0] = 0
                     stored = True
             else:  # the exact gradient without forming J, the kept matrix
-                t = np.matmul(np.swapaxes(Rb, 1, 2), r.reshape(3, H, 1)).reshape(3, H) * (1.0 - h * h).reshape(3, H)
+                t = np.matmul(np.swapaxes(Rb, 1, 2), r.reshape(3, -1, 1)).reshape(3, H) * (1.0 - h * h).reshape(3, H)
                 g = np.matmul(np.swapaxes(W1b, 1, 2), t.reshape(3, H, 1)).reshape(3, A).sum(axis=0)
                 Hm = reuse.matrix.copy()
             if smooth:
@@ -312,8 +319,8 @@ class KsnnInverse:
 class HessianReuse:
     """The Gauss-Newton matrix JᵀJ kept across a frame solve's iterations and frames.
 
-    Forming J = R diag(1 − h²) W1 costs O(H² A) per iteration, most of a frame's arithmetic; the gradient Jᵀr costs
-    O(H² + H A) without it. Frame to frame at the control rate the pose, and with it JᵀJ, barely changes, so a kept
+    Forming J = R diag(1 − h²) W1 costs O(r H A) per iteration, most of a frame's arithmetic; the gradient Jᵀr costs
+    O(r H + H A) without it. Frame to frame at the control rate the pose, and with it JᵀJ, barely changes, so a kept
     matrix still gives a descent direction with the exact gradient (the damped step is checked to lower the
     objective; when it does not, the matrix is formed afresh). It is formed again once it is ``frames`` frames old
     (0: every iteration, plain Gauss-Newton), and after :meth:`forget` (a jump of the warm start)."""

@@ -33,6 +33,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="power p of the offsets' loss term: the mean of each vertex's squared error to the p/2, "
                    "to the 2/p; 2 (default) is the MSE, a larger p aims the fit at the largest errors; it also "
                    "enters the validation objective")
+    p.add_argument("--output-rank", default="0",
+                   help="rank r of each axis' output layer, an integer or a multiple of A (e.g. 2A): the hidden "
+                   "units feed r output directions (W2 = C U), a wide hidden layer at the in-cycle solve cost of "
+                   "r x H instead of H x H per step; 0 (default): full rank")
     p.add_argument("--int8", action="store_true", help="also export the int8 (MatMulNBits) variant and its error")
 
 
@@ -50,9 +54,16 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--edge-weight must be zero or positive, got {args.edge_weight}")
     if not args.error_power >= 2.0:
         raise UsageError(f"--error-power must be at least 2, got {args.error_power}")
+    from offline.train.ksnn import output_rank
+
+    try:
+        output_rank(args.output_rank, 1)
+    except ValueError as exc:
+        raise UsageError(f"--output-rank: {exc}") from exc
     config = TrainConfig(epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, seed=args.seed,
                          patience=args.patience, threads=args.threads, rest_anchor=not args.no_rest_anchor,
-                         edge_weight=args.edge_weight, error_power=args.error_power)
+                         edge_weight=args.edge_weight, error_power=args.error_power,
+                         output_rank=args.output_rank if args.output_rank.strip() not in ("", "0") else 0)
     try:
         report = train_pipeline(args.dataset, args.out, config, hidden=args.hidden, int8=args.int8)
     except (ValueError, FileNotFoundError) as exc:

@@ -46,6 +46,11 @@ class TrainConfig:
     #: to the 2/p: 2 is the MSE; a larger p weighs a pose's worst vertices more, so the fit aims at the max error
     #: (a least-squares fit leaves its largest errors on a few rim vertices, where a max-aimed one need not).
     error_power: float = 2.0
+    #: The rank r of each axis' output layer (0: full, r = H): W2 = C U with C (H × r), U (r × V), so H tanh units
+    #: feed r output directions. A wide hidden layer of lower output rank fits poses better than a square one of the
+    #: same in-cycle solve cost (its Gauss-Newton step costs O(r H A), :mod:`models.ksnn_solve`).
+    #: An integer or a multiple of the actuator count such as ``"2A"``.
+    output_rank: int | str = 0
 
 
 @dataclass
@@ -90,8 +95,20 @@ def resolve_hidden(spec: Sequence[int | str] | None, n_actuators: int) -> list[i
     return sorted(out)
 
 
-def _module(n_in: int, hidden: int, n_out: int, anchor: np.ndarray | None = None):
-    """The KSNN module; with ``anchor`` (a normalized pose) its output is f(x) - f(anchor), zero at the anchor."""
+def output_rank(spec: int | str, n_actuators: int) -> int:
+    """The output layer's rank from :attr:`TrainConfig.output_rank`: 0 (full), an integer, or a multiple of A."""
+    if spec in (0, "0", "", None):
+        return 0
+    try:
+        return resolve_hidden([spec], n_actuators)[0]
+    except ValueError:
+        raise ValueError(f"output rank {spec!r}: expected 0 (full), an integer or a multiple of A such as 2A"
+                         ) from None
+
+
+def _module(n_in: int, hidden: int, n_out: int, anchor: np.ndarray | None = None, rank: int = 0):
+    """The KSNN module; with ``anchor`` (a normalized pose) its output is f(x) - f(anchor), zero at the anchor.
+    With ``rank`` r (0 < r < hidden) each axis' output layer is the product C U (H × r, r × V)."""
     import torch
 
     class Ksnn(torch.nn.Module):
@@ -101,20 +118,32 @@ def _module(n_in: int, hidden: int, n_out: int, anchor: np.ndarray | None = None
             super().__init__()
             self.W1 = torch.nn.Parameter(torch.empty(3, n_in, hidden))
             self.b1 = torch.nn.Parameter(torch.empty(3, 1, hidden))
-            self.W2 = torch.nn.Parameter(torch.empty(3, hidden, n_out))
+            low = 0 < rank < hidden
+            if low:
+                self.C = torch.nn.Parameter(torch.empty(3, hidden, rank))
+                self.U = torch.nn.Parameter(torch.empty(3, rank, n_out))
+            else:
+                self.W2 = torch.nn.Parameter(torch.empty(3, hidden, n_out))
             self.b2 = torch.nn.Parameter(torch.zeros(3, 1, n_out))
             bound1 = 1.0 / math.sqrt(n_in)
             torch.nn.init.uniform_(self.W1, -3 * bound1, 3 * bound1)
             torch.nn.init.uniform_(self.b1, -1.0, 1.0)
-            torch.nn.init.uniform_(self.W2, -1.0 / math.sqrt(hidden), 1.0 / math.sqrt(hidden))
+            if low:
+                torch.nn.init.uniform_(self.C, -1.0 / math.sqrt(hidden), 1.0 / math.sqrt(hidden))
+                torch.nn.init.uniform_(self.U, -1.0 / math.sqrt(rank), 1.0 / math.sqrt(rank))
+            else:
+                torch.nn.init.uniform_(self.W2, -1.0 / math.sqrt(hidden), 1.0 / math.sqrt(hidden))
             self.anchor = None if anchor is None else torch.from_numpy(
                 np.asarray(anchor, dtype=np.float32).reshape(1, 1, n_in))
+
+        def output(self, h: torch.Tensor) -> torch.Tensor:
+            return torch.matmul(torch.matmul(h, self.C), self.U) if hasattr(self, "C") else torch.matmul(h, self.W2)
 
         def forward(self, x: torch.Tensor) -> torch.Tensor:  # x (B, A) in [0, 1] → (3, B, V)
             h = torch.tanh(torch.matmul(x.unsqueeze(0), self.W1) + self.b1)
             if self.anchor is not None:  # b2 drops out of f(x) - f(anchor)
-                return torch.matmul(h - torch.tanh(torch.matmul(self.anchor, self.W1) + self.b1), self.W2)
-            return torch.matmul(h, self.W2) + self.b2
+                return self.output(h - torch.tanh(torch.matmul(self.anchor, self.W1) + self.b1))
+            return self.output(h) + self.b2
 
     return Ksnn()
 
@@ -183,7 +212,9 @@ def train_ksnn(x_norm: np.ndarray, offsets: np.ndarray, train_idx: np.ndarray, v
     mean /= len(train_idx)
     var = sq / (len(train_idx) * n_vert) - (mean ** 2).mean(axis=1)
     scale = np.sqrt(np.maximum(var, 1e-30))
-    model = _module(n_act, hidden, n_vert, anchor)
+    rank = output_rank(config.output_rank, n_act)
+    rank = rank if rank < hidden else 0
+    model = _module(n_act, hidden, n_vert, anchor, rank)
     with torch.no_grad():
         model.b2.copy_(torch.from_numpy((mean / scale[:, None])[:, None, :]).float())
     opt = torch.optim.Adam(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
@@ -205,6 +236,8 @@ def train_ksnn(x_norm: np.ndarray, offsets: np.ndarray, train_idx: np.ndarray, v
         key["edge_weight"] = lam
     if config.error_power != 2.0:  # (absent at 2, so earlier checkpoints still resume)
         key["error_power"] = float(config.error_power)
+    if rank:  # (absent at full rank, likewise)
+        key["output_rank"] = rank
     if checkpoint is not None and checkpoint.exists():
         ck = torch.load(checkpoint, weights_only=False)
         if ck.get("key") == key:
@@ -291,7 +324,11 @@ def _to_weights(state: dict[str, Any], scale: np.ndarray, lo: np.ndarray, hi: np
     """
     W1 = state["W1"].detach().double().numpy()
     b1 = state["b1"].detach().double().numpy()[:, 0, :]
-    W2 = state["W2"].detach().double().numpy() * scale[:, None, None]
+    if "C" in state:  # an output layer of lower rank, exported as its product
+        W2 = np.matmul(state["C"].detach().double().numpy(), state["U"].detach().double().numpy())
+    else:
+        W2 = state["W2"].detach().double().numpy()
+    W2 = W2 * scale[:, None, None]
     if anchor is None:
         b2 = state["b2"].detach().double().numpy()[:, 0, :] * scale[:, None]
     else:

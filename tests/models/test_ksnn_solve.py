@@ -172,3 +172,52 @@ def test_the_kernel_ab_benchmark_names_a_revision_it_cannot_read():
     res = subprocess.run([sys.executable, "benchmarks/skin_kernel_ab.py", "--against", "no-such-revision"],
                          capture_output=True, text=True, cwd=root, timeout=120)
     assert res.returncode == 2 and "models/_skin_kernels.py at no-such-revision" in res.stderr
+
+
+def low_rank_weights(seed=0, A=13, H=30, V=400, ranks=(8, 8, 6)) -> KsnnWeights:
+    """A KSNN whose output layers have rank below H: W2_k = C_k U_k (a wide hidden layer, few output directions)."""
+    w = weights(seed, A, H, V)
+    rng = np.random.default_rng(100 + seed)
+    W2 = np.stack([rng.normal(size=(H, r)) @ rng.normal(size=(r, V)) * 1e-3 / np.sqrt(r) for r in ranks])
+    return KsnnWeights(w.lo, w.hi, w.W1, w.b1, W2, w.b2)
+
+
+def test_an_output_layer_of_lower_rank_gives_a_residual_of_its_rank():
+    """W2 of rank r < H: the hidden-space residual has r rows per axis (an axis of lower rank padded with zero rows),
+    its objective is still the exact surface error, and the solve recovers known actuator values."""
+    w = low_rank_weights()
+    rng = np.random.default_rng(7)
+    fu = rng.normal(size=(4, w.n_vertices, 3)) * 1e-3
+    inv = KsnnInverse(w, fu)
+    assert inv.rank == 8 and inv._Rb.shape == (3, 8, w.hidden) and inv._q0.shape == (24,)
+    assert not np.any(inv._Rb[2, :2])  # the rank-6 axis: two zero rows
+    assert KsnnInverse(weights(), fu).rank == 20  # full rank: r = H
+    for _ in range(5):
+        p = rng.uniform(w.lo, w.hi)
+        u = rng.uniform(0, 1, 4)
+        direct = np.mean(np.sum((w.offsets(p) - np.einsum("u,uvk->vk", u, fu)) ** 2, axis=1))
+        assert inv.surface_error(p, u) == pytest.approx(direct, rel=1e-8)
+    p_true = w.lo + rng.uniform(0.2, 0.8, w.n_actuators) * (w.hi - w.lo)
+    target = w.offsets(p_true)[None]
+    res = KsnnInverse(w, target, smoothness=0.0).solve(np.array([1.0]), p0=(w.lo + w.hi) / 2, max_iterations=100,
+                                                       tol=1e-14)
+    assert res.residual_rms < 1e-8
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_a_lower_rank_solve_takes_the_same_steps_compiled_and_in_numpy(seed):
+    w = low_rank_weights(seed)
+    rng = np.random.default_rng(30 + seed)
+    fu = rng.normal(size=(6, w.n_vertices, 3)) * 2e-3
+    fast = KsnnInverse(w, fu)
+    ref = KsnnInverse(w, fu, compiled=False)
+    assert fast.compiled and fast.rank == ref.rank == 8
+    p_prev = None
+    for _ in range(40):
+        u = rng.uniform(0, 1, 6) * (rng.random(6) < 0.5)
+        a = fast.solve(u, p_prev=p_prev, max_iterations=4)
+        b = ref.solve(u, p_prev=p_prev, max_iterations=4)
+        assert (a.iterations, a.converged) == (b.iterations, b.converged)
+        np.testing.assert_allclose(a.p, b.p, rtol=0, atol=1e-12 * np.max(w.hi - w.lo))
+        assert a.objective == pytest.approx(b.objective, rel=1e-10, abs=1e-20)
+        p_prev = a.p if rng.random() < 0.7 else None

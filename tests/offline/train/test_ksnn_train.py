@@ -321,3 +321,47 @@ def test_a_larger_error_power_weighs_a_pose_s_worst_vertex_more_and_keeps_its_ow
                        hidden=["A"], log=logs.append)  # the MSE run's checkpoint is not resumed
     assert not any("resumed" in line for line in logs)
     assert b["training"]["config"]["error_power"] == 6.0
+
+
+def test_an_output_rank_trains_a_wide_hidden_layer_whose_solve_runs_in_that_rank(dataset, tmp_path):
+    """``output_rank`` r: each axis' output layer is trained as C U (H × r, r × V) and exported as their product, an
+    ordinary predictor file whose W2 has rank r; the in-cycle solve reads the rank off it (a residual of r rows per
+    axis) and its frame solve from channel values is the fused solve, as at full rank."""
+    from models.ksnn_solve import HessianReuse, KsnnInverse
+    from models.strain_guard import StrainGuard
+    from offline.train.ksnn import output_rank
+
+    assert output_rank("2A", 13) == 26 and output_rank(0, 13) == 0 and output_rank("0", 13) == 0
+    with pytest.raises(ValueError, match="output rank 'x'"):
+        output_rank("x", 13)
+    root, _ = dataset
+    logs: list[str] = []
+    report = train_pipeline(root, tmp_path / "out", TrainConfig(epochs=20, batch_size=32, patience=30, output_rank="A"),
+                            hidden=["3A"], log=logs.append)
+    assert report["training"]["config"]["output_rank"] == "A"
+    sp = SkinPredictor(tmp_path / "out" / "predictor.onnx")
+    assert sp.hidden == 39
+    for k in range(3):
+        s = np.linalg.svd(sp.weights.W2[k], compute_uv=False)
+        assert s[12] > 1e-3 * s[0] and s[13] < 1e-5 * s[0]  # rank 13, as stored in float32
+    units = np.random.default_rng(3).normal(size=(5, sp.n_vertices, 3)) * 1e-3
+    inv = KsnnInverse(sp.weights, units)
+    assert inv.rank == 13 and inv._Rb.shape == (3, 13, 39)
+    guard = StrainGuard(sp, 0.5 * (sp.lo + sp.hi), samples=300)
+    frame = inv.frame_solve(3, 1e-6, 1e-3, guard)
+    kept = HessianReuse(len(sp.lo), frame.reuse.frames)
+    rng = np.random.default_rng(4)
+    p_prev = 0.5 * (sp.lo + sp.hi)
+    for _ in range(10):
+        values = np.where(rng.random(inv.n_units) < 0.3, rng.uniform(0.0, 1.0, inv.n_units), np.nan)
+        w = np.where(np.isfinite(values), values, 0.0)
+        a = inv.solve(w, p_prev=p_prev, max_iterations=3, tol=1e-6, xtol=1e-3, measure=guard, reuse=kept)
+        p = frame(values, p_prev)
+        np.testing.assert_array_equal(p, a.p)
+        assert (frame.iterations, frame.strain) == (a.iterations, a.strain)
+        p_prev = p.copy()
+    # its own checkpoints: a full-rank run of the same size does not resume it
+    logs.clear()
+    train_pipeline(root, tmp_path / "out", TrainConfig(epochs=2, batch_size=32, patience=30), hidden=["3A"],
+                   log=logs.append)
+    assert not any("resumed" in line for line in logs)
