@@ -75,8 +75,20 @@ class Client:
 
     def send_raw(self, payload: bytes, timeout: float | None = None) -> Any:
         """Send raw bytes as a request and return the decoded reply (for tests of malformed input)."""
-        self._sock.send(payload)
+        self._send(payload, timeout)
         return self._recv(timeout)
+
+    def _send(self, payload: bytes, timeout: float | None) -> None:
+        """Send within the timeout: a DEALER with no connected peer (daemon down, or its handshake refused, as for
+        a key it does not allow) would otherwise block the caller for good."""
+        wait = self.timeout if timeout is None else timeout
+        if not self._sock.poll(int(1000 * wait), zmq.POLLOUT):
+            raise DaemonTimeout(f"could not send to {self.endpoint} within {wait} s (daemon not running, wrong "
+                                "endpoint, or key not allowed)")
+        try:
+            self._sock.send(payload, zmq.NOBLOCK)
+        except zmq.Again:
+            raise DaemonTimeout(f"could not send to {self.endpoint} (no connected peer)") from None
 
     def _recv(self, timeout: float | None) -> Any:
         if not self._sock.poll(int(1000 * (self.timeout if timeout is None else timeout))):
@@ -87,8 +99,8 @@ class Client:
     def request(self, op: str, timeout: float | None = None, **fields: Any) -> dict[str, Any]:
         """Send one request and return the reply map, whatever its ``ok``."""
         rid = next(self._ids)
-        self._sock.send(msgpack.packb({"op": op, "id": rid, **fields}, use_bin_type=True))
         deadline = time.monotonic() + (self.timeout if timeout is None else timeout)
+        self._send(msgpack.packb({"op": op, "id": rid, **fields}, use_bin_type=True), timeout)
         while True:
             reply = self._recv(max(0.0, deadline - time.monotonic()))
             if isinstance(reply, dict) and reply.get("id") == rid:
