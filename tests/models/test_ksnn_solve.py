@@ -17,6 +17,14 @@ def weights(seed=0, A=13, H=20, V=400) -> KsnnWeights:
                        rng.normal(size=(3, H, V)) * 1e-3, rng.normal(size=(3, V)) * 1e-4)
 
 
+def low_rank_weights(seed=0, A=13, H=30, V=400, ranks=(8, 8, 6)) -> KsnnWeights:
+    """A KSNN whose output layers have rank below H: W2_k = C_k U_k (a wide hidden layer, few output directions)."""
+    w = weights(seed, A, H, V)
+    rng = np.random.default_rng(100 + seed)
+    W2 = np.stack([rng.normal(size=(H, r)) @ rng.normal(size=(r, V)) * 1e-3 / np.sqrt(r) for r in ranks])
+    return KsnnWeights(w.lo, w.hi, w.W1, w.b1, W2, w.b2)
+
+
 def test_hidden_space_objective_equals_surface_error():
     w = weights()
     rng = np.random.default_rng(1)
@@ -88,10 +96,11 @@ def test_bad_inputs_are_refused():
 
 
 @pytest.mark.parametrize("seed", [0, 3])
-def test_the_compiled_iteration_takes_the_numpy_steps(seed):
+@pytest.mark.parametrize("rank", ["full", "lower"])
+def test_the_compiled_iteration_takes_the_numpy_steps(seed, rank):
     """The compiled Gauss-Newton (models._skin_kernels) against the numpy loop: same iterations, same answer, with
-    and without a warm start, smoothness and active bounds."""
-    w = weights(seed)
+    and without a warm start, smoothness and active bounds; at full output rank and at a lower one."""
+    w = weights(seed) if rank == "full" else low_rank_weights(seed)
     rng = np.random.default_rng(20 + seed)
     fu = rng.normal(size=(6, w.n_vertices, 3)) * 2e-3  # large: many targets push actuators onto their bounds
     fast = KsnnInverse(w, fu)
@@ -174,14 +183,6 @@ def test_the_kernel_ab_benchmark_names_a_revision_it_cannot_read():
     assert res.returncode == 2 and "models/_skin_kernels.py at no-such-revision" in res.stderr
 
 
-def low_rank_weights(seed=0, A=13, H=30, V=400, ranks=(8, 8, 6)) -> KsnnWeights:
-    """A KSNN whose output layers have rank below H: W2_k = C_k U_k (a wide hidden layer, few output directions)."""
-    w = weights(seed, A, H, V)
-    rng = np.random.default_rng(100 + seed)
-    W2 = np.stack([rng.normal(size=(H, r)) @ rng.normal(size=(r, V)) * 1e-3 / np.sqrt(r) for r in ranks])
-    return KsnnWeights(w.lo, w.hi, w.W1, w.b1, W2, w.b2)
-
-
 def test_an_output_layer_of_lower_rank_gives_a_residual_of_its_rank():
     """W2 of rank r < H: the hidden-space residual has r rows per axis (an axis of lower rank padded with zero rows),
     its objective is still the exact surface error, and the solve recovers known actuator values."""
@@ -202,22 +203,3 @@ def test_an_output_layer_of_lower_rank_gives_a_residual_of_its_rank():
     res = KsnnInverse(w, target, smoothness=0.0).solve(np.array([1.0]), p0=(w.lo + w.hi) / 2, max_iterations=100,
                                                        tol=1e-14)
     assert res.residual_rms < 1e-8
-
-
-@pytest.mark.parametrize("seed", [0, 3])
-def test_a_lower_rank_solve_takes_the_same_steps_compiled_and_in_numpy(seed):
-    w = low_rank_weights(seed)
-    rng = np.random.default_rng(30 + seed)
-    fu = rng.normal(size=(6, w.n_vertices, 3)) * 2e-3
-    fast = KsnnInverse(w, fu)
-    ref = KsnnInverse(w, fu, compiled=False)
-    assert fast.compiled and fast.rank == ref.rank == 8
-    p_prev = None
-    for _ in range(40):
-        u = rng.uniform(0, 1, 6) * (rng.random(6) < 0.5)
-        a = fast.solve(u, p_prev=p_prev, max_iterations=4)
-        b = ref.solve(u, p_prev=p_prev, max_iterations=4)
-        assert (a.iterations, a.converged) == (b.iterations, b.converged)
-        np.testing.assert_allclose(a.p, b.p, rtol=0, atol=1e-12 * np.max(w.hi - w.lo))
-        assert a.objective == pytest.approx(b.objective, rel=1e-10, abs=1e-20)
-        p_prev = a.p if rng.random() < 0.7 else None
