@@ -33,6 +33,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="power p of the offsets' loss term: the mean of each vertex's squared error to the p/2, "
                    "to the 2/p; 2 (default) is the MSE, a larger p aims the fit at the largest errors; it also "
                    "enters the validation objective")
+    p.add_argument("--tail", nargs=2, type=float, default=None, metavar=("THRESHOLD_MM", "WEIGHT"),
+                   help="a hinge on the error's tail: WEIGHT x the mean over poses and vertices of the squared excess "
+                   "of each vertex's Euclidean error over THRESHOLD_MM millimetres, beside the offsets' term (only "
+                   "errors past the threshold pay it); it also enters the validation objective (default: none)")
     p.add_argument("--output-rank", default="0",
                    help="rank r of each axis' output layer, an integer or a multiple of A (e.g. 2A): the hidden "
                    "units feed r output directions (W2 = C U), a wide hidden layer at the in-cycle solve cost of "
@@ -54,6 +58,10 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--edge-weight must be zero or positive, got {args.edge_weight}")
     if not args.error_power >= 2.0:
         raise UsageError(f"--error-power must be at least 2, got {args.error_power}")
+    tail_mm, tail_weight = args.tail if args.tail is not None else (0.0, 0.0)
+    if not (tail_mm >= 0 and tail_weight >= 0):
+        raise UsageError(f"--tail: the threshold and the weight must be zero or positive, got {tail_mm}, "
+                         f"{tail_weight}")
     from offline.train.ksnn import output_rank
 
     try:
@@ -63,6 +71,7 @@ def run(args: argparse.Namespace) -> int:
     config = TrainConfig(epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, seed=args.seed,
                          patience=args.patience, threads=args.threads, rest_anchor=not args.no_rest_anchor,
                          edge_weight=args.edge_weight, error_power=args.error_power,
+                         tail_threshold=tail_mm * 1e-3, tail_weight=tail_weight,
                          output_rank=args.output_rank if args.output_rank.strip() not in ("", "0") else 0)
     try:
         report = train_pipeline(args.dataset, args.out, config, hidden=args.hidden, int8=args.int8)

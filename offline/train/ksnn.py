@@ -51,6 +51,12 @@ class TrainConfig:
     #: same in-cycle solve cost (its Gauss-Newton step costs O(r H A), :mod:`models.ksnn_solve`).
     #: An integer or a multiple of the actuator count such as ``"2A"``.
     output_rank: int | str = 0
+    #: A hinge on the tail of the error, in metres (0: none): beside the offsets' term, ``tail_weight`` × the mean
+    #: over poses and vertices of max(0, |e| − ``tail_threshold``)², |e| a vertex's Euclidean error, in the scaled
+    #: units of the MSE. Only errors past the threshold pay it, so the fit is pulled at its largest errors without
+    #: the whole surface reweighted (as a larger ``error_power`` does, at the mean's cost).
+    tail_threshold: float = 0.0
+    tail_weight: float = 0.0
 
 
 @dataclass
@@ -159,17 +165,39 @@ def offsets_term(diff: Any, power: float) -> Any:
     return torch.mean(per_vertex ** (0.5 * power)) ** (2.0 / power)
 
 
+def tail_term(diff: Any, scale: Any, threshold: float) -> Any:
+    """The mean over poses and vertices of max(0, |e| − ``threshold``)² on (3, B, V) scaled errors, |e| a vertex's
+    Euclidean error in metres (``scale`` (3, 1, 1): metres per scaled unit), divided by the mean squared scale: in
+    the scaled units of the MSE."""
+    import torch
+
+    err = torch.sqrt(torch.sum((diff * scale) ** 2, dim=0) + 1e-30)  # (B, V) metres
+    return torch.mean(torch.relu(err - threshold) ** 2) / torch.mean(scale ** 2)
+
+
 def make_objective(scale: np.ndarray, edges: tuple[np.ndarray, np.ndarray] | None, edge_weight: float,
-                   error_power: float = 2.0) -> Callable[[Any, Any], Any]:
+                   error_power: float = 2.0, tail_threshold: float = 0.0,
+                   tail_weight: float = 0.0) -> Callable[[Any, Any], Any]:
     """The training loss on (3, B, V) tensors of per-axis scaled offsets: their MSE (or the power mean of
     :func:`offsets_term`), plus ``edge_weight`` × the mean squared edge strain error, (Δu_i − Δu_j) / |x_i − x_j|
-    per surface edge and axis, in metres over metres."""
+    per surface edge and axis, in metres over metres, plus ``tail_weight`` × the :func:`tail_term` past
+    ``tail_threshold`` metres."""
     if not error_power >= 2.0:
         raise ValueError(f"error_power must be at least 2, got {error_power}")
+    if not (tail_threshold >= 0 and tail_weight >= 0):
+        raise ValueError(f"tail_threshold and tail_weight must be zero or positive, got {tail_threshold}, "
+                         f"{tail_weight}")
     power = float(error_power)
+    import torch
+
+    if tail_weight > 0:
+        scale_t = torch.from_numpy(np.asarray(scale, np.float32)).view(3, 1, 1)
+        inner = make_objective(scale, edges, edge_weight, error_power)
+        threshold, weight = float(tail_threshold), float(tail_weight)
+        return lambda pred, target: (inner(pred, target)
+                                     + weight * tail_term(pred - target, scale_t, threshold))
     if edges is None or edge_weight <= 0:
         return lambda pred, target: offsets_term(pred - target, power)
-    import torch
 
     e_i = torch.from_numpy(np.asarray(edges[0][:, 0], np.int64))
     e_j = torch.from_numpy(np.asarray(edges[0][:, 1], np.int64))
@@ -223,7 +251,7 @@ def train_ksnn(x_norm: np.ndarray, offsets: np.ndarray, train_idx: np.ndarray, v
     lam = float(config.edge_weight)
     if lam > 0 and edges is None:
         raise ValueError("edge_weight > 0 needs the surface's edges and rest lengths")
-    objective = make_objective(scale, edges, lam, config.error_power)
+    objective = make_objective(scale, edges, lam, config.error_power, config.tail_threshold, config.tail_weight)
     history: dict[str, list[float]] = {"train": [], "val": [], "lr": []}
     start_epoch = 0
     best = {"val": math.inf, "epoch": -1, "state": None}
@@ -238,6 +266,8 @@ def train_ksnn(x_norm: np.ndarray, offsets: np.ndarray, train_idx: np.ndarray, v
         key["error_power"] = float(config.error_power)
     if rank:  # (absent at full rank, likewise)
         key["output_rank"] = rank
+    if config.tail_weight > 0:  # (absent without the tail's hinge, likewise)
+        key["tail"] = [float(config.tail_threshold), float(config.tail_weight)]
     if checkpoint is not None and checkpoint.exists():
         ck = torch.load(checkpoint, weights_only=False)
         if ck.get("key") == key:

@@ -365,3 +365,30 @@ def test_an_output_rank_trains_a_wide_hidden_layer_whose_solve_runs_in_that_rank
     train_pipeline(root, tmp_path / "out", TrainConfig(epochs=2, batch_size=32, patience=30), hidden=["3A"],
                    log=logs.append)
     assert not any("resumed" in line for line in logs)
+
+
+def test_the_tail_hinge_charges_only_errors_past_its_threshold_and_keeps_its_own_checkpoints(dataset, tmp_path):
+    from offline.train.ksnn import make_objective
+
+    scale = np.array([1e-3, 2e-3, 2e-3])  # metres per scaled unit
+    target = torch.zeros(3, 2, 4)
+    small = torch.zeros(3, 2, 4)
+    small[1, 0, 0] = 0.2  # 0.4 mm on one vertex: under a 0.5 mm threshold
+    large = torch.zeros(3, 2, 4)
+    large[1, 0, 0] = 0.5  # 1 mm: 0.5 mm past it
+    mse = make_objective(scale, None, 0.0)
+    tailed = make_objective(scale, None, 0.0, tail_threshold=0.5e-3, tail_weight=100.0)
+    assert float(tailed(small, target)) == pytest.approx(float(mse(small, target)))
+    excess = 100.0 * (0.5e-3) ** 2 / 8 / np.mean(scale ** 2)  # one of 8 (pose, vertex) pairs, in scaled units
+    assert float(tailed(large, target)) == pytest.approx(float(mse(large, target)) + excess, rel=1e-4)
+    with pytest.raises(ValueError, match="tail_threshold and tail_weight"):
+        make_objective(scale, None, 0.0, tail_threshold=-1.0, tail_weight=1.0)
+    root, _ = dataset
+    logs: list[str] = []
+    train_pipeline(root, tmp_path / "out", TrainConfig(epochs=4, batch_size=32, patience=30), hidden=["A"],
+                   log=lambda s: None)
+    b = train_pipeline(root, tmp_path / "out",
+                       TrainConfig(epochs=4, batch_size=32, patience=30, tail_threshold=1e-4, tail_weight=50.0),
+                       hidden=["A"], log=logs.append)  # the run without the hinge is not resumed
+    assert not any("resumed" in line for line in logs)
+    assert b["training"]["config"]["tail_weight"] == 50.0
