@@ -17,6 +17,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--epochs", type=int, default=300)
     p.add_argument("--batch-size", type=int, default=64)
     p.add_argument("--lr", type=float, default=3e-3)
+    p.add_argument("--weight-decay", type=float, default=0.0,
+                   help="Adam's L2 weight decay on every parameter (default 0): holds the hidden layer's slopes, "
+                   "so the fit cannot steepen between poses")
     p.add_argument("--patience", type=int, default=60, help="stop after this many epochs without improvement")
     p.add_argument("--hidden", nargs="*", default=None,
                    help="hidden sizes to try: integers or multiples of the actuator count A (e.g. `--hidden A` "
@@ -54,6 +57,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.epochs < 1 or args.batch_size < 1:
         raise UsageError("--epochs and --batch-size must be positive")
+    if not args.weight_decay >= 0:
+        raise UsageError(f"--weight-decay must be zero or positive, got {args.weight_decay}")
     if not args.edge_weight >= 0:
         raise UsageError(f"--edge-weight must be zero or positive, got {args.edge_weight}")
     if not args.error_power >= 2.0:
@@ -69,6 +74,7 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise UsageError(f"--output-rank: {exc}") from exc
     config = TrainConfig(epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, seed=args.seed,
+                         weight_decay=args.weight_decay,
                          patience=args.patience, threads=args.threads, rest_anchor=not args.no_rest_anchor,
                          edge_weight=args.edge_weight, error_power=args.error_power,
                          tail_threshold=tail_mm * 1e-3, tail_weight=tail_weight,

@@ -266,6 +266,8 @@ def train_ksnn(x_norm: np.ndarray, offsets: np.ndarray, train_idx: np.ndarray, v
         key["error_power"] = float(config.error_power)
     if rank:  # (absent at full rank, likewise)
         key["output_rank"] = rank
+    if config.weight_decay > 0:  # (absent without decay, likewise)
+        key["weight_decay"] = float(config.weight_decay)
     if config.tail_weight > 0:  # (absent without the tail's hinge, likewise)
         key["tail"] = [float(config.tail_threshold), float(config.tail_weight)]
     if checkpoint is not None and checkpoint.exists():

@@ -392,3 +392,20 @@ def test_the_tail_hinge_charges_only_errors_past_its_threshold_and_keeps_its_own
                        hidden=["A"], log=logs.append)  # the run without the hinge is not resumed
     assert not any("resumed" in line for line in logs)
     assert b["training"]["config"]["tail_weight"] == 50.0
+
+
+def test_a_weight_decay_shrinks_the_weights_and_keeps_its_own_checkpoints(dataset, tmp_path):
+    root, _ = dataset
+
+    def first_layer_norm() -> float:
+        return float(np.linalg.norm(SkinPredictor(tmp_path / "out" / "predictor.onnx").weights.W1))
+
+    train_pipeline(root, tmp_path / "out", TrainConfig(epochs=6, batch_size=32, patience=30), hidden=["A"],
+                   log=lambda s: None)
+    plain = first_layer_norm()
+    logs: list[str] = []
+    decayed = train_pipeline(root, tmp_path / "out", TrainConfig(epochs=6, batch_size=32, patience=30,
+                                                                 weight_decay=0.5), hidden=["A"], log=logs.append)
+    assert not any("resumed" in line for line in logs)  # the run without decay is not resumed
+    assert decayed["training"]["config"]["weight_decay"] == 0.5
+    assert first_layer_norm() < plain
