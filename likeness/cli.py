@@ -100,6 +100,8 @@ COMMANDS: tuple[Command, ...] = (
             "train the KSNN skin predictor on a pose dataset, export ONNX + report"),
     Command("evaluate", OFFLINE, "offline.cli.evaluate",
             "recompute a predictor's test metrics and compare with its report"),
+    Command("sweep", OFFLINE, "offline.cli.sweep",
+            "one actuator swept from a dataset's pose, solved from rest, beside predictors at one vertex"),
     Command("capacity", OFFLINE, "offline.cli.capacity",
             "the error floor each hidden size sets on a dataset's poses (the output layer's rank)"),
     Command("guard", OFFLINE, "offline.cli.guard",
