@@ -99,3 +99,17 @@ def print_mold(report: dict[str, Any], out: str | Path) -> int:
           f"{vb['skin_mm3'] / 1e3:.3f} cm³ (relative difference {vb['relative_difference']:.1e}) -> "
           f"{Path(out) / 'mold_report.json'}")
     return 0 if ok else 1
+
+
+def add_skin_problem_arguments(p: argparse.ArgumentParser) -> None:
+    """The head and the skin problem its poses are solved with: config, mesh, link map, the analytic sheet, the
+    element order and the sparse backend (``offline.dataset.build.DatasetSettings``)."""
+    p.add_argument("--config", required=True, help="head spec TOML (e.g. heads/sample/head.toml)")
+    p.add_argument("--mesh", help="skin mesh folder (e.g. heads/sample/skin)")
+    p.add_argument("--linkmap", help="link map file m(p) (default: the head's paths.linkmap)")
+    p.add_argument("--synthetic", action="store_true",
+                   help="use the analytic test sheet instead of the FEM (pipeline smoke tests and benchmarks)")
+    p.add_argument("--element-order", type=int, choices=(1, 2), default=1,
+                   help="1: the mesh's linear tets; 2: the same tets quadratic (mid-edge nodes; about 5x the time "
+                   "per Newton iteration, far less discretization error in a thin skin)")
+    p.add_argument("--backend", default="auto", help="sparse solver backend for the FEM (auto|cholmod|pardiso|superlu)")

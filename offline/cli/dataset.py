@@ -11,11 +11,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                      "duplicates removed, seeded), solve each with the skin FEM through the link map m(p), "
                      "warm-started from the nearest solved pose, and store one file per pose plus a manifest. Rerun "
                      "the same command to resume after an interruption.")
-    p.add_argument("--config", required=True, help="head spec TOML (e.g. heads/sample/head.toml)")
-    p.add_argument("--mesh", help="skin mesh folder (e.g. heads/sample/skin)")
-    p.add_argument("--linkmap", help="link map file m(p) (default: the head's paths.linkmap)")
-    p.add_argument("--synthetic", action="store_true",
-                   help="use the analytic test sheet instead of the FEM (pipeline smoke tests and benchmarks)")
+    from offline.cli._common import add_skin_problem_arguments
+
+    add_skin_problem_arguments(p)
     p.add_argument("--poses", type=int, required=True, help="number of distinct poses to sample")
     p.add_argument("--out", required=True, help="dataset folder (created, or resumed if it exists)")
     p.add_argument("--engine", default="local", help="local (default), dask-local or dask://HOST:PORT")
@@ -33,10 +31,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "with several equilibria then takes whichever branch its neighbour was on, and that depends on "
                    "the order the workers finish in) or the skin at rest (every pose the equilibrium reached from "
                    "neutral: the same on every run)")
-    p.add_argument("--element-order", type=int, choices=(1, 2), default=1,
-                   help="1: the mesh's linear tets; 2: the same tets quadratic (mid-edge nodes; about 5x the time "
-                   "per Newton iteration, far less discretization error in a thin skin)")
-    p.add_argument("--backend", default="auto", help="sparse solver backend for the FEM (auto|cholmod|pardiso|superlu)")
     p.add_argument("--select", choices=("genlal", "random"), default=None,
                    help="active learning: simulate only --budget of the --poses sampled candidates, chosen batch by "
                    "batch by a learned GEN-LAL policy (or at random, for comparison), retraining the predictor "

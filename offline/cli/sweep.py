@@ -11,13 +11,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                      "rest with the skin problem (a resumable dataset folder) and print, at one surface vertex, the "
                      "solved offset and each predictor's, with the largest change between neighbouring points of "
                      "each: whether the skin changes abruptly where a predictor errs, or the predictor does.")
-    p.add_argument("--config", required=True, help="head spec TOML (e.g. heads/sample/head.toml)")
-    p.add_argument("--mesh", help="skin mesh folder (e.g. heads/sample/skin)")
-    p.add_argument("--linkmap", help="link map file m(p) (default: the head's paths.linkmap)")
-    p.add_argument("--synthetic", action="store_true", help="the analytic test sheet instead of the FEM")
-    p.add_argument("--element-order", type=int, choices=(1, 2), default=1,
-                   help="1: the mesh's linear tets; 2: quadratic (as the predictor's dataset)")
-    p.add_argument("--backend", default="auto", help="sparse solver backend for the FEM")
+    from offline.cli._common import add_skin_problem_arguments
+
+    add_skin_problem_arguments(p)
     p.add_argument("--workers", type=int, default=None, help="worker processes (default: CPU count)")
     p.add_argument("--dataset", required=True, help="pose dataset folder holding the pose to start from")
     p.add_argument("--pose", type=int, required=True, help="index of that pose in the dataset")
