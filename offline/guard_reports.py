@@ -49,9 +49,11 @@ def write_footprint(head: HeadSpec, mesh_dir: Path, out: str, command: str) -> t
 
 
 def solve_performances(head: HeadSpec, config: str, mesh: str, clips: Sequence[str], every_s: float, out: str,
-                       workers: int = 1, backend: str = "auto", element_order: int = 1) -> dict[str, Any]:
+                       workers: int = 1, backend: str = "auto", element_order: int = 1,
+                       reuse: str | None = None) -> dict[str, Any]:
     """Sample the clips' poses every ``every_s`` seconds and solve the distinct ones with the FEM dataset tools
-    into the (resumable) dataset folder ``out``; returns the dataset's summary."""
+    into the (resumable) dataset folder ``out``; returns the dataset's summary. ``reuse``: an earlier such folder
+    of the same skin problem, whose solved poses at the same values are copied instead of solved."""
     from offline.dataset.fem_problem import FemSpec, material_fields
     from offline.dataset.generate import generate_dataset
     from offline.engine import make_engine
@@ -71,7 +73,7 @@ def solve_performances(head: HeadSpec, config: str, mesh: str, clips: Sequence[s
                                 lo=lo, hi=hi, engine=engine, seed=0,
                                 sampling={"performances": [str(c) for c in clips], "every_s": every_s,
                                           "labels": [labels[i] for i in idx]},
-                                rest_pose=head.neutral_pose)
+                                rest_pose=head.neutral_pose, reuse=reuse)
 
 
 def agreement(head: HeadSpec, config: str, datasets: Sequence[str], fresh: int, command: str) -> dict[str, Any]:

@@ -33,6 +33,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     q.add_argument("--backend", default="auto")
     q.add_argument("--element-order", type=int, choices=(1, 2), default=1,
                    help="1: the mesh's linear tets; 2: the same tets quadratic (as the predictor's dataset)")
+    q.add_argument("--reuse", default=None, metavar="DATASET",
+                   help="an earlier performances folder of the same skin problem: its solved poses at the same "
+                   "values are copied, not solved again (after a new predictor only the blendshape clip's poses, "
+                   "which come from the predictor's inverse, change)")
 
     e = gs.add_parser("evaluate", help="agreement of the guard with the FEM measure on pose datasets (JSON)")
     e.add_argument("--config", required=True)
@@ -90,7 +94,8 @@ def run_performances(args: argparse.Namespace) -> int:
     from offline.guard_reports import solve_performances
 
     summary = solve_performances(load_head(args.config), args.config, args.mesh, args.clips, args.every, args.out,
-                                 workers=args.workers, backend=args.backend, element_order=args.element_order)
+                                 workers=args.workers, backend=args.backend, element_order=args.element_order,
+                                 reuse=args.reuse)
     print(json.dumps(summary, indent=1))
     return 0 if summary["failed"] == 0 else 1
 

@@ -88,7 +88,8 @@ def generate_dataset(root: str | Path, spec: ProblemSpec, samples: np.ndarray, *
                      engine: Engine, seed: int, sampling: dict[str, Any],
                      progress_stream: TextIO | None = sys.stderr, max_in_flight: int | None = None,
                      max_poses: int | None = None, indices: Sequence[int] | None = None,
-                     rest_pose: Sequence[float] | None = None, start: str = "nearest") -> dict[str, Any]:
+                     rest_pose: Sequence[float] | None = None, start: str = "nearest",
+                     reuse: str | Path | None = None) -> dict[str, Any]:
     """Create (or resume) the dataset at ``root`` and solve every missing pose; returns a summary.
 
     ``start``: each solve starts from the nearest converged pose (``"nearest"``) or from rest (``"rest"``: labels
@@ -101,6 +102,8 @@ def generate_dataset(root: str | Path, spec: ProblemSpec, samples: np.ndarray, *
 
     ``max_poses`` stops after that many newly solved poses (for tests and partial runs); ``indices`` restricts
     the run to those planned poses (active learning simulates the poses its policy chose, batch by batch).
+    ``reuse``: a dataset of the same physics whose solved, converged poses at a planned pose's values are copied
+    instead of solved (:mod:`offline.dataset.reuse`); the summary counts them as ``reused``.
     """
     root = Path(root)
     store = PoseStore(root)
@@ -127,11 +130,17 @@ def generate_dataset(root: str | Path, spec: ProblemSpec, samples: np.ndarray, *
     store.remove_leftovers()  # temp files of a killed run
     xs = (samples - np.asarray(lo)) / (np.asarray(hi) - np.asarray(lo))
     done = store.done()
+    wanted = range(len(samples)) if indices is None else sorted({int(i) for i in indices})
+    reused: list[int] = []
+    if reuse is not None:
+        from offline.dataset.reuse import reuse_solved
+
+        reused = reuse_solved(store, reuse, [i for i in wanted if i not in done])
+        done = store.done()
     solved_idx: list[int] = []
     for i in sorted(done):
         if store.read_pose(i).converged:
             solved_idx.append(i)
-    wanted = range(len(samples)) if indices is None else sorted({int(i) for i in indices})
     todo = [i for i in wanted if i not in done]
     if max_poses is not None:
         todo = todo[:max_poses]
@@ -173,6 +182,7 @@ def generate_dataset(root: str | Path, spec: ProblemSpec, samples: np.ndarray, *
     if complete:
         store.consolidate()
     dt = time.perf_counter() - t0
-    return {"root": str(root), "poses": len(samples), "solved_now": new, "done": len(store.done()),
+    return {"root": str(root), "poses": len(samples), "solved_now": new, "reused": len(reused),
+            "done": len(store.done()),
             "failed": len(failures), "not_converged": prog.not_converged, "seconds": dt,
             "poses_per_hour": new / dt * 3600 if dt > 0 else 0.0, "complete": complete}

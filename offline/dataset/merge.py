@@ -83,7 +83,7 @@ def check_joinable(a: PoseDataset, b: PoseDataset, where: str) -> None:
         ("rest_pose", None if a.rest_pose is None else a.rest_pose.tolist(),
          None if b.rest_pose is None else b.rest_pose.tolist()),
         ("face units", a.face_unit_names, b.face_unit_names),
-        ("problem", _physics(a.manifest.get("problem")), _physics(b.manifest.get("problem")))]
+        ("problem", problem_physics(a.manifest.get("problem")), problem_physics(b.manifest.get("problem")))]
     for what, x, y in checks:
         if x != y:
             raise SpecError(where, what, f"differs from the first dataset's ({_short(x)})", _short(y))
@@ -93,7 +93,7 @@ def check_joinable(a: PoseDataset, b: PoseDataset, where: str) -> None:
             raise SpecError(where, what, "differs from the first dataset's")
 
 
-def _physics(problem: Any) -> Any:
+def problem_physics(problem: Any) -> Any:
     """The problem record without the places its inputs were read from; a missing element order is 1 (linear tets,
     what datasets wrote before the field existed)."""
     if not isinstance(problem, dict):

@@ -160,3 +160,33 @@ def test_resume_removes_temp_files_of_a_killed_run(tmp_path, head):
     summary = run(head, root, spec, samples, SerialEngine())
     assert summary["complete"] and summary["solved_now"] == 3
     assert not [f for f in leftovers if f.exists()] and keep.exists()
+
+
+def test_a_dataset_takes_over_the_poses_an_earlier_one_of_the_same_problem_solved(tmp_path, head):
+    """``reuse``: planned poses another dataset of the same physics solved and converged are copied (surface and
+    all, under the new index), the rest solved; not-converged ones are solved again; other physics is refused."""
+    from models.errors import SpecError
+
+    lo, hi = ranges(head)
+    spec = SyntheticSpec(tuple(lo), tuple(hi), grid=6, nonconverged_if_sum_above=8.0)
+    first = sample_poses(head, 20, seed=4)
+    run(head, tmp_path / "a", spec, first, SerialEngine())
+    a = PoseDataset(tmp_path / "a")
+    fresh = sample_poses(head, 6, seed=5)
+    second = np.concatenate([fresh[:3], first[4:16], fresh[3:]])  # 12 known poses among 6 new ones
+    summary = run(head, tmp_path / "b", spec, second, SerialEngine(), reuse=tmp_path / "a")
+    known_converged = a.status[4:16] == STATUS_CONVERGED
+    assert 0 < known_converged.sum() < 12  # some known poses did not converge: they are solved again
+    assert summary["complete"] and summary["reused"] == int(known_converged.sum())
+    assert summary["solved_now"] == len(second) - summary["reused"]
+    b = PoseDataset(tmp_path / "b")
+    np.testing.assert_array_equal(b.actuators, second)
+    np.testing.assert_array_equal(b.offsets[3:15][known_converged], a.offsets[4:16][known_converged])
+    store = PoseStore(tmp_path / "b")
+    assert [store.read_pose(i).index for i in range(len(second))] == list(range(len(second)))
+    prob = spec.build()
+    for i in (0, 8, 17):
+        np.testing.assert_allclose(b.offsets[i] + b.base_vertices, prob.solve(second[i], None).surface, atol=1e-6)
+    other = SyntheticSpec(tuple(lo), tuple(hi), grid=6, amplitude=0.005)
+    with pytest.raises(SpecError, match="problem"):
+        run(head, tmp_path / "c", other, second, SerialEngine(), reuse=tmp_path / "a")
