@@ -111,7 +111,8 @@ def test_the_benchmark_refuses_a_pack_of_another_pool(dataset, tmp_path):
 
 
 #: The packs the sample predictor was trained on, joined in this order (``docs/predictor.md``).
-PREDICTOR_PACKS = ("predictor_dataset.npz", "predictor_dataset_ends.npz", "al_pool_c60_quadratic.npz")
+PREDICTOR_PACKS = ("predictor_dataset.npz", "predictor_dataset_ends.npz", "al_pool_c60_quadratic.npz",
+                   "predictor_dataset_corners.npz")
 
 
 def _evaluate_shipped(packs: list[Path], tmp_path: Path) -> subprocess.CompletedProcess:
