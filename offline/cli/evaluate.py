@@ -23,6 +23,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--split", default="test", choices=("train", "validation", "test", "all"),
                    help="split to evaluate when no report is checked (default test; all: every converged pose, "
                    "for a dataset of fresh poses the predictor never saw)")
+    p.add_argument("--worst", type=int, default=0, metavar="N",
+                   help="also list the N poses of the split with the largest vertex error, worst first (index, "
+                   "error, vertex, region); with --split, not with a report check")
     p.add_argument("--threads", type=int, default=1, help="onnxruntime threads")
 
 
@@ -68,10 +71,17 @@ def _joined_folder(paths: list[Path], tmp: Path) -> Path:
 def _evaluate(args: argparse.Namespace, report: Path, dataset: Path) -> dict[str, Any]:
     """Check ``report`` when one applies, else the metrics of the asked split."""
     from models.errors import UsageError
-    from offline.train.evaluate import check_report, evaluate_predictor
+    from offline.train.evaluate import check_report, evaluate_predictor, worst_poses
 
+    if args.worst < 0:
+        raise UsageError(f"--worst must be a pose count of 0 or more, got {args.worst}")
     if args.report or (report.exists() and args.split == "test"):
         if args.split != "test":
             raise UsageError("--report checks the test split; leave out --split")
+        if args.worst:
+            raise UsageError("--worst lists the poses of a split evaluated without a report check; give --split")
         return check_report(report, args.predictor, dataset, args.threads)
-    return {"split": args.split, args.split: evaluate_predictor(args.predictor, dataset, args.split, args.threads)}
+    result = {"split": args.split, args.split: evaluate_predictor(args.predictor, dataset, args.split, args.threads)}
+    if args.worst:
+        result["worst_poses"] = worst_poses(args.predictor, dataset, args.split, args.worst, args.threads)
+    return result

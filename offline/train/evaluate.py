@@ -41,6 +41,36 @@ def evaluate_predictor(predictor: str | Path, dataset: str | Path | PoseDataset,
                           base=ds.base_vertices, faces=ds.faces)
 
 
+def worst_poses(predictor: str | Path, dataset: str | Path | PoseDataset, split: str = "test", n: int = 5,
+                threads: int = 1) -> list[dict[str, Any]]:
+    """The ``n`` converged poses of ``split`` with the largest vertex error, worst first: each pose's index, its
+    largest error (µm), that vertex and its region. Where the max sits, and whether another predictor's max sits
+    on the same poses, is what the aggregate metrics do not say."""
+    import numpy as np
+
+    from models.predictor import SkinPredictor
+
+    if n < 1:
+        raise ValueError(f"n must be at least 1, got {n}")
+    ds = dataset if isinstance(dataset, PoseDataset) else PoseDataset(dataset)
+    sp = SkinPredictor(predictor, threads=threads)
+    names, labels = regions(ds)
+    poses = np.asarray(ds.usable if split == "all" else ds.split(split), dtype=np.int64)
+    if poses.size == 0:
+        raise ValueError("no poses to evaluate")
+    worst = np.empty(len(poses))
+    where = np.empty(len(poses), dtype=np.int64)
+    for s in range(0, len(poses), 128):
+        sel = poses[s:s + 128]
+        d = np.asarray(sp.predict_offsets(ds.actuators[sel]), dtype=np.float64) - np.asarray(ds.offsets[sel])
+        dist = np.sqrt((d ** 2).sum(axis=-1))
+        where[s:s + len(sel)] = dist.argmax(axis=1)
+        worst[s:s + len(sel)] = dist.max(axis=1)
+    order = np.argsort(-worst, kind="stable")[:n]
+    return [{"pose_index": int(poses[k]), "max_euclidean_um": float(worst[k] * 1e6), "vertex": int(where[k]),
+             "region": str(names[labels[where[k]]])} for k in order]
+
+
 def check_report(report_path: str | Path, predictor: str | Path, dataset: str | Path,
                  threads: int = 1) -> dict[str, Any]:
     """Recompute the test metrics and compare with ``report_path``: returns metrics, match and differences."""

@@ -195,6 +195,22 @@ def test_evaluate_cli_reproduces_the_report_and_catches_a_tampered_one(dataset, 
                "--split", "all")
     assert res.returncode == 0, res.stderr
     assert json.loads(res.stdout)["all"]["n_poses"] == len(PoseDataset(root).usable)
+    # --worst N: the N poses with the largest vertex error, worst first; the first is where the split's max sits.
+    res = _cli("offline", "evaluate", "--predictor", str(out / "predictor.onnx"), "--dataset", str(root),
+               "--split", "test", "--report", str(tmp_path / "none.json"), "--worst", "3")
+    assert res.returncode == 2 and "--worst" in res.stderr  # a report check lists no poses
+    res = _cli("offline", "evaluate", "--predictor", str(out / "predictor.onnx"), "--dataset", str(root),
+               "--split", "validation", "--worst", "3")
+    assert res.returncode == 0, res.stderr
+    doc = json.loads(res.stdout)
+    worst = doc["worst_poses"]
+    assert len(worst) == 3 and [w["max_euclidean_um"] for w in worst] == sorted(
+        (w["max_euclidean_um"] for w in worst), reverse=True)
+    assert worst[0]["max_euclidean_um"] == pytest.approx(doc["validation"]["max_euclidean_um"], rel=1e-9)
+    assert (worst[0]["pose_index"], worst[0]["vertex"]) == (doc["validation"]["max_at"]["pose_index"],
+                                                           doc["validation"]["max_at"]["vertex"])
+    ds = PoseDataset(root)
+    assert {w["pose_index"] for w in worst} <= set(ds.split("validation").tolist())
 
 
 def test_training_resumes_from_checkpoint(dataset, tmp_path):
