@@ -284,7 +284,7 @@ def _run(argv: list[str]) -> argparse.Namespace:
     guard, solver = paths.guard, paths.array
     load = os.getloadavg()
     print(f"skin ARKit frame solve, {args.config} (H = {paths.array.predictor.weights.hidden} per axis, output "
-          f"rank {paths.array.inverse.rank}, "
+          f"rank {paths.array.inverse.rank}, Gauss-Newton matrix rank {paths.array.inverse.matrix_rank}, "
           f"{len(paths.channels)} units, {solver.max_iterations} "
           f"iterations/frame, reduced guard: {guard.calibration.patches} patches, {guard.calibration.vertices} "
           f"vertices); µs; load average {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f} on {os.cpu_count()} CPUs")

@@ -49,6 +49,31 @@ def _cholesky_solve(A: np.ndarray, b: np.ndarray, out: np.ndarray) -> bool:
     return True
 
 
+@njit(cache=True, inline="always")
+def _tanh(v: float) -> float:
+    """tanh(v) from one exponential: (1 − e)/(1 + e) with e = exp(−2|v|), within an ulp or two of libm's tanh (the
+    subtraction is exact where e is near 1) at about half its cost, which a frame pays a few hundred times."""
+    e = np.exp(-2.0 * abs(v))
+    t = (1.0 - e) / (1.0 + e)
+    return t if v >= 0.0 else -t
+
+
+@njit(cache=True)
+def _tanh_layer(W1: np.ndarray, x: np.ndarray, b1: np.ndarray, h: np.ndarray) -> None:
+    """h = tanh(W1 x + b1), written into ``h``."""
+    np.dot(W1, x, h)
+    for i in range(h.shape[0]):
+        h[i] = _tanh(h[i] + b1[i])
+
+
+@njit(cache=True)
+def _hidden_at(W1: np.ndarray, x: np.ndarray, b1: np.ndarray) -> np.ndarray:
+    """tanh(W1 x + b1), a new array."""
+    h = np.empty(W1.shape[0])
+    _tanh_layer(W1, x, b1, h)
+    return h
+
+
 @njit(cache=True)
 def _hidden_residual(x: np.ndarray, W1: np.ndarray, b1: np.ndarray, Rb: np.ndarray, q: np.ndarray,
                      h: np.ndarray, r: np.ndarray) -> float:
@@ -56,9 +81,7 @@ def _hidden_residual(x: np.ndarray, W1: np.ndarray, b1: np.ndarray, Rb: np.ndarr
     ``h`` and ``r`` without temporaries: at these sizes allocating them costs as much as the arithmetic."""
     n = Rb.shape[1]
     H = Rb.shape[2]
-    np.dot(W1, x, h)
-    for i in range(h.shape[0]):
-        h[i] = np.tanh(h[i] + b1[i])
+    _tanh_layer(W1, x, b1, h)
     rr = 0.0
     for k in range(3):
         np.dot(Rb[k], h[k * H:(k + 1) * H], r[k * n:(k + 1) * n])
@@ -70,12 +93,32 @@ def _hidden_residual(x: np.ndarray, W1: np.ndarray, b1: np.ndarray, Rb: np.ndarr
 
 
 @njit(cache=True)
+def _gradient(Rb: np.ndarray, W1b: np.ndarray, h: np.ndarray, r: np.ndarray, t: np.ndarray, gk: np.ndarray,
+              g: np.ndarray) -> None:
+    """The exact gradient Jᵀr = W1ᵀ diag(1 − h²) Rᵀ r per axis block without forming J, into ``g`` (``t``, ``gk``:
+    scratch of H and A)."""
+    n = Rb.shape[1]
+    H = Rb.shape[2]
+    g[:] = 0.0
+    for k in range(3):
+        np.dot(r[k * n:(k + 1) * n], Rb[k], t)
+        for i in range(H):
+            t[i] *= 1.0 - h[k * H + i] ** 2
+        np.dot(t, W1b[k], gk)
+        for a in range(g.shape[0]):
+            g[a] += gk[a]
+
+
+@njit(cache=True)
 def gauss_newton(x: np.ndarray, x_prev: np.ndarray, smooth: bool, lam_s: float, W1: np.ndarray, b1: np.ndarray,
-                 W1b: np.ndarray, Rb: np.ndarray, q: np.ndarray, kq: float, xlo: np.ndarray, xhi: np.ndarray,
-                 mid: np.ndarray, ihalf: np.ndarray, mu: float, max_iterations: int, tol: float,
+                 W1b: np.ndarray, Rb: np.ndarray, Rm: np.ndarray, q: np.ndarray, kq: float, xlo: np.ndarray,
+                 xhi: np.ndarray, mid: np.ndarray, ihalf: np.ndarray, mu: float, max_iterations: int, tol: float,
                  xtol: float, H0: np.ndarray,
                  state: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, int, bool]:
     """The damped, projected Gauss-Newton of :meth:`models.ksnn_solve.KsnnInverse.solve`, step for step.
+
+    ``Rm`` (3, m, H): the rows the Gauss-Newton matrix is formed from (``Rb`` itself: exact; fewer, the leading
+    directions of :func:`models.ksnn_solve.leading_rows`, with the gradient then formed exactly without J).
 
     ``H0`` (A × A) and ``state`` (int64: age in frames of ``H0``, -1 none; the age up to which it is reused, 0 never;
     Gauss-Newton matrices formed) carry the reuse of the Gauss-Newton matrix JᵀJ across iterations and frames
@@ -95,7 +138,8 @@ def gauss_newton(x: np.ndarray, x_prev: np.ndarray, smooth: bool, lam_s: float, 
     on_bound = np.max(np.abs(x - mid) * ihalf) >= 1.0 - 1e-12
     converged = False
     it = 0
-    J = np.empty((3 * n, A))
+    m = Rm.shape[1]  # rows per axis the matrix is formed from
+    J = np.empty((3 * m, A))
     step = np.empty(A)
     fixed = np.zeros(A, dtype=np.bool_)
     reuse = state[1] > 0
@@ -104,34 +148,31 @@ def gauss_newton(x: np.ndarray, x_prev: np.ndarray, smooth: bool, lam_s: float, 
     gk = np.empty(A)
     t = np.empty(H)
     SW = np.empty((H, A))  # diag(1 − h²) W1 of one axis
+    Hm = np.empty((A, A))  # this iteration's Gauss-Newton matrix
     M = np.empty((A, A))  # the damped matrix, factored in place
     x_new = np.empty(A)  # the trial point
     for it in range(1, max_iterations + 1):  # noqa: B007 - it is returned
         exact = not stored
-        if exact:  # J = R diag(1 − h²) W1 per axis block: the O(n H A) part, into J without temporaries
+        if exact:  # J = Rm diag(1 − h²) W1 per axis block: the O(m H A) part, into J without temporaries
             for k in range(3):
                 for j in range(H):
                     sj = 1.0 - h[k * H + j] ** 2
                     for a in range(A):
                         SW[j, a] = W1b[k, j, a] * sj
-                np.dot(Rb[k], SW, J[k * n:(k + 1) * n])
-            np.dot(r, J, g)
-            Hm = J.T @ J
+                np.dot(Rm[k], SW, J[k * m:(k + 1) * m])
+            if m == n:
+                np.dot(r, J, g)
+            else:
+                _gradient(Rb, W1b, h, r, t, gk, g)
+            np.dot(J.T, J, Hm)
             state[2] += 1
             if reuse:
                 H0[:, :] = Hm
                 state[0] = 0
                 stored = True
-        else:  # the exact gradient Jᵀr = W1ᵀ diag(1 − h²) Rᵀ r without forming J, the kept JᵀJ
-            g[:] = 0.0
-            for k in range(3):
-                np.dot(r[k * n:(k + 1) * n], Rb[k], t)
-                for i in range(H):
-                    t[i] *= 1.0 - h[k * H + i] ** 2
-                np.dot(t, W1b[k], gk)
-                for a in range(A):
-                    g[a] += gk[a]
-            Hm = H0.copy()
+        else:  # the kept JᵀJ
+            _gradient(Rb, W1b, h, r, t, gk, g)
+            Hm[:, :] = H0
         if smooth:
             g += lam_s * (x - x_prev)
         if on_bound:
@@ -264,7 +305,7 @@ def _passes_measured(p: np.ndarray, scale: np.ndarray, shift: np.ndarray, W1: np
     for v in x:
         if not (v >= -1e-6 and v <= 1.0 + 1e-6):
             return False, np.nan, np.nan
-    lo, hi = reduced_measure(np.tanh(W1 @ x + b1), E, e0, C, idet, S_ptr, S_idx, S_w)
+    lo, hi = reduced_measure(_hidden_at(W1, x, b1), E, e0, C, idet, S_ptr, S_idx, S_w)
     return s_lo <= lo and hi <= s_hi, lo, hi
 
 
@@ -304,7 +345,7 @@ def _limit_from(p_from: np.ndarray, p_to: np.ndarray, steps: int, out: np.ndarra
     if not measure_held:
         return 2, np.nan, np.nan
     x = np.minimum(np.maximum(p_from * scale + shift, 0.0), 1.0)
-    m_lo, m_hi = reduced_measure(np.tanh(W1 @ x + b1), E, e0, C, idet, S_ptr, S_idx, S_w)
+    m_lo, m_hi = reduced_measure(_hidden_at(W1, x, b1), E, e0, C, idet, S_ptr, S_idx, S_w)
     return 2, m_lo, m_hi
 
 
@@ -347,9 +388,9 @@ def guard_step(targets: np.ndarray, current: np.ndarray, p_from: np.ndarray, ste
 @njit(cache=True)
 def solve_frame(wts: np.ndarray, p_prev: np.ndarray, p0: np.ndarray, lo: np.ndarray, hi: np.ndarray,
                 scale_in: np.ndarray, const_b: float, e: np.ndarray, M: np.ndarray, q0: np.ndarray, Qd: np.ndarray,
-                lam_s: float, W1: np.ndarray, b1: np.ndarray, W1b: np.ndarray, Rb: np.ndarray, xlo: np.ndarray,
-                xhi: np.ndarray, mid: np.ndarray, ihalf: np.ndarray, mu: float, max_iterations: int, tol: float,
-                xtol: float, H0: np.ndarray,
+                lam_s: float, W1: np.ndarray, b1: np.ndarray, W1b: np.ndarray, Rb: np.ndarray, Rm: np.ndarray,
+                xlo: np.ndarray, xhi: np.ndarray, mid: np.ndarray, ihalf: np.ndarray, mu: float, max_iterations: int,
+                tol: float, xtol: float, H0: np.ndarray,
                 state: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, float, int, bool]:
     """One frame of :meth:`models.ksnn_solve.KsnnInverse.solve` from face-unit weights to actuator values: the
     objective's terms, the start (``p0``, else ``p_prev``, else mid-range; empty arrays mean absent), the
@@ -366,7 +407,7 @@ def solve_frame(wts: np.ndarray, p_prev: np.ndarray, p0: np.ndarray, lo: np.ndar
     smooth = has_prev and lam_s > 0.0
     q = q0 - Qd @ wts
     kq = kappa - q @ q
-    x, h, r, f, it, converged = gauss_newton(x, x_prev, smooth, lam_s, W1, b1, W1b, Rb, q, kq, xlo, xhi, mid,
+    x, h, r, f, it, converged = gauss_newton(x, x_prev, smooth, lam_s, W1, b1, W1b, Rb, Rm, q, kq, xlo, xhi, mid,
                                              ihalf, mu, max_iterations, tol, xtol, H0, state)
     p = lo + x * (hi - lo)
     return p, h, max(r @ r + kq, 0.0), f, it, converged
@@ -376,14 +417,14 @@ def solve_frame(wts: np.ndarray, p_prev: np.ndarray, p0: np.ndarray, lo: np.ndar
 def solve_frame_measured(wts: np.ndarray, p_prev: np.ndarray, p0: np.ndarray, lo: np.ndarray, hi: np.ndarray,
                          scale_in: np.ndarray, const_b: float, e: np.ndarray, M: np.ndarray, q0: np.ndarray,
                          Qd: np.ndarray, lam_s: float, W1: np.ndarray, b1: np.ndarray, W1b: np.ndarray, Rb: np.ndarray,
-                         xlo: np.ndarray, xhi: np.ndarray, mid: np.ndarray, ihalf: np.ndarray, mu: float,
-                         max_iterations: int, tol: float, xtol: float, H0: np.ndarray, state: np.ndarray, E: np.ndarray,
-                         ge0: np.ndarray, C: np.ndarray, idet: np.ndarray, S_ptr: np.ndarray, S_idx: np.ndarray,
-                         S_w: np.ndarray):
+                         Rm: np.ndarray, xlo: np.ndarray, xhi: np.ndarray, mid: np.ndarray, ihalf: np.ndarray,
+                         mu: float, max_iterations: int, tol: float, xtol: float, H0: np.ndarray, state: np.ndarray,
+                         E: np.ndarray, ge0: np.ndarray, C: np.ndarray, idet: np.ndarray, S_ptr: np.ndarray,
+                         S_idx: np.ndarray, S_w: np.ndarray):
     """:func:`solve_frame` and the strain guard's :func:`reduced_measure` of its solution in one call (a frame's
     whole in-cycle work, one dispatch); returns solve_frame's tuple plus (strain min, strain max)."""
     p, h, fit, f, it, conv = solve_frame(wts, p_prev, p0, lo, hi, scale_in, const_b, e, M, q0, Qd, lam_s, W1, b1,
-                                         W1b, Rb, xlo, xhi, mid, ihalf, mu, max_iterations, tol, xtol, H0, state)
+                                         W1b, Rb, Rm, xlo, xhi, mid, ihalf, mu, max_iterations, tol, xtol, H0, state)
     s_lo, s_hi = reduced_measure(h, E, ge0, C, idet, S_ptr, S_idx, S_w)
     return p, h, fit, f, it, conv, s_lo, s_hi
 
@@ -431,6 +472,9 @@ def solve_values_measured(values: np.ndarray, wts: np.ndarray, p_prev: np.ndarra
     o += H3 * A
     Rb = f64[o:o + N3 * H].reshape(3, n, H)
     o += N3 * H
+    m = dims[10]  # rows per axis the Gauss-Newton matrix is formed from
+    Rm = f64[o:o + 3 * m * H].reshape(3, m, H)
+    o += 3 * m * H
     C = f64[o:o + 4 * T].reshape(2, 2, T)
     o += 4 * T
     idet = f64[o:o + T]
@@ -448,7 +492,7 @@ def solve_values_measured(values: np.ndarray, wts: np.ndarray, p_prev: np.ndarra
     S_ptr = i64[0:P1]
     S_idx = i64[P1:P1 + NZ]
     p, _, fit, _, it, _, s_lo, s_hi = solve_frame_measured(
-        wts, p_prev, np.empty(0), lo, hi, scale_in, const_b, e, M, q0, Qd, lam_s, W1, b1, W1b, Rb, xlo, xhi, mid,
+        wts, p_prev, np.empty(0), lo, hi, scale_in, const_b, e, M, q0, Qd, lam_s, W1, b1, W1b, Rb, Rm, xlo, xhi, mid,
         ihalf, mu, max_iterations, tol, xtol, H0, state, E, ge0, C, idet, S_ptr, S_idx, S_w)
     if steps < 0:
         p_out[:] = p

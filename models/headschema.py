@@ -99,6 +99,7 @@ class SkinTable(_Table, kw_only=True):
     strain_max: float | None = None
     smoothness_mm: float | None = None
     iterations_per_frame: int | None = None
+    matrix_rank: int | None = None  # frame solve: rank per axis of the Gauss-Newton matrix (default: exact)
     radius_mm: float | None = None  # strain guard: smoothing neighbourhood (models.strain_guard)
     band_mm: float | None = None  # strain guard: band left out around attachment rims
     reference: str | None = None  # strain guard: "rest" or "neutral"

@@ -54,12 +54,15 @@ class KsnnInverse:
     vertices (default 1). ``smoothness`` weighs ‖p̂ − p̂_prev‖² against the mean squared vertex error (m²):
     the default makes a full-range jump of one actuator cost as much as 0.3 mm RMS surface error. ``compiled``
     runs the iteration compiled (the same steps; numpy's interpreter overhead is most of a frame's cost otherwise);
-    default: compiled when numba is installed.
+    default: compiled when numba is installed. ``matrix_rank`` (default: the output rank, exact Gauss-Newton) forms
+    the Gauss-Newton matrix from that many leading directions per axis of the residual's Jacobian over the pose box
+    (:func:`leading_rows`); the gradient and the objective stay exact, so the minimizer is the same and only the
+    steps' model is cheaper (J costs O(m H A) instead of O(r H A)).
     """
 
     def __init__(self, weights: KsnnWeights, face_units: np.ndarray, vertex_weights: np.ndarray | None = None,
                  smoothness: float = (0.3e-3) ** 2, damping: float = 1e-12, lo: np.ndarray | None = None,
-                 hi: np.ndarray | None = None, compiled: bool | None = None) -> None:
+                 hi: np.ndarray | None = None, compiled: bool | None = None, matrix_rank: int | None = None) -> None:
         w = weights
         n_vert = w.n_vertices
         fu = np.asarray(face_units, dtype=np.float64)
@@ -135,16 +138,25 @@ class KsnnInverse:
         self._mid = 0.5 * (self._xlo + self._xhi)
         half = 0.5 * (self._xhi - self._xlo)
         self._ihalf = np.where(half > 0, 1.0 / np.where(half > 0, half, 1.0), 1e300)
+        if matrix_rank is None or matrix_rank >= r:
+            self.matrix_rank = r
+            self._Rm = self._Rb  # exact: the matrix from the residual's own rows
+        else:
+            if isinstance(matrix_rank, bool) or not isinstance(matrix_rank, int | np.integer) or matrix_rank < 1:
+                raise ValueError(f"matrix_rank must be a positive integer, got {matrix_rank!r}")
+            self.matrix_rank = int(matrix_rank)
+            self._Rm = leading_rows(self._Rb, self._W1b, self._b1, self._xlo, self._xhi, self.matrix_rank)
         if self.compiled:  # compile (or load the cached kernel) now, never in a control cycle
             self.solve(np.zeros(self.n_units), max_iterations=1)
 
     # ------------------------------------------------------------------ pieces
     def kernel_arrays(self) -> tuple[np.ndarray | float, ...]:
         """The constants the compiled frame solve (:mod:`models._skin_kernels`) takes after the weights and the
-        starts: raw limits, input scale, the objective's terms, the network, the box, smoothness and damping."""
+        starts: raw limits, input scale, the objective's terms, the network, the rows the Gauss-Newton matrix is
+        formed from, the box, smoothness and damping."""
         w = self.weights
         return (w.lo, w.hi, self._scale_in, self._const_b, self._e, self._M, self._q0, self._Qd,
-                self.smoothness / self.scale, self._W1, self._b1, self._W1b, self._Rb, self._xlo, self._xhi,
+                self.smoothness / self.scale, self._W1, self._b1, self._W1b, self._Rb, self._Rm, self._xlo, self._xhi,
                 self._mid, self._ihalf, self.damping / self.scale)
 
     def frame_solve(self, max_iterations: int, tol: float, xtol: float, measure: StrainGuard,
@@ -221,7 +233,7 @@ class KsnnInverse:
         # Residual form: f = ‖R h + q‖² + κ' (+ λ‖x − x_prev‖²); J = R diag(1 − h²) W1 per axis block.
         q = self._q0 - self._Qd @ wts
         kq = kappa - float(q @ q)
-        R, Rb, W1b, eye = self._R, self._Rb, self._W1b, self._eye
+        R, Rb, Rm, W1b, eye = self._R, self._Rb, self._Rm, self._W1b, self._eye
         mid, ihalf = self._mid, self._ihalf
         h = np.tanh(W1 @ x + b1)
         r = R @ h + q
@@ -238,9 +250,9 @@ class KsnnInverse:
         for it in range(1, max_iterations + 1):  # noqa: B007 - it is reported
             exact = not stored
             if exact:
-                J = np.matmul(Rb * (1.0 - h * h).reshape(3, 1, H), W1b).reshape(-1, A)
+                J = np.matmul(Rm * (1.0 - h * h).reshape(3, 1, H), W1b).reshape(-1, A)
                 JT = J.T
-                g = JT @ r
+                g = JT @ r if Rm is Rb else _gradient(Rb, W1b, h, r)
                 Hm = JT @ J
                 if reuse is not None:
                     reuse.state[2] += 1
@@ -249,8 +261,7 @@ class KsnnInverse:
                     state[0] = 0
                     stored = True
             else:  # the exact gradient without forming J, the kept matrix
-                t = np.matmul(np.swapaxes(Rb, 1, 2), r.reshape(3, -1, 1)).reshape(3, H) * (1.0 - h * h).reshape(3, H)
-                g = np.matmul(np.swapaxes(W1b, 1, 2), t.reshape(3, H, 1)).reshape(3, A).sum(axis=0)
+                g = _gradient(Rb, W1b, h, r)
                 Hm = reuse.matrix.copy()
             if smooth:
                 g += lam_s * dx
@@ -314,6 +325,32 @@ class KsnnInverse:
         return SolveResult(p=p, residual_rms=float(np.sqrt(fit)), iterations=it, converged=converged,
                            objective=f * self.scale, hidden=h,
                            strain=None if measure is None else measure.measure_hidden(h))
+
+
+def _gradient(Rb: np.ndarray, W1b: np.ndarray, h: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """The exact gradient Jᵀr = W1ᵀ diag(1 − h²) Rᵀ r, per axis block, without forming J: O(r H + H A)."""
+    H = Rb.shape[2]
+    t = np.matmul(np.swapaxes(Rb, 1, 2), r.reshape(3, -1, 1)).reshape(3, H) * (1.0 - h * h).reshape(3, H)
+    return np.matmul(np.swapaxes(W1b, 1, 2), t.reshape(3, H, 1)).reshape(3, -1).sum(axis=0)
+
+
+def leading_rows(Rb: np.ndarray, W1b: np.ndarray, b1: np.ndarray, xlo: np.ndarray, xhi: np.ndarray, m: int,
+                 samples: int = 512, seed: int = 0) -> np.ndarray:
+    """Rows (3, m, H) whose Jacobian m diag(1 − h²) W1 spans most of the residual Jacobian J_k = R_k diag(1 − h²) W1_k
+    over the pose box: the m leading left singular vectors U_k of J_k stacked at ``samples`` poses drawn uniformly
+    in [xlo, xhi] (normalized units, fixed ``seed``), as U_kᵀ R_k. The matrix formed from them, J_kᵀ U_k U_kᵀ J_k,
+    is the exact one less the Jacobian's weakest directions over the box (positive semi-definite, never larger)."""
+    _, r, H = Rb.shape
+    A = W1b.shape[2]
+    x = np.random.default_rng(seed).uniform(xlo, xhi, size=(samples, A))
+    hs = np.tanh(x @ W1b.reshape(3 * H, A).T + b1)  # (samples, 3H)
+    out = np.empty((3, m, H))
+    for k in range(3):
+        s = 1.0 - hs[:, k * H:(k + 1) * H] ** 2
+        J = np.einsum("ij,nj,ja->ina", Rb[k], s, W1b[k]).reshape(r, samples * A)
+        U = np.linalg.svd(J, full_matrices=False)[0]
+        out[k] = U[:, :m].T @ Rb[k]
+    return np.ascontiguousarray(out)
 
 
 class HessianReuse:

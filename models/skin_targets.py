@@ -27,7 +27,7 @@ log = logging.getLogger(__name__)
 PREFIX = "arkit."
 #: Keys of the head's ``[skin]`` table.
 SKIN_KEYS = frozenset({"strain_min", "strain_max", "radius_mm", "band_mm", "reference", "smoothness_mm",
-                       "iterations_per_frame"})
+                       "iterations_per_frame", "matrix_rank"})
 
 
 @dataclass(frozen=True)
@@ -62,9 +62,11 @@ class SkinTargets:
 
 def skin_targets(head: HeadSpec, predictor: SkinPredictor | str | Path,
                  strain_range: tuple[float, float] = DEFAULT_STRAIN_RANGE, smoothness: float = (0.1e-3) ** 2,
-                 max_iterations: int = 3, tol: float = 1e-6, strain_guard: StrainGuard | None = None) -> SkinTargets:
+                 max_iterations: int = 3, tol: float = 1e-6, strain_guard: StrainGuard | None = None,
+                 matrix_rank: int | None = None) -> SkinTargets:
     """The target space of ``head`` on ``predictor`` (which must carry face units); ``smoothness`` is the cost
-    (m², as RMS surface error squared) of a full-range jump of one actuator between frames."""
+    (m², as RMS surface error squared) of a full-range jump of one actuator between frames; ``matrix_rank`` the
+    inverse's Gauss-Newton matrix rank per axis (:class:`models.ksnn_solve.KsnnInverse`; None: exact)."""
     sp = predictor if isinstance(predictor, SkinPredictor) else SkinPredictor(predictor)
     sp.check_against(head, require_full_range=False)
     if sp.face_unit_offsets is None or not sp.face_unit_names:
@@ -72,7 +74,8 @@ def skin_targets(head: HeadSpec, predictor: SkinPredictor | str | Path,
                         "the predictor carries no face units, so it cannot solve arkit.* channels")
     lo = np.maximum([a.min for a in head.actuators], sp.lo)
     hi = np.minimum([a.max for a in head.actuators], sp.hi)
-    inverse = KsnnInverse(sp.weights, sp.face_unit_offsets, smoothness=smoothness, lo=lo, hi=hi)
+    inverse = KsnnInverse(sp.weights, sp.face_unit_offsets, smoothness=smoothness, lo=lo, hi=hi,
+                          matrix_rank=matrix_rank)
     if strain_guard is None:
         strain_guard = StrainGuard(sp, np.clip(np.array(head.neutral_pose), sp.lo, sp.hi), strain_range,
                                    names=tuple(a.name for a in head.actuators))
@@ -89,7 +92,10 @@ def skin_targets_for_head(head: HeadSpec, session: bool = True) -> SkinTargets |
     which logs a warning and returns None. The ``[skin]`` table: ``strain_min`` / ``strain_max`` (validated range of
     the strain measure, default −0.2 / 0.5), ``radius_mm`` / ``band_mm`` / ``reference`` (the measure's
     neighbourhood, attachment band and reference surface, ``models.strain_guard``), ``smoothness_mm`` (RMS surface
-    error, mm, that a full-range jump of one actuator costs, default 0.1) and ``iterations_per_frame`` (default 3).
+    error, mm, that a full-range jump of one actuator costs, default 0.1), ``iterations_per_frame`` (default 3) and
+    ``matrix_rank`` (the rank per axis of the frame solve's Gauss-Newton matrix, a positive integer; default, or at
+    least the predictor's output rank: exact Gauss-Newton; fewer rows make a step's model cheaper, the minimizer
+    unchanged).
     """
     path = head.path("predictor")
     if path is None:
@@ -112,8 +118,11 @@ def skin_targets_for_head(head: HeadSpec, session: bool = True) -> SkinTargets |
     iters = head.section("skin").get("iterations_per_frame", 3)
     if isinstance(iters, bool) or not isinstance(iters, int) or iters < 1:
         raise SpecError(str(head.source), "skin.iterations_per_frame", "must be a positive integer", iters)
+    rank = head.section("skin").get("matrix_rank")
+    if rank is not None and (isinstance(rank, bool) or not isinstance(rank, int) or rank < 1):
+        raise SpecError(str(head.source), "skin.matrix_rank", "must be a positive integer", rank)
     sp = SkinPredictor(path, session=session)  # session=False: onnxruntime loaded on the first full pass only
     sp.check_against(head, require_full_range=False)
     guard = StrainGuard.for_head(head, predictor=sp)
     return skin_targets(head, sp, strain_range=(lo, hi), smoothness=(smooth * 1e-3) ** 2, max_iterations=iters,
-                        strain_guard=guard)
+                        strain_guard=guard, matrix_rank=rank)

@@ -56,6 +56,38 @@ def test_recovers_known_actuator_values_from_predicted_surfaces(seed):
     assert res2.iterations <= 3 and res2.residual_rms < 1e-8
 
 
+def test_a_matrix_of_fewer_rows_reaches_the_same_minimum():
+    """The Gauss-Newton matrix formed from the Jacobian's leading directions (``matrix_rank``) changes the steps, not
+    the objective or its gradient: from the same start it recovers the same known pose as the exact matrix. The
+    matrix it forms is the exact one less a positive semi-definite part, and equals it at full rank."""
+    from models.ksnn_solve import leading_rows
+
+    w = weights(2)
+    rng = np.random.default_rng(12)
+    p_true = w.lo + rng.uniform(0.15, 0.85, w.n_actuators) * (w.hi - w.lo)
+    fu = np.stack([w.offsets(p_true), rng.normal(size=(w.n_vertices, 3)) * 1e-3])
+    p0 = w.lo + 0.5 * (w.hi - w.lo)
+    for m in (None, 13, 6):
+        inv = KsnnInverse(w, fu, smoothness=0.0, matrix_rank=m)
+        assert inv.matrix_rank == (20 if m is None else m)
+        res = inv.solve(np.array([1.0, 0.0]), p0=p0, max_iterations=200, tol=1e-14)
+        assert res.residual_rms < 1e-8
+        np.testing.assert_allclose(res.p, p_true, atol=1e-4 * np.max(w.hi - w.lo))
+    inv = KsnnInverse(w, fu)
+    x = rng.uniform(0, 1, w.n_actuators)
+    s = (1.0 - inv.hidden(x) ** 2).reshape(3, 1, -1)
+    exact = np.matmul(inv._Rb * s, inv._W1b).reshape(-1, w.n_actuators)
+    for m, same in ((6, False), (20, True)):
+        Rm = leading_rows(inv._Rb, inv._W1b, inv._b1, inv._xlo, inv._xhi, m)
+        J = np.matmul(Rm * s, inv._W1b).reshape(-1, w.n_actuators)
+        gap = np.linalg.eigvalsh(exact.T @ exact - J.T @ J)
+        scale = np.linalg.norm(exact.T @ exact)
+        assert gap.min() > -1e-10 * scale
+        assert (gap.max() < 1e-10 * scale) == same
+    with pytest.raises(ValueError, match="matrix_rank"):
+        KsnnInverse(w, fu, matrix_rank=0)
+
+
 def test_box_limits_hold_for_unreachable_targets():
     w = weights(3)
     target = w.offsets(w.hi) * 1.0
@@ -96,15 +128,17 @@ def test_bad_inputs_are_refused():
 
 
 @pytest.mark.parametrize("seed", [0, 3])
-@pytest.mark.parametrize("rank", ["full", "lower"])
+@pytest.mark.parametrize("rank", ["full", "lower", "matrix"])
 def test_the_compiled_iteration_takes_the_numpy_steps(seed, rank):
     """The compiled Gauss-Newton (models._skin_kernels) against the numpy loop: same iterations, same answer, with
-    and without a warm start, smoothness and active bounds; at full output rank and at a lower one."""
-    w = weights(seed) if rank == "full" else low_rank_weights(seed)
+    and without a warm start, smoothness and active bounds; at full output rank, at a lower one, and with the
+    Gauss-Newton matrix formed from fewer rows than the residual's."""
+    w = weights(seed) if rank != "lower" else low_rank_weights(seed)
     rng = np.random.default_rng(20 + seed)
     fu = rng.normal(size=(6, w.n_vertices, 3)) * 2e-3  # large: many targets push actuators onto their bounds
-    fast = KsnnInverse(w, fu)
-    ref = KsnnInverse(w, fu, compiled=False)
+    m = 7 if rank == "matrix" else None
+    fast = KsnnInverse(w, fu, matrix_rank=m)
+    ref = KsnnInverse(w, fu, compiled=False, matrix_rank=m)
     p_prev = None
     at_bound = 0
     for _ in range(60):

@@ -219,11 +219,14 @@ def test_skin_table_of_the_head_tunes_the_solver_and_is_validated(tmp_path, head
     from models.errors import SpecError
 
     tuned = dataclasses.replace(head, sections={**head.sections, "skin": {"strain_max": 0.3, "smoothness_mm": 0.0,
-                                                                         "iterations_per_frame": 5}})
+                                                                         "iterations_per_frame": 5,
+                                                                         "matrix_rank": 8}})
     solver = SkinTargetSolver.from_head(tuned)
     assert solver.strain_range == (-0.2, 0.3) and solver.inverse.smoothness == 0.0 and solver.max_iterations == 5
+    assert solver.inverse.matrix_rank == 8 < solver.inverse.rank
     for bad, key in (({"strain_max": "a lot"}, "skin.strain_max"), ({"strain_min": 0.1}, "skin.strain_min"),
-                     ({"iterations_per_frame": 0}, "skin.iterations_per_frame"), ({"colour": 1}, "skin.colour")):
+                     ({"iterations_per_frame": 0}, "skin.iterations_per_frame"), ({"colour": 1}, "skin.colour"),
+                     ({"matrix_rank": 0}, "skin.matrix_rank"), ({"matrix_rank": 2.5}, "skin.matrix_rank")):
         with pytest.raises(SpecError, match=key.replace(".", r"\.")):
             SkinTargetSolver.from_head(dataclasses.replace(head, sections={**head.sections, "skin": bad}))
 
