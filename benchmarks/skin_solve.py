@@ -12,6 +12,9 @@ each after the same sweep over more memory than a core's cache (as a control cyc
   the guard's search when the solution leaves the strain range, in the same call;
 * kernel, plain G-N: the same call forming JᵀJ in every iteration (``HessianReuse`` with 0 frames), as the solve did
   before it kept the matrix: what keeping it saves;
+* kernel, exact matrix (a head whose ``[skin] matrix_rank`` is below its predictor's output rank): the same call
+  forming the Gauss-Newton matrix from all the residual's rows, on its own kept matrix, from the same start: what the
+  lower rank saves, and (printed after the table) what it costs in surface error on the same frames;
 * array path: ``SkinTargetSolver.solve_array``, what the core calls every cycle (plus the guard's verdict, the
   warm start and the telemetry figures); the goal is p99 ≤ 0.1 ms;
 * mapping API: ``SkinTargetSolver.solve`` from a name → value map (built outside the timing), the same compiled
@@ -63,7 +66,7 @@ HEAD = ROOT / "heads" / "sample" / "head.toml"
 CLIP = ROOT / "heads" / "sample" / "performances" / "blendshapes.json"
 REPORT = ROOT / "heads" / "sample" / "skin_guard_report.json"
 GOAL_US = 100.0
-PATHS = ("kernel", "plain", "array", "mapping", "adapter", "reference", "forward")
+PATHS = ("kernel", "plain", "exact", "array", "mapping", "adapter", "reference", "forward")
 
 
 def frames(channels: list[str], n_random: int, seed: int = 0) -> list[tuple[str, np.ndarray]]:
@@ -114,6 +117,16 @@ class Paths:
         self.kernel_reuse = HessianReuse(n, self.array.frame.reuse.frames)  # its own kept matrix, as the loop's
         self.plain_reuse = HessianReuse(n, 0)  # every iteration forms J^T J: the solve before matrices were kept
         self.free_reuse = HessianReuse(n, self.array.frame.reuse.frames)
+        #: with a Gauss-Newton matrix of lower rank than the residual's: the same call forming the exact matrix
+        self.truncated = inv.matrix_rank < inv.rank
+        self.exact_args = pack_frame_args(
+            (*inv.kernel_arrays(exact_matrix=True), self.array.frame.max_iterations, self.array.frame.tol,
+             self.array.frame.xtol), guard.kernel_arrays(),
+            None if self.array.frame.guard_steps is None else guard.search_args(self.array.frame.guard_steps))
+        self.exact_p = np.empty(n)
+        self.exact_reuse = HessianReuse(n, self.array.frame.reuse.frames)
+        #: per kind of frame: (RMS surface error with the solver's matrix, with the exact one, pose difference)
+        self.matrix_vs_exact: dict[str, list[tuple[float, float, float]]] = {"performance": [], "random": []}
         frame = self.array.frame  # the same solve without the guard's search, for the unguarded chain
         self.free_args = pack_frame_args((*inv.kernel_arrays(), frame.max_iterations, frame.tol, frame.xtol),
                                          guard.kernel_arrays())
@@ -157,6 +170,17 @@ class Paths:
         self.kernel_fn(values, self.kernel_w, start, self.plain_p, self.plain_reuse.matrix, self.plain_reuse.state,
                        *self.kernel_args)
         dt["plain"] = clock() - t0
+        if self.truncated:
+            self.cool()
+            t0 = clock()
+            self.kernel_fn(values, self.kernel_w, start, self.exact_p, self.exact_reuse.matrix,
+                           self.exact_reuse.state, *self.exact_args)
+            dt["exact"] = clock() - t0
+            w_units = np.where(np.isfinite(values), np.clip(values, 0.0, 1.0), 0.0)
+            inv = self.array.inverse
+            self.matrix_vs_exact[kind].append((np.sqrt(inv.surface_error(self.kernel_p.copy(), w_units)),
+                                               np.sqrt(inv.surface_error(self.exact_p.copy(), w_units)),
+                                               float(np.abs(self.kernel_p - self.exact_p).max())))
         gap = float(np.abs(self.plain_p - self.kernel_p).max())
         if gap >= self.kept_vs_plain.get(kind, 0.0):
             self.kept_vs_plain[kind] = gap
@@ -182,7 +206,7 @@ class Paths:
         self.array.predictor.predict(r_ref.p)
         t2 = clock()
         dt["reference"], dt["forward"] = t1 - t0, t2 - t1
-        for name in PATHS:
+        for name in dt:
             times[name].append(dt[name])
         self.mismatch += int(not np.array_equal(got, [res.actuators[n] for n in self.array.names]))
         free = np.empty_like(self.p_free)
@@ -198,10 +222,11 @@ def report_times(kind: str, tk: dict[str, list[float]]) -> None:
     kernel = np.asarray(tk["kernel"])
     print(f"  {kind} ({len(tk['kernel'])} frames)             p50      p99      max       p1   p50/p99 ÷ kernel   "
           "(+ per-frame excess over the kernel, p50)")
-    labels = {"kernel": "kernel (baseline)", "plain": "kernel, plain G-N", "array": "array path (core)",
+    labels = {"kernel": "kernel (baseline)", "plain": "kernel, plain G-N", "exact": "kernel, exact matrix",
+              "array": "array path (core)",
               "mapping": "mapping API", "adapter": "by-name adapter", "reference": "previous solve+guard",
               "forward": "one predictor pass"}
-    for name in PATHS:
+    for name in (n for n in PATHS if tk[n]):
         a50, a99, amax, a1 = stats(tk[name])
         goal = ""
         if name in ("array", "mapping", "adapter"):
@@ -299,6 +324,17 @@ def _run(argv: list[str]) -> argparse.Namespace:
           + ", ".join(f"{np.degrees(v):.4f}° ({k})" for k, v in paths.kept_vs_plain.items()))
     print("    surface error on that frame, kept / plain (equal errors: the poses differ along a flat direction): "
           + ", ".join(f"{a:.4g} / {b:.4g} ({k})" for k, (a, b) in paths.kept_vs_plain_error.items()))
+    if paths.truncated:
+        inv = paths.array.inverse
+        print(f"  Gauss-Newton matrix of rank {inv.matrix_rank} vs the exact one (rank {inv.rank}), same frame from "
+              "the same start, RMS surface error vs the target:")
+        for kind, rows in paths.matrix_vs_exact.items():
+            a = np.asarray(rows)
+            worse = a[:, 0] - a[:, 1]
+            print(f"    {kind}: mean {a[:, 0].mean() * 1e6:.2f} / {a[:, 1].mean() * 1e6:.2f} µm; worse by more than "
+                  f"1 µm on {int((worse > 1e-6).sum())} of {len(a)} frames (at most {worse.max() * 1e6:.1f} µm), "
+                  f"better by more than 1 µm on {int((worse < -1e-6).sum())}; largest pose difference "
+                  f"{np.degrees(a[:, 2].max()):.4f}°")
     if args.profile:
         profile(paths, fr)
     report_guard(Path(args.report))

@@ -150,13 +150,14 @@ class KsnnInverse:
             self.solve(np.zeros(self.n_units), max_iterations=1)
 
     # ------------------------------------------------------------------ pieces
-    def kernel_arrays(self) -> tuple[np.ndarray | float, ...]:
+    def kernel_arrays(self, exact_matrix: bool = False) -> tuple[np.ndarray | float, ...]:
         """The constants the compiled frame solve (:mod:`models._skin_kernels`) takes after the weights and the
         starts: raw limits, input scale, the objective's terms, the network, the rows the Gauss-Newton matrix is
-        formed from, the box, smoothness and damping."""
+        formed from (the residual's own with ``exact_matrix``), the box, smoothness and damping."""
         w = self.weights
+        Rm = self._Rb if exact_matrix else self._Rm
         return (w.lo, w.hi, self._scale_in, self._const_b, self._e, self._M, self._q0, self._Qd,
-                self.smoothness / self.scale, self._W1, self._b1, self._W1b, self._Rb, self._Rm, self._xlo, self._xhi,
+                self.smoothness / self.scale, self._W1, self._b1, self._W1b, self._Rb, Rm, self._xlo, self._xhi,
                 self._mid, self._ihalf, self.damping / self.scale)
 
     def frame_solve(self, max_iterations: int, tol: float, xtol: float, measure: StrainGuard,
