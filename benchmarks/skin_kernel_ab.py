@@ -38,6 +38,17 @@ from models.headspec import load_head  # noqa: E402
 from models.ksnn_solve import HessianReuse  # noqa: E402
 
 SOURCE = "models/_skin_kernels.py"
+LAYOUT = "models/kernel_args.py"  # pack_frame_args: the layout both kernels must read
+
+
+def _packing(source: str) -> str | None:
+    """The source of ``pack_frame_args`` in a version of :data:`LAYOUT` (None when it has none)."""
+    import ast
+
+    for node in ast.parse(source).body:
+        if isinstance(node, ast.FunctionDef) and node.name == "pack_frame_args":
+            return ast.get_source_segment(source, node)
+    return None
 
 
 def _load(name: str, path: Path):
@@ -58,6 +69,11 @@ def main(argv: list[str] | None = None) -> int:
     old_src = subprocess.run(["git", "show", f"{args.against}:{SOURCE}"], cwd=ROOT, capture_output=True, text=True)
     if old_src.returncode != 0:
         print(f"cannot read {SOURCE} at {args.against}: {old_src.stderr.strip()}", file=sys.stderr)
+        return 2
+    old_layout = subprocess.run(["git", "show", f"{args.against}:{LAYOUT}"], cwd=ROOT, capture_output=True, text=True)
+    if old_layout.returncode != 0 or _packing(old_layout.stdout) != _packing((ROOT / LAYOUT).read_text()):
+        print(f"{LAYOUT} at {args.against} packs the frame's constants differently from this tree's: its kernel "
+              "would misread them; compare against a revision with this tree's pack_frame_args", file=sys.stderr)
         return 2
     with tempfile.TemporaryDirectory(prefix="likeness-kernel-ab-") as tmp:
         old_path = Path(tmp) / "baseline_kernels.py"
