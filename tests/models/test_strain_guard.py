@@ -206,15 +206,17 @@ def test_the_fresh_pose_agreement_of_the_report_counts_what_the_check_and_the_fu
     assert reduced_agreement(guard, head, 400, seed=1001) == wide  # seeded: a rerun measures the same poses
 
 
-def test_the_frame_solve_from_channel_values_is_the_fused_solve(guard):
+@pytest.mark.parametrize("matrix_rank", [None, 13])
+def test_the_frame_solve_from_channel_values_is_the_fused_solve(guard, matrix_rank):
     """``KsnnInverse.frame_solve``: channel values (NaN: not set → 0, clamped to 0..1) give the fused solve's pose,
     iterations and measure of the clamped weights exactly (keeping its Gauss-Newton matrix across frames as the
-    fused solve does with the same :class:`HessianReuse`), and the numpy path's within rounding."""
+    fused solve does with the same :class:`HessianReuse`), and the numpy path's within rounding; with the exact
+    Gauss-Newton matrix and with the sample head's lower-rank one."""
     from models.ksnn_solve import HessianReuse, KsnnInverse
 
     sp = guard.predictor
-    fast = KsnnInverse(sp.weights, sp.face_unit_offsets)
-    ref = KsnnInverse(sp.weights, sp.face_unit_offsets, compiled=False)
+    fast = KsnnInverse(sp.weights, sp.face_unit_offsets, matrix_rank=matrix_rank)
+    ref = KsnnInverse(sp.weights, sp.face_unit_offsets, compiled=False, matrix_rank=matrix_rank)
     frame = fast.frame_solve(3, 1e-6, 1e-3, guard)
     slow = ref.frame_solve(3, 1e-6, 1e-3, guard)
     assert frame.reuse.frames > 0  # the control frame keeps its matrix
