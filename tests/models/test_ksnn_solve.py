@@ -128,15 +128,15 @@ def test_bad_inputs_are_refused():
 
 
 @pytest.mark.parametrize("seed", [0, 3])
-@pytest.mark.parametrize("rank", ["full", "lower", "matrix"])
+@pytest.mark.parametrize("rank", ["full", "lower", "matrix", "lower, matrix"])
 def test_the_compiled_iteration_takes_the_numpy_steps(seed, rank):
     """The compiled Gauss-Newton (models._skin_kernels) against the numpy loop: same iterations, same answer, with
     and without a warm start, smoothness and active bounds; at full output rank, at a lower one, and with the
     Gauss-Newton matrix formed from fewer rows than the residual's."""
-    w = weights(seed) if rank != "lower" else low_rank_weights(seed)
+    w = low_rank_weights(seed) if rank.startswith("lower") else weights(seed)
     rng = np.random.default_rng(20 + seed)
     fu = rng.normal(size=(6, w.n_vertices, 3)) * 2e-3  # large: many targets push actuators onto their bounds
-    m = 7 if rank == "matrix" else None
+    m = {"matrix": 7, "lower, matrix": 4}.get(rank)  # 4 rows of 8, 8 and 6 (the last axis' zero rows first)
     fast = KsnnInverse(w, fu, matrix_rank=m)
     ref = KsnnInverse(w, fu, compiled=False, matrix_rank=m)
     p_prev = None
