@@ -57,12 +57,13 @@ def test_another_thread_running_in_the_interval_is_named_the_interpreter_lock():
 
 
 def test_commands_between_cycles_count_when_they_held_the_thread():
-    f = CycleForensics(PERIOD)
+    period = 0.5  # long: the test's own thread taken off its CPU between two calls must not read as slow work
+    f = CycleForensics(period)
     f.woke(1.0, 0.0, 0)
     f.work_done()
-    f.between(0.8 * PERIOD)
-    f.woke(1.0 + PERIOD, 1.5 * PERIOD, 2)
-    assert f.pending[-1].cause == "between_cycles" and f.pending[-1].between_s == pytest.approx(0.8 * PERIOD)
+    f.between(0.8 * period)
+    f.woke(1.0 + period, 1.5 * period, 2)
+    assert f.pending[-1].cause == "between_cycles" and f.pending[-1].between_s == pytest.approx(0.8 * period)
 
 
 def test_no_record_without_a_miss_and_take_empties_in_milliseconds():
