@@ -44,13 +44,14 @@ def test_a_cycle_that_waits_past_its_period_is_work_off_its_cpu():
 
 
 def test_another_thread_running_in_the_interval_is_named_the_interpreter_lock():
-    f = CycleForensics(PERIOD)
+    period = 0.5  # long: the test's own thread taken off its CPU between two calls must not read as slow work
+    f = CycleForensics(period)
     f.woke(1.0, 0.0, 0)
     f.work_done()
     th = threading.Thread(target=_spin_cpu, args=(0.02,))
     th.start()
     th.join()
-    f.woke(1.0 + PERIOD, 1.5 * PERIOD, 1)
+    f.woke(1.0 + period, 1.5 * period, 1)
     rec = f.pending[-1]
     assert rec.others_cpu_s >= 0.019
     assert rec.cause == "interpreter_lock"
