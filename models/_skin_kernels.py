@@ -264,18 +264,26 @@ def gauss_newton(x: np.ndarray, x_prev: np.ndarray, smooth: bool, lam_s: float, 
 
 
 @njit(cache=True)
-def reduced_measure(h: np.ndarray, E: np.ndarray, e0: np.ndarray, C: np.ndarray, idet: np.ndarray,
+def reduced_measure(h: np.ndarray, Q: np.ndarray, E: np.ndarray, e0: np.ndarray, C: np.ndarray, idet: np.ndarray,
                     S_ptr: np.ndarray, S_idx: np.ndarray, S_w: np.ndarray) -> tuple[float, float]:
     """The strain guard's reduced measure (min, max) from hidden activations (3H,): the computation of
-    :meth:`models.strain_guard.StrainGuard.measure_hidden` (edge vectors in float32, as there)."""
-    H = E.shape[1]
+    :meth:`models.strain_guard.StrainGuard.measure_hidden` (edge vectors in float32, as there). ``Q`` (3, q, H):
+    the basis the edges' dependence on h lies in, edges = (Q_k h_k) E_k with E (3, q, 2n)
+    (:func:`models.strain_guard.edge_basis`); q = 0: none, edges = h_k E_k with E (3, H, 2n)."""
+    H = Q.shape[2]
+    nq = Q.shape[1]
     n = E.shape[2] // 2
     e = np.empty((3, 2 * n), dtype=np.float32)
     hk = np.empty(H, dtype=np.float32)
+    zk = np.empty(nq, dtype=np.float32)
     for k in range(3):
         for i in range(H):
             hk[i] = h[k * H + i]
-        np.dot(hk, E[k], e[k])
+        if nq > 0:
+            np.dot(Q[k], hk, zk)
+            np.dot(zk, E[k], e[k])
+        else:
+            np.dot(hk, E[k], e[k])
         for i in range(2 * n):
             e[k, i] += e0[k, 0, i]
     lam_lo = np.empty(n)
@@ -311,31 +319,32 @@ def reduced_measure(h: np.ndarray, E: np.ndarray, e0: np.ndarray, C: np.ndarray,
 
 @njit(cache=True)
 def _passes_measured(p: np.ndarray, scale: np.ndarray, shift: np.ndarray, W1: np.ndarray, b1: np.ndarray,
-                     s_lo: float, s_hi: float, E: np.ndarray, e0: np.ndarray, C: np.ndarray, idet: np.ndarray,
-                     S_ptr: np.ndarray, S_idx: np.ndarray, S_w: np.ndarray) -> tuple[bool, float, float]:
+                     s_lo: float, s_hi: float, Q: np.ndarray, E: np.ndarray, e0: np.ndarray, C: np.ndarray,
+                     idet: np.ndarray, S_ptr: np.ndarray, S_idx: np.ndarray,
+                     S_w: np.ndarray) -> tuple[bool, float, float]:
     """:meth:`models.strain_guard.StrainGuard.check` and the reduced measure it read (NaN when ``p`` lies outside
     the trained range: normalized within 1e-6 of [0, 1]; NaN fails)."""
     x = p * scale + shift
     for v in x:
         if not (v >= -1e-6 and v <= 1.0 + 1e-6):
             return False, np.nan, np.nan
-    lo, hi = reduced_measure(_hidden_at(W1, x, b1), E, e0, C, idet, S_ptr, S_idx, S_w)
+    lo, hi = reduced_measure(_hidden_at(W1, x, b1), Q, E, e0, C, idet, S_ptr, S_idx, S_w)
     return s_lo <= lo and hi <= s_hi, lo, hi
 
 
 @njit(cache=True)
 def _passes(p: np.ndarray, scale: np.ndarray, shift: np.ndarray, W1: np.ndarray, b1: np.ndarray, s_lo: float,
-            s_hi: float, E: np.ndarray, e0: np.ndarray, C: np.ndarray, idet: np.ndarray, S_ptr: np.ndarray,
-            S_idx: np.ndarray, S_w: np.ndarray) -> bool:
+            s_hi: float, Q: np.ndarray, E: np.ndarray, e0: np.ndarray, C: np.ndarray, idet: np.ndarray,
+            S_ptr: np.ndarray, S_idx: np.ndarray, S_w: np.ndarray) -> bool:
     """:meth:`models.strain_guard.StrainGuard.check`: ``p`` inside the trained range (normalized within 1e-6 of [0,
     1]; NaN fails) and its reduced measure within [s_lo, s_hi]."""
-    return _passes_measured(p, scale, shift, W1, b1, s_lo, s_hi, E, e0, C, idet, S_ptr, S_idx, S_w)[0]
+    return _passes_measured(p, scale, shift, W1, b1, s_lo, s_hi, Q, E, e0, C, idet, S_ptr, S_idx, S_w)[0]
 
 
 @njit(cache=True)
 def _limit_from(p_from: np.ndarray, p_to: np.ndarray, steps: int, out: np.ndarray, scale: np.ndarray,
-                shift: np.ndarray, W1: np.ndarray, b1: np.ndarray, s_lo: float, s_hi: float, E: np.ndarray,
-                e0: np.ndarray, C: np.ndarray, idet: np.ndarray, S_ptr: np.ndarray, S_idx: np.ndarray,
+                shift: np.ndarray, W1: np.ndarray, b1: np.ndarray, s_lo: float, s_hi: float, Q: np.ndarray,
+                E: np.ndarray, e0: np.ndarray, C: np.ndarray, idet: np.ndarray, S_ptr: np.ndarray, S_idx: np.ndarray,
                 S_w: np.ndarray, measure_held: bool) -> tuple[int, float, float]:
     """:func:`guard_limit` once ``p_to`` is known to fail: ``out`` the furthest passing point of the segment from
     ``p_from`` found by ``steps`` bisections (1), else ``p_from`` (2); with the reduced measure of ``out`` as
@@ -346,7 +355,7 @@ def _limit_from(p_from: np.ndarray, p_to: np.ndarray, steps: int, out: np.ndarra
     m_lo, m_hi = 0.0, 0.0
     for _ in range(steps):
         mid = 0.5 * (lo_t + hi_t)
-        ok, a, b = _passes_measured(p_from + mid * d, scale, shift, W1, b1, s_lo, s_hi, E, e0, C, idet, S_ptr,
+        ok, a, b = _passes_measured(p_from + mid * d, scale, shift, W1, b1, s_lo, s_hi, Q, E, e0, C, idet, S_ptr,
                                     S_idx, S_w)
         if ok:
             lo_t, found, m_lo, m_hi = mid, True, a, b
@@ -359,29 +368,29 @@ def _limit_from(p_from: np.ndarray, p_to: np.ndarray, steps: int, out: np.ndarra
     if not measure_held:
         return 2, np.nan, np.nan
     x = np.minimum(np.maximum(p_from * scale + shift, 0.0), 1.0)
-    m_lo, m_hi = reduced_measure(_hidden_at(W1, x, b1), E, e0, C, idet, S_ptr, S_idx, S_w)
+    m_lo, m_hi = reduced_measure(_hidden_at(W1, x, b1), Q, E, e0, C, idet, S_ptr, S_idx, S_w)
     return 2, m_lo, m_hi
 
 
 @njit(cache=True)
 def guard_limit(p_from: np.ndarray, p_to: np.ndarray, steps: int, out: np.ndarray, scale: np.ndarray,
-                shift: np.ndarray, W1: np.ndarray, b1: np.ndarray, s_lo: float, s_hi: float, E: np.ndarray,
-                e0: np.ndarray, C: np.ndarray, idet: np.ndarray, S_ptr: np.ndarray, S_idx: np.ndarray,
+                shift: np.ndarray, W1: np.ndarray, b1: np.ndarray, s_lo: float, s_hi: float, Q: np.ndarray,
+                E: np.ndarray, e0: np.ndarray, C: np.ndarray, idet: np.ndarray, S_ptr: np.ndarray, S_idx: np.ndarray,
                 S_w: np.ndarray) -> int:
     """:meth:`models.strain_guard.StrainGuard.limit` in one call: ``out`` = ``p_to`` when it passes (returns 0), else
     the furthest passing point of the segment from ``p_from`` found by ``steps`` bisections (1), else ``p_from`` (2)."""
-    if _passes(p_to, scale, shift, W1, b1, s_lo, s_hi, E, e0, C, idet, S_ptr, S_idx, S_w):
+    if _passes(p_to, scale, shift, W1, b1, s_lo, s_hi, Q, E, e0, C, idet, S_ptr, S_idx, S_w):
         out[:] = p_to
         return 0
-    return _limit_from(p_from, p_to, steps, out, scale, shift, W1, b1, s_lo, s_hi, E, e0, C, idet, S_ptr, S_idx,
+    return _limit_from(p_from, p_to, steps, out, scale, shift, W1, b1, s_lo, s_hi, Q, E, e0, C, idet, S_ptr, S_idx,
                        S_w, False)[0]
 
 
 @njit(cache=True)
 def guard_step(targets: np.ndarray, current: np.ndarray, p_from: np.ndarray, steps: int, out: np.ndarray,
                lo: np.ndarray, hi: np.ndarray, groups_i: np.ndarray, groups_f: np.ndarray, scale: np.ndarray,
-               shift: np.ndarray, W1: np.ndarray, b1: np.ndarray, s_lo: float, s_hi: float, E: np.ndarray,
-               e0: np.ndarray, C: np.ndarray, idet: np.ndarray, S_ptr: np.ndarray, S_idx: np.ndarray,
+               shift: np.ndarray, W1: np.ndarray, b1: np.ndarray, s_lo: float, s_hi: float, Q: np.ndarray,
+               E: np.ndarray, e0: np.ndarray, C: np.ndarray, idet: np.ndarray, S_ptr: np.ndarray, S_idx: np.ndarray,
                S_w: np.ndarray) -> int:
     """The control cycle's guard stage in one call: ``targets`` constrained to the head's limits and groups
     (:func:`models._cycle_kernels.constrain`, holds from ``current``), then, unless that is ``p_from`` itself
@@ -396,7 +405,7 @@ def guard_step(targets: np.ndarray, current: np.ndarray, p_from: np.ndarray, ste
     if same:
         out[:] = x
         return -1
-    return guard_limit(p_from, x, steps, out, scale, shift, W1, b1, s_lo, s_hi, E, e0, C, idet, S_ptr, S_idx, S_w)
+    return guard_limit(p_from, x, steps, out, scale, shift, W1, b1, s_lo, s_hi, Q, E, e0, C, idet, S_ptr, S_idx, S_w)
 
 
 @njit(cache=True)
@@ -433,13 +442,13 @@ def solve_frame_measured(wts: np.ndarray, p_prev: np.ndarray, p0: np.ndarray, lo
                          Qd: np.ndarray, lam_s: float, W1: np.ndarray, b1: np.ndarray, W1b: np.ndarray, Rb: np.ndarray,
                          Rm: np.ndarray, xlo: np.ndarray, xhi: np.ndarray, mid: np.ndarray, ihalf: np.ndarray,
                          mu: float, max_iterations: int, tol: float, xtol: float, H0: np.ndarray, state: np.ndarray,
-                         E: np.ndarray, ge0: np.ndarray, C: np.ndarray, idet: np.ndarray, S_ptr: np.ndarray,
-                         S_idx: np.ndarray, S_w: np.ndarray):
+                         Q: np.ndarray, E: np.ndarray, ge0: np.ndarray, C: np.ndarray, idet: np.ndarray,
+                         S_ptr: np.ndarray, S_idx: np.ndarray, S_w: np.ndarray):
     """:func:`solve_frame` and the strain guard's :func:`reduced_measure` of its solution in one call (a frame's
     whole in-cycle work, one dispatch); returns solve_frame's tuple plus (strain min, strain max)."""
     p, h, fit, f, it, conv = solve_frame(wts, p_prev, p0, lo, hi, scale_in, const_b, e, M, q0, Qd, lam_s, W1, b1,
                                          W1b, Rb, Rm, xlo, xhi, mid, ihalf, mu, max_iterations, tol, xtol, H0, state)
-    s_lo, s_hi = reduced_measure(h, E, ge0, C, idet, S_ptr, S_idx, S_w)
+    s_lo, s_hi = reduced_measure(h, Q, E, ge0, C, idet, S_ptr, S_idx, S_w)
     return p, h, fit, f, it, conv, s_lo, s_hi
 
 
@@ -501,19 +510,24 @@ def solve_values_measured(values: np.ndarray, wts: np.ndarray, p_prev: np.ndarra
     g_shift = f64[o + A:o + 2 * A]
     lim_lo, lim_hi = f64[o + 2 * A], f64[o + 2 * A + 1]
     steps = dims[8]
-    E = f32[0:3 * H * E2].reshape(3, H, E2)
-    ge0 = f32[3 * H * E2:3 * H * E2 + 3 * E2].reshape(3, 1, E2)
+    nq = dims[11]  # rows of the guard's edge basis (0: none)
+    Q = f32[0:3 * nq * H].reshape(3, nq, H)
+    o32 = 3 * nq * H
+    ER = nq if nq > 0 else H  # rows of E
+    E = f32[o32:o32 + 3 * ER * E2].reshape(3, ER, E2)
+    o32 += 3 * ER * E2
+    ge0 = f32[o32:o32 + 3 * E2].reshape(3, 1, E2)
     S_ptr = i64[0:P1]
     S_idx = i64[P1:P1 + NZ]
     p, _, fit, _, it, _, s_lo, s_hi = solve_frame_measured(
         wts, p_prev, np.empty(0), lo, hi, scale_in, const_b, e, M, q0, Qd, lam_s, W1, b1, W1b, Rb, Rm, xlo, xhi, mid,
-        ihalf, mu, max_iterations, tol, xtol, H0, state, E, ge0, C, idet, S_ptr, S_idx, S_w)
+        ihalf, mu, max_iterations, tol, xtol, H0, state, Q, E, ge0, C, idet, S_ptr, S_idx, S_w)
     if steps < 0:
         p_out[:] = p
         return fit, it, s_lo, s_hi, -1
     if lim_lo <= s_lo and s_hi <= lim_hi:  # the solution lies in the trained range by construction
         p_out[:] = p
         return fit, it, s_lo, s_hi, 0
-    verdict, s_lo, s_hi = _limit_from(p_prev, p, steps, p_out, g_scale, g_shift, W1, b1, lim_lo, lim_hi, E, ge0, C,
+    verdict, s_lo, s_hi = _limit_from(p_prev, p, steps, p_out, g_scale, g_shift, W1, b1, lim_lo, lim_hi, Q, E, ge0, C,
                                       idet, S_ptr, S_idx, S_w, True)
     return fit, it, s_lo, s_hi, verdict

@@ -253,6 +253,27 @@ def skin_strain_range(head: Any) -> tuple[float, float]:
     return lo, hi
 
 
+def edge_basis(E: np.ndarray, tol: float = 1e-5, worth: float = 0.7) -> tuple[np.ndarray, np.ndarray]:
+    """The reduced check's edge maps (float32). ``E`` (3, H, 2n), each axis' edge vectors per hidden activation, lies
+    in the span of the output layer's directions, q of them per axis (the output rank: fewer than H for a network
+    trained with ``--output-rank``). Returns (Q, F) with the edges h_k E_k = (Q_k h_k) F_k, Q_k (q, H) orthonormal
+    rows and F_k = Q_k E_k (q, 2n): q (H + 2n) instead of 2n H multiplications per axis. Singular values under
+    ``tol`` of an axis' largest are dropped (float32 noise); where q exceeds ``worth`` H the basis saves too little
+    for its second product and is not used: Q (3, 0, H) and F = E. An axis of lower rank gets zero rows."""
+    H = E.shape[1]
+    bases = []
+    for k in range(3):
+        U, sv, _ = np.linalg.svd(E[k], full_matrices=False)
+        bases.append(U[:, sv > tol * sv[0]].T if sv[0] > 0 else np.zeros((0, H)))
+    q = max(len(b) for b in bases)
+    if q > worth * H:
+        return np.zeros((3, 0, H), np.float32), np.ascontiguousarray(E, dtype=np.float32)
+    Q = np.zeros((3, q, H))
+    for k, b in enumerate(bases):
+        Q[k, q - len(b):] = b
+    return np.ascontiguousarray(Q, dtype=np.float32), np.ascontiguousarray(np.matmul(Q, E), dtype=np.float32)
+
+
 class StrainGuard:
     """Accept or refuse commanded actuator poses (SI, the head's actuator order) by the skin-strain measure.
 
@@ -434,7 +455,7 @@ class StrainGuard:
             for j, c in enumerate((1, 2)):
                 E[k, :, j] = W2k[:, f[:, c]] - W2k[:, f[:, 0]]
                 e0[k, j] = pos0[f[:, c], k] - pos0[f[:, 0], k]
-        self._E = np.ascontiguousarray(E.reshape(3, H, 2 * n_t), dtype=np.float32)
+        self._Q, self._E = edge_basis(E.reshape(3, H, 2 * n_t))
         self._e0 = np.ascontiguousarray(e0.reshape(3, 1, 2 * n_t), dtype=np.float32)
         self._n_t = n_t
         g0 = self._g0[tri]
@@ -462,9 +483,9 @@ class StrainGuard:
         return np.tanh(self._W1 @ x + self._b1)
 
     def kernel_arrays(self) -> tuple[np.ndarray, ...]:
-        """The arrays the compiled reduced measure takes after the hidden activations (E, e0, C, 1/det, and the
-        patch weights by patch: pointers, triangles, weights)."""
-        return self._E, self._e0, self._C, self._idet, self._S_ptr, self._S_idx, self._S_w
+        """The arrays the compiled reduced measure takes after the hidden activations (Q, E, e0, C, 1/det, and the
+        patch weights by patch: pointers, triangles, weights; :func:`edge_basis` for Q and E)."""
+        return self._Q, self._E, self._e0, self._C, self._idet, self._S_ptr, self._S_idx, self._S_w
 
     def search_args(self, steps: int) -> tuple[np.ndarray, np.ndarray, float, float, int]:
         """What the compiled guard search takes besides the measure's arrays: the input scale and shift, the strain
@@ -482,7 +503,10 @@ class StrainGuard:
     def measure_hidden_numpy(self, h: np.ndarray) -> tuple[float, float]:
         """The reduced measure in numpy: the reference for the compiled one."""
         n = self._n_t
-        e = np.matmul(h.reshape(3, 1, self._H).astype(np.float32), self._E)  # (3, 1, 2n) edge vectors
+        hk = h.reshape(3, 1, self._H).astype(np.float32)
+        if self._Q.shape[1]:
+            hk = np.matmul(hk, self._Q.transpose(0, 2, 1))  # (3, 1, q): the coordinates the edges depend on
+        e = np.matmul(hk, self._E)  # (3, 1, 2n) edge vectors
         e += self._e0
         e = e.reshape(3, 2, n)
         m = np.einsum("kin,kjn->ijn", e, e)  # (2, 2, n) metric of each triangle

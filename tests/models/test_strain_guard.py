@@ -89,6 +89,31 @@ def test_reduced_check_agrees_with_the_full_measure_on_fresh_poses(guard):
     assert np.all(red[:, 1] <= full[:200, 1] + 1e-5) and np.all(red[:, 0] >= full[:200, 0] - 1e-5)
 
 
+def test_edges_through_the_output_layers_basis_are_the_edges(guard):
+    """``edge_basis``: the edge vectors' dependence on the hidden layer lies in the output layer's directions (39 of
+    the sample network's 52 per axis), so (Q h) F gives h E; the measure through the basis is the plain one within
+    float32 rounding, compiled and in numpy, and a basis that would save too little is not used."""
+    import copy
+
+    from models.strain_guard import edge_basis
+
+    Q0, E = guard.kernel_arrays()[:2]
+    if Q0.shape[1]:  # the head's guard uses a basis: the plain maps are its product
+        E = np.matmul(Q0.transpose(0, 2, 1), E)
+    H = E.shape[1]
+    Q, F = edge_basis(E.astype(np.float64), worth=1.0)
+    assert Q.shape == (3, 39, H) and F.shape == (3, 39, E.shape[2])
+    assert edge_basis(E.astype(np.float64), worth=0.5)[0].shape == (3, 0, H)  # 39 of 52: too little saved
+    plain, based = copy.copy(guard), copy.copy(guard)
+    plain._Q, plain._E = np.zeros((3, 0, H), np.float32), np.ascontiguousarray(E, dtype=np.float32)
+    based._Q, based._E = Q, F
+    rng = np.random.default_rng(9)
+    for p in rng.uniform(guard.lo, guard.hi, (200, len(guard.lo))):
+        h = guard.hidden(p)
+        np.testing.assert_allclose(based.measure_hidden(h), plain.measure_hidden(h), rtol=0, atol=1e-5)
+        np.testing.assert_allclose(based.measure_hidden_numpy(h), plain.measure_hidden_numpy(h), rtol=0, atol=1e-5)
+
+
 def test_the_compiled_reduced_measure_matches_numpy(guard):
     """The in-cycle measure, compiled (its metric in float64) against the numpy one (float32 metric)."""
     rng = np.random.default_rng(7)
