@@ -95,7 +95,7 @@ def skin_targets_for_head(head: HeadSpec, session: bool = True) -> SkinTargets |
     error, mm, that a full-range jump of one actuator costs, default 0.1), ``iterations_per_frame`` (default 3) and
     ``matrix_rank`` (the rank per axis of the frame solve's Gauss-Newton matrix, a positive integer; default, or at
     least the predictor's output rank: exact Gauss-Newton; fewer rows make a step's model cheaper, the minimizer
-    unchanged).
+    unchanged; fewer than the head's actuators lose directions the steps need, which is logged as a warning).
     """
     path = head.path("predictor")
     if path is None:
@@ -121,6 +121,10 @@ def skin_targets_for_head(head: HeadSpec, session: bool = True) -> SkinTargets |
     rank = head.section("skin").get("matrix_rank")
     if rank is not None and (isinstance(rank, bool) or not isinstance(rank, int) or rank < 1):
         raise SpecError(str(head.source), "skin.matrix_rank", "must be a positive integer", rank)
+    if rank is not None and rank < len(head.actuators):
+        log.warning("%s: [skin] matrix_rank = %d is below the head's %d actuators: the frame solve's steps lose "
+                    "directions they need and end frames with larger errors (docs/predictor.md)", head.source, rank,
+                    len(head.actuators))
     sp = SkinPredictor(path, session=session)  # session=False: onnxruntime loaded on the first full pass only
     sp.check_against(head, require_full_range=False)
     guard = StrainGuard.for_head(head, predictor=sp)

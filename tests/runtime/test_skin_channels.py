@@ -213,7 +213,7 @@ def test_shipped_sample_predictor_drives_the_sample_head(head):
     assert res.extra["skin_residual_mm"] < 0.8 * staying_put_mm  # the solve matches the target better than neutral
 
 
-def test_skin_table_of_the_head_tunes_the_solver_and_is_validated(tmp_path, head):
+def test_skin_table_of_the_head_tunes_the_solver_and_is_validated(tmp_path, head, caplog):
     import dataclasses
 
     from models.errors import SpecError
@@ -224,6 +224,7 @@ def test_skin_table_of_the_head_tunes_the_solver_and_is_validated(tmp_path, head
     solver = SkinTargetSolver.from_head(tuned)
     assert solver.strain_range == (-0.2, 0.3) and solver.inverse.smoothness == 0.0 and solver.max_iterations == 5
     assert solver.inverse.matrix_rank == 8 < solver.inverse.rank
+    assert "matrix_rank = 8 is below the head's" in caplog.text  # fewer rows than actuators: warned
     for bad, key in (({"strain_max": "a lot"}, "skin.strain_max"), ({"strain_min": 0.1}, "skin.strain_min"),
                      ({"iterations_per_frame": 0}, "skin.iterations_per_frame"), ({"colour": 1}, "skin.colour"),
                      ({"matrix_rank": 0}, "skin.matrix_rank"), ({"matrix_rank": 2.5}, "skin.matrix_rank")):
