@@ -138,12 +138,13 @@ class KsnnInverse:
         self._mid = 0.5 * (self._xlo + self._xhi)
         half = 0.5 * (self._xhi - self._xlo)
         self._ihalf = np.where(half > 0, 1.0 / np.where(half > 0, half, 1.0), 1e300)
+        if matrix_rank is not None and (isinstance(matrix_rank, bool) or not isinstance(matrix_rank, int | np.integer)
+                                        or matrix_rank < 1):
+            raise ValueError(f"matrix_rank must be a positive integer, got {matrix_rank!r}")
         if matrix_rank is None or matrix_rank >= r:
             self.matrix_rank = r
             self._Rm = self._Rb  # exact: the matrix from the residual's own rows
         else:
-            if isinstance(matrix_rank, bool) or not isinstance(matrix_rank, int | np.integer) or matrix_rank < 1:
-                raise ValueError(f"matrix_rank must be a positive integer, got {matrix_rank!r}")
             self.matrix_rank = int(matrix_rank)
             self._Rm = leading_rows(self._Rb, self._W1b, self._b1, self._xlo, self._xhi, self.matrix_rank)
         if self.compiled:  # compile (or load the cached kernel) now, never in a control cycle
@@ -337,10 +338,11 @@ def _gradient(Rb: np.ndarray, W1b: np.ndarray, h: np.ndarray, r: np.ndarray) -> 
 
 def leading_rows(Rb: np.ndarray, W1b: np.ndarray, b1: np.ndarray, xlo: np.ndarray, xhi: np.ndarray, m: int,
                  samples: int = 512, seed: int = 0) -> np.ndarray:
-    """Rows (3, m, H) whose Jacobian m diag(1 − h²) W1 spans most of the residual Jacobian J_k = R_k diag(1 − h²) W1_k
-    over the pose box: the m leading left singular vectors U_k of J_k stacked at ``samples`` poses drawn uniformly
-    in [xlo, xhi] (normalized units, fixed ``seed``), as U_kᵀ R_k. The matrix formed from them, J_kᵀ U_k U_kᵀ J_k,
-    is the exact one less the Jacobian's weakest directions over the box (positive semi-definite, never larger)."""
+    """Rows R′ (3, m, H) whose Jacobian R′_k diag(1 − h²) W1_k spans most of the residual's,
+    J_k = R_k diag(1 − h²) W1_k, over the pose box: the m leading left singular vectors U_k of J_k stacked at
+    ``samples`` poses drawn uniformly in [xlo, xhi] (normalized units, fixed ``seed``), as U_kᵀ R_k. The matrix
+    formed from them, J_kᵀ U_k U_kᵀ J_k, is the exact one less the Jacobian's weakest directions over the box
+    (positive semi-definite, never larger)."""
     _, r, H = Rb.shape
     A = W1b.shape[2]
     x = np.random.default_rng(seed).uniform(xlo, xhi, size=(samples, A))

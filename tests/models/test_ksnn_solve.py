@@ -84,8 +84,9 @@ def test_a_matrix_of_fewer_rows_reaches_the_same_minimum():
         scale = np.linalg.norm(exact.T @ exact)
         assert gap.min() > -1e-10 * scale
         assert (gap.max() < 1e-10 * scale) == same
-    with pytest.raises(ValueError, match="matrix_rank"):
-        KsnnInverse(w, fu, matrix_rank=0)
+    for bad in (0, 2.5, 100.5, True):
+        with pytest.raises(ValueError, match="matrix_rank"):
+            KsnnInverse(w, fu, matrix_rank=bad)
 
 
 def test_box_limits_hold_for_unreachable_targets():
