@@ -35,7 +35,6 @@ sys.path.insert(0, str(ROOT))
 
 from benchmarks.skin_solve import Paths, frames  # noqa: E402
 from models.headspec import load_head  # noqa: E402
-from models.ksnn_solve import HessianReuse  # noqa: E402
 
 SOURCE = "models/_skin_kernels.py"
 LAYOUT = "models/kernel_args.py"  # pack_frame_args: the layout both kernels must read
@@ -49,6 +48,13 @@ def _packing(source: str) -> str | None:
         if isinstance(node, ast.FunctionDef) and node.name == "pack_frame_args":
             return ast.get_source_segment(source, node)
     return None
+
+
+def _takes_carry(fn) -> bool:
+    """Whether a revision's frame kernel keeps the last solution across frames (a ``carry`` argument)."""
+    import inspect
+
+    return "carry" in inspect.signature(fn.py_func).parameters
 
 
 def _load(name: str, path: Path):
@@ -84,21 +90,24 @@ def main(argv: list[str] | None = None) -> int:
         paths = Paths(head)
         fr = frames(paths.channels, args.random)
         n = len(paths.array.names)
-        reuse = {k: HessianReuse(n, paths.array.frame.reuse.frames) for k in kernels}
+        reuse = {k: paths.array.inverse.frame_state(paths.array.frame.reuse.frames) for k in kernels}
+        # what each kernel keeps from frame to frame: the matrix and its state, and the solution where it keeps one
+        kept = {k: (lambda r, fn=fn: (r.matrix, r.state, r.carry) if _takes_carry(fn) else (r.matrix, r.state))
+                for k, fn in kernels.items()}
         pose = {k: np.empty(n) for k in kernels}
         weights = {k: np.zeros(paths.array.inverse.n_units) for k in kernels}
         prev = {k: paths.array.neutral.copy() for k in kernels}
         times: dict[str, dict[str, list[float]]] = {k: {"performance": [], "random": []} for k in kernels}
         for k, fn in kernels.items():  # compile both before timing
-            fn(fr[0][1], weights[k], prev[k].copy(), pose[k], reuse[k].matrix.copy(), reuse[k].state.copy(),
-               *paths.kernel_args)
+            warm = paths.array.inverse.frame_state(paths.array.frame.reuse.frames)
+            fn(fr[0][1], weights[k], prev[k].copy(), pose[k], *kept[k](warm), *paths.kernel_args)
         largest = 0.0
         names = list(kernels)
         for i, (kind, values) in enumerate(fr):
             for k in (names if i % 2 == 0 else names[::-1]):
                 paths.cool()
                 t0 = time.perf_counter()
-                kernels[k](values, weights[k], prev[k], pose[k], reuse[k].matrix, reuse[k].state, *paths.kernel_args)
+                kernels[k](values, weights[k], prev[k], pose[k], *kept[k](reuse[k]), *paths.kernel_args)
                 times[k][kind].append(time.perf_counter() - t0)
             largest = max(largest, float(np.abs(pose["baseline"] - pose["this tree"]).max()))
             for k in kernels:

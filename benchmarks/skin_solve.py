@@ -58,7 +58,6 @@ from benchmarks._skin_reference import ReferenceInverse, reference_guard_ok  # n
 from models.clip import load_clip_file  # noqa: E402
 from models.headspec import HeadSpec, load_head  # noqa: E402
 from models.kernel_args import pack_frame_args  # noqa: E402
-from models.ksnn_solve import HessianReuse  # noqa: E402
 from runtime.core.solvers import ArraySolver  # noqa: E402
 from runtime.skin import SkinTargetSolver  # noqa: E402
 
@@ -114,9 +113,9 @@ class Paths:
         self.kernel_p = np.empty(len(self.array.names))
         self.plain_p = np.empty(len(self.array.names))
         n = len(self.array.names)
-        self.kernel_reuse = HessianReuse(n, self.array.frame.reuse.frames)  # its own kept matrix, as the loop's
-        self.plain_reuse = HessianReuse(n, 0)  # every iteration forms J^T J: the solve before matrices were kept
-        self.free_reuse = HessianReuse(n, self.array.frame.reuse.frames)
+        self.kernel_reuse = inv.frame_state(self.array.frame.reuse.frames)  # its own kept matrix, as the loop's
+        self.plain_reuse = inv.frame_state(0)  # every iteration forms J^T J: the solve before matrices were kept
+        self.free_reuse = inv.frame_state(self.array.frame.reuse.frames)
         #: with a Gauss-Newton matrix of lower rank than the residual's: the same call forming the exact matrix
         self.truncated = inv.matrix_rank < inv.rank
         self.exact_args = pack_frame_args(
@@ -124,7 +123,7 @@ class Paths:
              self.array.frame.xtol), guard.kernel_arrays(),
             None if self.array.frame.guard_steps is None else guard.search_args(self.array.frame.guard_steps))
         self.exact_p = np.empty(n)
-        self.exact_reuse = HessianReuse(n, self.array.frame.reuse.frames)
+        self.exact_reuse = inv.frame_state(self.array.frame.reuse.frames)
         #: per kind of frame: (RMS surface error with the solver's matrix, with the exact one, pose difference)
         self.matrix_vs_exact: dict[str, list[tuple[float, float, float]]] = {"performance": [], "random": []}
         frame = self.array.frame  # the same solve without the guard's search, for the unguarded chain
@@ -154,27 +153,30 @@ class Paths:
         from the same start. Records whether the array path and the mapping API agree."""
         clock = time.perf_counter
         start = self.array.accepted
+        carried = self.kernel_reuse.carry.copy()  # the solution at ``start``, which the other paths start from too
         dt: dict[str, float] = {}
         self.cool()
         t0 = clock()
         self.kernel_fn(values, self.kernel_w, start, self.kernel_p, self.kernel_reuse.matrix, self.kernel_reuse.state,
-                       *self.kernel_args)
+                       self.kernel_reuse.carry, *self.kernel_args)
         t1 = clock()
         self.cool()
         t2 = clock()
         got, _ = self.array.solve_array(values, self.q)
         t3 = clock()
         dt["kernel"], dt["array"] = t1 - t0, t3 - t2
+        self.plain_reuse.carry[:] = carried
         self.cool()
         t0 = clock()
         self.kernel_fn(values, self.kernel_w, start, self.plain_p, self.plain_reuse.matrix, self.plain_reuse.state,
-                       *self.kernel_args)
+                       self.plain_reuse.carry, *self.kernel_args)
         dt["plain"] = clock() - t0
         if self.truncated:
+            self.exact_reuse.carry[:] = carried
             self.cool()
             t0 = clock()
             self.kernel_fn(values, self.kernel_w, start, self.exact_p, self.exact_reuse.matrix,
-                           self.exact_reuse.state, *self.exact_args)
+                           self.exact_reuse.state, self.exact_reuse.carry, *self.exact_args)
             dt["exact"] = clock() - t0
             w_units = np.where(np.isfinite(values), np.clip(values, 0.0, 1.0), 0.0)
             inv = self.array.inverse
@@ -211,7 +213,7 @@ class Paths:
         self.mismatch += int(not np.array_equal(got, [res.actuators[n] for n in self.array.names]))
         free = np.empty_like(self.p_free)
         self.kernel_fn(values, self.kernel_w, self.p_free, free, self.free_reuse.matrix, self.free_reuse.state,
-                       *self.free_args)
+                       self.free_reuse.carry, *self.free_args)
         self.dev = max(self.dev, float(np.abs(free - r_ref.p).max()))
         self.p_free, self.p_ref = free, r_ref.p
 

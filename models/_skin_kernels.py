@@ -13,6 +13,7 @@ from numba import njit
 
 from models._cycle_kernels import constrain
 from models.kernel_args import (
+    DAMPING_JUMP,
     REFRESH_STEP,
     pack_frame_args,  # noqa: F401 (the packing solve_values_measured unpacks)
 )
@@ -90,17 +91,24 @@ def _hidden_at(W1: np.ndarray, x: np.ndarray, b1: np.ndarray) -> np.ndarray:
 
 @njit(cache=True)
 def _hidden_residual(x: np.ndarray, W1: np.ndarray, b1: np.ndarray, Rb: np.ndarray, q: np.ndarray,
-                     h: np.ndarray, r: np.ndarray) -> float:
-    """h = tanh(W1 x + b1); r = R h + q (R block diagonal, blocks Rb: r × H per axis); returns r·r. Written into
-    ``h`` and ``r`` without temporaries: at these sizes allocating them costs as much as the arithmetic."""
+                     h: np.ndarray, Rh: np.ndarray, r: np.ndarray) -> float:
+    """h = tanh(W1 x + b1); Rh = R h (R block diagonal, blocks Rb: r × H per axis); r = Rh + q; returns r·r.
+    Written into ``h``, ``Rh`` and ``r`` without temporaries: at these sizes allocating them costs as much as the
+    arithmetic."""
     n = Rb.shape[1]
     H = Rb.shape[2]
     _tanh_layer(W1, x, b1, h)
-    rr = 0.0
     for k in range(3):
-        np.dot(Rb[k], h[k * H:(k + 1) * H], r[k * n:(k + 1) * n])
+        np.dot(Rb[k], h[k * H:(k + 1) * H], Rh[k * n:(k + 1) * n])
+    return _residual(Rh, q, r)
+
+
+@njit(cache=True)
+def _residual(Rh: np.ndarray, q: np.ndarray, r: np.ndarray) -> float:
+    """r = Rh + q; returns r·r."""
+    rr = 0.0
     for i in range(r.shape[0]):
-        v = r[i] + q[i]
+        v = Rh[i] + q[i]
         r[i] = v
         rr += v * v
     return rr
@@ -127,8 +135,8 @@ def _gradient(Rb: np.ndarray, W1b: np.ndarray, h: np.ndarray, r: np.ndarray, t: 
 def gauss_newton(x: np.ndarray, x_prev: np.ndarray, smooth: bool, lam_s: float, W1: np.ndarray, b1: np.ndarray,
                  W1b: np.ndarray, Rb: np.ndarray, Rm: np.ndarray, q: np.ndarray, kq: float, xlo: np.ndarray,
                  xhi: np.ndarray, mid: np.ndarray, ihalf: np.ndarray, mu: float, max_iterations: int, tol: float,
-                 xtol: float, H0: np.ndarray,
-                 state: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, int, bool]:
+                 xtol: float, H0: np.ndarray, state: np.ndarray, h0: np.ndarray,
+                 Rh0: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, int, bool]:
     """The damped, projected Gauss-Newton of :meth:`models.ksnn_solve.KsnnInverse.solve`, step for step.
 
     ``Rm`` (3, m, H): the rows the Gauss-Newton matrix is formed from (``Rb`` itself: exact; fewer, the leading
@@ -136,16 +144,25 @@ def gauss_newton(x: np.ndarray, x_prev: np.ndarray, smooth: bool, lam_s: float, 
 
     ``H0`` (A × A) and ``state`` (int64: age in frames of ``H0``, -1 none; the age up to which it is reused, 0 never;
     Gauss-Newton matrices formed) carry the reuse of the Gauss-Newton matrix JᵀJ across iterations and frames
-    (:class:`models.ksnn_solve.HessianReuse`). Returns (x, h, r, f, iterations, converged) in normalized units."""
+    (:class:`models.ksnn_solve.HessianReuse`). ``h0``, ``Rh0``: the hidden activations at ``x`` and their product
+    with R when known (the last frame's solution), else empty. Returns (x, h, R h, r, f, iterations, converged) in
+    normalized units."""
     A = x.shape[0]
     n = Rb.shape[1]  # residual rows per axis: the output layer's rank (H when full)
     H = Rb.shape[2]
     h = np.empty(3 * H)
+    Rh = np.empty(3 * n)
     r = np.empty(3 * n)
     h_new = np.empty(3 * H)
+    Rh_new = np.empty(3 * n)
     r_new = np.empty(3 * n)
     x = x.copy()
-    f = _hidden_residual(x, W1, b1, Rb, q, h, r) + kq
+    if h0.shape[0] > 0:
+        h[:] = h0
+        Rh[:] = Rh0
+        f = _residual(Rh, q, r) + kq
+    else:
+        f = _hidden_residual(x, W1, b1, Rb, q, h, Rh, r) + kq
     if smooth:
         dx = x - x_prev
         f += lam_s * (dx @ dx)
@@ -204,7 +221,9 @@ def gauss_newton(x: np.ndarray, x_prev: np.ndarray, smooth: bool, lam_s: float, 
                         Hm[:, a] = 0.0
                         Hm[a, a] = 1.0
                         g[a] = 0.0
-        base = (lam_s if smooth else 0.0) + 1e-14 * np.trace(Hm)
+        trace = np.trace(Hm)
+        base = (lam_s if smooth else 0.0) + 1e-14 * trace
+        jump = DAMPING_JUMP * trace / A  # the least damping a retry uses
         accepted = False
         f_new = f
         u = 0.0
@@ -213,7 +232,7 @@ def gauss_newton(x: np.ndarray, x_prev: np.ndarray, smooth: bool, lam_s: float, 
             for a in range(A):
                 M[a, a] += base + mu
             if not _cholesky_solve(M, g, step):
-                mu = max(mu * 10.0, 1e-12 * max(abs(f), 1e-30))
+                mu = max(mu * 10.0, 1e-12 * max(abs(f), 1e-30), jump)
                 continue
             u = 0.0  # the trial point x − step, projected on the box when it leaves it
             for a in range(A):
@@ -222,7 +241,7 @@ def gauss_newton(x: np.ndarray, x_prev: np.ndarray, smooth: bool, lam_s: float, 
             if u > 1.0:
                 for a in range(A):
                     x_new[a] = min(max(x_new[a], xlo[a]), xhi[a])
-            f_new = _hidden_residual(x_new, W1, b1, Rb, q, h_new, r_new) + kq
+            f_new = _hidden_residual(x_new, W1, b1, Rb, q, h_new, Rh_new, r_new) + kq
             if smooth:
                 ss = 0.0
                 for a in range(A):
@@ -231,7 +250,7 @@ def gauss_newton(x: np.ndarray, x_prev: np.ndarray, smooth: bool, lam_s: float, 
             if f_new <= f:
                 accepted = True
                 break
-            mu = max(mu * 10.0, 1e-12 * max(abs(f), 1e-30))
+            mu = max(mu * 10.0, 1e-12 * max(abs(f), 1e-30), jump)
         if not accepted and not exact:  # the kept matrix gave no descent: form it afresh (the next iteration)
             stored = False
             continue
@@ -243,6 +262,7 @@ def gauss_newton(x: np.ndarray, x_prev: np.ndarray, smooth: bool, lam_s: float, 
         x, x_new = x_new, x
         f = f_new
         h, h_new = h_new, h
+        Rh, Rh_new = Rh_new, Rh
         r, r_new = r_new, r
         on_bound = u >= 1.0 - 1e-12
         largest = 0.0
@@ -260,7 +280,7 @@ def gauss_newton(x: np.ndarray, x_prev: np.ndarray, smooth: bool, lam_s: float, 
             stored = False  # a long step: the pose moved far from where the kept matrix was formed
     if reuse and state[0] >= 0:
         state[0] += 1
-    return x, h, r, f, it, converged
+    return x, h, Rh, r, f, it, converged
 
 
 @njit(cache=True)
@@ -413,26 +433,50 @@ def solve_frame(wts: np.ndarray, p_prev: np.ndarray, p0: np.ndarray, lo: np.ndar
                 scale_in: np.ndarray, const_b: float, e: np.ndarray, M: np.ndarray, q0: np.ndarray, Qd: np.ndarray,
                 lam_s: float, W1: np.ndarray, b1: np.ndarray, W1b: np.ndarray, Rb: np.ndarray, Rm: np.ndarray,
                 xlo: np.ndarray, xhi: np.ndarray, mid: np.ndarray, ihalf: np.ndarray, mu: float, max_iterations: int,
-                tol: float, xtol: float, H0: np.ndarray,
-                state: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, float, int, bool]:
+                tol: float, xtol: float, H0: np.ndarray, state: np.ndarray,
+                carry: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, float, int, bool]:
     """One frame of :meth:`models.ksnn_solve.KsnnInverse.solve` from face-unit weights to actuator values: the
     objective's terms, the start (``p0``, else ``p_prev``, else mid-range; empty arrays mean absent), the
-    iteration. Returns (p, hidden, unscaled squared error, objective, iterations, converged)."""
+    iteration. Returns (p, hidden, unscaled squared error, objective, iterations, converged).
+
+    ``carry`` (:attr:`models.ksnn_solve.HessianReuse.carry`; empty: none) keeps the solution for the next frame:
+    [kept (1.0) or not, p (A), its normalized x (A), h (3H), R h (3r)]. A frame warm-started from exactly that p
+    starts from that x with its h and R h instead of computing them again (the first residual, a tenth of a
+    frame); each frame writes its own."""
     kappa = const_b - 2.0 * (wts @ e) + wts @ (M @ wts)
+    A = lo.shape[0]
+    H3 = W1.shape[0]
+    N3 = Rb.shape[0] * Rb.shape[1]
     has_prev = p_prev.shape[0] > 0
     x_prev = (p_prev - lo) * scale_in if has_prev else np.empty(0)
-    if p0.shape[0] > 0:
+    kept = carry.shape[0] > 0 and carry[0] == 1.0 and has_prev and p0.shape[0] == 0
+    if kept:
+        for i in range(A):
+            if carry[1 + i] != p_prev[i]:
+                kept = False
+                break
+    h0 = carry[1 + 2 * A:1 + 2 * A + H3] if kept else carry[0:0]
+    Rh0 = carry[1 + 2 * A + H3:1 + 2 * A + H3 + N3] if kept else carry[0:0]
+    if kept:
+        x = carry[1 + A:1 + 2 * A].copy()
+    elif p0.shape[0] > 0:
         x = np.minimum(np.maximum((p0 - lo) * scale_in, xlo), xhi)
     elif has_prev:
         x = np.minimum(np.maximum(x_prev, xlo), xhi)
     else:
-        x = np.minimum(np.maximum(np.full(lo.shape[0], 0.5), xlo), xhi)
+        x = np.minimum(np.maximum(np.full(A, 0.5), xlo), xhi)
     smooth = has_prev and lam_s > 0.0
     q = q0 - Qd @ wts
     kq = kappa - q @ q
-    x, h, r, f, it, converged = gauss_newton(x, x_prev, smooth, lam_s, W1, b1, W1b, Rb, Rm, q, kq, xlo, xhi, mid,
-                                             ihalf, mu, max_iterations, tol, xtol, H0, state)
+    x, h, Rh, r, f, it, converged = gauss_newton(x, x_prev, smooth, lam_s, W1, b1, W1b, Rb, Rm, q, kq, xlo, xhi,
+                                                 mid, ihalf, mu, max_iterations, tol, xtol, H0, state, h0, Rh0)
     p = lo + x * (hi - lo)
+    if carry.shape[0] > 0:
+        carry[1:1 + A] = p
+        carry[1 + A:1 + 2 * A] = x
+        carry[1 + 2 * A:1 + 2 * A + H3] = h
+        carry[1 + 2 * A + H3:1 + 2 * A + H3 + N3] = Rh
+        carry[0] = 1.0
     return p, h, max(r @ r + kq, 0.0), f, it, converged
 
 
@@ -442,28 +486,29 @@ def solve_frame_measured(wts: np.ndarray, p_prev: np.ndarray, p0: np.ndarray, lo
                          Qd: np.ndarray, lam_s: float, W1: np.ndarray, b1: np.ndarray, W1b: np.ndarray, Rb: np.ndarray,
                          Rm: np.ndarray, xlo: np.ndarray, xhi: np.ndarray, mid: np.ndarray, ihalf: np.ndarray,
                          mu: float, max_iterations: int, tol: float, xtol: float, H0: np.ndarray, state: np.ndarray,
-                         Q: np.ndarray, E: np.ndarray, ge0: np.ndarray, C: np.ndarray, idet: np.ndarray,
-                         S_ptr: np.ndarray, S_idx: np.ndarray, S_w: np.ndarray):
+                         carry: np.ndarray, Q: np.ndarray, E: np.ndarray, ge0: np.ndarray, C: np.ndarray,
+                         idet: np.ndarray, S_ptr: np.ndarray, S_idx: np.ndarray, S_w: np.ndarray):
     """:func:`solve_frame` and the strain guard's :func:`reduced_measure` of its solution in one call (a frame's
     whole in-cycle work, one dispatch); returns solve_frame's tuple plus (strain min, strain max)."""
     p, h, fit, f, it, conv = solve_frame(wts, p_prev, p0, lo, hi, scale_in, const_b, e, M, q0, Qd, lam_s, W1, b1,
-                                         W1b, Rb, Rm, xlo, xhi, mid, ihalf, mu, max_iterations, tol, xtol, H0, state)
+                                         W1b, Rb, Rm, xlo, xhi, mid, ihalf, mu, max_iterations, tol, xtol, H0, state,
+                                         carry)
     s_lo, s_hi = reduced_measure(h, Q, E, ge0, C, idet, S_ptr, S_idx, S_w)
     return p, h, fit, f, it, conv, s_lo, s_hi
 
 
 @njit(cache=True)
 def solve_values_measured(values: np.ndarray, wts: np.ndarray, p_prev: np.ndarray, p_out: np.ndarray,
-                          H0: np.ndarray, state: np.ndarray, f64: np.ndarray, f32: np.ndarray, i64: np.ndarray,
-                          dims: np.ndarray) -> tuple[float, int, float, float, int]:
+                          H0: np.ndarray, state: np.ndarray, carry: np.ndarray, f64: np.ndarray, f32: np.ndarray,
+                          i64: np.ndarray, dims: np.ndarray) -> tuple[float, int, float, float, int]:
     """A control frame from channel values: the face-unit weights (a value clamped to 0..1, a non-finite one, i.e.
     not set, as 0) written into ``wts``, then :func:`solve_frame_measured` warm-started from ``p_prev`` on the
-    constants :func:`pack_frame_args` packed; ``H0`` and ``state``: the frame solve's kept Gauss-Newton matrix
-    (:func:`gauss_newton`). When the solution's measure leaves the strain range, the guard's search
-    (:func:`guard_limit`) from ``p_prev`` toward it, with the packed number of bisections (none packed: no guard).
-    The pose is written into ``p_out`` (no array crosses back into Python). Returns (unscaled squared error of the
-    solution, iterations, strain min, strain max of the pose written, verdict: 0 the solution passed, 1 limited,
-    2 held at ``p_prev``, -1 not guarded)."""
+    constants :func:`pack_frame_args` packed; ``H0``, ``state`` and ``carry``: what the frame solve keeps from
+    frame to frame (:func:`gauss_newton`, :func:`solve_frame`). When the solution's measure leaves the strain range,
+    the guard's search (:func:`guard_limit`) from ``p_prev`` toward it, with the packed number of bisections (none
+    packed: no guard). The pose is written into ``p_out`` (no array crosses back into Python). Returns (unscaled
+    squared error of the solution, iterations, strain min, strain max of the pose written, verdict: 0 the solution
+    passed, 1 limited, 2 held at ``p_prev``, -1 not guarded)."""
     for i in range(wts.shape[0]):
         v = values[i]
         wts[i] = min(max(v, 0.0), 1.0) if np.isfinite(v) else 0.0
@@ -521,7 +566,7 @@ def solve_values_measured(values: np.ndarray, wts: np.ndarray, p_prev: np.ndarra
     S_idx = i64[P1:P1 + NZ]
     p, _, fit, _, it, _, s_lo, s_hi = solve_frame_measured(
         wts, p_prev, np.empty(0), lo, hi, scale_in, const_b, e, M, q0, Qd, lam_s, W1, b1, W1b, Rb, Rm, xlo, xhi, mid,
-        ihalf, mu, max_iterations, tol, xtol, H0, state, Q, E, ge0, C, idet, S_ptr, S_idx, S_w)
+        ihalf, mu, max_iterations, tol, xtol, H0, state, carry, Q, E, ge0, C, idet, S_ptr, S_idx, S_w)
     if steps < 0:
         p_out[:] = p
         return fit, it, s_lo, s_hi, -1

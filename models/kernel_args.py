@@ -16,6 +16,11 @@ if TYPE_CHECKING:
 #: is 1) forms the matrix afresh for the next iteration: the pose moved far from where it was formed
 #: (:class:`models.ksnn_solve.HessianReuse`).
 REFRESH_STEP = 0.02
+#: A damped step that does not lower the objective (or a damped matrix that is not positive definite) is tried again
+#: with the damping raised tenfold, and at least to this fraction of the Gauss-Newton matrix's mean diagonal: a
+#: damping far below the matrix's scale changes nothing in the step, and each try costs a residual (the tries of a
+#: frame that starts at the box's edge used to climb through six such values).
+DAMPING_JUMP = 1e-3
 
 
 def pack_frame_args(solve: tuple, measure: tuple, guard: tuple | None = None

@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from models.kernel_args import REFRESH_STEP
+from models.kernel_args import DAMPING_JUMP, REFRESH_STEP
 from models.kernel_support import kernels_available
 from models.predictor import KsnnWeights
 from models.strain_guard import VERDICTS
@@ -161,6 +161,26 @@ class KsnnInverse:
                 self.smoothness / self.scale, self._W1, self._b1, self._W1b, self._Rb, Rm, self._xlo, self._xhi,
                 self._mid, self._ihalf, self.damping / self.scale)
 
+    @property
+    def carry_size(self) -> int:
+        """Length of the carry a frame solve keeps for the next (:attr:`HessianReuse.carry`): a flag, the
+        solution's pose and normalized pose, its hidden activations and their product with R."""
+        A = len(self.lo)
+        return 1 + 2 * A + 3 * self._H + 3 * self.rank
+
+    def frame_state(self, frames: int = REUSE_FRAMES) -> HessianReuse:
+        """What a frame solve of this inverse keeps from frame to frame: the Gauss-Newton matrix, used up to
+        ``frames`` frames old, and the last solution's hidden activations (:class:`HessianReuse`)."""
+        return HessianReuse(len(self.lo), frames, self.carry_size)
+
+    def _checked(self, reuse: HessianReuse) -> HessianReuse:
+        """``reuse``, refused when its carry belongs to another inverse's sizes."""
+        if len(reuse.carry) not in (0, self.carry_size) or reuse.matrix.shape != (len(self.lo), len(self.lo)):
+            raise ValueError(f"reuse: a frame state of {len(reuse.carry)} carried values and a "
+                             f"{reuse.matrix.shape} matrix does not fit this inverse ({self.carry_size}, "
+                             f"{len(self.lo)} actuators); make it with KsnnInverse.frame_state")
+        return reuse
+
     def frame_solve(self, max_iterations: int, tol: float, xtol: float, measure: StrainGuard,
                     reuse_frames: int = REUSE_FRAMES, guard_steps: int | None = None) -> FrameSolve:
         """The in-cycle solve with these settings and ``measure`` bound (see :class:`FrameSolve`)."""
@@ -195,7 +215,8 @@ class KsnnInverse:
         :class:`models.strain_guard.StrainGuard` on the same predictor, adds its reduced strain measure at the
         solution (``SolveResult.strain``), computed in the same compiled call when both are compiled. ``reuse`` keeps
         the Gauss-Newton matrix between iterations and calls (:class:`HessianReuse`); without it every iteration
-        forms its own.
+        forms its own. With a carry (:meth:`frame_state`) a solve warm-started from exactly the pose the last one
+        returned starts from that solution's normalized pose and hidden activations.
         """
         wts = np.asarray(unit_weights, dtype=np.float64)
         if wts.shape != (self.n_units,) or not np.isfinite(wts @ wts):
@@ -204,10 +225,10 @@ class KsnnInverse:
             from models.kernels_aot import kernel
 
             none = _EMPTY
-            kept = HessianReuse(len(self.lo), 0) if reuse is None else reuse
+            kept = HessianReuse(len(self.lo), 0) if reuse is None else self._checked(reuse)
             args = (wts, none if p_prev is None else np.asarray(p_prev, dtype=np.float64),
                     none if p0 is None else np.asarray(p0, dtype=np.float64), *self.kernel_arrays(),
-                    max_iterations, tol, xtol, kept.matrix, kept.state)
+                    max_iterations, tol, xtol, kept.matrix, kept.state, kept.carry)
             strain = None
             if measure is not None and measure.compiled:
                 p, h, fit, f, it, conv, s_lo, s_hi = kernel("solve_frame_measured")(*args, *measure.kernel_arrays())
@@ -224,7 +245,13 @@ class KsnnInverse:
         W1, b1, H = self._W1, self._b1, self._H
         A = w.n_actuators
         x_prev = None if p_prev is None else (np.asarray(p_prev, dtype=np.float64) - w.lo) * self._scale_in
-        if p0 is None and x_prev is not None:
+        carry = _EMPTY if reuse is None else self._checked(reuse).carry
+        H3, N3 = 3 * H, 3 * self.rank
+        kept = (len(carry) > 0 and carry[0] == 1.0 and p0 is None and p_prev is not None
+                and np.array_equal(carry[1:1 + A], p_prev))
+        if kept:  # the last solution, as the compiled solve_frame keeps it
+            x = carry[1 + A:1 + 2 * A].copy()
+        elif p0 is None and x_prev is not None:
             x = np.minimum(np.maximum(x_prev, xlo), xhi)
         elif p0 is not None:
             x = np.minimum(np.maximum((np.asarray(p0, dtype=np.float64) - w.lo) * self._scale_in, xlo), xhi)
@@ -237,8 +264,13 @@ class KsnnInverse:
         kq = kappa - float(q @ q)
         R, Rb, Rm, W1b, eye = self._R, self._Rb, self._Rm, self._W1b, self._eye
         mid, ihalf = self._mid, self._ihalf
-        h = np.tanh(W1 @ x + b1)
-        r = R @ h + q
+        if kept:
+            h = carry[1 + 2 * A:1 + 2 * A + H3].copy()
+            Rh = carry[1 + 2 * A + H3:1 + 2 * A + H3 + N3].copy()
+        else:
+            h = np.tanh(W1 @ x + b1)
+            Rh = R @ h
+        r = Rh + q
         f = float(r @ r) + kq
         if smooth:
             dx = x - x_prev
@@ -277,18 +309,21 @@ class KsnnInverse:
                     Hm[:, fixed] = 0.0
                     Hm[fixed, fixed] = 1.0
                     g[fixed] = 0.0
-            base = (lam_s if smooth else 0.0) + 1e-14 * float(Hm.trace())
+            trace = float(Hm.trace())
+            base = (lam_s if smooth else 0.0) + 1e-14 * trace
+            jump = DAMPING_JUMP * trace / A  # the least damping a retry uses
             accepted = False
             for _ in range(8):
                 _, step, info = _dposv()(Hm + (base + mu) * eye, g)
                 if info != 0:
-                    mu = max(mu * 10.0, 1e-12 * max(abs(f), 1e-30))
+                    mu = max(mu * 10.0, 1e-12 * max(abs(f), 1e-30), jump)
                     continue
                 y = x - step
                 u = float((np.abs(y - mid) * ihalf).max())  # ≥ 1: some variable at or beyond a bound
                 x_new = np.minimum(np.maximum(y, xlo), xhi) if u > 1.0 else y
                 h_new = np.tanh(W1 @ x_new + b1)
-                r_new = R @ h_new + q
+                Rh_new = R @ h_new
+                r_new = Rh_new + q
                 f_new = float(r_new @ r_new) + kq
                 if smooth:
                     dx_new = x_new - x_prev
@@ -296,7 +331,7 @@ class KsnnInverse:
                 if f_new <= f:
                     accepted = True
                     break
-                mu = max(mu * 10.0, 1e-12 * max(abs(f), 1e-30))
+                mu = max(mu * 10.0, 1e-12 * max(abs(f), 1e-30), jump)
             if not accepted and not exact:  # the kept matrix gave no descent: form it afresh
                 stored = False
                 continue
@@ -305,7 +340,7 @@ class KsnnInverse:
                 break
             mu *= 0.3
             decrease = f - f_new
-            x, f, h, r = x_new, f_new, h_new, r_new
+            x, f, h, Rh, r = x_new, f_new, h_new, Rh_new, r_new
             on_bound = u >= 1.0 - 1e-12
             if smooth:
                 dx = dx_new
@@ -323,6 +358,10 @@ class KsnnInverse:
         if state is not None and state[0] >= 0:
             state[0] += 1
         p = w.lo + x * (w.hi - w.lo)
+        if len(carry):
+            carry[1:1 + A], carry[1 + A:1 + 2 * A] = p, x
+            carry[1 + 2 * A:1 + 2 * A + H3], carry[1 + 2 * A + H3:] = h, Rh
+            carry[0] = 1.0
         fit = max(float(r @ r) + kq, 0.0) * self.scale
         return SolveResult(p=p, residual_rms=float(np.sqrt(fit)), iterations=it, converged=converged,
                            objective=f * self.scale, hidden=h,
@@ -365,12 +404,15 @@ class HessianReuse:
     objective; when it does not, the matrix is formed afresh). It is formed again once it is ``frames`` frames old
     (0: every iteration, plain Gauss-Newton), and after :meth:`forget` (a jump of the warm start)."""
 
-    def __init__(self, n_actuators: int, frames: int) -> None:
+    def __init__(self, n_actuators: int, frames: int, carry_size: int = 0) -> None:
         self.frames = int(frames)
         self.matrix = np.zeros((n_actuators, n_actuators))
         #: the kernels' view: age of ``matrix`` in frames (-1: none kept), the age up to which it is used, and the
         #: count of matrices formed
         self.state = np.array([-1, self.frames, 0], dtype=np.int64)
+        #: the last solution kept for a frame warm-started from it (:func:`models._skin_kernels.solve_frame`'s
+        #: layout, :attr:`KsnnInverse.carry_size` long; empty: none kept)
+        self.carry = np.zeros(int(carry_size))
 
     @property
     def formed(self) -> int:
@@ -378,8 +420,10 @@ class HessianReuse:
         return int(self.state[2])
 
     def forget(self) -> None:
-        """Form the matrix afresh on the next solve."""
+        """Form the matrix afresh on the next solve, and keep no solution for it."""
         self.state[0] = -1
+        if len(self.carry):
+            self.carry[0] = 0.0
 
 
 class FrameSolve:
@@ -411,7 +455,7 @@ class FrameSolve:
         self.strain: tuple[float, float] = (0.0, 0.0)  # the guard's reduced measure (min, max) at the last pose
         self.guard_steps = guard_steps
         self.verdict = "ok"  # the guard's on the last pose: ok, limited, held (always ok without guard_steps)
-        self.reuse = HessianReuse(len(inverse.lo), reuse_frames)  # the Gauss-Newton matrix kept frame to frame
+        self.reuse = inverse.frame_state(reuse_frames)  # the Gauss-Newton matrix and solution kept frame to frame
         self._scale = inverse.scale
         self._kernel = None
         self.kernel_args: tuple[np.ndarray, ...] = ()  # what the compiled call takes after values, weights, poses
@@ -439,7 +483,7 @@ class FrameSolve:
             a, b = self._poses
             p = b if p_prev is a else a
             fit, it, s_lo, s_hi, verdict = self._kernel(buf, self.weights, p_prev, p, self.reuse.matrix,
-                                                        self.reuse.state, *self.kernel_args)
+                                                        self.reuse.state, self.reuse.carry, *self.kernel_args)
             self.residual_rms = math.sqrt(fit * self._scale)
             self.iterations = it
             self.strain = (s_lo, s_hi)

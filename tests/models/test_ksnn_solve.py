@@ -265,3 +265,54 @@ def test_the_kernels_hidden_layer_is_numpys_tanh_to_the_last_bits():
     x, b1 = rng.uniform(0, 1, 13), rng.normal(size=156)
     _tanh_layer(W1, x, b1, h[:156])
     np.testing.assert_allclose(h[:156], np.tanh(W1 @ x + b1), rtol=0, atol=4.5e-16)
+
+
+@pytest.mark.parametrize("low_rank", [False, True])
+def test_a_frame_started_from_the_last_solution_starts_from_its_kept_hidden_layer(low_rank):
+    """A frame state's carry (``KsnnInverse.frame_state``) keeps the last solution: its pose, normalized pose,
+    hidden activations and their product with R, exactly as a solve from that normalized pose computes them. A solve
+    warm-started from exactly that pose starts there (the same steps as without the carry, within the rounding of
+    the pose's round trip), compiled and in numpy alike; another start, ``forget`` or a state of another inverse's
+    sizes is not taken for it."""
+    w = low_rank_weights(2) if low_rank else weights(2)
+    rng = np.random.default_rng(12)
+    fu = rng.normal(size=(6, w.n_vertices, 3)) * 2e-3
+    fast = KsnnInverse(w, fu, matrix_rank=6 if low_rank else None)
+    ref = KsnnInverse(w, fu, compiled=False, matrix_rank=6 if low_rank else None)
+    A, H, n = w.n_actuators, w.hidden, fast.rank
+    assert fast.carry_size == 1 + 2 * A + 3 * H + 3 * n
+    ka, kb, kc = fast.frame_state(4), ref.frame_state(4), fast.frame_state(4)
+    kc.carry = np.zeros(0)  # the same solve keeping no solution
+    pa = pb = pc = 0.5 * (w.lo + w.hi)
+    for i in range(40):
+        u = rng.uniform(0, 1, 6) * (rng.random(6) < 0.5)
+        a = fast.solve(u, p_prev=pa, max_iterations=3, tol=1e-6, reuse=ka)
+        b = ref.solve(u, p_prev=pb, max_iterations=3, tol=1e-6, reuse=kb)
+        c = fast.solve(u, p_prev=pc, max_iterations=3, tol=1e-6, reuse=kc)
+        for res in (b, c):
+            assert res.iterations == a.iterations
+            np.testing.assert_allclose(res.p, a.p, rtol=0, atol=1e-10 * np.max(w.hi - w.lo))
+        carry = ka.carry
+        assert carry[0] == 1.0
+        np.testing.assert_array_equal(carry[1:1 + A], a.p)
+        x = carry[1 + A:1 + 2 * A]
+        np.testing.assert_allclose(w.lo + x * (w.hi - w.lo), a.p, rtol=0, atol=1e-15)
+        np.testing.assert_array_equal(carry[1 + 2 * A:1 + 2 * A + 3 * H], a.hidden)
+        np.testing.assert_allclose(carry[1 + 2 * A:1 + 2 * A + 3 * H], fast.hidden(x), rtol=0, atol=1e-15)
+        Rh = carry[1 + 2 * A + 3 * H:]
+        np.testing.assert_allclose(Rh, fast._R @ a.hidden, rtol=0, atol=1e-12 * np.abs(Rh).max())
+        np.testing.assert_allclose(kb.carry, carry, rtol=0, atol=1e-9 * np.abs(carry).max())
+        pa, pb, pc = a.p, b.p, c.p
+        if i == 20:  # (all three: their kept matrices too)
+            for k in (ka, kb, kc):
+                k.forget()
+            assert ka.carry[0] == kb.carry[0] == 0.0
+    # a start other than the kept pose: the carry is not used (the result is the solve from that start)
+    other = 0.5 * (w.lo + w.hi) + 0.01 * (w.hi - w.lo)
+    u = rng.uniform(0, 1, 6)
+    kd = fast.frame_state(4)  # the same kept matrix, no solution kept
+    kd.matrix[:], kd.state[:] = ka.matrix, ka.state
+    np.testing.assert_array_equal(fast.solve(u, p_prev=other, max_iterations=3, reuse=ka).p,
+                                  fast.solve(u, p_prev=other, max_iterations=3, reuse=kd).p)
+    with pytest.raises(ValueError, match="frame_state"):
+        KsnnInverse(weights(3, H=12), fu).solve(u, p_prev=other, reuse=ka)

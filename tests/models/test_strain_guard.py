@@ -234,10 +234,10 @@ def test_the_fresh_pose_agreement_of_the_report_counts_what_the_check_and_the_fu
 @pytest.mark.parametrize("matrix_rank", [None, 13])
 def test_the_frame_solve_from_channel_values_is_the_fused_solve(guard, matrix_rank):
     """``KsnnInverse.frame_solve``: channel values (NaN: not set → 0, clamped to 0..1) give the fused solve's pose,
-    iterations and measure of the clamped weights exactly (keeping its Gauss-Newton matrix across frames as the
-    fused solve does with the same :class:`HessianReuse`), and the numpy path's within rounding; with the exact
-    Gauss-Newton matrix and with the sample head's lower-rank one."""
-    from models.ksnn_solve import HessianReuse, KsnnInverse
+    iterations and measure of the clamped weights exactly (keeping its Gauss-Newton matrix and last solution across
+    frames as the fused solve does with a state of its own, :meth:`KsnnInverse.frame_state`), and the numpy path's
+    within rounding; with the exact Gauss-Newton matrix and with the sample head's lower-rank one."""
+    from models.ksnn_solve import KsnnInverse
 
     sp = guard.predictor
     fast = KsnnInverse(sp.weights, sp.face_unit_offsets, matrix_rank=matrix_rank)
@@ -245,7 +245,7 @@ def test_the_frame_solve_from_channel_values_is_the_fused_solve(guard, matrix_ra
     frame = fast.frame_solve(3, 1e-6, 1e-3, guard)
     slow = ref.frame_solve(3, 1e-6, 1e-3, guard)
     assert frame.reuse.frames > 0  # the control frame keeps its matrix
-    kept = HessianReuse(len(sp.lo), frame.reuse.frames)
+    kept = fast.frame_state(frame.reuse.frames)
     rng = np.random.default_rng(5)
     p_prev = 0.5 * (sp.lo + sp.hi)
     for _ in range(20):
@@ -269,14 +269,14 @@ def test_the_guarded_frame_solve_is_the_solve_then_the_guards_search_in_one_call
     """With ``guard_steps`` the frame's call also runs the guard: a solution inside the strain range comes back as
     solved ("ok"); one outside it comes back as ``StrainGuard.limit`` from the warm start gives it ("limited" or
     "held") with ``StrainGuard.measure`` of that pose; the numpy path gives the same."""
-    from models.ksnn_solve import HessianReuse, KsnnInverse
+    from models.ksnn_solve import KsnnInverse
 
     sp = guard.predictor
     fast = KsnnInverse(sp.weights, sp.face_unit_offsets)
     ref = KsnnInverse(sp.weights, sp.face_unit_offsets, compiled=False)
     frame = fast.frame_solve(3, 1e-6, 1e-3, guard, guard_steps=5)
     slow = ref.frame_solve(3, 1e-6, 1e-3, guard, guard_steps=5)
-    kept = HessianReuse(len(sp.lo), frame.reuse.frames)
+    kept = fast.frame_state(frame.reuse.frames)
     rng = np.random.default_rng(8)
     p_prev = 0.5 * (sp.lo + sp.hi)
     seen = set()

@@ -343,7 +343,7 @@ def test_an_output_rank_trains_a_wide_hidden_layer_whose_solve_runs_in_that_rank
     """``output_rank`` r: each axis' output layer is trained as C U (H × r, r × V) and exported as their product, an
     ordinary predictor file whose W2 has rank r; the in-cycle solve reads the rank off it (a residual of r rows per
     axis) and its frame solve from channel values is the fused solve, as at full rank."""
-    from models.ksnn_solve import HessianReuse, KsnnInverse
+    from models.ksnn_solve import KsnnInverse
     from models.strain_guard import StrainGuard
     from offline.train.ksnn import output_rank
 
@@ -365,7 +365,7 @@ def test_an_output_rank_trains_a_wide_hidden_layer_whose_solve_runs_in_that_rank
     assert inv.rank == 13 and inv._Rb.shape == (3, 13, 39)
     guard = StrainGuard(sp, 0.5 * (sp.lo + sp.hi), samples=300)
     frame = inv.frame_solve(3, 1e-6, 1e-3, guard)
-    kept = HessianReuse(len(sp.lo), frame.reuse.frames)
+    kept = inv.frame_state(frame.reuse.frames)
     rng = np.random.default_rng(4)
     p_prev = 0.5 * (sp.lo + sp.hi)
     for _ in range(10):
