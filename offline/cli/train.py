@@ -44,6 +44,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="rank r of each axis' output layer, an integer or a multiple of A (e.g. 2A): the hidden "
                    "units feed r output directions (W2 = C U), a wide hidden layer at the in-cycle solve cost of "
                    "r x H instead of H x H per step; 0 (default): full rank")
+    p.add_argument("--init", default="", metavar="CHECKPOINT",
+                   help="start from the best weights of an earlier run's checkpoint (OUT/checkpoints/ksnn_h<H>.pt) "
+                   "on the same dataset, with one hidden size and output rank of that run: a fine-tune with "
+                   "other settings (e.g. a smaller --lr, a --tail); default: a random start")
     p.add_argument("--int8", action="store_true", help="also export the int8 (MatMulNBits) variant and its error")
 
 
@@ -78,7 +82,8 @@ def run(args: argparse.Namespace) -> int:
                          patience=args.patience, threads=args.threads, rest_anchor=not args.no_rest_anchor,
                          edge_weight=args.edge_weight, error_power=args.error_power,
                          tail_threshold=tail_mm * 1e-3, tail_weight=tail_weight,
-                         output_rank=args.output_rank if args.output_rank.strip() not in ("", "0") else 0)
+                         output_rank=args.output_rank if args.output_rank.strip() not in ("", "0") else 0,
+                         init=args.init)
     try:
         report = train_pipeline(args.dataset, args.out, config, hidden=args.hidden, int8=args.int8)
     except (ValueError, FileNotFoundError) as exc:

@@ -57,6 +57,10 @@ class TrainConfig:
     #: the whole surface reweighted (as a larger ``error_power`` does, at the mean's cost).
     tail_threshold: float = 0.0
     tail_weight: float = 0.0
+    #: Start from the best weights of an earlier run's checkpoint (``OUT/checkpoints/ksnn_h<H>.pt``) instead of a
+    #: random draw: a fine-tune with other settings (a smaller learning rate, a hinge on the tail) on the same
+    #: dataset and split; "" starts afresh.
+    init: str = ""
 
 
 @dataclass
@@ -270,6 +274,8 @@ def train_ksnn(x_norm: np.ndarray, offsets: np.ndarray, train_idx: np.ndarray, v
         key["weight_decay"] = float(config.weight_decay)
     if config.tail_weight > 0:  # (absent without the tail's hinge, likewise)
         key["tail"] = [float(config.tail_threshold), float(config.tail_weight)]
+    if config.init:
+        key["init"] = _init_from(model, Path(config.init), scale)
     if checkpoint is not None and checkpoint.exists():
         ck = torch.load(checkpoint, weights_only=False)
         if ck.get("key") == key:
@@ -346,6 +352,30 @@ def train_ksnn(x_norm: np.ndarray, offsets: np.ndarray, train_idx: np.ndarray, v
     state = best["state"] if best["state"] is not None else model.state_dict()
     return TrainResult(hidden=hidden, weights=_to_weights(state, scale, lo, hi, anchor), best_epoch=int(best["epoch"]),
                        best_val_mse=float(best["val"]), history=history, seconds=time.perf_counter() - t0)
+
+
+def _init_from(model: Any, path: Path, scale: np.ndarray) -> str:
+    """Load the best weights of the checkpoint at ``path`` into ``model``; returns the file's sha256 (16 hex). It
+    must hold a network of the same form, trained on the same training poses (the same per-axis output scale)."""
+    import torch
+
+    if not path.is_file():
+        raise ValueError(f"init checkpoint {path}: no such file")
+    data = path.read_bytes()
+    ck = torch.load(io.BytesIO(data), weights_only=False)
+    state = (ck.get("best") or {}).get("state") if isinstance(ck, dict) else None
+    if state is None:
+        raise ValueError(f"init checkpoint {path}: holds no best weights (not a training checkpoint)")
+    own = model.state_dict()
+    if set(state) != set(own) or any(tuple(state[k].shape) != tuple(own[k].shape) for k in own):
+        shapes = lambda d: {k: tuple(v.shape) for k, v in d.items()}  # noqa: E731
+        raise ValueError(f"init checkpoint {path}: its network {shapes(state)} is not this run's {shapes(own)} "
+                         "(hidden size and output rank must match)")
+    if not np.allclose(np.asarray(ck.get("scale")), scale, rtol=1e-9, atol=0):
+        raise ValueError(f"init checkpoint {path}: trained on other training poses (its output scale differs); "
+                         "start from a run on this dataset and split")
+    model.load_state_dict(state)
+    return hashlib.sha256(data).hexdigest()[:16]
 
 
 def _to_weights(state: dict[str, Any], scale: np.ndarray, lo: np.ndarray, hi: np.ndarray,

@@ -9,6 +9,7 @@ whole, see ``docs/predictor.md``), ``vertex_error.png`` (mean test error per sur
 
 from __future__ import annotations
 
+import hashlib
 import json
 import time
 from collections.abc import Callable, Sequence
@@ -86,6 +87,9 @@ def train_pipeline(dataset_dir: str | Path, out_dir: str | Path, config: TrainCo
                   "converged": {"train": len(train_idx), "validation": len(val_idx), "test": len(test_idx)}}
     training_info = {"config": asdict(config), "hidden_candidates": candidates, "selected_hidden": best.hidden,
                      "selection": SELECTION, "per_hidden": per_hidden, "rest_anchor": rest_info}
+    if config.init:  # the weights it started from, by content
+        training_info["init"] = {"checkpoint": config.init,
+                                 "sha256": hashlib.sha256(Path(config.init).read_bytes()).hexdigest()}
     meta = predictor_metadata(
         head=ds.head, names=ds.names, units=ds.units, weights=best.weights, base_vertices=ds.base_vertices,
         faces=ds.faces, face_unit_names=ds.face_unit_names, face_unit_offsets=ds.face_unit_offsets,

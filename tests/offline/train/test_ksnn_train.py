@@ -425,3 +425,31 @@ def test_a_weight_decay_shrinks_the_weights_and_keeps_its_own_checkpoints(datase
     assert not any("resumed" in line for line in logs)  # the run without decay is not resumed
     assert decayed["training"]["config"]["weight_decay"] == 0.5
     assert first_layer_norm() < plain
+
+
+def test_a_run_can_start_from_an_earlier_runs_best_weights_on_the_same_poses(dataset, tmp_path):
+    """``init``: a fine-tune starts from the checkpoint's best weights (its first epoch's validation objective is
+    near that run's best, not a random start's), records the checkpoint by content, keeps its own checkpoints; a
+    checkpoint of another network form or of other training poses is refused by name."""
+    root, _ = dataset
+    ds = PoseDataset(root)
+    x = (ds.actuators - ds.lo) / (ds.hi - ds.lo)
+    tr, va = ds.split("train"), ds.split("validation")
+    ck = tmp_path / "base.pt"
+    base = train_ksnn(x, ds.offsets, tr, va, 13, ds.lo, ds.hi, TrainConfig(epochs=30, patience=100), checkpoint=ck)
+    fresh = train_ksnn(x, ds.offsets, tr, va, 13, ds.lo, ds.hi, TrainConfig(epochs=1, patience=100, seed=5))
+    tuned = train_ksnn(x, ds.offsets, tr, va, 13, ds.lo, ds.hi,
+                       TrainConfig(epochs=1, patience=100, lr=1e-4, init=str(ck)), checkpoint=tmp_path / "ft.pt")
+    assert tuned.history["val"][0] < 1.5 * base.best_val_mse < fresh.history["val"][0]
+    with pytest.raises(ValueError, match="hidden size and output rank"):
+        train_ksnn(x, ds.offsets, tr, va, 20, ds.lo, ds.hi, TrainConfig(epochs=1, init=str(ck)))
+    other_tr = tr[: len(tr) // 2]
+    with pytest.raises(ValueError, match="other training poses"):
+        train_ksnn(x, ds.offsets, other_tr, va, 13, ds.lo, ds.hi, TrainConfig(epochs=1, init=str(ck)))
+    with pytest.raises(ValueError, match="no such file"):
+        train_ksnn(x, ds.offsets, tr, va, 13, ds.lo, ds.hi, TrainConfig(epochs=1, init=str(tmp_path / "none.pt")))
+    report = train_pipeline(root, tmp_path / "out", TrainConfig(epochs=2, patience=30, lr=1e-4, init=str(ck)),
+                            hidden=["A"], log=lambda s: None)
+    import hashlib
+
+    assert report["training"]["init"] == {"checkpoint": str(ck), "sha256": hashlib.sha256(ck.read_bytes()).hexdigest()}
