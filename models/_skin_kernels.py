@@ -429,8 +429,36 @@ def guard_step(targets: np.ndarray, current: np.ndarray, p_from: np.ndarray, ste
 
 
 @njit(cache=True)
+def _terms(wts: np.ndarray, const_b: float, e: np.ndarray, M: np.ndarray, q0: np.ndarray,
+           QdT: np.ndarray) -> tuple[np.ndarray, float]:
+    """The residual's offset q = q0 − Qd w and the constant κ = b − 2 w·e + wᵀMw from the face-unit weights that are
+    not zero only (``QdT`` = Qdᵀ, by unit): a frame sets few of its channels, and reading only their rows of Qdᵀ
+    and M leaves most of those constants out of the memory a frame reads."""
+    U = wts.shape[0]
+    nz = np.empty(U, dtype=np.int64)
+    c = 0
+    for u in range(U):
+        if wts[u] != 0.0:
+            nz[c] = u
+            c += 1
+    q = q0.copy()
+    kappa = const_b
+    for a in range(c):
+        i = nz[a]
+        wi = wts[i]
+        s = 0.0
+        for b in range(c):
+            s += M[i, nz[b]] * wts[nz[b]]
+        kappa += wi * (s - 2.0 * e[i])
+        row = QdT[i]
+        for j in range(q.shape[0]):
+            q[j] -= wi * row[j]
+    return q, kappa
+
+
+@njit(cache=True)
 def solve_frame(wts: np.ndarray, p_prev: np.ndarray, p0: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-                scale_in: np.ndarray, const_b: float, e: np.ndarray, M: np.ndarray, q0: np.ndarray, Qd: np.ndarray,
+                scale_in: np.ndarray, const_b: float, e: np.ndarray, M: np.ndarray, q0: np.ndarray, QdT: np.ndarray,
                 lam_s: float, W1: np.ndarray, b1: np.ndarray, W1b: np.ndarray, Rb: np.ndarray, Rm: np.ndarray,
                 xlo: np.ndarray, xhi: np.ndarray, mid: np.ndarray, ihalf: np.ndarray, mu: float, max_iterations: int,
                 tol: float, xtol: float, H0: np.ndarray, state: np.ndarray,
@@ -442,8 +470,8 @@ def solve_frame(wts: np.ndarray, p_prev: np.ndarray, p0: np.ndarray, lo: np.ndar
     ``carry`` (:attr:`models.ksnn_solve.HessianReuse.carry`; empty: none) keeps the solution for the next frame:
     [kept (1.0) or not, p (A), its normalized x (A), h (3H), R h (3r)]. A frame warm-started from exactly that p
     starts from that x with its h and R h instead of computing them again (the first residual, a tenth of a
-    frame); each frame writes its own."""
-    kappa = const_b - 2.0 * (wts @ e) + wts @ (M @ wts)
+    frame); each frame writes its own. ``QdT`` (U, 3r): the residual's offset per face-unit weight, by unit."""
+    q, kappa = _terms(wts, const_b, e, M, q0, QdT)
     A = lo.shape[0]
     H3 = W1.shape[0]
     N3 = Rb.shape[0] * Rb.shape[1]
@@ -466,7 +494,6 @@ def solve_frame(wts: np.ndarray, p_prev: np.ndarray, p0: np.ndarray, lo: np.ndar
     else:
         x = np.minimum(np.maximum(np.full(A, 0.5), xlo), xhi)
     smooth = has_prev and lam_s > 0.0
-    q = q0 - Qd @ wts
     kq = kappa - q @ q
     x, h, Rh, r, f, it, converged = gauss_newton(x, x_prev, smooth, lam_s, W1, b1, W1b, Rb, Rm, q, kq, xlo, xhi,
                                                  mid, ihalf, mu, max_iterations, tol, xtol, H0, state, h0, Rh0)
@@ -483,14 +510,14 @@ def solve_frame(wts: np.ndarray, p_prev: np.ndarray, p0: np.ndarray, lo: np.ndar
 @njit(cache=True)
 def solve_frame_measured(wts: np.ndarray, p_prev: np.ndarray, p0: np.ndarray, lo: np.ndarray, hi: np.ndarray,
                          scale_in: np.ndarray, const_b: float, e: np.ndarray, M: np.ndarray, q0: np.ndarray,
-                         Qd: np.ndarray, lam_s: float, W1: np.ndarray, b1: np.ndarray, W1b: np.ndarray, Rb: np.ndarray,
+                         QdT: np.ndarray, lam_s: float, W1: np.ndarray, b1: np.ndarray, W1b: np.ndarray, Rb: np.ndarray,
                          Rm: np.ndarray, xlo: np.ndarray, xhi: np.ndarray, mid: np.ndarray, ihalf: np.ndarray,
                          mu: float, max_iterations: int, tol: float, xtol: float, H0: np.ndarray, state: np.ndarray,
                          carry: np.ndarray, Q: np.ndarray, E: np.ndarray, ge0: np.ndarray, C: np.ndarray,
                          idet: np.ndarray, S_ptr: np.ndarray, S_idx: np.ndarray, S_w: np.ndarray):
     """:func:`solve_frame` and the strain guard's :func:`reduced_measure` of its solution in one call (a frame's
     whole in-cycle work, one dispatch); returns solve_frame's tuple plus (strain min, strain max)."""
-    p, h, fit, f, it, conv = solve_frame(wts, p_prev, p0, lo, hi, scale_in, const_b, e, M, q0, Qd, lam_s, W1, b1,
+    p, h, fit, f, it, conv = solve_frame(wts, p_prev, p0, lo, hi, scale_in, const_b, e, M, q0, QdT, lam_s, W1, b1,
                                          W1b, Rb, Rm, xlo, xhi, mid, ihalf, mu, max_iterations, tol, xtol, H0, state,
                                          carry)
     s_lo, s_hi = reduced_measure(h, Q, E, ge0, C, idet, S_ptr, S_idx, S_w)
@@ -530,14 +557,13 @@ def solve_values_measured(values: np.ndarray, wts: np.ndarray, p_prev: np.ndarra
     o += U * U
     q0 = f64[o:o + N3]
     o += N3
-    Qd = f64[o:o + N3 * U].reshape(N3, U)
+    QdT = f64[o:o + U * N3].reshape(U, N3)
     o += N3 * U
     W1 = f64[o:o + H3 * A].reshape(H3, A)
     o += H3 * A
     b1 = f64[o:o + H3]
     o += H3
-    W1b = f64[o:o + H3 * A].reshape(3, H, A)
-    o += H3 * A
+    W1b = W1.reshape(3, H, A)  # the same numbers by axis block (packed once)
     Rb = f64[o:o + N3 * H].reshape(3, n, H)
     o += N3 * H
     m = dims[10]  # rows per axis the Gauss-Newton matrix is formed from
@@ -565,7 +591,7 @@ def solve_values_measured(values: np.ndarray, wts: np.ndarray, p_prev: np.ndarra
     S_ptr = i64[0:P1]
     S_idx = i64[P1:P1 + NZ]
     p, _, fit, _, it, _, s_lo, s_hi = solve_frame_measured(
-        wts, p_prev, np.empty(0), lo, hi, scale_in, const_b, e, M, q0, Qd, lam_s, W1, b1, W1b, Rb, Rm, xlo, xhi, mid,
+        wts, p_prev, np.empty(0), lo, hi, scale_in, const_b, e, M, q0, QdT, lam_s, W1, b1, W1b, Rb, Rm, xlo, xhi, mid,
         ihalf, mu, max_iterations, tol, xtol, H0, state, carry, Q, E, ge0, C, idet, S_ptr, S_idx, S_w)
     if steps < 0:
         p_out[:] = p

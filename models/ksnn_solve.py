@@ -125,6 +125,7 @@ class KsnnInverse:
         self._Rb = np.ascontiguousarray(np.stack([R[k * r:(k + 1) * r, k * H:(k + 1) * H] for k in range(3)]))
         self._q0 = q0
         self._Qd = np.ascontiguousarray(Qd)
+        self._QdT = np.ascontiguousarray(Qd.T)  # by face unit, as the compiled frame reads it
         self._Cd = np.ascontiguousarray(R.T @ Qd)
         self._const_b = const_b
         self._e = e
@@ -157,7 +158,7 @@ class KsnnInverse:
         formed from (the residual's own with ``exact_matrix``), the box, smoothness and damping."""
         w = self.weights
         Rm = self._Rb if exact_matrix else self._Rm
-        return (w.lo, w.hi, self._scale_in, self._const_b, self._e, self._M, self._q0, self._Qd,
+        return (w.lo, w.hi, self._scale_in, self._const_b, self._e, self._M, self._q0, self._QdT,
                 self.smoothness / self.scale, self._W1, self._b1, self._W1b, self._Rb, Rm, self._xlo, self._xhi,
                 self._mid, self._ihalf, self.damping / self.scale)
 
