@@ -284,16 +284,18 @@ def gauss_newton(x: np.ndarray, x_prev: np.ndarray, smooth: bool, lam_s: float, 
 
 
 @njit(cache=True)
-def reduced_measure(h: np.ndarray, Q: np.ndarray, E: np.ndarray, e0: np.ndarray, C: np.ndarray, idet: np.ndarray,
-                    S_ptr: np.ndarray, S_idx: np.ndarray, S_w: np.ndarray) -> tuple[float, float]:
+def reduced_measure(h: np.ndarray, Q: np.ndarray, E: np.ndarray, e0: np.ndarray, tri: np.ndarray, C: np.ndarray,
+                    idet: np.ndarray, S_ptr: np.ndarray, S_idx: np.ndarray, S_w: np.ndarray) -> tuple[float, float]:
     """The strain guard's reduced measure (min, max) from hidden activations (3H,): the computation of
-    :meth:`models.strain_guard.StrainGuard.measure_hidden` (edge vectors in float32, as there). ``Q`` (3, q, H):
-    the basis the edges' dependence on h lies in, edges = (Q_k h_k) E_k with E (3, q, 2n)
-    (:func:`models.strain_guard.edge_basis`); q = 0: none, edges = h_k E_k with E (3, H, 2n)."""
+    :meth:`models.strain_guard.StrainGuard.measure_hidden` (offsets and edge vectors in float32, as there). ``Q``
+    (3, q, H): the basis the offsets' dependence on h lies in, offsets = (Q_k h_k) E_k with E (3, q, v) over the
+    measured triangles' v vertices (:func:`models.strain_guard.edge_basis`); q = 0: none, offsets = h_k E_k with E
+    (3, H, v). ``tri`` (3, n): each triangle's corners among those vertices; ``e0`` (3, 1, 2n): its two edges at
+    h = 0."""
     H = Q.shape[2]
     nq = Q.shape[1]
-    n = E.shape[2] // 2
-    e = np.empty((3, 2 * n), dtype=np.float32)
+    n = tri.shape[1]
+    d = np.empty((3, E.shape[2]), dtype=np.float32)
     hk = np.empty(H, dtype=np.float32)
     zk = np.empty(nq, dtype=np.float32)
     for k in range(3):
@@ -301,11 +303,21 @@ def reduced_measure(h: np.ndarray, Q: np.ndarray, E: np.ndarray, e0: np.ndarray,
             hk[i] = h[k * H + i]
         if nq > 0:
             np.dot(Q[k], hk, zk)
-            np.dot(zk, E[k], e[k])
+            np.dot(zk, E[k], d[k])
         else:
-            np.dot(hk, E[k], e[k])
-        for i in range(2 * n):
-            e[k, i] += e0[k, 0, i]
+            np.dot(hk, E[k], d[k])
+    e = np.empty((3, 2 * n), dtype=np.float32)  # the edge vectors: differences of the corners' offsets, plus e0
+    t0 = tri[0]
+    t1 = tri[1]
+    t2 = tri[2]
+    for k in range(3):
+        dk = d[k]
+        ek = e[k]
+        gk = e0[k, 0]
+        for t in range(n):
+            ek[t] = (dk[t1[t]] - dk[t0[t]]) + gk[t]
+        for t in range(n):
+            ek[n + t] = (dk[t2[t]] - dk[t0[t]]) + gk[n + t]
     lam_lo = np.empty(n)
     lam_hi = np.empty(n)
     for t in range(n):
@@ -339,8 +351,8 @@ def reduced_measure(h: np.ndarray, Q: np.ndarray, E: np.ndarray, e0: np.ndarray,
 
 @njit(cache=True)
 def _passes_measured(p: np.ndarray, scale: np.ndarray, shift: np.ndarray, W1: np.ndarray, b1: np.ndarray,
-                     s_lo: float, s_hi: float, Q: np.ndarray, E: np.ndarray, e0: np.ndarray, C: np.ndarray,
-                     idet: np.ndarray, S_ptr: np.ndarray, S_idx: np.ndarray,
+                     s_lo: float, s_hi: float, Q: np.ndarray, E: np.ndarray, e0: np.ndarray, tri: np.ndarray,
+                     C: np.ndarray, idet: np.ndarray, S_ptr: np.ndarray, S_idx: np.ndarray,
                      S_w: np.ndarray) -> tuple[bool, float, float]:
     """:meth:`models.strain_guard.StrainGuard.check` and the reduced measure it read (NaN when ``p`` lies outside
     the trained range: normalized within 1e-6 of [0, 1]; NaN fails)."""
@@ -348,24 +360,24 @@ def _passes_measured(p: np.ndarray, scale: np.ndarray, shift: np.ndarray, W1: np
     for v in x:
         if not (v >= -1e-6 and v <= 1.0 + 1e-6):
             return False, np.nan, np.nan
-    lo, hi = reduced_measure(_hidden_at(W1, x, b1), Q, E, e0, C, idet, S_ptr, S_idx, S_w)
+    lo, hi = reduced_measure(_hidden_at(W1, x, b1), Q, E, e0, tri, C, idet, S_ptr, S_idx, S_w)
     return s_lo <= lo and hi <= s_hi, lo, hi
 
 
 @njit(cache=True)
 def _passes(p: np.ndarray, scale: np.ndarray, shift: np.ndarray, W1: np.ndarray, b1: np.ndarray, s_lo: float,
-            s_hi: float, Q: np.ndarray, E: np.ndarray, e0: np.ndarray, C: np.ndarray, idet: np.ndarray,
+            s_hi: float, Q: np.ndarray, E: np.ndarray, e0: np.ndarray, tri: np.ndarray, C: np.ndarray, idet: np.ndarray,
             S_ptr: np.ndarray, S_idx: np.ndarray, S_w: np.ndarray) -> bool:
     """:meth:`models.strain_guard.StrainGuard.check`: ``p`` inside the trained range (normalized within 1e-6 of [0,
     1]; NaN fails) and its reduced measure within [s_lo, s_hi]."""
-    return _passes_measured(p, scale, shift, W1, b1, s_lo, s_hi, Q, E, e0, C, idet, S_ptr, S_idx, S_w)[0]
+    return _passes_measured(p, scale, shift, W1, b1, s_lo, s_hi, Q, E, e0, tri, C, idet, S_ptr, S_idx, S_w)[0]
 
 
 @njit(cache=True)
 def _limit_from(p_from: np.ndarray, p_to: np.ndarray, steps: int, out: np.ndarray, scale: np.ndarray,
                 shift: np.ndarray, W1: np.ndarray, b1: np.ndarray, s_lo: float, s_hi: float, Q: np.ndarray,
-                E: np.ndarray, e0: np.ndarray, C: np.ndarray, idet: np.ndarray, S_ptr: np.ndarray, S_idx: np.ndarray,
-                S_w: np.ndarray, measure_held: bool) -> tuple[int, float, float]:
+                E: np.ndarray, e0: np.ndarray, tri: np.ndarray, C: np.ndarray, idet: np.ndarray, S_ptr: np.ndarray,
+                S_idx: np.ndarray, S_w: np.ndarray, measure_held: bool) -> tuple[int, float, float]:
     """:func:`guard_limit` once ``p_to`` is known to fail: ``out`` the furthest passing point of the segment from
     ``p_from`` found by ``steps`` bisections (1), else ``p_from`` (2); with the reduced measure of ``out`` as
     :meth:`models.strain_guard.StrainGuard.measure` gives it (at the pose clamped to the trained range; for
@@ -375,7 +387,7 @@ def _limit_from(p_from: np.ndarray, p_to: np.ndarray, steps: int, out: np.ndarra
     m_lo, m_hi = 0.0, 0.0
     for _ in range(steps):
         mid = 0.5 * (lo_t + hi_t)
-        ok, a, b = _passes_measured(p_from + mid * d, scale, shift, W1, b1, s_lo, s_hi, Q, E, e0, C, idet, S_ptr,
+        ok, a, b = _passes_measured(p_from + mid * d, scale, shift, W1, b1, s_lo, s_hi, Q, E, e0, tri, C, idet, S_ptr,
                                     S_idx, S_w)
         if ok:
             lo_t, found, m_lo, m_hi = mid, True, a, b
@@ -388,21 +400,21 @@ def _limit_from(p_from: np.ndarray, p_to: np.ndarray, steps: int, out: np.ndarra
     if not measure_held:
         return 2, np.nan, np.nan
     x = np.minimum(np.maximum(p_from * scale + shift, 0.0), 1.0)
-    m_lo, m_hi = reduced_measure(_hidden_at(W1, x, b1), Q, E, e0, C, idet, S_ptr, S_idx, S_w)
+    m_lo, m_hi = reduced_measure(_hidden_at(W1, x, b1), Q, E, e0, tri, C, idet, S_ptr, S_idx, S_w)
     return 2, m_lo, m_hi
 
 
 @njit(cache=True)
 def guard_limit(p_from: np.ndarray, p_to: np.ndarray, steps: int, out: np.ndarray, scale: np.ndarray,
                 shift: np.ndarray, W1: np.ndarray, b1: np.ndarray, s_lo: float, s_hi: float, Q: np.ndarray,
-                E: np.ndarray, e0: np.ndarray, C: np.ndarray, idet: np.ndarray, S_ptr: np.ndarray, S_idx: np.ndarray,
-                S_w: np.ndarray) -> int:
+                E: np.ndarray, e0: np.ndarray, tri: np.ndarray, C: np.ndarray, idet: np.ndarray, S_ptr: np.ndarray,
+                S_idx: np.ndarray, S_w: np.ndarray) -> int:
     """:meth:`models.strain_guard.StrainGuard.limit` in one call: ``out`` = ``p_to`` when it passes (returns 0), else
     the furthest passing point of the segment from ``p_from`` found by ``steps`` bisections (1), else ``p_from`` (2)."""
-    if _passes(p_to, scale, shift, W1, b1, s_lo, s_hi, Q, E, e0, C, idet, S_ptr, S_idx, S_w):
+    if _passes(p_to, scale, shift, W1, b1, s_lo, s_hi, Q, E, e0, tri, C, idet, S_ptr, S_idx, S_w):
         out[:] = p_to
         return 0
-    return _limit_from(p_from, p_to, steps, out, scale, shift, W1, b1, s_lo, s_hi, Q, E, e0, C, idet, S_ptr, S_idx,
+    return _limit_from(p_from, p_to, steps, out, scale, shift, W1, b1, s_lo, s_hi, Q, E, e0, tri, C, idet, S_ptr, S_idx,
                        S_w, False)[0]
 
 
@@ -410,8 +422,8 @@ def guard_limit(p_from: np.ndarray, p_to: np.ndarray, steps: int, out: np.ndarra
 def guard_step(targets: np.ndarray, current: np.ndarray, p_from: np.ndarray, steps: int, out: np.ndarray,
                lo: np.ndarray, hi: np.ndarray, groups_i: np.ndarray, groups_f: np.ndarray, scale: np.ndarray,
                shift: np.ndarray, W1: np.ndarray, b1: np.ndarray, s_lo: float, s_hi: float, Q: np.ndarray,
-               E: np.ndarray, e0: np.ndarray, C: np.ndarray, idet: np.ndarray, S_ptr: np.ndarray, S_idx: np.ndarray,
-               S_w: np.ndarray) -> int:
+               E: np.ndarray, e0: np.ndarray, tri: np.ndarray, C: np.ndarray, idet: np.ndarray, S_ptr: np.ndarray,
+               S_idx: np.ndarray, S_w: np.ndarray) -> int:
     """The control cycle's guard stage in one call: ``targets`` constrained to the head's limits and groups
     (:func:`models._cycle_kernels.constrain`, holds from ``current``), then, unless that is ``p_from`` itself
     (returns -1, ``out`` the constrained target), :func:`guard_limit` from ``p_from`` (its verdict code)."""
@@ -425,7 +437,8 @@ def guard_step(targets: np.ndarray, current: np.ndarray, p_from: np.ndarray, ste
     if same:
         out[:] = x
         return -1
-    return guard_limit(p_from, x, steps, out, scale, shift, W1, b1, s_lo, s_hi, Q, E, e0, C, idet, S_ptr, S_idx, S_w)
+    return guard_limit(p_from, x, steps, out, scale, shift, W1, b1, s_lo, s_hi, Q, E, e0, tri, C, idet, S_ptr, S_idx,
+                       S_w)
 
 
 @njit(cache=True)
@@ -513,14 +526,14 @@ def solve_frame_measured(wts: np.ndarray, p_prev: np.ndarray, p0: np.ndarray, lo
                          QdT: np.ndarray, lam_s: float, W1: np.ndarray, b1: np.ndarray, W1b: np.ndarray, Rb: np.ndarray,
                          Rm: np.ndarray, xlo: np.ndarray, xhi: np.ndarray, mid: np.ndarray, ihalf: np.ndarray,
                          mu: float, max_iterations: int, tol: float, xtol: float, H0: np.ndarray, state: np.ndarray,
-                         carry: np.ndarray, Q: np.ndarray, E: np.ndarray, ge0: np.ndarray, C: np.ndarray,
-                         idet: np.ndarray, S_ptr: np.ndarray, S_idx: np.ndarray, S_w: np.ndarray):
+                         carry: np.ndarray, Q: np.ndarray, E: np.ndarray, ge0: np.ndarray, tri: np.ndarray,
+                         C: np.ndarray, idet: np.ndarray, S_ptr: np.ndarray, S_idx: np.ndarray, S_w: np.ndarray):
     """:func:`solve_frame` and the strain guard's :func:`reduced_measure` of its solution in one call (a frame's
     whole in-cycle work, one dispatch); returns solve_frame's tuple plus (strain min, strain max)."""
     p, h, fit, f, it, conv = solve_frame(wts, p_prev, p0, lo, hi, scale_in, const_b, e, M, q0, QdT, lam_s, W1, b1,
                                          W1b, Rb, Rm, xlo, xhi, mid, ihalf, mu, max_iterations, tol, xtol, H0, state,
                                          carry)
-    s_lo, s_hi = reduced_measure(h, Q, E, ge0, C, idet, S_ptr, S_idx, S_w)
+    s_lo, s_hi = reduced_measure(h, Q, E, ge0, tri, C, idet, S_ptr, S_idx, S_w)
     return p, h, fit, f, it, conv, s_lo, s_hi
 
 
@@ -587,18 +600,19 @@ def solve_values_measured(values: np.ndarray, wts: np.ndarray, p_prev: np.ndarra
     ER = nq if nq > 0 else H  # rows of E
     E = f32[o32:o32 + 3 * ER * E2].reshape(3, ER, E2)
     o32 += 3 * ER * E2
-    ge0 = f32[o32:o32 + 3 * E2].reshape(3, 1, E2)
+    ge0 = f32[o32:o32 + 6 * T].reshape(3, 1, 2 * T)
     S_ptr = i64[0:P1]
     S_idx = i64[P1:P1 + NZ]
+    tri = i64[P1 + NZ:P1 + NZ + 3 * T].reshape(3, T)
     p, _, fit, _, it, _, s_lo, s_hi = solve_frame_measured(
         wts, p_prev, np.empty(0), lo, hi, scale_in, const_b, e, M, q0, QdT, lam_s, W1, b1, W1b, Rb, Rm, xlo, xhi, mid,
-        ihalf, mu, max_iterations, tol, xtol, H0, state, carry, Q, E, ge0, C, idet, S_ptr, S_idx, S_w)
+        ihalf, mu, max_iterations, tol, xtol, H0, state, carry, Q, E, ge0, tri, C, idet, S_ptr, S_idx, S_w)
     if steps < 0:
         p_out[:] = p
         return fit, it, s_lo, s_hi, -1
     if lim_lo <= s_lo and s_hi <= lim_hi:  # the solution lies in the trained range by construction
         p_out[:] = p
         return fit, it, s_lo, s_hi, 0
-    verdict, s_lo, s_hi = _limit_from(p_prev, p, steps, p_out, g_scale, g_shift, W1, b1, lim_lo, lim_hi, Q, E, ge0, C,
-                                      idet, S_ptr, S_idx, S_w, True)
+    verdict, s_lo, s_hi = _limit_from(p_prev, p, steps, p_out, g_scale, g_shift, W1, b1, lim_lo, lim_hi, Q, E, ge0,
+                                      tri, C, idet, S_ptr, S_idx, S_w, True)
     return fit, it, s_lo, s_hi, verdict

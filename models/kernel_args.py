@@ -33,14 +33,15 @@ def pack_frame_args(solve: tuple, measure: tuple, guard: tuple | None = None
     caches are cold) shrinks with them."""
     (lo, hi, scale_in, const_b, e, M, q0, QdT, lam_s, W1, b1, _W1b, Rb, Rm, xlo, xhi, mid, ihalf, mu, max_iterations,
      tol, xtol) = solve
-    Q, E, ge0, C, idet, S_ptr, S_idx, S_w = measure
+    Q, E, ge0, tri, C, idet, S_ptr, S_idx, S_w = measure
     g_scale, g_shift, s_min, s_max, steps = (np.ones(len(lo)), np.zeros(len(lo)), 0.0, 0.0, -1) if guard is None \
         else guard
     f64 = np.concatenate([np.ravel(np.asarray(a, dtype=np.float64)) for a in (
         lo, hi, scale_in, xlo, xhi, mid, ihalf, e, M, q0, QdT, W1, b1, Rb, Rm, C, idet, S_w,
         [const_b, lam_s, mu, tol, xtol], g_scale, g_shift, [s_min, s_max])])
     f32 = np.concatenate([np.ravel(np.asarray(a, dtype=np.float32)) for a in (Q, E, ge0)])
-    i64 = np.concatenate([np.asarray(S_ptr, dtype=np.int64), np.asarray(S_idx, dtype=np.int64)])
+    i64 = np.concatenate([np.asarray(S_ptr, dtype=np.int64), np.asarray(S_idx, dtype=np.int64),
+                          np.ravel(np.asarray(tri, dtype=np.int64))])
     dims = np.array([len(lo), len(e), Rb.shape[2], len(idet), len(S_ptr), len(S_idx), E.shape[2], int(max_iterations),
                      int(steps), Rb.shape[1], Rm.shape[1], Q.shape[1]], dtype=np.int64)
     return f64, f32, i64, dims

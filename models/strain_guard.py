@@ -254,12 +254,12 @@ def skin_strain_range(head: Any) -> tuple[float, float]:
 
 
 def edge_basis(E: np.ndarray, tol: float = 1e-5, worth: float = 0.7) -> tuple[np.ndarray, np.ndarray]:
-    """The reduced check's edge maps (float32). ``E`` (3, H, 2n), each axis' edge vectors per hidden activation, lies
-    in the span of the output layer's directions, q of them per axis (the output rank: fewer than H for a network
-    trained with ``--output-rank``). Returns (Q, F) with the edges h_k E_k = (Q_k h_k) F_k, Q_k (q, H) orthonormal
-    rows and F_k = Q_k E_k (q, 2n): q (H + 2n) instead of 2n H multiplications per axis. Singular values under
-    ``tol`` of an axis' largest are dropped (float32 noise); where q exceeds ``worth`` H the basis saves too little
-    for its second product and is not used: Q (3, 0, H) and F = E. An axis of lower rank gets zero rows."""
+    """The reduced check's offset maps (float32). ``E`` (3, H, v), each axis' offsets of the measured vertices per
+    hidden activation, lies in the span of the output layer's directions, q of them per axis (the output rank: fewer
+    than H for a network trained with ``--output-rank``). Returns (Q, F) with the offsets h_k E_k = (Q_k h_k) F_k,
+    Q_k (q, H) orthonormal rows and F_k = Q_k E_k (q, v): q (H + v) instead of v H multiplications per axis. Singular
+    values under ``tol`` of an axis' largest are dropped (float32 noise); where q exceeds ``worth`` H the basis saves
+    too little for its second product and is not used: Q (3, 0, H) and F = E. An axis of lower rank gets zero rows."""
     H = E.shape[1]
     bases = []
     for k in range(3):
@@ -441,21 +441,22 @@ class StrainGuard:
         S = self.surface.smooth[rows]
         tri = np.unique(S.indices)
         verts = np.unique(self.surface.faces[tri])
-        # Edge vectors of the needed triangles are linear in each axis' hidden activations:
-        # (e1_k, e2_k) = h_k @ E_k + e0_k (float32: millimetre edges keep ~1e-7 relative precision).
+        # The measured triangles' vertex offsets are linear in each axis' hidden activations, d_k = h_k @ E_k
+        # (float32: offsets of millimetres keep ~1e-7 relative precision), and each triangle's two edge vectors are
+        # differences of its corners' offsets plus the edges at h = 0, e0 (the rest surface with b2): maps over the
+        # vertices are about half the size of maps over the edges, which a frame reads from memory.
         w = self.weights
-        H = self._H
         f = self.surface.faces[tri]
         n_t = len(tri)
+        corners = np.searchsorted(verts, f)  # (n_t, 3): each corner among the measured vertices
         pos0 = self.surface.rest + w.b2.T  # (V, 3)
-        E = np.zeros((3, H, 2, n_t))
+        E = np.ascontiguousarray(w.W2[:, :, verts])  # (3, H, v)
         e0 = np.zeros((3, 2, n_t))
         for k in range(3):
-            W2k = w.W2[k]
             for j, c in enumerate((1, 2)):
-                E[k, :, j] = W2k[:, f[:, c]] - W2k[:, f[:, 0]]
                 e0[k, j] = pos0[f[:, c], k] - pos0[f[:, 0], k]
-        self._Q, self._E = edge_basis(E.reshape(3, H, 2 * n_t))
+        self._Q, self._E = edge_basis(E)
+        self._tri = np.ascontiguousarray(corners.T, dtype=np.int64)  # (3, n_t)
         self._e0 = np.ascontiguousarray(e0.reshape(3, 1, 2 * n_t), dtype=np.float32)
         self._n_t = n_t
         g0 = self._g0[tri]
@@ -483,9 +484,10 @@ class StrainGuard:
         return np.tanh(self._W1 @ x + self._b1)
 
     def kernel_arrays(self) -> tuple[np.ndarray, ...]:
-        """The arrays the compiled reduced measure takes after the hidden activations (Q, E, e0, C, 1/det, and the
-        patch weights by patch: pointers, triangles, weights; :func:`edge_basis` for Q and E)."""
-        return self._Q, self._E, self._e0, self._C, self._idet, self._S_ptr, self._S_idx, self._S_w
+        """The arrays the compiled reduced measure takes after the hidden activations (Q, E, e0, the triangles'
+        corners, C, 1/det, and the patch weights by patch: pointers, triangles, weights; :func:`edge_basis` for Q
+        and E)."""
+        return self._Q, self._E, self._e0, self._tri, self._C, self._idet, self._S_ptr, self._S_idx, self._S_w
 
     def search_args(self, steps: int) -> tuple[np.ndarray, np.ndarray, float, float, int]:
         """What the compiled guard search takes besides the measure's arrays: the input scale and shift, the strain
@@ -505,8 +507,10 @@ class StrainGuard:
         n = self._n_t
         hk = h.reshape(3, 1, self._H).astype(np.float32)
         if self._Q.shape[1]:
-            hk = np.matmul(hk, self._Q.transpose(0, 2, 1))  # (3, 1, q): the coordinates the edges depend on
-        e = np.matmul(hk, self._E)  # (3, 1, 2n) edge vectors
+            hk = np.matmul(hk, self._Q.transpose(0, 2, 1))  # (3, 1, q): the coordinates the offsets depend on
+        d = np.matmul(hk, self._E)[:, 0]  # (3, v) the measured vertices' offsets
+        t = self._tri
+        e = np.concatenate([d[:, t[1]] - d[:, t[0]], d[:, t[2]] - d[:, t[0]]], axis=1)[:, None]  # (3, 1, 2n)
         e += self._e0
         e = e.reshape(3, 2, n)
         m = np.einsum("kin,kjn->ijn", e, e)  # (2, 2, n) metric of each triangle

@@ -90,9 +90,9 @@ def test_reduced_check_agrees_with_the_full_measure_on_fresh_poses(guard):
 
 
 def test_edges_through_the_output_layers_basis_are_the_edges(guard):
-    """``edge_basis``: the edge vectors' dependence on the hidden layer lies in the output layer's directions (39 of
-    the sample network's 52 per axis), so (Q h) F gives h E; the measure through the basis is the plain one within
-    float32 rounding, compiled and in numpy, and a basis that would save too little is not used."""
+    """``edge_basis``: the measured vertices' offsets depend on the hidden layer through the output layer's
+    directions (39 of the sample network's 52 per axis), so (Q h) F gives h E; the measure through the basis is the
+    plain one within float32 rounding, compiled and in numpy, and a basis that would save too little is not used."""
     import copy
 
     from models.strain_guard import edge_basis
