@@ -12,6 +12,9 @@ each after the same sweep over more memory than a core's cache (as a control cyc
   the guard's search when the solution leaves the strain range, in the same call;
 * kernel, plain G-N: the same call forming JᵀJ in every iteration (``HessianReuse`` with 0 frames), as the solve did
   before it kept the matrix: what keeping it saves;
+* kernel, +1 iteration: the same call allowed one more iteration per frame than the head's ``[skin]
+  iterations_per_frame``, from the same start: what the cap saves, and (printed after the table) what it costs in
+  surface error, and whether a target held for a second frame catches up;
 * kernel, exact matrix (a head whose ``[skin] matrix_rank`` is below its predictor's output rank): the same call
   forming the Gauss-Newton matrix from all the residual's rows, on its own kept matrix, from the same start: what the
   lower rank saves, and (printed after the table) what it costs in surface error on the same frames;
@@ -65,7 +68,7 @@ HEAD = ROOT / "heads" / "sample" / "head.toml"
 CLIP = ROOT / "heads" / "sample" / "performances" / "blendshapes.json"
 REPORT = ROOT / "heads" / "sample" / "skin_guard_report.json"
 GOAL_US = 100.0
-PATHS = ("kernel", "plain", "exact", "array", "mapping", "adapter", "reference", "forward")
+PATHS = ("kernel", "plain", "more", "exact", "array", "mapping", "adapter", "reference", "forward")
 
 
 def frames(channels: list[str], n_random: int, seed: int = 0) -> list[tuple[str, np.ndarray]]:
@@ -123,6 +126,17 @@ class Paths:
              self.array.frame.xtol), guard.kernel_arrays(),
             None if self.array.frame.guard_steps is None else guard.search_args(self.array.frame.guard_steps))
         self.exact_p = np.empty(n)
+        #: the same call with one more iteration per frame, from the same start: what the head's cap costs; and the
+        #: kernel's frame held for a second frame at the same values (the cap's shortfall, caught up a frame later?)
+        frame = self.array.frame
+        self.more_args = pack_frame_args(
+            (*inv.kernel_arrays(), frame.max_iterations + 1, frame.tol, frame.xtol), guard.kernel_arrays(),
+            None if frame.guard_steps is None else guard.search_args(frame.guard_steps))
+        self.more_p = np.empty(n)
+        self.held_p = np.empty(n)
+        self.more_reuse = inv.frame_state(frame.reuse.frames)
+        #: per kind of frame: RMS surface error (m) with the head's iterations, with one more, and held a frame more
+        self.iterations_vs_more: dict[str, list[tuple[float, float, float]]] = {"performance": [], "random": []}
         self.exact_reuse = inv.frame_state(self.array.frame.reuse.frames)
         #: per kind of frame: (RMS surface error with the solver's matrix, with the exact one, pose difference)
         self.matrix_vs_exact: dict[str, list[tuple[float, float, float]]] = {"performance": [], "random": []}
@@ -171,6 +185,18 @@ class Paths:
         self.kernel_fn(values, self.kernel_w, start, self.plain_p, self.plain_reuse.matrix, self.plain_reuse.state,
                        self.plain_reuse.carry, *self.kernel_args)
         dt["plain"] = clock() - t0
+        self.more_reuse.carry[:] = carried
+        self.cool()
+        t0 = clock()
+        self.kernel_fn(values, self.kernel_w, start, self.more_p, self.more_reuse.matrix, self.more_reuse.state,
+                       self.more_reuse.carry, *self.more_args)
+        dt["more"] = clock() - t0
+        kept = (self.kernel_reuse.matrix.copy(), self.kernel_reuse.state.copy(), self.kernel_reuse.carry.copy())
+        self.kernel_fn(values, self.kernel_w, self.kernel_p.copy(), self.held_p, *kept, *self.kernel_args)
+        w_units = np.where(np.isfinite(values), np.clip(values, 0.0, 1.0), 0.0)
+        inv = self.array.inverse
+        self.iterations_vs_more[kind].append(tuple(np.sqrt(inv.surface_error(p.copy(), w_units))
+                                                   for p in (self.kernel_p, self.more_p, self.held_p)))
         if self.truncated:
             self.exact_reuse.carry[:] = carried
             self.cool()
@@ -224,7 +250,8 @@ def report_times(kind: str, tk: dict[str, list[float]]) -> None:
     kernel = np.asarray(tk["kernel"])
     print(f"  {kind} ({len(tk['kernel'])} frames)             p50      p99      max       p1   p50/p99 ÷ kernel   "
           "(+ per-frame excess over the kernel, p50)")
-    labels = {"kernel": "kernel (baseline)", "plain": "kernel, plain G-N", "exact": "kernel, exact matrix",
+    labels = {"kernel": "kernel (baseline)", "plain": "kernel, plain G-N", "more": "kernel, +1 iteration",
+              "exact": "kernel, exact matrix",
               "array": "array path (core)",
               "mapping": "mapping API", "adapter": "by-name adapter", "reference": "previous solve+guard",
               "forward": "one predictor pass"}
@@ -337,6 +364,16 @@ def _run(argv: list[str]) -> argparse.Namespace:
                   f"1 µm on {int((worse > 1e-6).sum())} of {len(a)} frames (at most {worse.max() * 1e6:.1f} µm), "
                   f"better by more than 1 µm on {int((worse < -1e-6).sum())}; largest pose difference "
                   f"{np.degrees(a[:, 2].max()):.4f}°")
+    n_it = solver.max_iterations
+    print(f"  {n_it} iterations per frame vs {n_it + 1}, same frame from the same start, RMS surface error vs the "
+          f"target; and the same target held for a second frame of {n_it}:")
+    for kind, rows in paths.iterations_vs_more.items():
+        a = np.asarray(rows)
+        worse, held = a[:, 0] - a[:, 1], a[:, 2] - a[:, 1]
+        print(f"    {kind}: mean {a[:, 0].mean() * 1e6:.2f} / {a[:, 1].mean() * 1e6:.2f} µm; worse by more than 1 µm "
+              f"on {int((worse > 1e-6).sum())} of {len(a)} frames (at most {worse.max() * 1e6:.1f} µm); held a "
+              f"frame: worse than {n_it + 1} by more than 1 µm on {int((held > 1e-6).sum())} (at most "
+              f"{held.max() * 1e6:.1f} µm)")
     if args.profile:
         profile(paths, fr)
     report_guard(Path(args.report))
