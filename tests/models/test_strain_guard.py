@@ -91,8 +91,9 @@ def test_reduced_check_agrees_with_the_full_measure_on_fresh_poses(guard):
 
 def test_edges_through_the_output_layers_basis_are_the_edges(guard):
     """``edge_basis``: the measured vertices' offsets depend on the hidden layer through the output layer's
-    directions (39 of the sample network's 52 per axis), so (Q h) F gives h E; the measure through the basis is the
-    plain one within float32 rounding, compiled and in numpy, and a basis that would save too little is not used."""
+    directions (the sample network's output rank, 52 of its 78 per axis), so (Q h) F gives h E; the measure through
+    the basis is the plain one within float32 rounding, compiled and in numpy, and a basis that would save too
+    little is not used."""
     import copy
 
     from models.strain_guard import edge_basis
@@ -101,9 +102,12 @@ def test_edges_through_the_output_layers_basis_are_the_edges(guard):
     if Q0.shape[1]:  # the head's guard uses a basis: the plain maps are its product
         E = np.matmul(Q0.transpose(0, 2, 1), E)
     H = E.shape[1]
+    W2 = guard.weights.W2
+    rank = max(int((sv > 1e-5 * sv[0]).sum()) for sv in (np.linalg.svd(W2[k], compute_uv=False) for k in range(3)))
+    assert rank == 52 < H == 78  # the sample network: a wide hidden layer of lower output rank
     Q, F = edge_basis(E.astype(np.float64), worth=1.0)
-    assert Q.shape == (3, 39, H) and F.shape == (3, 39, E.shape[2])
-    assert edge_basis(E.astype(np.float64), worth=0.5)[0].shape == (3, 0, H)  # 39 of 52: too little saved
+    assert Q.shape == (3, rank, H) and F.shape == (3, rank, E.shape[2])
+    assert edge_basis(E.astype(np.float64), worth=0.5)[0].shape == (3, 0, H)  # 52 of 78: too little saved
     plain, based = copy.copy(guard), copy.copy(guard)
     plain._Q, plain._E = np.zeros((3, 0, H), np.float32), np.ascontiguousarray(E, dtype=np.float32)
     based._Q, based._E = Q, F

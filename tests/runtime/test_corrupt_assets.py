@@ -17,7 +17,7 @@ GARBAGE = bytes(range(256)) * 8  # not UTF-8, not JSON, not protobuf, not a zip
 
 
 def _head_copy(tmp: Path) -> Path:
-    """The sample head in ``tmp``: small files copied (they get corrupted), the rest linked."""
+    """The sample head in ``tmp``: small files copied, the rest linked (a test replaces a link before it writes)."""
     head = tmp / "sample"
     head.mkdir()
     for item in SAMPLE.iterdir():
@@ -45,6 +45,7 @@ def _likeness(*argv: str, cwd: Path) -> subprocess.CompletedProcess[str]:
 ])
 def test_a_corrupt_asset_stops_the_daemon_at_start_with_one_line(tmp_path: Path, asset: str, content: bytes) -> None:
     head = _head_copy(tmp_path)
+    (head / asset).unlink()  # a large asset is a link to the sample head's own file: never write through it
     (head / asset).write_bytes(content)
     res = _likeness("daemon", "--config", str(head / "head.toml"), cwd=tmp_path)
     lines = [line for line in res.stderr.splitlines() if line.strip()]
