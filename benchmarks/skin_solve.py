@@ -341,7 +341,8 @@ def _run(argv: list[str]) -> argparse.Namespace:
           f"rank {paths.array.inverse.rank}, Gauss-Newton matrix rank {paths.array.inverse.matrix_rank}, "
           f"{len(paths.channels)} units, {solver.max_iterations} "
           f"iterations/frame, reduced guard: {guard.calibration.patches} patches, {guard.calibration.vertices} "
-          f"vertices); µs; load average {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f} on {os.cpu_count()} CPUs")
+          f"vertices; {sum(a.nbytes for a in paths.kernel_args) / 1024:.0f} KB of packed constants); µs; load "
+          f"average {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f} on {os.cpu_count()} CPUs")
     print("  timings need a quiet machine (load average well under the CPU count); on a loaded one compare the "
           "ratios to the kernel, measured in the same run, and p1")
     for kind, tk in times.items():
