@@ -83,3 +83,41 @@ def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> 
         return
     with machine_share(item.get_closest_marker(EXCLUSIVE) is not None, run_id):
         yield
+
+
+#: The shipped heads: no test may change them (a test works on a copy; one that wrote through a link to a shipped
+#: file once replaced the sample predictor with garbage, and every later test read it).
+SHIPPED = Path(__file__).resolve().parents[1] / "heads"
+
+
+def _shipped_files() -> dict[str, tuple[int, int]]:
+    """Size and modification time of every shipped head file."""
+    out = {}
+    for p in SHIPPED.rglob("*"):
+        if p.is_file():
+            st = p.stat()
+            out[str(p.relative_to(SHIPPED.parent))] = (st.st_size, st.st_mtime_ns)
+    return out
+
+
+def pytest_sessionstart(session: pytest.Session) -> None:
+    session.config.stash[_SHIPPED_KEY] = _shipped_files()
+
+
+def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
+    """Fail the run, naming the files, when a test changed, added or removed a shipped head's file."""
+    before = session.config.stash.get(_SHIPPED_KEY, None)
+    if before is None:
+        return
+    after = _shipped_files()
+    changed = sorted(p for p in set(before) | set(after) if before.get(p) != after.get(p))
+    if changed:
+        reporter = session.config.pluginmanager.get_plugin("terminalreporter")
+        if reporter is not None:
+            reporter.write_line("")
+            reporter.write_line(f"the test run changed shipped head files (restore them from git): "
+                                f"{', '.join(changed)}", red=True)
+        session.exitstatus = pytest.ExitCode.TESTS_FAILED
+
+
+_SHIPPED_KEY = pytest.StashKey[dict[str, tuple[int, int]]]()
