@@ -197,3 +197,36 @@ def test_a_pack_of_a_clustered_pool_stands_in_for_it_only_with_the_same_clusters
     iid = BenchmarkJob(config=str(HEAD_PATH), out="unused", clusters=60, pool_pack=str(SHIPPED))
     with pytest.raises(UsageError, match="different pool"):
         pool_pack(iid, settings_of(iid)[0])
+
+
+#: Fresh poses of the sample head, simulated once and never trained, validated or selected on.
+FRESH_PACK = "predictor_fresh.npz"
+
+
+def test_the_fresh_pose_figures_are_reproduced_from_the_shipped_fresh_pack(tmp_path):
+    """The goal's fresh poses ship packed: ``likeness offline evaluate --split all`` on them recomputes the record
+    ``docs/predictor_capacity/fresh_sample.json`` for the shipped predictor, and none of them is a training pose."""
+    sample = ROOT / "heads" / "sample"
+    record = json.loads((ROOT / "docs" / "predictor_capacity" / "fresh_sample.json").read_text())
+    cmd = [sys.executable, "-m", "likeness.cli", "offline", "evaluate", "--predictor", str(sample / "predictor.onnx"),
+           "--dataset", str(sample / FRESH_PACK), "--split", "all", "--worst", "5"]
+    r = subprocess.run(cmd, cwd=ROOT, env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin", "TMPDIR": str(tmp_path)},
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr + r.stdout
+    got = json.loads(r.stdout)
+    for key in ("n_poses", "max_at"):
+        assert got["all"][key] == record["all"][key]
+    for key in ("mean_euclidean_um", "p99_euclidean_um", "max_euclidean_um"):
+        assert got["all"][key] == pytest.approx(record["all"][key], rel=1e-4)
+    strain, recorded = got["all"]["surface_strain"], record["all"]["surface_strain"]
+    assert strain["p99_abs"] == pytest.approx(recorded["p99_abs"], rel=1e-4)
+    assert [w["pose_index"] for w in got["worst_poses"]] == [w["pose_index"] for w in record["worst_poses"]]
+    fresh = PoseDataset(_unpacked(sample / FRESH_PACK, tmp_path / "fresh")).actuators
+    for name in PREDICTOR_PACKS:
+        trained = PoseDataset(_unpacked(sample / name, tmp_path / name)).actuators
+        assert not (np.abs(fresh[:, None, :] - trained[None, :, :]).max(axis=2) < 1e-9).any(), name
+
+
+def _unpacked(pack: Path, out: Path) -> Path:
+    unpack_dataset(pack, out)
+    return out
