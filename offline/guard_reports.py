@@ -76,9 +76,11 @@ def solve_performances(head: HeadSpec, config: str, mesh: str, clips: Sequence[s
                                 rest_pose=head.neutral_pose, reuse=reuse)
 
 
-def agreement(head: HeadSpec, config: str, datasets: Sequence[str], fresh: int, command: str) -> dict[str, Any]:
-    """The guard (full and reduced) against the FEM measure on pose datasets, for the head's reference and the
-    other one, and (``fresh`` > 0) the in-cycle check against the full measure on fresh seeded poses."""
+def agreement(head: HeadSpec, config: str, datasets: Sequence[str | Path], fresh: int, command: str,
+              names: Sequence[str] | None = None) -> dict[str, Any]:
+    """The guard (full and reduced) against the FEM measure on pose datasets (folders, named by ``names`` where
+    given), for the head's reference and the other one, and (``fresh`` > 0) the in-cycle check against the full
+    measure on fresh seeded poses."""
     from offline.strain_eval import agreement_report, reduced_agreement
 
     if fresh < 0:
@@ -88,11 +90,11 @@ def agreement(head: HeadSpec, config: str, datasets: Sequence[str], fresh: int, 
     if guard is None:
         raise ConfigError(f"{config}: the head names no existing predictor")
     fp = head.path("skin_guard")
-    report = agreement_report(guard, datasets)
+    report = agreement_report(guard, datasets, names)
     other = "neutral" if guard.reference_kind == "rest" else "rest"
     alt = StrainGuard(guard.predictor, guard.neutral, guard.strain_range, guard.surface.rim_distance,
                       guard.surface.radius, guard.surface.band, samples=200, names=guard.names, reference=other)
-    alt_report = agreement_report(alt, datasets)
+    alt_report = agreement_report(alt, datasets, names)
     report["reference_comparison"] = {
         ref: {"guard_vs_fem": rep["guard_vs_fem"],
               "median_abs_error_vs_fem": {k: d["median_abs_error_vs_fem"] for k, d in rep["per_dataset"].items()}}
@@ -144,19 +146,22 @@ def write_json(path: str | Path, doc: dict[str, Any]) -> None:
     write_bytes(Path(path), (json.dumps(doc, indent=1) + "\n").encode())
 
 
-def write_sample(path: str, datasets: Sequence[str], per_dataset: int, command: str) -> None:
-    """Evenly spaced converged poses of each dataset: p, surface offsets (float32), base surface, faces."""
+def write_sample(path: str, datasets: Sequence[str | Path], per_dataset: int, command: str,
+                 names: Sequence[str] | None = None) -> None:
+    """Evenly spaced converged poses of each dataset: p, surface offsets (float32), base surface, faces; each pose
+    labelled by its dataset's name (``names``, default the folder's) and index."""
     from offline.dataset.store import PoseDataset
 
     P, off, src = [], [], []
     base = faces = None
-    for root in datasets:
+    labels = [str(r) for r in datasets] if names is None else [str(n) for n in names]
+    for root, label in zip(datasets, labels, strict=True):
         ds = PoseDataset(root)
         idx = ds.usable
         pick = idx[np.linspace(0, len(idx) - 1, min(per_dataset, len(idx))).round().astype(int)]
         P.append(ds.actuators[pick])
         off.append(np.asarray(ds.offsets[pick], dtype=np.float32))
-        src += [f"{Path(root).name}#{i}" for i in pick]
+        src += [f"{Path(label).name}#{i}" for i in pick]
         base, faces = ds.base_vertices, ds.faces
     buf = io.BytesIO()
     np.savez_compressed(buf, p=np.concatenate(P), offsets=np.concatenate(off), base=base, faces=faces,

@@ -123,19 +123,26 @@ def _ok(m: np.ndarray, lo: float, hi: float) -> np.ndarray:
     return (m[:, 0] >= lo) & (m[:, 1] <= hi)
 
 
-def agreement_report(guard: StrainGuard, datasets: Iterable[str | Path]) -> dict[str, Any]:
-    """Guard (full and reduced) vs the FEM measure on every converged pose of the given pose datasets."""
+def agreement_report(guard: StrainGuard, datasets: Iterable[str | Path],
+                     names: Sequence[str] | None = None) -> dict[str, Any]:
+    """Guard (full and reduced) vs the FEM measure on every converged pose of the given pose datasets, each keyed
+    by its name in ``names`` (default its folder) and recorded with its content hash (a dataset and its pack
+    agree)."""
     from offline.dataset.store import PoseDataset, PoseStore
 
     lo, hi = guard.strain_range
     per_set = {}
     all_fem, all_full, all_red = [], [], []
-    for root in datasets:
+    roots = list(datasets)
+    labels = [str(r) for r in roots] if names is None else [str(n) for n in names]
+    if len(labels) != len(roots):
+        raise ValueError(f"{len(labels)} names for {len(roots)} datasets")
+    for root, label in zip(roots, labels, strict=True):
         PoseStore(root).consolidate()  # the poses solved so far (a run may still be adding to it)
         ds = PoseDataset(root)
         idx = ds.usable
         if not np.array_equal(ds.faces, guard.surface.faces):
-            raise ValueError(f"{root}: the dataset's surface triangles differ from the predictor's")
+            raise ValueError(f"{label}: the dataset's surface triangles differ from the predictor's")
         fem_surface = SurfaceStrain(ds.base_vertices, ds.faces, guard.surface.rim_distance, guard.surface.radius,
                                     guard.surface.band)
         P = ds.actuators[idx]
@@ -145,7 +152,7 @@ def agreement_report(guard: StrainGuard, datasets: Iterable[str | Path]) -> dict
         red = np.array([guard.measure(p) for p in P]).reshape(-1, 2)
         ok_fem, ok_full, ok_red = _ok(fem, lo, hi), _ok(full, lo, hi), _ok(red, lo, hi)
         ok_chk = np.array([guard.check(p) for p in P], dtype=bool)
-        per_set[str(root)] = {
+        per_set[label] = {
             "poses": len(idx), "fem_ok_fraction": float(ok_fem.mean()) if len(idx) else None,
             "guard_vs_fem": float((ok_full == ok_fem).mean()) if len(idx) else None,
             "reduced_vs_full": float((ok_red == ok_full).mean()) if len(idx) else None,
@@ -156,7 +163,7 @@ def agreement_report(guard: StrainGuard, datasets: Iterable[str | Path]) -> dict
                                      "max": float(np.abs(full[:, 1] - fem[:, 1]).max()) if len(idx) else None},
             "median_abs_error_vs_fem": {"min": float(np.median(np.abs(full[:, 0] - fem[:, 0]))) if len(idx) else None,
                                         "max": float(np.median(np.abs(full[:, 1] - fem[:, 1]))) if len(idx) else None},
-            "dataset_hash": _dataset_hash(Path(root)),
+            "dataset_hash": ds.content_hash(),
         }
         all_fem.append(fem)
         all_full.append(full)
@@ -191,17 +198,6 @@ def reduced_agreement(guard: StrainGuard, head: HeadSpec, n: int, seed: int, ran
             "check_refuses_full_accepts": int((~ok_chk & ok_full).sum())}
 
 
-def _dataset_hash(root: Path) -> str:
-    """SHA-256 over the dataset's planned poses and every pose file's bytes (sorted by name)."""
-    h = hashlib.sha256()
-    for f in [root / "samples.npy", *sorted((root / "poses").glob("pose_*.npz"))]:
-        if f.exists():
-            h.update(f.name.encode())
-            h.update(f.read_bytes())
-    return h.hexdigest()
-
-
-# ---------------------------------------------------------------------------- refinement
 def refine_uniform(mesh: Any, outer: np.ndarray, triangles: np.ndarray) -> tuple[Any, np.ndarray, np.ndarray]:
     """Split every linear tet into 8 (mid-edge nodes; the same geometry, half the edge length).
 

@@ -113,3 +113,23 @@ def add_skin_problem_arguments(p: argparse.ArgumentParser) -> None:
                    help="1: the mesh's linear tets; 2: the same tets quadratic (mid-edge nodes; about 5x the time "
                    "per Newton iteration, far less discretization error in a thin skin)")
     p.add_argument("--backend", default="auto", help="sparse solver backend for the FEM (auto|cholmod|pardiso|superlu)")
+
+
+def dataset_folder(path: Path, tmp: Path) -> Path:
+    """``path`` itself when it is a dataset folder; a pack file is unpacked (hash-checked) under ``tmp``."""
+    if not path.is_file():
+        return path
+    from offline.dataset.pack import unpack_dataset
+
+    unpack_dataset(path, tmp / "dataset")
+    return tmp / "dataset"
+
+
+def joined_folder(paths: list[Path], tmp: Path) -> Path:
+    """The one dataset folder that ``paths`` name: itself (unpacked if a pack), or the join of several under ``tmp``."""
+    if len(paths) == 1:
+        return dataset_folder(paths[0], tmp)
+    from offline.dataset.merge import merge_datasets
+
+    folders = [dataset_folder(p, tmp / str(i)) for i, p in enumerate(paths)]
+    return merge_datasets(folders, tmp / "joined", names=[str(p) for p in paths]).root

@@ -42,7 +42,7 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from models.errors import ConfigError, UsageError
-    from offline.cli.evaluate import _joined_folder
+    from offline.cli._common import joined_folder
     from offline.dataset.store import PoseDataset
     from offline.train.capacity import fit_subspaces, fitted, floor_summary, max_aimed_fit, rank_floor, strain_summary
     from offline.train.evaluate import evaluate_predictor
@@ -55,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
     goal = args.goal_max_mm * 1e-3
     with tempfile.TemporaryDirectory(prefix="likeness-capacity-") as tmp:
         try:
-            ds = PoseDataset(_joined_folder([Path(d) for d in args.dataset], Path(tmp) / "dataset"))
+            ds = PoseDataset(joined_folder([Path(d) for d in args.dataset], Path(tmp) / "dataset"))
             hidden = resolve_hidden(args.hidden, len(ds.names))
             poses = ds.usable if args.split == "all" else ds.split(args.split)
             if poses.size < 2:
@@ -67,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
                    "floor": {str(h): floor_summary(floors[h], poses, goal) for h in hidden}}
             fresh = None
             if args.project:
-                pds = PoseDataset(_joined_folder([Path(d) for d in args.project], Path(tmp) / "project"))
+                pds = PoseDataset(joined_folder([Path(d) for d in args.project], Path(tmp) / "project"))
                 fresh = (np.asarray(pds.offsets[pds.usable]), pds.usable)
                 if fresh[0].shape[1:] != ds.offsets.shape[1:]:
                     raise ValueError(f"--project poses have {fresh[0].shape[1]} vertices, --dataset "

@@ -22,12 +22,12 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from models.errors import ConfigError, SpecError
-    from offline.cli.evaluate import _dataset_folder
+    from offline.cli._common import dataset_folder
     from offline.dataset.merge import merge_datasets
 
     with tempfile.TemporaryDirectory(prefix="likeness-merge-") as tmp:
         try:
-            folders = [_dataset_folder(Path(d), Path(tmp) / str(i)) for i, d in enumerate(args.dataset)]
+            folders = [dataset_folder(Path(d), Path(tmp) / str(i)) for i, d in enumerate(args.dataset)]
             ds = merge_datasets(folders, args.out, names=args.dataset)
         except SpecError:
             raise

@@ -35,37 +35,18 @@ def run(args: argparse.Namespace) -> int:
     import tempfile
 
     from models.errors import ConfigError
+    from offline.cli._common import joined_folder
     from offline.train.evaluate import REPORT_NAME
 
     report = Path(args.report) if args.report else Path(args.predictor).with_name(REPORT_NAME)
     with tempfile.TemporaryDirectory(prefix="likeness-eval-") as tmp:
         try:
-            dataset = _joined_folder([Path(d) for d in args.dataset], Path(tmp))
+            dataset = joined_folder([Path(d) for d in args.dataset], Path(tmp))
             result = _evaluate(args, report, dataset)
         except (ValueError, FileNotFoundError) as exc:
             raise ConfigError(str(exc)) from exc
     print(json.dumps(result, indent=1))
     return 0 if result.get("matches", True) else 1
-
-
-def _dataset_folder(path: Path, tmp: Path) -> Path:
-    """``path`` itself when it is a dataset folder; a pack file is unpacked (hash-checked) under ``tmp``."""
-    if not path.is_file():
-        return path
-    from offline.dataset.pack import unpack_dataset
-
-    unpack_dataset(path, tmp / "dataset")
-    return tmp / "dataset"
-
-
-def _joined_folder(paths: list[Path], tmp: Path) -> Path:
-    """The one dataset folder that ``paths`` name: itself (unpacked if a pack), or the join of several under ``tmp``."""
-    if len(paths) == 1:
-        return _dataset_folder(paths[0], tmp)
-    from offline.dataset.merge import merge_datasets
-
-    folders = [_dataset_folder(p, tmp / str(i)) for i, p in enumerate(paths)]
-    return merge_datasets(folders, tmp / "joined", names=[str(p) for p in paths]).root
 
 
 def _evaluate(args: argparse.Namespace, report: Path, dataset: Path) -> dict[str, Any]:

@@ -40,7 +40,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
     e = gs.add_parser("evaluate", help="agreement of the guard with the FEM measure on pose datasets (JSON)")
     e.add_argument("--config", required=True)
-    e.add_argument("--dataset", nargs="+", required=True, help="pose dataset folders (likeness offline dataset)")
+    e.add_argument("--dataset", nargs="+", required=True,
+                   help="pose datasets: folders (likeness offline dataset) or packs (.npz from "
+                   "`likeness offline dataset-pack`, unpacked to a temporary folder and hash-checked); the report "
+                   "names each as given")
     e.add_argument("--out", required=True, help="report .json")
     e.add_argument("--sample-out", help="also write a small test sample (.npz): evenly spaced poses of each dataset")
     e.add_argument("--sample-size", type=int, default=12, help="poses per dataset in --sample-out (default 12)")
@@ -102,13 +105,18 @@ def run_performances(args: argparse.Namespace) -> int:
 
 def run_evaluate(args: argparse.Namespace) -> int:
     """Write the agreement report (and the test sample)."""
+    import tempfile
+
     from models.headspec import load_head
+    from offline.cli._common import dataset_folder
     from offline.guard_reports import agreement, write_json, write_sample
 
-    report = agreement(load_head(args.config), args.config, args.dataset, args.fresh, _command())
-    write_json(args.out, report)
-    if args.sample_out:
-        write_sample(args.sample_out, args.dataset, args.sample_size, _command())
+    with tempfile.TemporaryDirectory(prefix="likeness-guard-") as tmp:
+        folders = [dataset_folder(Path(d), Path(tmp) / str(i)) for i, d in enumerate(args.dataset)]
+        report = agreement(load_head(args.config), args.config, folders, args.fresh, _command(), names=args.dataset)
+        write_json(args.out, report)
+        if args.sample_out:
+            write_sample(args.sample_out, folders, args.sample_size, _command(), names=args.dataset)
     print(f"{report['poses']} poses: guard vs FEM {report['guard_vs_fem']:.4f}, reduced vs full "
           f"{report['reduced_vs_full']:.4f} -> {args.out}")
     return 0

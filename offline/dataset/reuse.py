@@ -45,6 +45,9 @@ def reuse_solved(store: PoseStore, source: str | Path, indices: Iterable[int]) -
     state, iterations, time) and takes the planned pose's own index and values."""
     src = PoseStore(source)
     check_same_physics(store, src)
+    if not src.poses_dir.is_dir():
+        raise SpecError(str(source), "poses", "holds no pose files to take over (an unpacked pack keeps only the "
+                        "surfaces, not the solver states a reused pose carries); solve the poses instead")
     by_pose: dict[tuple[float, ...], int] = {}
     for j in sorted(src.done()):
         rec = src.read_pose(j)

@@ -196,7 +196,13 @@ class PoseStore:
 
     # ------------------------------------------------------------------ consolidation
     def consolidate(self) -> Path:
-        """Gather every pose file into ``actuators.npy``, ``offsets.npy`` (memory-mapped) and ``status.npy``."""
+        """Gather every pose file into ``actuators.npy``, ``offsets.npy`` (memory-mapped) and ``status.npy``.
+
+        A dataset already consolidated with no pose files (an unpacked pack) is left as it is: there is nothing to
+        gather, and rewriting it would mark every pose unsolved."""
+        if not self.poses_dir.is_dir() and (self.root / "offsets.npy").exists() \
+                and (self.root / "status.npy").exists():
+            return self.root
         samples = self.samples()
         base = self.base()["vertices"]
         n, v = samples.shape[0], base.shape[0]

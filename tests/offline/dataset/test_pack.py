@@ -19,7 +19,7 @@ from offline.active.pool import load_benchmark_data
 from offline.dataset.generate import generate_dataset
 from offline.dataset.pack import pack_dataset, read_header, unpack_dataset
 from offline.dataset.sampling import sample_poses
-from offline.dataset.store import PoseDataset
+from offline.dataset.store import PoseDataset, PoseStore
 from offline.dataset.synthetic import SyntheticSpec
 from offline.engine import SerialEngine
 
@@ -61,6 +61,18 @@ def test_a_pack_unpacks_to_the_same_dataset_and_the_benchmark_reads_it_as_the_or
     np.save(tmp_path / "out" / "actuators.npy", np.asarray(ds.actuators) + 1.0)
     with pytest.raises(SpecError, match="different dataset"):
         unpack_dataset(tmp_path / "ds.npz", tmp_path / "out")
+
+
+def test_consolidating_an_unpacked_pack_keeps_its_poses(dataset, tmp_path):
+    """An unpacked pack has no pose files to gather: consolidating it (as the guard's report does) changes
+    nothing."""
+    pack_dataset(dataset, tmp_path / "p.npz")
+    unpack_dataset(tmp_path / "p.npz", tmp_path / "u")
+    before = PoseDataset(tmp_path / "u").content_hash()
+    PoseStore(tmp_path / "u").consolidate()
+    after = PoseDataset(tmp_path / "u")
+    assert after.content_hash() == before == PoseDataset(dataset).content_hash()
+    assert len(after.usable) > 0
 
 
 def test_a_damaged_pack_is_refused_and_leaves_no_dataset_behind(dataset, tmp_path):

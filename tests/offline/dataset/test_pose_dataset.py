@@ -190,3 +190,9 @@ def test_a_dataset_takes_over_the_poses_an_earlier_one_of_the_same_problem_solve
     other = SyntheticSpec(tuple(lo), tuple(hi), grid=6, amplitude=0.005)
     with pytest.raises(SpecError, match="problem"):
         run(head, tmp_path / "c", other, second, SerialEngine(), reuse=tmp_path / "a")
+    from offline.dataset.pack import pack_dataset, unpack_dataset
+
+    pack_dataset(tmp_path / "a", tmp_path / "a.npz")
+    unpack_dataset(tmp_path / "a.npz", tmp_path / "a-unpacked")
+    with pytest.raises(SpecError, match="no pose files"):  # an unpacked pack has no solver states to take over
+        run(head, tmp_path / "d", spec, second, SerialEngine(), reuse=tmp_path / "a-unpacked")
