@@ -6,8 +6,9 @@ dataset (folder or pack) with the most triangles whose strain error exceeds ``--
 this solves each pose on the head's FEM (quadratic tets) three ways — from rest, along a path (the pose at half
 its values first, then the pose from that state), and from the state of the dataset's nearest other pose (itself
 solved from rest) — and writes, per pose and start, how far the solution lies from the stored label (surface
-distance, principal-strain difference) beside the predictor's strain error against the label and against that
-solution. Run from the repository root::
+distance, principal-strain difference) beside the predictor's strain error and largest vertex error against the
+label and against that solution. ``--pose-index`` names the poses instead (the dataset's own indices, e.g. a split's
+worst poses from ``likeness offline evaluate --worst``). Run from the repository root::
 
     python -m tools.fem_branches --config heads/sample/head.toml --mesh heads/sample/skin \\
         --dataset heads/sample/predictor_fresh.npz --predictor heads/sample/predictor.onnx --poses 8 \\
@@ -59,6 +60,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--dataset", required=True, help="pose dataset folder or pack (its labels are judged)")
     ap.add_argument("--predictor", required=True)
     ap.add_argument("--poses", type=int, default=8)
+    ap.add_argument("--pose-index", type=int, nargs="+", default=None,
+                    help="solve these dataset poses (indices into the dataset) instead of the --poses worst")
     ap.add_argument("--strain", type=float, default=0.02, help="strain error that counts a triangle (default 0.02)")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--out", required=True)
@@ -85,7 +88,14 @@ def main(argv: list[str] | None = None) -> int:
     pred = SkinPredictor(args.predictor)
     net = base + np.asarray(pred.predict_offsets(P), dtype=np.float64)
     err = np.array([_strain_error(base, faces, net[k], labels[k]) for k in range(len(idx))])
-    worst = np.argsort(-(err > args.strain).sum(axis=1), kind="stable")[:args.poses]
+    if args.pose_index is None:
+        worst = np.argsort(-(err > args.strain).sum(axis=1), kind="stable")[:args.poses]
+    else:
+        where = {int(i): k for k, i in enumerate(idx)}
+        missing = [i for i in args.pose_index if i not in where]
+        if missing:
+            ap.error(f"--pose-index {missing}: not the 0-based index of a converged pose of {args.dataset}")
+        worst = np.array([where[i] for i in args.pose_index])
     span = np.array([a.max - a.min for a in head.actuators])
     jobs = []
     for k in worst:
@@ -100,14 +110,17 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for k in worst:
         row: dict[str, Any] = {"pose_index": int(idx[k]), "triangles_over": int((err[k] > args.strain).sum()),
-                               "predictor_vs_label_p99": float(np.percentile(err[k], 99))}
+                               "predictor_vs_label_p99": float(np.percentile(err[k], 99)),
+                               "predictor_max_distance_to_label_mm": float(
+                                   np.linalg.norm(net[k] - labels[k], axis=1).max() * 1e3)}
         for how, (surf, conv, secs) in solved[int(k)].items():
             vs_label = _strain_error(base, faces, surf, labels[k])
             row[how] = {"converged": conv, "seconds": secs,
                         "max_distance_to_label_mm": float(np.linalg.norm(surf - labels[k], axis=1).max() * 1e3),
                         "max_strain_difference_to_label": float(vs_label.max()),
                         "triangles_over_vs_label": int((vs_label > args.strain).sum()),
-                        "predictor_vs_this_p99": float(np.percentile(_strain_error(base, faces, net[k], surf), 99))}
+                        "predictor_vs_this_p99": float(np.percentile(_strain_error(base, faces, net[k], surf), 99)),
+                        "predictor_max_distance_to_this_mm": float(np.linalg.norm(net[k] - surf, axis=1).max() * 1e3)}
         rows.append(row)
     other = [r["pose_index"] for r in rows
              if any(r[h]["max_distance_to_label_mm"] > 0.01 for h in ("rest", "path", "nearest"))]
@@ -115,7 +128,8 @@ def main(argv: list[str] | None = None) -> int:
               "inputs": {"config": {"path": args.config, "sha256": file_hash(args.config)},
                          "predictor": {"path": args.predictor, "sha256": file_hash(args.predictor)},
                          "dataset": {"path": args.dataset, "content_hash": dataset_hash}},
-              "settings": {"poses": args.poses, "strain": args.strain, "element_order": 2},
+              "settings": {"poses": args.poses, "pose_index": args.pose_index, "strain": args.strain,
+                           "element_order": 2},
               "poses_with_another_equilibrium": other, "poses": rows}
     write_json(args.out, report)
     print(f"{len(rows)} poses; another equilibrium (> 0.01 mm from the label) at {other or 'none'} -> {args.out}")
